@@ -1,0 +1,34 @@
+# icco-torchrl: every target sets up .venv on first use.
+PYTHON     ?= python3
+VENV       ?= .venv
+TORCH_SPEC ?= torch==2.13.0
+PY         := $(VENV)/bin/python
+STAMP      := $(VENV)/.installed
+ARGS       ?=
+
+.PHONY: install test bench train eval sweep clean
+
+install: $(STAMP)
+
+$(STAMP): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q "$(TORCH_SPEC)"
+	$(PY) -m pip install -q -e ".[dev]"
+	touch $(STAMP)
+
+test: $(STAMP)
+	OMP_NUM_THREADS=1 $(PY) -m pytest tests $(ARGS)
+
+bench: $(STAMP)
+	$(PY) benchmarks/env_throughput.py $(ARGS)
+	$(PY) benchmarks/loss_step.py $(ARGS)
+
+train: $(STAMP)
+	$(VENV)/bin/icco train $(ARGS)
+
+eval: $(STAMP)
+	$(VENV)/bin/icco eval $(ARGS)
+
+clean:
+	rm -rf $(VENV) outputs multirun runs wandb .pytest_cache
