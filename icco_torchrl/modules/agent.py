@@ -1,0 +1,79 @@
+"""Local agent: a recurrent Q-network shared by all robots (parameter sharing).
+
+Input per robot: its observation (own state, own waypoints, visible entities), optionally
+the global state (QMIX (FULL)), its previous action and its TACI ``z^i``. Core: encoder ->
+GRU -> Q head on ``[GRU output; z]`` (COPA's player). The same ``nn.GRU`` runs one step at
+collection time and a whole segment in one call at training time.
+"""
+from __future__ import annotations
+
+import torch
+from tensordict.nn import TensorDictModule
+from torch import nn
+
+from icco_torchrl.envs.resource_collection import N_ACTIONS, ObsLayout
+from icco_torchrl.modules.encoders import make_encoder
+
+
+class RecurrentQNet(nn.Module):
+    """Q-values ``[..., N, n_actions]`` from observations, previous actions, z and a GRU state."""
+
+    def __init__(self, layout: ObsLayout, *, hidden: int = 64, z_dim: int = 0, full_state: bool = False,
+                 encoder: str = "attention", n_actions: int = N_ACTIONS):
+        super().__init__()
+        self.hidden, self.z_dim, self.full_state, self.n_actions = hidden, z_dim, full_state, n_actions
+        extra = layout.state_dim if full_state else 0  # QMIX (FULL): the global state joins the own token
+        self.encoder = make_encoder(encoder, own_dim=layout.own_dim + extra, n_entities=layout.n_entities,
+                                    entity_dim=layout.entity_dim, hidden=hidden)
+        self._own_dim = layout.own_dim
+        self.embed = nn.Sequential(nn.Linear(hidden + n_actions, hidden), nn.ReLU())
+        self.gru = nn.GRU(hidden, hidden, batch_first=True)
+        self.head = nn.Sequential(nn.Linear(hidden + z_dim, hidden), nn.ReLU(), nn.Linear(hidden, n_actions))
+
+    def _features(self, obs, prev_action, state):
+        if self.full_state:
+            state = state.unsqueeze(-2).expand(*obs.shape[:-1], state.shape[-1])
+            obs = torch.cat([obs[..., : self._own_dim], state, obs[..., self._own_dim:]], -1)
+        prev = nn.functional.one_hot(prev_action.long(), self.n_actions).to(obs.dtype)
+        return self.embed(torch.cat([self.encoder(obs), prev], -1))
+
+    def _q(self, h, z):
+        return self.head(torch.cat([h, z], -1) if self.z_dim else h)
+
+    def forward(self, obs, prev_action, hidden, step_count, z=None, state=None):
+        """One step for ``[B, N, ...]`` inputs; the hidden state restarts at zero when step_count == 0."""
+        hidden = hidden * (step_count != 0).unsqueeze(-1).to(hidden.dtype)
+        x = self._features(obs, prev_action, state)
+        lead = x.shape[:-1]
+        out, _ = self.gru(x.reshape(-1, 1, self.hidden), hidden.reshape(1, -1, self.hidden).contiguous())
+        h = out.reshape(*lead, self.hidden)
+        return self._q(h, z), h
+
+    def sequence(self, obs, prev_action, hidden0, z=None, state=None):
+        """A segment in one GRU call: inputs ``[S, L, N, ...]``, ``hidden0 [S, N, H]`` -> Q ``[S, L, N, A]``."""
+        x = self._features(obs, prev_action, state)
+        S, L, N, H = x.shape
+        out, _ = self.gru(x.permute(0, 2, 1, 3).reshape(S * N, L, H), hidden0.reshape(1, S * N, H).contiguous())
+        h = out.reshape(S, N, L, H).permute(0, 2, 1, 3)
+        return self._q(h, z)
+
+
+def make_agent(layout: ObsLayout, *, hidden: int = 64, z_dim: int = 0, full_state: bool = False,
+               encoder: str = "attention", obs_key=("agents", "observation"), state_key="state",
+               action_key=("agents", "action")) -> TensorDictModule:
+    """The agent as a TensorDictModule for collection (one step).
+
+    in:  ``obs_key``, ``("agents", "prev_action")``, ``("agents", "rnn_hidden")``, ``"step_count"``,
+         [``("agents", "z")``], [``state_key`` for full_state]
+    out: ``("agents", "action_value")``, ``("next", "agents", "rnn_hidden")``
+    """
+    group = action_key[:-1] if isinstance(action_key, tuple) else ()
+    net = RecurrentQNet(layout, hidden=hidden, z_dim=z_dim, full_state=full_state, encoder=encoder)
+    in_keys = {"obs": obs_key, "prev_action": (*group, "prev_action"), "hidden": (*group, "rnn_hidden"),
+               "step_count": "step_count"}  # forward argument -> tensordict key
+    if z_dim:
+        in_keys["z"] = (*group, "z")
+    if full_state:
+        in_keys["state"] = state_key
+    return TensorDictModule(net, in_keys=in_keys,
+                            out_keys=[(*group, "action_value"), ("next", *group, "rnn_hidden")])

@@ -1,0 +1,99 @@
+"""Coordinator g_phi(s_t, v_t) -> N(mu, sigma) per robot: the TACI z broadcast to the agents.
+
+It reads the global state (which carries every robot's waypoints) as tokens, lets each
+robot token attend over all tokens, and emits a diagonal Gaussian per robot (log-variance
+clamped to [-10, 0] as in COPA). During rollouts z is redrawn every ``period`` steps (when
+``step_count % period == 0``) and held in between; the noise is kept in the TensorDict so the
+loss can rebuild the very z the agents acted on, with gradient (reparameterisation).
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+from tensordict.nn import TensorDictModule
+from torch import nn
+from torchrl.envs.utils import ExplorationType, exploration_type
+
+from icco_torchrl.envs.resource_collection import ObsLayout
+
+LOGVAR_MIN, LOGVAR_MAX = -10.0, 0.0
+
+
+class StateTokenEncoder(nn.Module):
+    """Per-robot features ``[..., N, hidden]`` from the flat global state."""
+
+    def __init__(self, layout: ObsLayout, hidden: int, kind: str = "attention"):
+        super().__init__()
+        self.kind, self.n_agents = kind, layout.n_agents
+        self.n_tokens, self.token_dim = layout.state_tokens, layout.state_token_dim
+        if kind == "attention":
+            self.embed = nn.Linear(self.token_dim, hidden)
+            self.attn = nn.MultiheadAttention(hidden, num_heads=4, batch_first=True)
+            self.out = nn.Sequential(nn.Linear(2 * hidden, hidden), nn.ReLU())
+        elif kind == "mlp":
+            self.net = nn.Sequential(nn.Linear(layout.state_dim, hidden), nn.ReLU(),
+                                     nn.Linear(hidden, self.n_agents * hidden), nn.ReLU())
+        else:
+            raise ValueError(f"encoder must be 'attention' or 'mlp', got {kind!r}")
+        self.hidden = hidden
+
+    def forward(self, state: torch.Tensor) -> torch.Tensor:
+        lead = state.shape[:-1]
+        if self.kind == "mlp":
+            return self.net(state).reshape(*lead, self.n_agents, self.hidden)
+        tokens = torch.relu(self.embed(state.reshape(-1, self.n_tokens, self.token_dim)))
+        agents = tokens[:, : self.n_agents]
+        read, _ = self.attn(agents, tokens, tokens, need_weights=False)
+        return self.out(torch.cat([agents, read], -1)).reshape(*lead, self.n_agents, self.hidden)
+
+
+class Coordinator(nn.Module):
+    """Gaussian TACI per robot; ``forward`` is the rollout step (sample/hold), ``distribution`` the net."""
+
+    def __init__(self, layout: ObsLayout, *, z_dim: int = 32, hidden: int = 64, period: int = 4,
+                 encoder: str = "attention"):
+        super().__init__()
+        if period < 1:
+            raise ValueError(f"period must be >= 1, got {period}")
+        self.z_dim, self.period = z_dim, period
+        self.encoder = StateTokenEncoder(layout, hidden, encoder)
+        self.loc = nn.Linear(hidden, z_dim)
+        self.logvar = nn.Linear(hidden, z_dim)
+
+    def distribution(self, state: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(loc, scale)``, each ``[..., N, z_dim]``."""
+        h = self.encoder(state)
+        logvar = self.logvar(h).clamp(LOGVAR_MIN, LOGVAR_MAX)
+        return self.loc(h), (0.5 * logvar).exp()
+
+    def forward(self, state, step_count, z_prev, noise_prev):
+        """Redraw z where ``step_count % period == 0`` (mean when exploration is deterministic)."""
+        loc, scale = self.distribution(state)
+        if exploration_type() in (ExplorationType.RANDOM, None):
+            noise = torch.randn_like(loc)
+        else:
+            noise = torch.zeros_like(loc)
+        fresh = (step_count % self.period == 0).unsqueeze(-1)                     # [B, 1, 1]
+        noise = torch.where(fresh, noise, noise_prev)
+        z = torch.where(fresh, loc + scale * noise, z_prev)
+        return z, noise, loc, scale
+
+
+def gaussian_entropy(scale: torch.Tensor) -> torch.Tensor:
+    """Closed-form entropy of a diagonal Gaussian, summed over the last dim."""
+    return (0.5 * math.log(2 * math.pi * math.e) + scale.log()).sum(-1)
+
+
+def make_coordinator(layout: ObsLayout, *, z_dim: int = 32, hidden: int = 64, period: int = 4,
+                     encoder: str = "attention", state_key="state", group="agents") -> TensorDictModule:
+    """The coordinator as a TensorDictModule for rollouts.
+
+    in:  ``state_key``, ``"step_count"``, ``(group, "z")`` and ``(group, "z_noise")`` (held values)
+    out: ``(group, "z")``, ``(group, "z_noise")``, ``(group, "z_loc")``, ``(group, "z_scale")``
+    """
+    net = Coordinator(layout, z_dim=z_dim, hidden=hidden, period=period, encoder=encoder)
+    return TensorDictModule(
+        net, in_keys={"state": state_key, "step_count": "step_count", "z_prev": (group, "z"),
+                      "noise_prev": (group, "z_noise")},
+        out_keys=[(group, "z"), (group, "z_noise"), (group, "z_loc"), (group, "z_scale")])

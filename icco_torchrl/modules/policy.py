@@ -1,0 +1,46 @@
+"""The collection/evaluation policy and the env primer that carries its recurrent state.
+
+Policy = [coordinator] -> agent -> greedy Q (``QValueModule``) -> epsilon-greedy
+(``EGreedyModule``, active only under RANDOM exploration) -> record the action as next step's
+``prev_action``. Under ``ExplorationType.DETERMINISTIC`` the same policy is greedy and the
+coordinator emits its mean: that is the evaluation policy.
+"""
+from __future__ import annotations
+
+import torch
+from tensordict.nn import TensorDictModule, TensorDictSequential
+from torch import nn
+from torchrl.data import Categorical, Composite, Unbounded
+from torchrl.envs import TensorDictPrimer
+from torchrl.modules import EGreedyModule, QValueModule
+
+from icco_torchrl.envs.resource_collection import N_ACTIONS
+
+
+def make_primer(n_agents: int, hidden: int, z_dim: int = 0, device="cpu") -> TensorDictPrimer:
+    """Zeros at reset for the per-robot GRU state, previous action and (with a coordinator) z."""
+    entries = dict(rnn_hidden=Unbounded((n_agents, hidden), device=device),
+                   prev_action=Categorical(N_ACTIONS, (n_agents,), dtype=torch.int64, device=device))
+    if z_dim:
+        entries.update(z=Unbounded((n_agents, z_dim), device=device),
+                       z_noise=Unbounded((n_agents, z_dim), device=device))
+    return TensorDictPrimer(Composite(agents=Composite(entries, shape=(n_agents,), device=device), device=device),
+                            expand_specs=True)
+
+
+def make_policy(agent: TensorDictModule, action_spec, coordinator: TensorDictModule | None = None, *,
+                eps_init: float = 1.0, eps_end: float = 0.05, annealing_num_steps: int = 1) -> TensorDictSequential:
+    """``action_spec``: the env's unbatched full action spec (``env.full_action_spec_unbatched``)."""
+    q_value = QValueModule(action_value_key=("agents", "action_value"),
+                           out_keys=[("agents", "action"), ("agents", "action_value"), ("agents", "chosen_action_value")],
+                           spec=action_spec, action_space=None)
+    explore = EGreedyModule(spec=action_spec, eps_init=eps_init, eps_end=eps_end,
+                            annealing_num_steps=annealing_num_steps, action_key=("agents", "action"))
+    remember = TensorDictModule(nn.Identity(), in_keys=[("agents", "action")], out_keys=[("next", "agents", "prev_action")])
+    modules = ([coordinator] if coordinator is not None else []) + [agent, q_value, explore, remember]
+    return TensorDictSequential(*modules)
+
+
+def exploration_module(policy: TensorDictSequential) -> EGreedyModule:
+    """The policy's EGreedyModule (its ``eps`` buffer is the exploration rate)."""
+    return next(m for m in policy.module if isinstance(m, EGreedyModule))

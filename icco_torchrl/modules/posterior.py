@@ -1,0 +1,98 @@
+"""Variational posterior q_xi(z_t | zeta_t, s_t, v_t) of the consistency (CE) term.
+
+It factorises over the segment that follows a broadcast (SPEC section 1):
+``q ∝ q^(t)(z | s_t, a_t, v_t) · Π_k q^(k)(z | o_k, a_k, v_k)``. Every factor is a diagonal
+Gaussian per robot. ``combine="product"`` multiplies them (precision-weighted Gaussian, the
+exact reading of the formula); ``combine="sum"`` adds the factors' log-likelihoods (COPA's
+code). Both are tested against hand computations.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+from tensordict.nn import TensorDictModule
+from torch import nn
+
+from icco_torchrl.envs.resource_collection import N_ACTIONS, ObsLayout
+from icco_torchrl.modules.coordinator import LOGVAR_MAX, LOGVAR_MIN
+
+_LOG_2PI = math.log(2 * math.pi)
+
+
+def _gaussian_head(in_dim: int, hidden: int, z_dim: int) -> nn.Module:
+    return nn.Sequential(nn.Linear(in_dim, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU(),
+                         nn.Linear(hidden, 2 * z_dim))
+
+
+def _split(out: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    loc, logvar = out.chunk(2, -1)
+    return loc, (0.5 * logvar.clamp(LOGVAR_MIN, LOGVAR_MAX)).exp()
+
+
+def diag_normal_log_prob(x, loc, scale):
+    """log N(x; loc, diag scale^2), summed over the last dim."""
+    return (-0.5 * ((x - loc) / scale) ** 2 - scale.log() - 0.5 * _LOG_2PI).sum(-1)
+
+
+def combine_log_prob(z, loc, scale, mask, combine: str = "product"):
+    """log q(z) from factors ``loc/scale [S, K, N, Z]`` with ``mask [S, K]``; z ``[S, N, Z]`` -> ``[S, N]``.
+
+    Every row must have at least one valid factor (the first, the broadcast step, always is).
+    """
+    m = mask.to(loc.dtype)[..., None, None]                                        # [S, K, 1, 1]
+    if combine == "product":
+        precision = (m / scale ** 2).sum(1)
+        mean = (m * loc / scale ** 2).sum(1) / precision
+        return diag_normal_log_prob(z, mean, precision.rsqrt())
+    if combine == "sum":
+        return (mask.to(loc.dtype)[..., None] * diag_normal_log_prob(z.unsqueeze(1), loc, scale)).sum(1)
+    raise ValueError(f"combine must be 'product' or 'sum', got {combine!r}")
+
+
+class Posterior(nn.Module):
+    """Factors: global ``(state, joint action, robot id)`` at the broadcast step, local ``(o, a)`` after."""
+
+    def __init__(self, layout: ObsLayout, *, z_dim: int = 32, hidden: int = 64, combine: str = "product",
+                 n_actions: int = N_ACTIONS):
+        super().__init__()
+        if combine not in ("product", "sum"):
+            raise ValueError(f"combine must be 'product' or 'sum', got {combine!r}")
+        self.n_agents, self.n_actions, self.combine = layout.n_agents, n_actions, combine
+        self.first = _gaussian_head(layout.state_dim + layout.n_agents * (n_actions + 1), hidden, z_dim)
+        self.later = _gaussian_head(layout.obs_dim + n_actions, hidden, z_dim)
+
+    def factors(self, state, action, obs):
+        """Segment ``state [S, T, D]``, ``action [S, T, N]``, ``obs [S, T, N, F]`` -> loc, scale ``[S, T, N, Z]``.
+
+        Factor 0 reads the global state and joint action of the broadcast step; factor k >= 1
+        reads robot i's own observation and action at step k.
+        """
+        S, T, N = action.shape
+        onehot = nn.functional.one_hot(action.long(), self.n_actions).to(state.dtype)           # [S, T, N, A]
+        eye = torch.eye(N, device=state.device, dtype=state.dtype).expand(S, N, N)
+        joint = onehot[:, 0].reshape(S, 1, -1).expand(S, N, -1)
+        first = self.first(torch.cat([state[:, 0].unsqueeze(1).expand(S, N, -1), joint, eye], -1)).unsqueeze(1)
+        later = self.later(torch.cat([obs[:, 1:], onehot[:, 1:]], -1))
+        return _split(torch.cat([first, later], 1))
+
+    def forward(self, z, state, action, obs, mask):
+        """log q(z | segment) ``[S, N]``; z ``[S, N, Z]`` (or ``[S, T, N, Z]``: its first step is scored).
+
+        ``mask [S, T]`` marks the steps that belong to z's hold period (the broadcast step first).
+        """
+        if z.dim() == 4:
+            z = z[:, 0]
+        loc, scale = self.factors(state, action, obs)
+        return combine_log_prob(z, loc, scale, mask, self.combine)
+
+
+def make_posterior(layout: ObsLayout, *, z_dim: int = 32, hidden: int = 64, combine: str = "product") -> TensorDictModule:
+    """Used inside the loss only (it reads whole segments, see ``ICCOLoss``).
+
+    in:  ``("agents", "z")``, ``"state"``, ``("agents", "action")``, ``("agents", "observation")`` and
+         ``"posterior_mask"`` (all ``[S, T, ...]``); out: ``("agents", "log_q")``
+    """
+    net = Posterior(layout, z_dim=z_dim, hidden=hidden, combine=combine)
+    return TensorDictModule(net, in_keys=[("agents", "z"), "state", ("agents", "action"), ("agents", "observation"),
+                                          "posterior_mask"], out_keys=[("agents", "log_q")])

@@ -1,0 +1,253 @@
+"""ICCOLoss: QMIX TD loss conditioned on the coordinator's z, plus the consistency (CE) term.
+
+One loss covers every Q-learning method of the paper:
+
+=================  ==========================  ==================
+method             modules                     flags
+=================  ==========================  ==================
+ICCO               agent(z), coordinator,      ce_coef > 0
+                   mixer, posterior
+ICCO w/o CE        agent(z), coordinator, mixer ce_coef = 0
+QMIX               agent, mixer                (no coordinator)
+QMIX (FULL)        agent(full_state), mixer    (no coordinator)
+=================  ==========================  ==================
+
+Input: segments ``[S, T]`` (TorchRL layout, time last) that start at a broadcast step
+(``step_count % period == 0``), as cut by :class:`icco_torchrl.training.SegmentBuffer`.
+
+Recurrent state (R2D2 "stored state"): the agent's GRU starts from the hidden state recorded at
+the segment's first step during collection, and the whole segment (T+1 observations: the T
+steps and the final next-observation) runs through one ``nn.GRU`` call for the online and one
+for the target network. Steps after an episode end inside a segment are masked out.
+
+z: the online z of the segment is rebuilt as ``mu_phi(s_0) + sigma_phi(s_0) * eps_0`` with the
+noise ``eps_0`` stored at collection, so gradients of L_RL reach the coordinator through z. The
+bootstrap at a new broadcast step uses the target coordinator with fresh noise (COPA).
+
+L_CE = ce_coef * (-log q_xi(z_0 | zeta, s_0, v_0)) + entropy_coef * (-H(N(mu_phi(s_0), sigma_phi(s_0)))).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDict, TensorDictBase, TensorDictParams
+from tensordict.nn import TensorDictModule
+from tensordict.utils import NestedKey
+from torchrl.objectives import LossModule
+
+from icco_torchrl.modules.coordinator import gaussian_entropy
+
+
+class NonFiniteLossError(FloatingPointError):
+    """Raised instead of stepping an optimiser on a NaN/inf loss."""
+
+
+class ICCOLoss(LossModule):
+    """TD + consistency loss over segments for ICCO and its QMIX baselines.
+
+    Args:
+        agent: TensorDictModule wrapping a :class:`~icco_torchrl.modules.RecurrentQNet` (shared by robots).
+        mixer: TensorDictModule wrapping a monotone mixer ``(Q [.., N, 1], state) -> [.., 1]``.
+        coordinator: TensorDictModule wrapping a :class:`~icco_torchrl.modules.Coordinator`, or None (QMIX).
+        posterior: TensorDictModule wrapping a :class:`~icco_torchrl.modules.Posterior`, or None.
+
+    Keyword Args:
+        gamma: discount.
+        double_q: bootstrap with the online argmax evaluated by the target networks.
+        ce_coef: weight of ``-log q`` (COPA: 1e-3); 0 disables the CE term (ICCO w/o CE).
+        entropy_coef: weight of ``-H`` (COPA: 1e-4).
+        check_finite: raise :class:`NonFiniteLossError` on a NaN/inf loss (one host sync per call).
+    """
+
+    @dataclass
+    class _AcceptedKeys:
+        """Every key the loss reads; rename with ``set_keys(...)``.
+
+        ``reward``, ``done`` and ``terminated`` are read under ``"next"``; ``mask`` is optional
+        (absent means every step is valid).
+        """
+
+        observation: NestedKey = ("agents", "observation")
+        state: NestedKey = "state"
+        action: NestedKey = ("agents", "action")
+        prev_action: NestedKey = ("agents", "prev_action")
+        rnn_hidden: NestedKey = ("agents", "rnn_hidden")
+        z: NestedKey = ("agents", "z")
+        z_noise: NestedKey = ("agents", "z_noise")
+        step_count: NestedKey = "step_count"
+        reward: NestedKey = "reward"
+        done: NestedKey = "done"
+        terminated: NestedKey = "terminated"
+        mask: NestedKey = "mask"
+
+    default_keys = _AcceptedKeys
+    tensor_keys: _AcceptedKeys
+
+    agent: TensorDictModule
+    agent_params: TensorDictParams
+    target_agent_params: TensorDictParams
+    mixer: TensorDictModule
+    mixer_params: TensorDictParams
+    target_mixer_params: TensorDictParams
+    coordinator: TensorDictModule
+    coordinator_params: TensorDictParams
+    target_coordinator_params: TensorDictParams
+
+    def __init__(self, agent: TensorDictModule, mixer: TensorDictModule, coordinator: TensorDictModule | None = None,
+                 posterior: TensorDictModule | None = None, *, gamma: float = 0.99, double_q: bool = True,
+                 ce_coef: float = 1e-3, entropy_coef: float = 1e-4, check_finite: bool = True):
+        super().__init__()
+        if not 0 <= gamma <= 1:
+            raise ValueError(f"gamma must be in [0, 1], got {gamma}")
+        if ce_coef < 0 or entropy_coef < 0:
+            raise ValueError(f"ce_coef and entropy_coef must be >= 0, got {ce_coef}, {entropy_coef}")
+        self.has_coordinator = coordinator is not None
+        if self.has_coordinator != bool(agent.module.z_dim):
+            raise ValueError("the agent takes z (z_dim > 0) exactly when a coordinator is given")
+        if ce_coef > 0 and self.has_coordinator and posterior is None:
+            raise ValueError("ce_coef > 0 needs a posterior module")
+        self.gamma, self.double_q, self.check_finite = float(gamma), double_q, check_finite
+        self.use_ce = self.has_coordinator and (ce_coef > 0 or entropy_coef > 0)
+        self.ce_coef, self.entropy_coef = float(ce_coef), float(entropy_coef)
+        self.convert_to_functional(agent, "agent", create_target_params=True)
+        self.convert_to_functional(mixer, "mixer", create_target_params=True)
+        if self.has_coordinator:
+            self.convert_to_functional(coordinator, "coordinator", create_target_params=True)
+            self.period = coordinator.module.period
+        # The posterior has no target copy: it only appears in L_CE.
+        self.posterior = posterior if self.has_coordinator and ce_coef > 0 else None
+
+    def _forward_value_estimator_keys(self, **kwargs) -> None:  # no value estimator: keys are read directly
+        pass
+
+    # ------------------------------------------------------------------ input checks
+    def _get(self, td: TensorDictBase, key: NestedKey, expected: str, ndim: int | None = None, trailing=None):
+        value = td.get(key, None)
+        if value is None:
+            raise KeyError(f"ICCOLoss needs key {key!r} with shape {expected}; present: "
+                           f"{sorted(map(str, td.keys(True, True)))[:20]}")
+        if (ndim is not None and value.dim() != ndim) or (trailing is not None and tuple(value.shape[2:]) != trailing):
+            raise ValueError(f"ICCOLoss: key {key!r} must have shape {expected}, got {list(value.shape)}")
+        return value
+
+    def _read(self, td: TensorDictBase) -> dict[str, torch.Tensor]:
+        if td.batch_dims != 2:
+            raise ValueError(f"ICCOLoss expects segments with batch [S, T] (time last), got batch {list(td.batch_size)}")
+        k, net = self.tensor_keys, self.agent.module
+        S, T = td.batch_size
+        N = self._get(td, k.action, "[S, T, N]", ndim=3).shape[-1]
+        obs_shape = (N, self._get(td, k.observation, "[S, T, N, obs_dim]", ndim=4).shape[-1])
+        out = dict(
+            obs=self._get(td, k.observation, "[S, T, N, obs_dim]", trailing=obs_shape),
+            next_obs=self._get(td, ("next", k.observation), "[S, T, N, obs_dim]", trailing=obs_shape),
+            action=td.get(k.action),
+            prev_action=self._get(td, k.prev_action, "[S, T, N]", trailing=(N,)),
+            hidden=self._get(td, k.rnn_hidden, f"[S, T, N, {net.hidden}]", trailing=(N, net.hidden)),
+            state=self._get(td, k.state, "[S, T, state_dim]", ndim=3),
+            next_state=self._get(td, ("next", k.state), "[S, T, state_dim]", ndim=3),
+            reward=self._get(td, ("next", k.reward), "[S, T, 1]", trailing=(1,)),
+            terminated=self._get(td, ("next", k.terminated), "[S, T, 1]", trailing=(1,)),
+        )
+        mask = td.get(k.mask, None)
+        out["mask"] = torch.ones(S, T, dtype=torch.bool, device=td.device) if mask is None else mask.reshape(S, T).bool()
+        if self.has_coordinator:
+            z_shape = (N, net.z_dim)
+            out["z"] = self._get(td, k.z, f"[S, T, N, {net.z_dim}]", trailing=z_shape)
+            out["z_noise"] = self._get(td, k.z_noise, f"[S, T, N, {net.z_dim}]", trailing=z_shape)
+            out["step_count"] = self._get(td, k.step_count, "[S, T, 1]", trailing=(1,)).squeeze(-1)
+            out["next_step_count"] = self._get(td, ("next", k.step_count), "[S, T, 1]", trailing=(1,)).squeeze(-1)
+        return out
+
+    # ------------------------------------------------------------------ pieces
+    def _z_sequences(self, x: dict, params: TensorDictParams, first_noise: torch.Tensor, fresh_noise: torch.Tensor):
+        """z for the T+1 inputs of the segment under ``params``, plus (loc, scale) at step 0.
+
+        Step 0: rebuilt from the stored noise if it is a broadcast step, else the stored z. Step
+        k+1: a new draw at ``next_state[k]`` where ``next step_count % period == 0``, else held.
+        """
+        with params.to_module(self.coordinator):
+            loc0, scale0 = self.coordinator.module.distribution(x["state"][:, 0])
+            loc_n, scale_n = self.coordinator.module.distribution(x["next_state"])
+        broadcast0 = (x["step_count"][:, 0] % self.period == 0)[:, None, None]
+        z0 = torch.where(broadcast0, loc0 + scale0 * first_noise, x["z"][:, 0])
+        new = (x["next_step_count"] % self.period == 0)[..., None, None]                        # [S, T, 1, 1]
+        z_next = torch.where(new, loc_n + scale_n * fresh_noise, z0.unsqueeze(1))
+        return torch.cat([z0.unsqueeze(1), z_next], 1), loc0, scale0
+
+    def _q_sequence(self, params: TensorDictParams, x: dict, z_seq: torch.Tensor | None) -> torch.Tensor:
+        obs = torch.cat([x["obs"][:, :1], x["next_obs"]], 1)                                     # [S, T+1, N, F]
+        prev = torch.cat([x["prev_action"][:, :1], x["action"]], 1)
+        state = torch.cat([x["state"][:, :1], x["next_state"]], 1)
+        with params.to_module(self.agent):
+            return self.agent.module.sequence(obs, prev, x["hidden"][:, 0], z=z_seq,
+                                              state=state if self.agent.module.full_state else None)
+
+    def _mix(self, params: TensorDictParams, q: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
+        with params.to_module(self.mixer):
+            return self.mixer.module(q.unsqueeze(-1).contiguous(), state.contiguous())          # [S, T, 1]
+
+    # ------------------------------------------------------------------ forward
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        x = self._read(tensordict)
+        S, T = tensordict.batch_size
+        mask = x["mask"]
+        z_on = z_tgt = None
+        if self.has_coordinator:
+            fresh = torch.randn_like(x["z_noise"])                                               # [S, T, N, Z]
+            z_on, loc0, scale0 = self._z_sequences(x, self.coordinator_params, x["z_noise"][:, 0], fresh)
+            with torch.no_grad():
+                z_tgt, _, _ = self._z_sequences(x, self.target_coordinator_params, x["z_noise"][:, 0], fresh)
+
+        q_online = self._q_sequence(self.agent_params, x, z_on)                                 # [S, T+1, N, A]
+        chosen = q_online[:, :T].gather(-1, x["action"].long().unsqueeze(-1)).squeeze(-1)        # [S, T, N]
+        q_tot = self._mix(self.mixer_params, chosen, x["state"])
+        with torch.no_grad():
+            q_target = self._q_sequence(self.target_agent_params, x, z_tgt)[:, 1:]
+            greedy_source = q_online[:, 1:] if self.double_q else q_target
+            greedy = greedy_source.argmax(-1, keepdim=True)
+            next_value = q_target.gather(-1, greedy).squeeze(-1)
+            q_tot_next = self._mix(self.target_mixer_params, next_value, x["next_state"])
+            target = x["reward"] + self.gamma * (~x["terminated"]).to(q_tot.dtype) * q_tot_next
+
+        td_error = (q_tot - target).squeeze(-1)                                                  # [S, T]
+        weight = mask.to(td_error.dtype)
+        n_valid = weight.sum().clamp_min(1.0)
+        loss_td = (weight * td_error.pow(2)).sum() / n_valid
+        out = {"loss_td": loss_td,
+               "q_taken": (weight.unsqueeze(-1) * chosen.detach()).sum() / (n_valid * chosen.shape[-1]),
+               "q_tot": (weight * q_tot.detach().squeeze(-1)).sum() / n_valid,
+               "td_error": (weight * td_error.detach().abs()).sum() / n_valid}
+        if self.use_ce:
+            out.update(self._consistency(x, z_on[:, 0], loc0, scale0, mask))
+        if self.check_finite:
+            bad = [name for name, v in out.items() if name.startswith("loss_") and not torch.isfinite(v).all()]
+            if bad:
+                raise NonFiniteLossError(f"non-finite loss terms {bad}: "
+                                         + ", ".join(f"{n}={float(v):.4g}" for n, v in out.items()))
+        return TensorDict(out, [])
+
+    def _consistency(self, x: dict, z0, loc0, scale0, mask) -> dict[str, torch.Tensor]:
+        """L_CE on segments whose first step is a broadcast; factors limited to z0's hold period."""
+        starts = x["step_count"][:, 0] % self.period == 0                                        # [S]
+        period_id = x["step_count"] // self.period
+        held = mask & (period_id == period_id[:, :1]) & starts[:, None]                          # [S, T]
+        w = starts.to(z0.dtype)
+        denom = (w.sum() * z0.shape[1]).clamp_min(1.0)
+        entropy = (w[:, None] * gaussian_entropy(scale0)).sum() / denom
+        out = {"entropy": entropy.detach(), "ce_neg_entropy": -self.entropy_coef * entropy}
+        loss = out["ce_neg_entropy"]
+        if self.posterior is not None:
+            # Rows that start mid-period keep one (dummy) factor so the product stays defined.
+            factor_mask = held | (~starts[:, None] & (torch.arange(held.shape[1], device=held.device) == 0))
+            log_q = self.posterior.module(z0, x["state"], x["action"], x["obs"], factor_mask)       # [S, N]
+            mean_log_q = (w[:, None] * log_q).sum() / denom
+            out.update(log_q=mean_log_q.detach(), ce_nll=-self.ce_coef * mean_log_q)
+            loss = loss + out["ce_nll"]
+        out["loss_ce"] = loss
+        return out
+
+
+def total_loss(losses: TensorDictBase) -> torch.Tensor:
+    """Sum of the ``loss_*`` entries (the convention of TorchRL losses)."""
+    return sum(v for k, v in losses.items() if k.startswith("loss_"))
