@@ -1,0 +1,3 @@
+from icco_torchrl.cli import main
+
+main()

@@ -1,0 +1,73 @@
+"""``icco train|eval|instruct [hydra overrides]`` (also ``python -m icco_torchrl ...``).
+
+Hydra composes ``conf/`` (``--help``, ``-m`` multirun and launcher overrides all work); the
+result is validated against the typed schema before any work starts.
+"""
+from __future__ import annotations
+
+import sys
+
+USAGE = """usage: icco {train,eval,instruct} [overrides...]
+
+  icco train                                   ICCO on the default budget (CPU, offline)
+  icco train method=qmix experiment=smoke      another method, a seconds-long run
+  icco train -m method=icco,qmix seed=0,1,2    a Hydra multirun sweep
+  icco train resume=runs/icco/.../checkpoint.pt
+  icco eval checkpoint=runs/icco/.../checkpoint.pt [eval.protocol=quadrants] [eval.gif=true]
+  icco instruct "Go right" checkpoint=...      run a trained policy with a language instruction
+"""
+
+
+def _run(command: str) -> None:
+    import hydra
+    from hydra.core.hydra_config import HydraConfig
+    from omegaconf import DictConfig
+
+    from icco_torchrl.training.build import CONF_DIR
+    from icco_torchrl.training.config import ConfigError, validate
+
+    @hydra.main(config_path=str(CONF_DIR), config_name="config", version_base=None)
+    def main(raw: DictConfig) -> float | None:
+        try:
+            cfg = validate(raw)
+        except ConfigError as err:
+            print(f"icco {command}: {err}", file=sys.stderr)
+            raise SystemExit(2) from None
+        run_dir = HydraConfig.get().runtime.output_dir
+        if command == "train":
+            from icco_torchrl.training.trainer import train
+
+            return train(cfg, run_dir).get("reward")
+        if command == "eval":
+            from icco_torchrl.evaluation.cli import run_eval
+
+            return run_eval(cfg, run_dir)
+        from icco_torchrl.instructions.cli import run_instruct
+
+        return run_instruct(cfg, run_dir, _INSTRUCTION)
+
+    main()
+
+
+_INSTRUCTION: str = ""
+
+
+def main(argv: list[str] | None = None) -> None:
+    global _INSTRUCTION
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if not argv or argv[0] in ("-h", "--help", "help") or argv[0] not in ("train", "eval", "instruct"):
+        print(USAGE)
+        raise SystemExit(0 if argv and argv[0] in ("-h", "--help", "help") else 2)
+    command, rest = argv[0], argv[1:]
+    if command == "instruct":
+        if not rest or "=" in rest[0] or rest[0].startswith("-"):
+            print('icco instruct: give the instruction first, e.g. icco instruct "Go right" checkpoint=PATH',
+                  file=sys.stderr)
+            raise SystemExit(2)
+        _INSTRUCTION, rest = rest[0], rest[1:]
+    sys.argv = [f"icco {command}", *rest]
+    _run(command)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,37 @@
+"""Greedy evaluation episodes: the policy acts deterministically (argmax Q, coordinator mean)."""
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDictBase
+from torchrl.envs import EnvBase
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+EVENT_KEYS = ("pick", "collect", "defense", "invasion", "inst_reward")
+
+
+def greedy_rollout(env: EnvBase, policy, steps: int, tensordict: TensorDictBase | None = None) -> TensorDictBase:
+    """``[num_envs, steps]`` rollout under deterministic exploration, without gradients."""
+    with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+        return env.rollout(steps, policy, break_when_any_done=False, auto_reset=tensordict is None,
+                           tensordict=tensordict)
+
+
+def episode_metrics(rollout: TensorDictBase) -> dict[str, torch.Tensor]:
+    """Per-env totals over the rollout's time dim: team ``reward`` and each event count."""
+    nxt = rollout.get("next")
+    out = {"reward": nxt.get("reward").sum((-2, -1)).float()}
+    for key in EVENT_KEYS:
+        out[key] = nxt.get(("events", key)).sum(-1).float()
+    return out
+
+
+def evaluate(env: EnvBase, policy, *, steps: int | None = None) -> dict[str, float]:
+    """Mean and std over the env batch of one greedy episode's totals (``reward``, ``reward_std``, ...)."""
+    if steps is None:
+        steps = getattr(env, "base_env", env).max_steps
+    metrics = episode_metrics(greedy_rollout(env, policy, steps))
+    out = {}
+    for key, value in metrics.items():
+        out[key] = value.mean().item()
+        out[f"{key}_std"] = value.std(unbiased=False).item()
+    return out

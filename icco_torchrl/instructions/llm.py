@@ -1,0 +1,398 @@
+"""Language layer: instruction + agent positions -> per-agent waypoints, through litellm.
+
+The policy is trained without an LLM and executed with one (ICCO, "training
+without LLM, execution with LLM"): at evaluation this module turns an order
+such as "Go right" into K waypoints per agent, the instruction vectors.
+
+- Prompts live in ``prompts/*.txt`` and follow the paper: the field anchored in
+  2-D (+x right, +y up), "STRICTLY COMPLY with the following order", and two
+  stages, Movement Strategy then Trajectory Generation. ``tap`` is the
+  task-aligned prompt (task, rewards, resources, invader) of the QMIX-TAP baseline.
+- Both stages live in one JSON object, ``movement_strategy`` first, because a
+  strict JSON-schema ``response_format`` leaves a model no room for prose
+  outside the JSON. Replies are validated here anyway (providers differ in how
+  well they honour a schema) and the last JSON object in the text is used.
+- Any litellm model works (``openai/gpt-4o``, ``ollama_chat/llama3.1``, ...);
+  API keys are read by litellm from the environment and never touched here.
+  The default ``offline/rule-planner`` is a deterministic rule-based planner
+  (NOT an LLM, see :mod:`.planner`) registered as a litellm custom provider,
+  so the offline path is the same code path as a real model.
+- Bad output is a normal event: retried within ``max_retries`` (with the
+  reason fed back), then replaced by a fallback and recorded; never raised.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import re
+import time
+from dataclasses import dataclass
+from functools import cache
+from pathlib import Path
+from string import Template
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from .llm_cache import ResponseCache, cache_key
+from .planner import DEFAULT_MODEL, register_offline_provider
+
+logger = logging.getLogger(__name__)
+
+PROMPTS = ("plain", "tap")
+# Default litellm model per ``backend`` name; any other backend string is taken as a model.
+BACKEND_MODELS = {"offline": DEFAULT_MODEL, "openai": "openai/gpt-4o", "ollama": "ollama_chat/llama3.1"}
+ABSURD_FACTOR = 10.0  # |coordinate| > ABSURD_FACTOR * field_size: the reply is nonsense, not merely off-field
+_SHOWN_CHARS = 2000  # raw replies in logs and retry feedback are cut to this length
+
+
+@dataclass
+class PlanResult:
+    """Outcome of one planning request.
+
+    ``waypoints`` is always usable ([n_agents, K, 2] float32, inside the field),
+    even when ``ok`` is False: it is then the ``fallback`` ("previous" or
+    "positions") and ``error`` / ``raw`` say what went wrong.
+    """
+
+    waypoints: np.ndarray
+    ok: bool
+    attempts: int
+    fallback: str | None = None
+    error: str | None = None
+    raw: str | None = None
+    cached: bool = False
+
+
+class ReplyError(ValueError):
+    """A reply that cannot be turned into waypoints (worth asking again)."""
+
+
+class PlannerDeclined(ReplyError):
+    """The backend answered ``{"error": ...}``: it says it cannot do this order."""
+
+
+@cache
+def _template(name: str) -> Template:
+    return Template((Path(__file__).with_name("prompts") / f"{name}.txt").read_text(encoding="utf-8"))
+
+
+def _litellm() -> Any:
+    """Import litellm on first use (it takes seconds) without its network fetch at import."""
+    os.environ.setdefault("LITELLM_LOCAL_MODEL_COST_MAP", "True")
+    import litellm
+
+    litellm.suppress_debug_info = True
+    register_offline_provider(litellm)
+    return litellm
+
+
+def _points(values: Any, name: str) -> np.ndarray:
+    """An array-like of 2-D points (or None / one point) as a finite float64 [M, 2] array."""
+    points = np.zeros((0, 2)) if values is None else np.asarray(values, dtype=np.float64)
+    if points.ndim == 1 and points.size == 2:
+        points = points[None]
+    if points.ndim != 2 or points.shape[1] != 2 or not np.isfinite(points).all():
+        raise ValueError(f"{name} must be finite [n, 2] coordinates, got shape {points.shape}")
+    return points
+
+
+def _listing(label: str, points: np.ndarray) -> str:
+    return "\n".join(f"- {label}_{i}: ({x:.2f}, {y:.2f})" for i, (x, y) in enumerate(points)) or "- none"
+
+
+def _as_json(points: np.ndarray) -> str:
+    return json.dumps(np.round(points, 3).tolist())
+
+
+def _agent_keys(n_agents: int) -> list[str]:
+    return [f"agent_{i}" for i in range(n_agents)]
+
+
+def build_messages(
+    instruction: str,
+    positions: np.ndarray,
+    *,
+    prompt: str = "plain",
+    n_waypoints: int = 4,
+    field_size: float = 6.5,
+    resources: np.ndarray | None = None,
+    invader: np.ndarray | None = None,
+) -> list[dict[str, str]]:
+    """System + user messages from ``prompts/{system,prompt}.txt``.
+
+    Positions appear twice: readable lines for the model and a ``POSITIONS_JSON``
+    line that the offline planner parses (exactly, instead of guessing from prose).
+    """
+    half = field_size / 2.0
+    keys = _agent_keys(len(positions))
+    trajectory = "[" + ", ".join(["[x, y]"] * n_waypoints) + "]"
+    example = "{" + ", ".join(['"movement_strategy": "..."'] + [f'"{k}": {trajectory}' for k in keys]) + "}"
+    resources, invader = _points(resources, "resources"), _points(invader, "invader")
+    user = _template(prompt).substitute(
+        x_min=-half, x_max=half, y_min=-half, y_max=half,
+        field_json=json.dumps({"x": [-half, half], "y": [-half, half], "home": [0.0, 0.0]}),
+        n_agents=len(positions), agent_lines=_listing("agent", positions), positions_json=_as_json(positions),
+        resource_lines=_listing("resource", resources), resources_json=_as_json(resources),
+        invader_lines=_listing("invader", invader), invader_json=_as_json(invader),
+        instruction_json=json.dumps(instruction, ensure_ascii=False),
+        n_waypoints=n_waypoints, agent_keys=", ".join(f'"{k}"' for k in keys), example=example,
+    )  # fmt: skip
+    return [{"role": "system", "content": _template("system").template.strip()}, {"role": "user", "content": user}]
+
+
+def response_format(n_agents: int, n_waypoints: int) -> dict[str, Any]:
+    """JSON-schema ``response_format``: fixed agent keys, exactly K [x, y] pairs each.
+
+    Fixed keys and item counts bound the reply's length (a schema with an
+    open-ended list let small local models ramble until max_tokens).
+    """
+    pair = {"type": "array", "items": {"type": "number"}, "minItems": 2, "maxItems": 2}
+    trajectory = {"type": "array", "items": pair, "minItems": n_waypoints, "maxItems": n_waypoints}
+    keys = _agent_keys(n_agents)
+    schema = {
+        "type": "object",
+        "properties": {"movement_strategy": {"type": "string"}, **{k: trajectory for k in keys}},
+        "required": ["movement_strategy", *keys],
+        "additionalProperties": False,
+    }
+    return {"type": "json_schema", "json_schema": {"name": "waypoints", "strict": True, "schema": schema}}
+
+
+def last_json_object(text: str) -> dict[str, Any] | None:
+    """The last top-level JSON object in ``text``, ignoring prose and code fences around it."""
+    decoder = json.JSONDecoder()
+    found, index = None, text.find("{")
+    while index != -1:
+        try:
+            value, end = decoder.raw_decode(text, index)
+        except ValueError:
+            index = text.find("{", index + 1)
+            continue
+        if isinstance(value, dict):
+            found = value
+        index = text.find("{", end)
+    return found
+
+
+def _number(value: Any) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ReplyError(f"coordinate {value!r} is not a number")
+    return float(value)
+
+
+def _waypoint(value: Any) -> tuple[float, float]:
+    if isinstance(value, dict) and set(value) == {"x", "y"}:
+        return _number(value["x"]), _number(value["y"])
+    if isinstance(value, list) and len(value) == 2:
+        return _number(value[0]), _number(value[1])
+    raise ReplyError(f"waypoint {value!r} is not an [x, y] pair")
+
+
+def parse_reply(raw: str | None, n_agents: int, n_waypoints: int, field_size: float) -> np.ndarray:
+    """Validated waypoints [n_agents, n_waypoints, 2] (float64, clipped to the field).
+
+    Raises :class:`ReplyError` for an empty reply, no JSON, the wrong agent
+    keys or shape, NaN/inf, or coordinates beyond ``ABSURD_FACTOR * field_size``
+    (a model that far off misunderstood the frame; clipping would hide it).
+    """
+    if raw is None or not raw.strip():
+        raise ReplyError("empty reply")
+    reply = last_json_object(raw)
+    if reply is None:
+        raise ReplyError("no JSON object in the reply")
+    agents = sorted(k for k in reply if re.fullmatch(r"agent_\d+", k))
+    if not agents and "error" in reply:
+        raise PlannerDeclined(f"planner declined: {reply['error']}")
+    if set(agents) != set(_agent_keys(n_agents)):
+        raise ReplyError(f"expected keys agent_0..agent_{n_agents - 1}, got {agents}")
+    waypoints = np.empty((n_agents, n_waypoints, 2))
+    for i in range(n_agents):
+        trajectory = reply[f"agent_{i}"]
+        if not isinstance(trajectory, list) or len(trajectory) != n_waypoints:
+            raise ReplyError(f"agent_{i} must be a list of {n_waypoints} [x, y] waypoints, got {trajectory!r}")
+        waypoints[i] = [_waypoint(point) for point in trajectory]
+    if not np.isfinite(waypoints).all():
+        raise ReplyError("non-finite coordinate (NaN or infinity)")
+    if np.abs(waypoints).max() > ABSURD_FACTOR * field_size:
+        raise ReplyError(f"absurd coordinate {np.abs(waypoints).max():g} for a {field_size:g} m field")
+    return np.clip(waypoints, -field_size / 2.0, field_size / 2.0)
+
+
+class LLMPlanner:
+    """Plans waypoints with any litellm model; never raises on bad model output.
+
+    ``stats`` counts plan ``calls``, ``backend_calls`` (litellm requests),
+    ``failures`` (rejected attempts), ``fallbacks`` and ``cache_hits``, for
+    evaluation metrics. ``backoff_s`` is the pause after a provider exception
+    (doubling per attempt; not after a bad reply, which is re-asked at once).
+    """
+
+    def __init__(
+        self,
+        model: str = DEFAULT_MODEL,
+        api_base: str | None = None,
+        temperature: float = 0.0,
+        timeout: float = 10.0,
+        max_retries: int = 2,
+        cache_dir: str | os.PathLike[str] | None = None,
+        prompt: str = "plain",
+        n_waypoints: int = 4,
+        field_size: float = 6.5,
+        backoff_s: float = 0.5,
+    ) -> None:
+        if prompt not in PROMPTS:
+            raise ValueError(f"prompt must be one of {PROMPTS}, got {prompt!r}")
+        if n_waypoints < 1 or max_retries < 0 or field_size <= 0:
+            raise ValueError("need n_waypoints >= 1, max_retries >= 0 and field_size > 0")
+        self.model, self.api_base, self.temperature, self.timeout = model, api_base, temperature, timeout
+        self.max_retries, self.prompt, self.n_waypoints, self.field_size = max_retries, prompt, n_waypoints, field_size
+        self.backoff_s = backoff_s
+        self.cache = ResponseCache(cache_dir)
+        self.stats = {"calls": 0, "backend_calls": 0, "failures": 0, "fallbacks": 0, "cache_hits": 0}
+
+    @classmethod
+    def from_config(cls, cfg: Mapping[str, Any], *, field_size: float = 6.5) -> LLMPlanner:
+        """Build from a ``conf/llm/*.yaml`` group: ``timeout_s`` is ``timeout``, and a
+        null ``model`` means the ``backend``'s default model. Unknown keys raise TypeError."""
+        kwargs = {("timeout" if k == "timeout_s" else k): v for k, v in dict(cfg).items() if k != "backend"}
+        if kwargs.get("model") is None:
+            backend = str(cfg.get("backend", "offline"))
+            kwargs["model"] = BACKEND_MODELS.get(backend, backend)
+        return cls(field_size=field_size, **kwargs)
+
+    def plan(
+        self,
+        instruction: str,
+        positions: Any,
+        previous: Any = None,
+        *,
+        resources: Any = None,
+        invader: Any = None,
+        mock_response: str | BaseException | Sequence[str | BaseException] | None = None,
+    ) -> PlanResult:
+        """Waypoints for ``instruction`` given agent ``positions`` [N, 2] (metres).
+
+        ``resources`` [R, 2] and ``invader`` [I, 2] fill the task-aligned prompt.
+        ``previous`` [N, K, 2] is the fallback when every attempt fails (else the
+        current positions, i.e. "stay"). ``mock_response`` is passed to litellm
+        (tests); a sequence gives one entry per attempt, the last one repeating.
+        """
+        pos = _points(positions, "positions")
+        messages = build_messages(instruction, pos, prompt=self.prompt, n_waypoints=self.n_waypoints,
+                                  field_size=self.field_size, resources=resources, invader=invader)  # fmt: skip
+        fmt = response_format(len(pos), self.n_waypoints)
+        key = cache_key(self.model, messages, {"response_format": fmt, "temperature": self.temperature})
+        self.stats["calls"] += 1
+        cached = self.cache.get(key)
+        if cached is not None:
+            try:
+                waypoints = parse_reply(cached, len(pos), self.n_waypoints, self.field_size)
+            except ReplyError as exc:
+                logger.warning("ignoring invalid cached LLM reply (%s); asking %s again", exc, self.model)
+            else:
+                self.stats["cache_hits"] += 1
+                return PlanResult(waypoints.astype(np.float32), ok=True, attempts=0, raw=cached, cached=True)
+
+        conversation, raw, error, attempt, declined = messages, None, "", 0, False
+        for attempt in range(1, self.max_retries + 2):
+            raw = None
+            try:
+                raw = self._complete(conversation, fmt, _nth(mock_response, attempt - 1))
+                waypoints = parse_reply(raw, len(pos), self.n_waypoints, self.field_size)
+            except PlannerDeclined as exc:
+                error, declined = str(exc), True
+            except ReplyError as exc:
+                error = str(exc)
+                conversation = messages + self._feedback(raw, error, len(pos))
+            except Exception as exc:  # timeouts, auth, rate limits, provider bugs: all just a failed attempt
+                error = f"{type(exc).__name__}: {exc}"
+                if attempt <= self.max_retries and self.backoff_s > 0:
+                    time.sleep(self.backoff_s * 2 ** (attempt - 1))
+            else:
+                self.cache.put(key, raw, model=self.model, messages=messages)
+                return PlanResult(waypoints.astype(np.float32), ok=True, attempts=attempt, raw=raw)
+            self.stats["failures"] += 1
+            logger.warning("LLM %s attempt %d/%d for %r failed: %s; raw reply: %r", self.model, attempt,
+                           self.max_retries + 1, instruction, error, _shown(raw))  # fmt: skip
+            if declined:
+                break  # an explicit "cannot do this" is an answer, not noise: asking again changes nothing
+        return self._fallback(instruction, pos, previous, attempt, error, raw)
+
+    def _complete(self, messages: list[dict[str, str]], fmt: dict[str, Any], mock: Any) -> str | None:
+        litellm = _litellm()
+        extra = {} if mock is None else {"mock_response": mock}
+        self.stats["backend_calls"] += 1
+        # max_retries=0: plan()'s loop owns the retry budget, not the OpenAI client inside litellm.
+        # drop_params: a provider without JSON-schema support gets the prompt alone (we validate anyway).
+        response = litellm.completion(
+            model=self.model, messages=messages, response_format=fmt, temperature=self.temperature,
+            timeout=self.timeout, api_base=self.api_base, max_retries=0, drop_params=True, **extra,
+        )  # fmt: skip
+        return response.choices[0].message.content
+
+    def _feedback(self, raw: str | None, error: str, n_agents: int) -> list[dict[str, str]]:
+        """Show the model its rejected reply and why, as RoCo-style re-prompting does."""
+        retry = _template("retry").substitute(
+            error=error, agent_keys=", ".join(f'"{k}"' for k in _agent_keys(n_agents)), n_waypoints=self.n_waypoints
+        )
+        return [{"role": "assistant", "content": _shown(raw) or "(empty)"}, {"role": "user", "content": retry}]
+
+    def _fallback(self, instruction: str, pos: np.ndarray, previous: Any, attempts: int, error: str,
+                  raw: str | None) -> PlanResult:  # fmt: skip
+        shape = (len(pos), self.n_waypoints, 2)
+        prev = None if previous is None else np.asarray(previous, dtype=np.float64)
+        if prev is not None and prev.shape == shape and np.isfinite(prev).all():
+            fallback, waypoints = "previous", prev
+        else:
+            fallback, waypoints = "positions", np.broadcast_to(pos[:, None], shape)
+        waypoints = np.clip(waypoints, -self.field_size / 2.0, self.field_size / 2.0).astype(np.float32)
+        self.stats["fallbacks"] += 1
+        logger.warning("LLM %s gave no usable plan for %r after %d attempt(s) (%s); falling back to %s",
+                       self.model, instruction, attempts, error, fallback)  # fmt: skip
+        return PlanResult(waypoints, ok=False, attempts=attempts, fallback=fallback, error=error, raw=raw)
+
+
+def _nth(mock: Any, index: int) -> Any:
+    if isinstance(mock, (list, tuple)):
+        return mock[min(index, len(mock) - 1)]
+    return mock
+
+
+def _shown(raw: str | None) -> str | None:
+    return None if raw is None else raw[:_SHOWN_CHARS]
+
+
+_PLANNER_ARGS = ("model", "api_base", "temperature", "timeout", "max_retries", "cache_dir", "prompt", "backoff_s")
+
+
+def plan_waypoints(
+    instruction: str,
+    positions: Any,
+    *,
+    backend: str = "offline",
+    n_waypoints: int = 4,
+    field_size: float = 6.5,
+    **context: Any,
+) -> np.ndarray:
+    """Waypoints [n_agents, n_waypoints, 2] (float32) for ``instruction``: the strict wrapper.
+
+    ``backend`` is "offline" (the rule planner), "openai", "ollama" or any
+    litellm model string; ``context`` carries ``resources``, ``invader``,
+    ``previous``, ``mock_response`` and the :class:`LLMPlanner` settings
+    (``model`` overrides the backend's default model). With the offline
+    backend an instruction it does not understand raises ``ValueError`` naming
+    it; other backends return the planner's (possibly fallback) waypoints.
+    """
+    unknown = set(context) - set(_PLANNER_ARGS) - {"resources", "invader", "previous", "mock_response"}
+    if unknown:
+        raise TypeError(f"plan_waypoints() got unexpected context {sorted(unknown)}")
+    settings = {k: context.pop(k) for k in _PLANNER_ARGS if k in context}
+    settings.setdefault("model", BACKEND_MODELS.get(backend, backend))
+    planner = LLMPlanner(n_waypoints=n_waypoints, field_size=field_size, **settings)
+    result = planner.plan(instruction, positions, **context)
+    if backend == "offline" and not result.ok:
+        raise ValueError(f"the offline rule planner does not understand the instruction {instruction!r}: {result.error}")
+    return result.waypoints

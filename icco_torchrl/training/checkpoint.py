@@ -1,0 +1,61 @@
+"""Atomic checkpoints (temp file + rename) and clear errors for bad ones."""
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import torch
+
+
+class CheckpointError(RuntimeError):
+    """A checkpoint is missing, unreadable, or does not match the requested config."""
+
+
+FORMAT_VERSION = 1
+
+
+def save_checkpoint(path: str | Path, payload: dict[str, Any]) -> Path:
+    """Write ``payload`` so that a crash never leaves a half-written file at ``path``."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as handle:
+            torch.save({"format_version": FORMAT_VERSION, **payload}, handle)
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return path
+
+
+def load_checkpoint(path: str | Path, map_location="cpu") -> dict[str, Any]:
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"checkpoint not found: {path}")
+    try:
+        payload = torch.load(path, map_location=map_location, weights_only=False)
+    except Exception as err:  # torch raises several types for truncated/corrupt files
+        raise CheckpointError(f"checkpoint {path} is truncated or not a checkpoint ({type(err).__name__}: {err})") from None
+    if not isinstance(payload, dict) or payload.get("format_version") != FORMAT_VERSION:
+        raise CheckpointError(f"{path} is not an icco-torchrl checkpoint of format {FORMAT_VERSION}")
+    return payload
+
+
+def check_compatible(saved_cfg: dict, cfg: dict, path: str | Path) -> None:
+    """Refuse a checkpoint whose method, model sizes or env layout differ from ``cfg``."""
+    diffs = []
+    for section in ("method",):
+        for key in sorted(set(saved_cfg[section]) | set(cfg[section])):
+            if key != "name" and saved_cfg[section].get(key) != cfg[section].get(key):
+                diffs.append(f"{section}.{key}: checkpoint {saved_cfg[section].get(key)!r} vs config {cfg[section].get(key)!r}")
+    for key in ("n_agents", "n_resources", "n_invaders", "n_waypoints"):
+        a, b = saved_cfg["env"]["params"].get(key), cfg["env"]["params"].get(key)
+        if a != b:
+            diffs.append(f"env.params.{key}: checkpoint {a!r} vs config {b!r}")
+    if diffs:
+        raise CheckpointError(f"checkpoint {path} was trained with an incompatible config: " + "; ".join(diffs))

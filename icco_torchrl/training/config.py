@@ -1,0 +1,163 @@
+"""Typed schema of the Hydra config: unknown or ill-typed fields fail before any work starts.
+
+The YAML tree under ``conf/`` is composed by Hydra, then merged into these dataclasses with
+OmegaConf in struct mode, so a typo (``train.totl_frames``) or a wrong type
+(``train.total_frames=lots``) raises a ``ConfigError`` naming the field. Field meanings are
+commented in the YAML files.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Optional
+
+import torch
+from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
+
+
+class ConfigError(ValueError):
+    """A config value is missing, unknown, ill-typed or out of range."""
+
+
+@dataclass
+class MethodConfig:
+    name: str = "icco"
+    coordinator: bool = True
+    full_state: bool = False
+    ce_coef: float = 1e-3
+    entropy_coef: float = 1e-4
+    posterior: str = "product"
+    encoder: str = "attention"
+    hidden: int = 64
+    z_dim: int = 32
+    period: int = 4
+
+
+@dataclass
+class EnvConfig:
+    name: str = "resource_collection"
+    num_envs: int = 32
+    params: dict = field(default_factory=dict)
+
+
+@dataclass
+class TrainConfig:
+    total_frames: int = 600_000
+    steps_per_batch: int = 16
+    buffer_segments: int = 20_000
+    batch_segments: int = 128
+    updates_per_batch: int = 2
+    warmup_segments: int = 512
+    lr: float = 3e-4
+    optimizer: str = "rmsprop"
+    grad_clip: float = 10.0
+    gamma: float = 0.99
+    double_q: bool = True
+    target_update: str = "hard"
+    target_update_interval: int = 200
+    tau: float = 0.005
+    eps_init: float = 1.0
+    eps_end: float = 0.05
+    eps_decay_frames: int = 400_000
+    eval_interval: int = 100_000
+    eval_envs: int = 16
+    checkpoint_interval: int = 200_000
+    threads: int = 1
+
+
+@dataclass
+class WandbConfig:
+    mode: str = "disabled"
+    project: str = "icco-torchrl"
+    entity: Optional[str] = None
+    group: Optional[str] = None
+
+
+@dataclass
+class LoggerConfig:
+    progress: bool = True
+    log_interval: int = 1
+    wandb: WandbConfig = field(default_factory=WandbConfig)
+
+
+@dataclass
+class EvalConfig:
+    protocol: str = "random_walk"
+    trials: int = 20
+    episodes: int = 1
+    gif: bool = False
+    out_dir: Optional[str] = None
+
+
+@dataclass
+class Config:
+    seed: int = 0
+    device: str = "auto"
+    resume: Optional[str] = None
+    checkpoint: Optional[str] = None
+    method: MethodConfig = field(default_factory=MethodConfig)
+    env: EnvConfig = field(default_factory=EnvConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+    logger: LoggerConfig = field(default_factory=LoggerConfig)
+    eval: EvalConfig = field(default_factory=EvalConfig)
+    llm: Any = None
+
+
+_CHOICES = {
+    "method.posterior": ("product", "sum"), "method.encoder": ("attention", "mlp"),
+    "train.optimizer": ("rmsprop", "adam"), "train.target_update": ("hard", "soft"),
+    "logger.wandb.mode": ("disabled", "offline", "online"),
+}
+_POSITIVE = ("env.num_envs", "train.total_frames", "train.steps_per_batch", "train.buffer_segments",
+             "train.batch_segments", "train.target_update_interval", "train.eval_envs", "train.threads",
+             "method.hidden", "method.period", "eval.trials", "eval.episodes", "logger.log_interval")
+_NON_NEGATIVE = ("train.updates_per_batch", "train.warmup_segments", "train.eval_interval", "train.checkpoint_interval",
+                 "train.eps_decay_frames", "method.ce_coef", "method.entropy_coef", "method.z_dim", "train.grad_clip")
+
+
+def validate(cfg: DictConfig | dict) -> DictConfig:
+    """Merge ``cfg`` into the schema and check ranges; raises ``ConfigError`` naming the field."""
+    schema = OmegaConf.structured(Config)
+    try:
+        merged = OmegaConf.merge(schema, cfg)
+    except OmegaConfBaseException as err:
+        key = getattr(err, "full_key", None) or "?"
+        raise ConfigError(f"config field '{key}': {err.msg if hasattr(err, 'msg') else err}") from None
+    for key, allowed in _CHOICES.items():
+        if OmegaConf.select(merged, key) not in allowed:
+            raise ConfigError(f"config field '{key}' must be one of {allowed}, got {OmegaConf.select(merged, key)!r}")
+    for key in _POSITIVE:
+        if not OmegaConf.select(merged, key) > 0:
+            raise ConfigError(f"config field '{key}' must be > 0, got {OmegaConf.select(merged, key)}")
+    for key in _NON_NEGATIVE:
+        if OmegaConf.select(merged, key) < 0:
+            raise ConfigError(f"config field '{key}' must be >= 0, got {OmegaConf.select(merged, key)}")
+    m, t = merged.method, merged.train
+    if m.coordinator and m.z_dim < 1:
+        raise ConfigError("config field 'method.z_dim' must be >= 1 when method.coordinator is true")
+    if m.coordinator and m.full_state:
+        raise ConfigError("config fields 'method.coordinator' and 'method.full_state' are exclusive")
+    if t.batch_segments > t.buffer_segments:
+        raise ConfigError(f"config field 'train.batch_segments' ({t.batch_segments}) exceeds "
+                          f"'train.buffer_segments' ({t.buffer_segments})")
+    if not 0 <= t.eps_end <= t.eps_init <= 1:
+        raise ConfigError("config fields 'train.eps_init'/'train.eps_end' need 0 <= eps_end <= eps_init <= 1")
+    if not 0 <= t.gamma <= 1:
+        raise ConfigError(f"config field 'train.gamma' must be in [0, 1], got {t.gamma}")
+    resolve_device(merged.device)
+    return merged
+
+
+def resolve_device(name: str) -> torch.device:
+    """``auto`` picks CUDA when present; an unavailable device fails fast naming the field."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        device = torch.device(name)
+    except RuntimeError as err:
+        raise ConfigError(f"config field 'device': {err}") from None
+    if device.type == "cuda" and (not torch.cuda.is_available() or (device.index or 0) >= torch.cuda.device_count()):
+        raise ConfigError(f"config field 'device' is {name!r} but no such CUDA device is available")
+    if device.type not in ("cpu", "cuda"):
+        raise ConfigError(f"config field 'device' must be auto, cpu or cuda[:i], got {name!r}")
+    return device

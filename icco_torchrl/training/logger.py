@@ -1,0 +1,83 @@
+"""One logger for a run: CSV files always, wandb when asked (offline by default in docs, never required).
+
+Streams are CSV files in the run folder, one per kind of row (``train``, ``eval``, ``timing``):
+a stream's columns are fixed by its first row, and a later row with other keys is an error
+rather than silently dropped data. ``timing`` holds wall-clock figures (SPS, timers) so the
+other streams are bit-identical between two runs with the same seed.
+"""
+from __future__ import annotations
+
+import csv
+import math
+import os
+from pathlib import Path
+from typing import Any
+
+from omegaconf import DictConfig, OmegaConf
+
+
+class RunLogger:
+    def __init__(self, run_dir: str | Path, cfg: DictConfig, *, total_frames: int, initial_frames: int = 0):
+        self.run_dir = Path(run_dir)
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        self._files: dict[str, tuple[Any, csv.DictWriter, list[str]]] = {}
+        self._wandb = None
+        wb = cfg.logger.wandb
+        if wb.mode != "disabled":
+            os.environ.setdefault("WANDB_SILENT", "true")
+            import wandb  # lazy: heavy import, optional at run time
+
+            self._wandb = wandb.init(mode=wb.mode, project=wb.project, entity=wb.entity,
+                                     group=wb.group or cfg.method.name, dir=str(self.run_dir),
+                                     name=f"{cfg.method.name}_seed{cfg.seed}",
+                                     config=OmegaConf.to_container(cfg, resolve=True))
+        self._bar = None
+        if cfg.logger.progress:
+            from tqdm import tqdm
+
+            self._bar = tqdm(total=total_frames, initial=initial_frames, unit="frames", dynamic_ncols=True,
+                             desc=cfg.method.name)
+
+    def log(self, stream: str, row: dict[str, float]) -> None:
+        """Append ``row`` to ``<run_dir>/<stream>.csv`` (and to wandb as ``stream/key``)."""
+        row = {k: (float(v) if not isinstance(v, (int, str)) else v) for k, v in row.items()}
+        if stream not in self._files:
+            path = self.run_dir / f"{stream}.csv"
+            exists = path.exists() and path.stat().st_size > 0
+            handle = path.open("a", newline="")
+            fields = list(row) if not exists else next(csv.reader(path.open()))
+            writer = csv.DictWriter(handle, fieldnames=fields)
+            if not exists:
+                writer.writeheader()
+            self._files[stream] = (handle, writer, fields)
+        handle, writer, fields = self._files[stream]
+        if set(row) != set(fields):
+            raise KeyError(f"{stream}.csv has columns {fields}, row has {sorted(row)}")
+        writer.writerow(row)
+        handle.flush()
+        if self._wandb is not None:
+            step = int(row.get("frames", 0))
+            self._wandb.log({f"{stream}/{k}": v for k, v in row.items() if k != "frames"}, step=step)
+
+    def progress(self, frames: int, **postfix: float) -> None:
+        if self._bar is None:
+            return
+        self._bar.update(frames - self._bar.n)
+        self._bar.set_postfix({k: (f"{v:.3g}" if isinstance(v, float) and math.isfinite(v) else v)
+                               for k, v in postfix.items()}, refresh=False)
+
+    def print(self, message: str) -> None:
+        """A line for the console that does not break the progress bar."""
+        if self._bar is not None:
+            self._bar.write(message)
+        else:
+            print(message, flush=True)
+
+    def close(self) -> None:
+        for handle, _, _ in self._files.values():
+            handle.close()
+        self._files.clear()
+        if self._bar is not None:
+            self._bar.close()
+        if self._wandb is not None:
+            self._wandb.finish()

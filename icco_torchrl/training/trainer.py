@@ -1,0 +1,266 @@
+"""Training, in TorchRL's order: config -> env -> modules -> collector -> buffer -> loss -> loop -> eval.
+
+Every method (ICCO, ICCO w/o CE, QMIX, QMIX (FULL)) runs this one loop; they differ only in
+the ``method`` config group.
+"""
+from __future__ import annotations
+
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+from torchrl.collectors import Collector
+from torchrl.data import LazyTensorStorage, RandomSampler, TensorDictReplayBuffer
+
+from icco_torchrl.evaluation.rollout import EVENT_KEYS, evaluate
+from icco_torchrl.modules.policy import exploration_module
+from icco_torchrl.objectives import make_target_updater, total_loss
+from icco_torchrl.training.build import make_env, make_loss, make_modules
+from icco_torchrl.training.checkpoint import check_compatible, load_checkpoint, save_checkpoint
+from icco_torchrl.training.config import resolve_device
+from icco_torchrl.training.logger import RunLogger
+from icco_torchrl.training.segments import SegmentCutter
+from icco_torchrl.modules.policy import make_policy
+
+# What the loss reads; everything else the collector records is left out of the replay buffer.
+REPLAY_KEYS = [("agents", "observation"), "state", ("agents", "action"), ("agents", "prev_action"),
+               ("agents", "rnn_hidden"), ("agents", "z"), ("agents", "z_noise"), "step_count", "mask",
+               ("next", "agents", "observation"), ("next", "state"), ("next", "reward"), ("next", "done"),
+               ("next", "terminated"), ("next", "step_count")]
+
+
+def epsilon(frames: int, t: DictConfig) -> float:
+    """COPA's exponential decay from eps_init to eps_end over ``eps_decay_frames``."""
+    if t.eps_decay_frames == 0 or t.eps_init == 0:
+        return t.eps_end
+    frac = min(frames / t.eps_decay_frames, 1.0)
+    return max(t.eps_init * (t.eps_end / t.eps_init) ** frac, t.eps_end) if t.eps_end > 0 else t.eps_init * (1 - frac)
+
+
+class EpisodeTracker:
+    """Running per-env totals of team reward and events; returns the episodes that ended."""
+
+    def __init__(self, num_envs: int, device):
+        self.sums = torch.zeros(num_envs, 1 + len(EVENT_KEYS), device=device)
+
+    def update(self, batch) -> torch.Tensor:
+        nxt = batch.get("next")
+        step_values = torch.stack([nxt.get("reward").squeeze(-1)] + [nxt.get(("events", k)).float() for k in EVENT_KEYS], -1)
+        done = nxt.get("done").squeeze(-1)                                       # [B, L]
+        finished = []
+        for t in range(batch.shape[1]):  # L is small (steps_per_batch); envs are vectorised
+            self.sums += step_values[:, t]
+            if done[:, t].any():
+                finished.append(self.sums[done[:, t]].clone())
+                self.sums[done[:, t]] = 0
+        return torch.cat(finished) if finished else self.sums.new_zeros(0, self.sums.shape[1])
+
+
+def _rng_state(env) -> dict:
+    state = {"torch": torch.get_rng_state(), "env": env.base_env._rng.get_state(), "numpy": np.random.get_state()}
+    if torch.cuda.is_available():
+        state["cuda"] = torch.cuda.get_rng_state_all()
+    return state
+
+
+def _set_rng_state(state: dict, env) -> None:
+    torch.set_rng_state(state["torch"])
+    env.base_env._rng.set_state(state["env"])
+    np.random.set_state(state["numpy"])
+    if "cuda" in state and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(state["cuda"])
+
+
+def train(cfg: DictConfig, run_dir: str | Path) -> dict:
+    """Train ``cfg.method`` and return the final evaluation metrics. Writes CSVs, checkpoints, a PNG."""
+    t = cfg.train
+    run_dir = Path(run_dir)
+    resume = load_checkpoint(cfg.resume) if cfg.resume else None
+    if resume is not None:
+        check_compatible(resume["cfg"], OmegaConf.to_container(cfg, resolve=True), cfg.resume)
+        run_dir = Path(cfg.resume).resolve().parent  # continue the same run folder
+    torch.set_num_threads(t.threads)
+    torch.manual_seed(cfg.seed)
+    np.random.seed(cfg.seed)
+    device = resolve_device(cfg.device)
+
+    # Env (batched, on the configured device) and a separate evaluation env.
+    env = make_env(cfg, device=device)
+    eval_env = make_env(cfg, num_envs=t.eval_envs, seed=cfg.seed + 10_000, device=device)
+    layout = env.base_env.layout
+
+    # Modules, policy (coordinator -> agent -> greedy -> epsilon-greedy), loss, optimiser, targets.
+    mods = make_modules(cfg, layout, device)
+    policy = make_policy(mods["agent"], env.full_action_spec_unbatched, mods["coordinator"],
+                         eps_init=t.eps_init, eps_end=t.eps_end)
+    explore = exploration_module(policy)
+    loss = make_loss(cfg, mods)
+    if t.optimizer == "rmsprop":
+        optim = torch.optim.RMSprop(loss.parameters(), lr=t.lr, alpha=0.99, eps=1e-5)
+    else:
+        optim = torch.optim.Adam(loss.parameters(), lr=t.lr)
+    updater = make_target_updater(loss, t.target_update, interval=t.target_update_interval, tau=t.tau)
+
+    frames, updates, batches = 0, 0, 0
+    if resume is not None:
+        loss.load_state_dict(resume["loss"])
+        optim.load_state_dict(resume["optimizer"])
+        updater.load_state_dict(resume["updater"])
+        frames, updates, batches = resume["frames"], resume["updates"], resume["batches"]
+        _set_rng_state(resume["rng"], env)
+
+    # Collector and segment replay.
+    frames_per_batch = cfg.env.num_envs * t.steps_per_batch
+    remaining = max(t.total_frames - frames, 0)
+    remaining = math.ceil(remaining / frames_per_batch) * frames_per_batch
+    cutter = SegmentCutter(length=cfg.method.period)
+    buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(t.buffer_segments, device=device),
+                                    sampler=RandomSampler(), batch_size=t.batch_segments)
+    logger = RunLogger(run_dir, cfg, total_frames=t.total_frames, initial_frames=frames)
+    OmegaConf.save(cfg, run_dir / "config.yaml")
+
+    def checkpoint(name: str = "checkpoint.pt") -> Path:
+        return save_checkpoint(run_dir / name, {
+            "cfg": OmegaConf.to_container(cfg, resolve=True), "layout": layout.__dict__, "frames": frames,
+            "updates": updates, "batches": batches, "loss": loss.state_dict(), "optimizer": optim.state_dict(),
+            "updater": updater.state_dict(), "rng": _rng_state(env), "epsilon": float(explore.eps)})
+
+    def run_eval() -> dict:
+        start = time.perf_counter()
+        metrics = evaluate(eval_env, policy)
+        timers["eval"] += time.perf_counter() - start
+        logger.log("eval", {"frames": frames, **metrics})
+        logger.print(f"[eval] frames={frames} reward={metrics['reward']:.2f}±{metrics['reward_std']:.2f} "
+                     f"pick={metrics['pick']:.2f} collect={metrics['collect']:.2f} "
+                     f"defense={metrics['defense']:.2f} invasion={metrics['invasion']:.2f}")
+        return metrics
+
+    timers = {"collect": 0.0, "train": 0.0, "eval": 0.0}
+    tracker = EpisodeTracker(cfg.env.num_envs, device)
+    recent = []  # finished episodes since the last log row
+    episode_stats = {k: float("nan") for k in ["episode_reward"] + [f"episode_{k}" for k in EVENT_KEYS]}
+    last_eval = last_ckpt = frames
+    final = {}
+    interrupted = False
+    collector = None
+    try:
+        if remaining > 0:
+            collector = Collector(env, policy, frames_per_batch=frames_per_batch, total_frames=remaining,
+                                  device=device, storing_device=device, auto_register_policy_transforms=False)
+            start_wall, start_frames = time.perf_counter(), frames
+            tick = time.perf_counter()
+            for batch in collector:
+                timers["collect"] += time.perf_counter() - tick
+                frames += batch.numel()
+                batches += 1
+                explore.eps.fill_(epsilon(frames, t))
+                recent.append(tracker.update(batch))
+                buffer.extend(cutter(batch).select(*REPLAY_KEYS, strict=False))
+
+                tick = time.perf_counter()
+                row = {}
+                if len(buffer) >= max(t.warmup_segments, t.batch_segments):
+                    for _ in range(t.updates_per_batch):
+                        losses = loss(buffer.sample())
+                        optim.zero_grad(set_to_none=True)
+                        total_loss(losses).backward()
+                        if t.grad_clip > 0:
+                            row["grad_norm"] = float(torch.nn.utils.clip_grad_norm_(loss.parameters(), t.grad_clip))
+                        optim.step()
+                        updater.step()
+                        updates += 1
+                    row.update({k: v.item() for k, v in losses.items()})
+                timers["train"] += time.perf_counter() - tick
+
+                if batches % cfg.logger.log_interval == 0:
+                    episode_stats = _log_train(logger, frames, updates, float(explore.eps), row, recent, cfg) or episode_stats
+                    recent = []
+                sps = (frames - start_frames) / (time.perf_counter() - start_wall)
+                logger.log("timing", {"frames": frames, "sps": sps, **{f"time_{k}": v for k, v in timers.items()}})
+                if t.eval_interval and frames - last_eval >= t.eval_interval:
+                    run_eval()
+                    last_eval = frames
+                if t.checkpoint_interval and frames - last_ckpt >= t.checkpoint_interval:
+                    checkpoint()
+                    last_ckpt = frames
+                logger.progress(frames, SPS=sps, eps=float(explore.eps), R=episode_stats["episode_reward"],
+                                pick=episode_stats["episode_pick"], coll=episode_stats["episode_collect"],
+                                dfn=episode_stats["episode_defense"], inv=episode_stats["episode_invasion"])
+                tick = time.perf_counter()
+    except KeyboardInterrupt:
+        interrupted = True
+        logger.print(f"interrupted at {frames} frames: saving a checkpoint")
+    finally:
+        if collector is not None:
+            collector.shutdown()
+    path = checkpoint()
+    if not interrupted:
+        final = run_eval() if last_eval != frames or not t.eval_interval else _last_eval_row(run_dir)
+        plot_learning_curve(run_dir)
+    logger.print(f"checkpoint: {path}")
+    logger.close()
+    return final
+
+
+def _last_eval_row(run_dir: Path) -> dict:
+    import csv
+
+    rows = list(csv.DictReader((run_dir / "eval.csv").open()))
+    return {k: float(v) for k, v in rows[-1].items()}
+
+
+def _log_train(logger: RunLogger, frames: int, updates: int, eps: float, row: dict, recent: list, cfg) -> dict | None:
+    """One ``train.csv`` row; returns the mean of the episodes that ended since the last row."""
+    episodes = torch.cat(recent) if recent else torch.zeros(0, 1 + len(EVENT_KEYS))
+    names = ["episode_reward"] + [f"episode_{k}" for k in EVENT_KEYS]
+    stats = {n: (episodes[:, i].mean().item() if len(episodes) else float("nan")) for i, n in enumerate(names)}
+    loss_keys = ["loss_td", "q_taken", "q_tot", "td_error", "grad_norm"]
+    if cfg.method.coordinator and (cfg.method.ce_coef > 0 or cfg.method.entropy_coef > 0):
+        loss_keys += ["loss_ce", "ce_neg_entropy", "entropy"] + (["ce_nll", "log_q"] if cfg.method.ce_coef > 0 else [])
+    losses = {k: row.get(k, float("nan")) for k in loss_keys}
+    logger.log("train", {"frames": frames, "updates": updates, "epsilon": eps, "episodes": len(episodes),
+                         **stats, **losses})
+    return stats if len(episodes) else None
+
+
+def plot_learning_curve(run_dir: Path) -> Path | None:
+    """``learning_curve.png``: greedy evaluation reward (and training episodes) against frames."""
+    import csv
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    def read(name):
+        path = run_dir / f"{name}.csv"
+        if not path.exists():
+            return None
+        rows = list(csv.DictReader(path.open()))
+        return rows or None
+
+    ev, tr = read("eval"), read("train")
+    if ev is None:
+        return None
+    fig, ax = plt.subplots(figsize=(6, 4))
+    if tr is not None:
+        pts = [(float(r["frames"]), float(r["episode_reward"])) for r in tr if r["episode_reward"] not in ("", "nan")]
+        if pts:
+            ax.plot(*zip(*pts), alpha=0.4, label="training episodes (epsilon-greedy)")
+    x = [float(r["frames"]) for r in ev]
+    y = np.array([float(r["reward"]) for r in ev])
+    s = np.array([float(r["reward_std"]) for r in ev])
+    ax.plot(x, y, marker="o", label="greedy evaluation")
+    ax.fill_between(x, y - s, y + s, alpha=0.2)
+    ax.set_xlabel("env steps")
+    ax.set_ylabel("episode team reward")
+    ax.legend()
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    out = run_dir / "learning_curve.png"
+    fig.savefig(out, dpi=120)
+    plt.close(fig)
+    return out

@@ -1,0 +1,119 @@
+"""The PettingZoo view: API compliance, seeding, and the same dynamics as the batched env."""
+import numpy as np
+import pytest
+import torch
+from pettingzoo.test import parallel_api_test, parallel_seed_test
+from torchrl.envs.utils import step_mdp
+
+from icco_torchrl.envs import N_ACTIONS, ResourceCollectionEnv, parallel_env
+
+torch.set_num_threads(1)
+
+
+def random_actions(env, rng):
+    return {a: int(rng.integers(N_ACTIONS)) for a in env.agents}
+
+
+def play(env, seed, n_steps):
+    """Trajectory of (obs, rewards, truncations, infos, state) under seeded random actions."""
+    rng = np.random.default_rng(123)
+    obs, _ = env.reset(seed=seed)
+    traj = [(obs, None, None, None, env.state())]
+    for _ in range(n_steps):
+        obs, rew, _, trunc, info = env.step(random_actions(env, rng))
+        traj.append((obs, rew, trunc, info, env.state()))
+    return traj
+
+
+def test_parallel_api():
+    parallel_api_test(parallel_env(seed=0), num_cycles=1000)
+
+
+def test_parallel_seed():
+    parallel_seed_test(lambda: parallel_env(seed=0))
+
+
+def test_episode_protocol_and_spaces():
+    env = parallel_env(seed=0, max_steps=5)
+    assert env.possible_agents == ["agent_0", "agent_1", "agent_2"]
+    obs, infos = env.reset(seed=1)
+    assert set(obs) == set(infos) == set(env.agents)
+    rng = np.random.default_rng(0)
+    for t in range(1, 6):
+        obs, rew, term, trunc, info = env.step(random_actions(env, rng))
+        for a in env.possible_agents:
+            assert obs[a].dtype == np.float32 and obs[a] in env.observation_space(a)
+            assert isinstance(rew[a], float)
+            assert term[a] is False
+            assert trunc[a] is (t == 5)
+            assert set(info[a]["events"]) == {"pick", "collect", "defense", "invasion", "inst_reward"}
+        state = env.state()
+        assert state.shape == env.state_space.shape and state in env.state_space
+    assert env.agents == []
+    with pytest.raises(RuntimeError):
+        env.step({})
+    env.reset()
+    assert env.agents == env.possible_agents
+
+
+def test_max_cycles_sets_the_episode_length():
+    env = parallel_env(seed=0)
+    assert env.max_cycles == 145
+    env.max_cycles = 200
+    env.reset()
+    rng = np.random.default_rng(0)
+    steps = 0
+    while env.agents:
+        env.step(random_actions(env, rng))
+        steps += 1
+    assert steps == 200
+
+
+def test_actions_must_cover_the_live_agents():
+    env = parallel_env(seed=0)
+    env.reset()
+    with pytest.raises(ValueError, match="agent"):
+        env.step({"agent_0": 1, "agent_1": 2})
+    with pytest.raises(ValueError, match="action"):
+        env.step({"agent_0": 1, "agent_1": 2, "agent_2": N_ACTIONS})
+
+
+def test_same_seed_same_trajectory_different_seed_differs():
+    a, b = play(parallel_env(), 5, 60), play(parallel_env(), 5, 60)
+    for (oa, ra, ta, ia, sa), (ob, rb, tb, ib, sb) in zip(a, b):
+        assert all(np.array_equal(oa[k], ob[k]) for k in oa)
+        assert ra == rb and ta == tb and ia == ib and np.array_equal(sa, sb)
+    c = play(parallel_env(), 6, 1)
+    assert not np.array_equal(a[0][0]["agent_0"], c[0][0]["agent_0"])
+
+
+def test_same_dynamics_as_the_batched_env():
+    seed, n_agents = 9, 3
+    view = parallel_env()
+    obs, _ = view.reset(seed=seed)
+    batched = ResourceCollectionEnv(num_envs=1, seed=seed)
+    td = batched.reset()
+    rng = np.random.default_rng(0)
+    for t in range(batched.max_steps):
+        expected = td["agents", "observation"][0].numpy()
+        np.testing.assert_array_equal(np.stack([obs[f"agent_{i}"] for i in range(n_agents)]), expected)
+        np.testing.assert_array_equal(view.state(), td["state"][0].numpy())
+        actions = random_actions(view, rng)
+        obs, rew, _, trunc, info = view.step(actions)
+        td.set(("agents", "action"), torch.tensor([[actions[f"agent_{i}"] for i in range(n_agents)]]))
+        td = batched.step(td)
+        nxt = td["next"]
+        assert [rew[f"agent_{i}"] for i in range(n_agents)] == nxt["agents", "reward"][0, :, 0].tolist()
+        assert info["agent_0"]["events"]["pick"] == nxt["events", "pick"].item()
+        assert trunc["agent_0"] == nxt["truncated"].item()
+        td = step_mdp(td)
+    assert view.agents == []
+
+
+def test_render():
+    env = parallel_env(seed=0, render_mode="rgb_array", render_size=96)
+    env.reset()
+    frame = env.render()
+    assert frame.shape == (96, 96, 3) and frame.dtype == np.uint8
+    with pytest.raises(ValueError, match="render_mode"):
+        parallel_env(render_mode="human")
