@@ -296,11 +296,12 @@ class LLMPlanner:
                 self.stats["cache_hits"] += 1
                 return PlanResult(waypoints.astype(np.float32), ok=True, attempts=0, raw=cached, cached=True)
 
+        litellm = _litellm()  # outside the loop: a broken install is an error, not a bad reply
         conversation, raw, error, attempt, declined = messages, None, "", 0, False
         for attempt in range(1, self.max_retries + 2):
             raw = None
             try:
-                raw = self._complete(conversation, fmt, _nth(mock_response, attempt - 1))
+                raw = self._complete(litellm, conversation, fmt, _nth(mock_response, attempt - 1))
                 waypoints = parse_reply(raw, len(pos), self.n_waypoints, self.field_size)
             except PlannerDeclined as exc:
                 error, declined = str(exc), True
@@ -321,8 +322,7 @@ class LLMPlanner:
                 break  # an explicit "cannot do this" is an answer, not noise: asking again changes nothing
         return self._fallback(instruction, pos, previous, attempt, error, raw)
 
-    def _complete(self, messages: list[dict[str, str]], fmt: dict[str, Any], mock: Any) -> str | None:
-        litellm = _litellm()
+    def _complete(self, litellm: Any, messages: list[dict[str, str]], fmt: dict[str, Any], mock: Any) -> str | None:
         extra = {} if mock is None else {"mock_response": mock}
         self.stats["backend_calls"] += 1
         # max_retries=0: plan()'s loop owns the retry budget, not the OpenAI client inside litellm.

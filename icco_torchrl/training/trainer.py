@@ -133,12 +133,14 @@ def train(cfg: DictConfig, run_dir: str | Path) -> dict:
         metrics = evaluate(eval_env, policy)
         timers["eval"] += time.perf_counter() - start
         logger.log("eval", {"frames": frames, **metrics})
+        evaluated.append(metrics)
         logger.print(f"[eval] frames={frames} reward={metrics['reward']:.2f}±{metrics['reward_std']:.2f} "
                      f"pick={metrics['pick']:.2f} collect={metrics['collect']:.2f} "
                      f"defense={metrics['defense']:.2f} invasion={metrics['invasion']:.2f}")
         return metrics
 
     timers = {"collect": 0.0, "train": 0.0, "eval": 0.0}
+    evaluated: list[dict] = []
     tracker = EpisodeTracker(cfg.env.num_envs, device)
     recent = []  # finished episodes since the last log row
     episode_stats = {k: float("nan") for k in ["episode_reward"] + [f"episode_{k}" for k in EVENT_KEYS]}
@@ -198,18 +200,11 @@ def train(cfg: DictConfig, run_dir: str | Path) -> dict:
             collector.shutdown()
     path = checkpoint()
     if not interrupted:
-        final = run_eval() if last_eval != frames or not t.eval_interval else _last_eval_row(run_dir)
+        final = run_eval() if last_eval != frames or not evaluated else evaluated[-1]
         plot_learning_curve(run_dir)
     logger.print(f"checkpoint: {path}")
     logger.close()
     return final
-
-
-def _last_eval_row(run_dir: Path) -> dict:
-    import csv
-
-    rows = list(csv.DictReader((run_dir / "eval.csv").open()))
-    return {k: float(v) for k, v in rows[-1].items()}
 
 
 def _log_train(logger: RunLogger, frames: int, updates: int, eps: float, row: dict, recent: list, cfg) -> dict | None:
