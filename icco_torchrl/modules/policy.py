@@ -17,26 +17,32 @@ from torchrl.modules import EGreedyModule, QValueModule
 from icco_torchrl.envs.resource_collection import N_ACTIONS
 
 
-def make_primer(n_agents: int, hidden: int, z_dim: int = 0, device="cpu") -> TensorDictPrimer:
-    """Zeros at reset for the per-robot GRU state, previous action and (with a coordinator) z."""
+def make_primer(n_agents: int, hidden: int, z_dim: int = 0, device="cpu", group: str = "agents") -> TensorDictPrimer:
+    """Zeros at reset for the per-robot GRU state, previous action and (with a coordinator) z, under ``group``."""
     entries = dict(rnn_hidden=Unbounded((n_agents, hidden), device=device),
                    prev_action=Categorical(N_ACTIONS, (n_agents,), dtype=torch.int64, device=device))
     if z_dim:
         entries.update(z=Unbounded((n_agents, z_dim), device=device),
                        z_noise=Unbounded((n_agents, z_dim), device=device))
-    return TensorDictPrimer(Composite(agents=Composite(entries, shape=(n_agents,), device=device), device=device),
+    return TensorDictPrimer(Composite({group: Composite(entries, shape=(n_agents,), device=device)}, device=device),
                             expand_specs=True)
 
 
 def make_policy(agent: TensorDictModule, action_spec, coordinator: TensorDictModule | None = None, *,
-                eps_init: float = 1.0, eps_end: float = 0.05, annealing_num_steps: int = 1) -> TensorDictSequential:
-    """``action_spec``: the env's unbatched full action spec (``env.full_action_spec_unbatched``)."""
-    q_value = QValueModule(action_value_key=("agents", "action_value"),
-                           out_keys=[("agents", "action"), ("agents", "action_value"), ("agents", "chosen_action_value")],
+                eps_init: float = 1.0, eps_end: float = 0.05, annealing_num_steps: int = 1,
+                group: str = "agents", action_name: str = "action") -> TensorDictSequential:
+    """``action_spec``: the env's unbatched full action spec (``env.full_action_spec_unbatched``).
+
+    Keys live under ``group``: ``action_value``, ``action_name``, ``chosen_action_value`` and the
+    next step's ``prev_action``. The agent must write ``(group, "action_value")``.
+    """
+    action_key = (group, action_name)
+    q_value = QValueModule(action_value_key=(group, "action_value"),
+                           out_keys=[action_key, (group, "action_value"), (group, "chosen_action_value")],
                            spec=action_spec, action_space=None)
     explore = EGreedyModule(spec=action_spec, eps_init=eps_init, eps_end=eps_end,
-                            annealing_num_steps=annealing_num_steps, action_key=("agents", "action"))
-    remember = TensorDictModule(nn.Identity(), in_keys=[("agents", "action")], out_keys=[("next", "agents", "prev_action")])
+                            annealing_num_steps=annealing_num_steps, action_key=action_key)
+    remember = TensorDictModule(nn.Identity(), in_keys=[action_key], out_keys=[("next", group, "prev_action")])
     modules = ([coordinator] if coordinator is not None else []) + [agent, q_value, explore, remember]
     return TensorDictSequential(*modules)
 
