@@ -394,5 +394,6 @@ def plan_waypoints(
     planner = LLMPlanner(n_waypoints=n_waypoints, field_size=field_size, **settings)
     result = planner.plan(instruction, positions, **context)
     if backend == "offline" and not result.ok:
-        raise ValueError(f"the offline rule planner does not understand the instruction {instruction!r}: {result.error}")
+        raise ValueError(f"the offline rule planner does not understand the instruction {instruction!r}: "
+                         f"{result.error}")  # fmt: skip
     return result.waypoints

@@ -423,7 +423,8 @@ def _provider_class() -> type:
         def completion(self, *args: Any, **kwargs: Any) -> ModelResponse:
             self.invocations += 1
             message = {"role": "assistant", "content": reply_to(kwargs["messages"])}
-            return ModelResponse(model=DEFAULT_MODEL, choices=[{"index": 0, "finish_reason": "stop", "message": message}])
+            choice = {"index": 0, "finish_reason": "stop", "message": message}
+            return ModelResponse(model=DEFAULT_MODEL, choices=[choice])
 
         async def acompletion(self, *args: Any, **kwargs: Any) -> ModelResponse:
             return self.completion(*args, **kwargs)
