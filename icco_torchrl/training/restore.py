@@ -1,0 +1,39 @@
+"""Rebuild a trained policy from a checkpoint, for evaluation, demos and language protocols."""
+from __future__ import annotations
+
+from pathlib import Path
+
+from omegaconf import OmegaConf
+
+from icco_torchrl.modules.policy import make_policy
+from icco_torchrl.training.build import make_env, make_loss, make_modules
+from icco_torchrl.training.checkpoint import CheckpointError, load_checkpoint
+from icco_torchrl.training.config import resolve_device, validate
+
+
+def restore(path: str | Path, *, num_envs: int | None = None, device: str = "cpu", seed: int | None = None,
+            **env_overrides) -> dict:
+    """``{"cfg", "env", "policy", "loss", "layout", "checkpoint"}`` with the trained weights loaded.
+
+    ``env_overrides`` change env parameters for evaluation (e.g. ``max_steps=580``,
+    ``waypoint_mode="external"``); parameters that change the observation layout (robot,
+    resource, invader or waypoint counts) are refused with a message naming them.
+    """
+    ckpt = load_checkpoint(path)
+    cfg = validate(OmegaConf.create(ckpt["cfg"]))
+    cfg.device = str(resolve_device(device))
+    dev = resolve_device(device)
+    env = make_env(cfg, num_envs=num_envs, seed=cfg.seed + 20_000 if seed is None else seed, device=dev, **env_overrides)
+    layout = env.base_env.layout
+    saved = ckpt.get("layout", {})
+    diffs = [f"{k}: checkpoint {saved[k]} vs env {getattr(layout, k)}" for k in saved if saved[k] != getattr(layout, k)]
+    if diffs:
+        raise CheckpointError(f"checkpoint {path} was trained for another env layout: " + "; ".join(diffs))
+    mods = make_modules(cfg, layout, dev)
+    loss = make_loss(cfg, mods)
+    try:
+        loss.load_state_dict(ckpt["loss"])
+    except (RuntimeError, KeyError) as err:
+        raise CheckpointError(f"checkpoint {path} does not match the {cfg.method.name} networks: {err}") from None
+    policy = make_policy(mods["agent"], env.full_action_spec_unbatched, mods["coordinator"])
+    return {"cfg": cfg, "env": env, "policy": policy, "loss": loss, "layout": layout, "checkpoint": ckpt}
