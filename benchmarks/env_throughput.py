@@ -93,6 +93,7 @@ def main(argv=None) -> dict:
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     devices = args.device or (["cpu"] + (["cuda"] if torch.cuda.is_available() else []))
+    on_cuda = any(d.startswith("cuda") for d in devices)
 
     pz_rate = bench_pettingzoo(args.runs, args.run_seconds)
     n_agents = ResourceCollectionEnv().n_agents
@@ -113,7 +114,7 @@ def main(argv=None) -> dict:
         benchmark="env_throughput", threads=args.threads, runs=args.runs, run_seconds=args.run_seconds,
         torch=torch.__version__, python=platform.python_version(), machine=platform.machine(),
         processor=platform.processor() or None, cpu_count=os.cpu_count(),
-        cuda_device=torch.cuda.get_device_name() if any(d.startswith("cuda") for d in devices) else None,
+        cuda_device=torch.cuda.get_device_name() if on_cuda else None,
         time=time.strftime("%Y-%m-%dT%H:%M:%S%z"), rows=rows,
     )
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)

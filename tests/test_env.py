@@ -86,7 +86,8 @@ def test_team_reward_is_events_plus_instruction_reward(long_rollout):
     _, ro = long_rollout
     nxt = ro["next"]
     team = nxt["reward"].squeeze(-1)
-    torch.testing.assert_close(team, event_reward(nxt["events"]) + nxt["events", "inst_reward"], atol=1e-3, rtol=0)
+    expected = event_reward(nxt["events"]) + nxt["events", "inst_reward"]
+    torch.testing.assert_close(team, expected, atol=1e-3, rtol=0)
     torch.testing.assert_close(team, nxt["agents", "reward"].sum((-2, -1)), atol=1e-4, rtol=0)
     assert nxt["events", "inst_reward"].abs().sum() > 0
 
@@ -112,7 +113,8 @@ def test_truncation_exactly_at_max_steps(long_rollout):
 
 def test_check_env_specs():
     check_env_specs(ResourceCollectionEnv(num_envs=4, seed=0))
-    check_env_specs(ResourceCollectionEnv(num_envs=2, seed=0, n_agents=5, n_resources=3, waypoint_mode="external"))
+    check_env_specs(ResourceCollectionEnv(num_envs=2, seed=0, n_agents=5, n_resources=3,
+                                          waypoint_mode="external"))
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")

@@ -100,6 +100,7 @@ def test_same_dynamics_as_the_batched_env():
         np.testing.assert_array_equal(view.state(), td["state"][0].numpy())
         actions = random_actions(view, rng)
         obs, rew, _, trunc, info = view.step(actions)
+        assert all(obs[a] in view.observation_space(a) for a in obs)
         td.set(("agents", "action"), torch.tensor([[actions[f"agent_{i}"] for i in range(n_agents)]]))
         td = batched.step(td)
         nxt = td["next"]

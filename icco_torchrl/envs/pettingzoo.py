@@ -37,8 +37,9 @@ class ResourceCollectionParallelEnv(ParallelEnv):
     metadata = {"render_modes": ["rgb_array"], "name": "resource_collection_v0", "is_parallelizable": True}
 
     def __init__(self, render_mode: str | None = None, render_size: int = 480, **env_kwargs):
-        if render_mode not in (None, *self.metadata["render_modes"]):
-            raise ValueError(f"render_mode must be None or one of {self.metadata['render_modes']}, got {render_mode!r}")
+        modes = self.metadata["render_modes"]
+        if render_mode not in (None, *modes):
+            raise ValueError(f"render_mode must be None or one of {modes}, got {render_mode!r}")
         for fixed in ("num_envs", "device"):
             if fixed in env_kwargs:
                 raise ValueError(f"{fixed} is fixed by the PettingZoo view (one env on CPU)")
@@ -51,16 +52,12 @@ class ResourceCollectionParallelEnv(ParallelEnv):
         # field, a (relative) velocity, or a flag, hence this loose but valid bound.
         bound = float(self._env.field_size + 2 * self._env.max_speed + 1)
         obs_dim, state_dim = self._env.layout.obs_dim, self._env.layout.state_dim
-        self.observation_spaces = {a: spaces.Box(-bound, bound, (obs_dim,), np.float32) for a in self.possible_agents}
+        self.observation_spaces = {a: spaces.Box(-bound, bound, (obs_dim,), np.float32)
+                                   for a in self.possible_agents}
         self.action_spaces = {a: spaces.Discrete(N_ACTIONS) for a in self.possible_agents}
         self.state_space = spaces.Box(-bound, bound, (state_dim,), np.float32)
         self._td = None
         self._steps = 0
-
-    @property
-    def env(self) -> ResourceCollectionEnv:
-        """The batched env (``num_envs=1``) that runs the dynamics; e.g. for ``render_frame``."""
-        return self._env
 
     def observation_space(self, agent: str) -> spaces.Box:
         return self.observation_spaces[agent]
@@ -81,7 +78,8 @@ class ResourceCollectionParallelEnv(ParallelEnv):
         if not self.agents:
             raise RuntimeError("step() called on a finished episode; call reset() first")
         if set(actions) != set(self.agents):
-            raise ValueError(f"actions must have exactly one entry per live agent {self.agents}, got {sorted(actions)}")
+            raise ValueError(f"actions must have exactly one entry per live agent {self.agents}, "
+                             f"got {sorted(actions)}")
         action = torch.tensor([[int(actions[a]) for a in self.possible_agents]], dtype=torch.int64)
         self._td.set(("agents", "action"), action)
         nxt = self._env.step(self._td).get("next")
