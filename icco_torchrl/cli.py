@@ -24,29 +24,32 @@ def _run(command: str) -> None:
     from omegaconf import DictConfig
 
     from icco_torchrl.training.build import CONF_DIR
+    from icco_torchrl.training.checkpoint import CheckpointError
     from icco_torchrl.training.config import ConfigError, validate
 
     @hydra.main(config_path=str(CONF_DIR), config_name="config", version_base=None)
     def main(raw: DictConfig) -> float | None:
         try:
-            cfg = validate(raw)
-        except ConfigError as err:
+            return _dispatch(command, validate(raw), HydraConfig.get().runtime.output_dir)
+        except (ConfigError, CheckpointError) as err:  # user errors: one clear line, no traceback
             print(f"icco {command}: {err}", file=sys.stderr)
             raise SystemExit(2) from None
-        run_dir = HydraConfig.get().runtime.output_dir
-        if command == "train":
-            from icco_torchrl.training.trainer import train
-
-            return train(cfg, run_dir).get("reward")
-        if command == "eval":
-            from icco_torchrl.evaluation.cli import run_eval
-
-            return run_eval(cfg, run_dir)
-        from icco_torchrl.instructions.cli import run_instruct
-
-        return run_instruct(cfg, run_dir, _INSTRUCTION)
 
     main()
+
+
+def _dispatch(command: str, cfg, run_dir: str) -> float | None:
+    if command == "train":
+        from icco_torchrl.training.trainer import train
+
+        return train(cfg, run_dir).get("reward")
+    if command == "eval":
+        from icco_torchrl.evaluation.cli import run_eval
+
+        return run_eval(cfg, run_dir)
+    from icco_torchrl.instructions.cli import run_instruct
+
+    return run_instruct(cfg, run_dir, _INSTRUCTION)
 
 
 _INSTRUCTION: str = ""

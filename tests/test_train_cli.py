@@ -1,0 +1,117 @@
+"""The training pipeline through the real CLI: every method, resume, determinism, bad input."""
+from __future__ import annotations
+
+import csv
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+import torch
+
+from conftest import run_cli
+
+SMOKE = ("experiment=smoke", "logger.progress=false")
+
+
+def read_csv(path):
+    with open(path) as handle:
+        return list(csv.DictReader(handle))
+
+
+@pytest.mark.parametrize("method", ["icco", "icco_wo_ce", "qmix", "qmix_full"])
+def test_every_method_trains_end_to_end(tmp_path, method):
+    run_cli("train", f"method={method}", *SMOKE, f"hydra.run.dir={tmp_path}")
+    rows = read_csv(tmp_path / "train.csv")
+    assert int(rows[-1]["frames"]) == 2048
+    assert int(rows[-1]["updates"]) > 0
+    assert all(float(r["loss_td"]) == float(r["loss_td"]) for r in rows if r["loss_td"] != "nan")
+    assert ("loss_ce" in rows[0]) == (method == "icco")
+    assert len(read_csv(tmp_path / "eval.csv")) >= 2
+    ckpt = torch.load(tmp_path / "checkpoint.pt", weights_only=False)
+    assert ckpt["frames"] == 2048 and ckpt["cfg"]["method"]["name"] == method
+    assert (tmp_path / "learning_curve.png").stat().st_size > 0
+
+
+def test_same_seed_gives_identical_metrics(tmp_path):
+    for name in ("a", "b"):
+        run_cli("train", *SMOKE, "seed=3", f"hydra.run.dir={tmp_path / name}")
+    for stream in ("train.csv", "eval.csv"):
+        assert (tmp_path / "a" / stream).read_text() == (tmp_path / "b" / stream).read_text()
+    run_cli("train", *SMOKE, "seed=4", f"hydra.run.dir={tmp_path / 'c'}")
+    assert (tmp_path / "a" / "train.csv").read_text() != (tmp_path / "c" / "train.csv").read_text()
+
+
+def test_resume_continues_frames_and_schedules(tmp_path):
+    run_cli("train", *SMOKE, "train.total_frames=1024", f"hydra.run.dir={tmp_path / 'part'}")
+    first = torch.load(tmp_path / "part" / "checkpoint.pt", weights_only=False)
+    assert first["frames"] == 1024
+    run_cli("train", *SMOKE, f"resume={tmp_path / 'part' / 'checkpoint.pt'}", f"hydra.run.dir={tmp_path / 'other'}")
+    resumed = torch.load(tmp_path / "part" / "checkpoint.pt", weights_only=False)
+    assert resumed["frames"] == 2048
+    assert resumed["updates"] > first["updates"]
+    rows = read_csv(tmp_path / "part" / "train.csv")
+    frames = [int(r["frames"]) for r in rows]
+    assert frames == sorted(frames) and frames[-1] == 2048 and len(set(frames)) == len(frames)
+    eps = [float(r["epsilon"]) for r in rows]
+    assert all(b <= a for a, b in zip(eps, eps[1:])), "epsilon restarted after resume"
+    # The uninterrupted run reaches the same frame count.
+    run_cli("train", *SMOKE, f"hydra.run.dir={tmp_path / 'full'}")
+    full = read_csv(tmp_path / "full" / "train.csv")
+    assert int(full[-1]["frames"]) == 2048 and float(full[-1]["epsilon"]) == pytest.approx(eps[-1])
+
+
+@pytest.mark.parametrize("override, field", [
+    ("train.total_frames=-5", "train.total_frames"),
+    ("train.totl_frames=5", "train.totl_frames"),
+    ("train.total_frames=lots", "train.total_frames"),
+    ("train.batch_segments=100000", "train.batch_segments"),
+    ("device=cuda:7", "device"),
+    ("logger.wandb.mode=sometimes", "logger.wandb.mode"),
+])
+def test_bad_config_fails_fast_naming_the_field(tmp_path, override, field):
+    proc = run_cli("train", *SMOKE, override, f"hydra.run.dir={tmp_path}", check=False)
+    assert proc.returncode != 0
+    assert field in proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert not (tmp_path / "train.csv").exists()
+
+
+def test_unknown_method_is_rejected(tmp_path):
+    proc = run_cli("train", "method=sarsa", *SMOKE, f"hydra.run.dir={tmp_path}", check=False)
+    assert proc.returncode != 0 and "method" in proc.stderr
+
+
+@pytest.mark.parametrize("content", [None, b"not a checkpoint", b"PK\x03\x04truncated"])
+def test_bad_checkpoint_gives_a_clear_error(tmp_path, content):
+    path = tmp_path / "ckpt.pt"
+    if content is not None:
+        path.write_bytes(content)
+    proc = run_cli("train", *SMOKE, f"resume={path}", f"hydra.run.dir={tmp_path / 'run'}", check=False)
+    assert proc.returncode == 2
+    assert "checkpoint" in proc.stderr and str(path) in proc.stderr
+    assert "Traceback" not in proc.stderr
+
+
+def test_incompatible_checkpoint_is_refused(tmp_path):
+    run_cli("train", *SMOKE, "method=qmix", "train.total_frames=512", f"hydra.run.dir={tmp_path / 'q'}")
+    proc = run_cli("train", *SMOKE, "method=icco", f"resume={tmp_path / 'q' / 'checkpoint.pt'}",
+                   f"hydra.run.dir={tmp_path / 'i'}", check=False)
+    assert proc.returncode == 2 and "incompatible" in proc.stderr and "method.coordinator" in proc.stderr
+
+
+def test_ctrl_c_saves_a_checkpoint_and_exits_cleanly(tmp_path):
+    cmd = [sys.executable, "-m", "icco_torchrl", "train", "logger.progress=false", "train.total_frames=10000000",
+           "env.num_envs=8", "train.warmup_segments=16", "train.batch_segments=16", f"hydra.run.dir={tmp_path}"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.time() + 120
+    while time.time() < deadline and not (tmp_path / "train.csv").exists():
+        time.sleep(0.5)
+    time.sleep(1.0)
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0, err[-2000:]
+    ckpt = torch.load(tmp_path / "checkpoint.pt", weights_only=False)
+    assert 0 < ckpt["frames"] < 10_000_000
+    assert "interrupted" in (out + err)
