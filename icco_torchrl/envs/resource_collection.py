@@ -23,6 +23,15 @@ waypoints relative to the robot (K*2)], then ``n_entities`` tokens of ``entity_d
 outside ``vision_radius`` are all zeros. The global state is ``N + R + I`` tokens of
 ``state_token_dim`` features [x, y, vx, vy, one-hot type (agent, resource, invader), flag,
 defended, absolute waypoints (K*2, agents only)].
+
+Performance notes. On CPU an elementwise op whose innermost dimension is tiny (the ``2`` of
+``[B, N, 2]``) or broadcast runs 5-20x slower per element than one over a long contiguous
+row. So the env keeps its state *batch-last* (robot positions are ``[N, 2, B]``) and does its
+arithmetic on rows of length ``B``; the public attributes (``env.pos`` ``[B, N, 2]``, ...) are
+views of that storage in the documented layout and may be written in place. Entity tokens are
+mostly zeros (vision is short), so only the visible ones are computed and scattered into a
+zeroed observation. Waypoints stay ``[B, N, K, 2]`` (their input/output layout) with a
+batch-last copy that is refreshed only when they change.
 """
 from __future__ import annotations
 
@@ -38,6 +47,7 @@ N_ACTIONS = 5
 # Unit force per action: no-op, -x, +x, -y, +y (COPA's order).
 _ACTION_DIRS = ((0.0, 0.0), (-1.0, 0.0), (1.0, 0.0), (0.0, -1.0), (0.0, 1.0))
 _EVENTS = ("pick", "collect", "defense", "invasion")
+_FAR = 1e9  # where inactive invaders are "seen" from: beyond any vision radius
 
 
 @dataclass(frozen=True)
@@ -66,6 +76,37 @@ def _positive(name: str, value, integer: bool = False) -> None:
     if not ok or isinstance(value, bool) or not value > 0 or not math.isfinite(value):
         kind = "a positive integer" if integer else "a positive finite number"
         raise ValueError(f"{name} must be {kind}, got {value!r}")
+
+
+def _batch_last(x: torch.Tensor) -> torch.Tensor:
+    """``[B, *rest]`` -> contiguous ``[*rest, B]`` (one 2-D transpose, the fast copy kernel)."""
+    return x.reshape(x.shape[0], -1).t().contiguous().view(*x.shape[1:], x.shape[0])
+
+
+def _batch_first(x: torch.Tensor) -> torch.Tensor:
+    """``[*rest, B]`` -> contiguous ``[B, *rest]``."""
+    return x.reshape(-1, x.shape[-1]).t().contiguous().view(x.shape[-1], *x.shape[:-1])
+
+
+def _any(mask: torch.Tensor, dim: int) -> torch.Tensor:
+    """``mask.any(dim)``; a max over uint8 is ~10x faster than the bool reduction on CPU."""
+    return mask.view(torch.uint8).amax(dim).view(torch.bool)
+
+
+def _any_flag(mask: torch.Tensor) -> bool:
+    return bool(mask.view(torch.uint8).any())
+
+
+def _state_property(name: str, doc: str) -> property:
+    """Public ``[B, ...]`` view of the batch-last state tensor ``name`` (writable in place)."""
+
+    def get(self):
+        return getattr(self, name).movedim(-1, 0)
+
+    def set(self, value):
+        self._put(**{name: _batch_last(torch.as_tensor(value, device=self.device))})
+
+    return property(get, set, doc=doc)
 
 
 class ResourceCollectionEnv(EnvBase):
@@ -181,15 +222,11 @@ class ResourceCollectionEnv(EnvBase):
                                 state_tokens=N + R + I, state_token_dim=9 + 2 * K)
         dev = self.device
         self._action_dirs = torch.tensor(_ACTION_DIRS, device=dev)
-        # Entity table seen by robots: robots, resources, invaders, home (self removed per robot).
-        n_all = N + R + I + 1
+        self._action_force = (self.dt * self.accel) * self._action_dirs                      # [5, 2]
+        # Entity table seen by robots: robots, resources, invaders, home.
         types = torch.cat([torch.zeros(N), torch.ones(R), torch.full((I,), 2.0), torch.full((1,), 3.0)]).long()
         self._entity_type = torch.nn.functional.one_hot(types, 4).float().to(dev)           # [E_all, 4]
-        others = torch.arange(n_all).expand(N, n_all)
-        keep = others != torch.arange(N)[:, None]
-        self._others_idx = others[keep].view(N, n_all - 1).to(dev)                            # [N, E]
-        state_types = torch.nn.functional.one_hot(types[: N + R + I], 3).float().to(dev)
-        self._state_type = state_types                                                         # [N+R+I, 3]
+        self._state_cols = self._state_columns().to(dev)
         self._rng = torch.Generator(device=dev)
         self._rng.manual_seed(int(seed) if seed is not None else int(torch.empty((), dtype=torch.int64).random_().item()))
         self._make_specs()
@@ -222,19 +259,55 @@ class ResourceCollectionEnv(EnvBase):
         flag = lambda: Categorical(2, (B, 1), dtype=torch.bool, device=dev)  # noqa: E731
         self.done_spec = Composite(done=flag(), terminated=flag(), truncated=flag(), shape=(B,), device=dev)
 
+    # ------------------------------------------------------------------ state
+    # Batch-last storage (see the module docstring); the public names are [B, ...] views.
+    pos = _state_property("_pos", "Robot positions [B, N, 2].")
+    vel = _state_property("_vel", "Robot velocities [B, N, 2].")
+    carry = _state_property("_carry", "Whether each robot carries a resource [B, N].")
+    defended = _state_property("_defended", "Whether each robot hit an invader this step [B, N].")
+    res_pos = _state_property("_res", "Resource positions [B, R, 2].")
+    inv_pos = _state_property("_inv", "Invader positions [B, I, 2].")
+    inv_vel = _state_property("_inv_vel", "Invader velocities [B, I, 2].")
+    inv_active = _state_property("_inv_on", "Whether each invader is on the field [B, I].")
+    inv_timer = _state_property("_inv_timer", "Steps until an inactive invader respawns [B, I].")
+
+    @property
+    def waypoints(self) -> torch.Tensor:
+        """Current instruction waypoints [B, N, K, 2] (writable in place)."""
+        return self._wp
+
+    @waypoints.setter
+    def waypoints(self, value: torch.Tensor) -> None:
+        self._put(_wp=torch.as_tensor(value, device=self.device))
+
+    def _put(self, **state: torch.Tensor) -> None:
+        # Plain instance attributes: nn.Module.__setattr__ costs ~10 us a call, paid per step.
+        self.__dict__.update(state)
+
     def _alloc_state(self) -> None:
         B, N, R, I, K, dev = self.num_envs, self.n_agents, self.n_resources, self.n_invaders, self.n_waypoints, self.device
-        self.pos = torch.zeros(B, N, 2, device=dev)
-        self.vel = torch.zeros(B, N, 2, device=dev)
-        self.carry = torch.zeros(B, N, dtype=torch.bool, device=dev)
-        self.defended = torch.zeros(B, N, dtype=torch.bool, device=dev)
-        self.res_pos = torch.zeros(B, R, 2, device=dev)
-        self.inv_pos = torch.zeros(B, I, 2, device=dev)
-        self.inv_vel = torch.zeros(B, I, 2, device=dev)
-        self.inv_active = torch.zeros(B, I, dtype=torch.bool, device=dev)
-        self.inv_timer = torch.zeros(B, I, dtype=torch.int64, device=dev)
-        self.waypoints = torch.zeros(B, N, K, 2, device=dev)
-        self.t = torch.zeros(B, dtype=torch.int64, device=dev)
+        self._put(
+            _pos=torch.zeros(N, 2, B, device=dev), _vel=torch.zeros(N, 2, B, device=dev),
+            _carry=torch.zeros(N, B, dtype=torch.bool, device=dev),
+            _defended=torch.zeros(N, B, dtype=torch.bool, device=dev),
+            _res=torch.zeros(R, 2, B, device=dev), _inv=torch.zeros(I, 2, B, device=dev),
+            _inv_vel=torch.zeros(I, 2, B, device=dev), _inv_on=torch.zeros(I, B, dtype=torch.bool, device=dev),
+            _inv_timer=torch.zeros(I, B, dtype=torch.int64, device=dev),
+            _wp=torch.zeros(B, N, K, 2, device=dev), _wp_cache=(None, None, None), _wp_emitted=(None, None),
+            t=torch.zeros(B, dtype=torch.int64, device=dev),
+            # Constant rows used to assemble outputs.
+            _zero_row=torch.zeros(1, B, device=dev), _one_row=torch.ones(1, B, device=dev),
+            _home=torch.zeros(1, 2, B, device=dev),
+        )
+
+    def _waypoints_bl(self) -> torch.Tensor:
+        """Batch-last copy ``[N, K, 2, B]`` of :attr:`waypoints`, redone only when they changed."""
+        wp = self._wp
+        cached_for, version, cache = self._wp_cache
+        if cached_for is not wp or version != wp._version:
+            cache = _batch_last(wp)
+            self._put(_wp_cache=(wp, wp._version, cache))
+        return cache
 
     def _set_seed(self, seed: int | None):
         self._rng.manual_seed(int(seed) if seed is not None else 0)
@@ -249,12 +322,14 @@ class ResourceCollectionEnv(EnvBase):
     def _respawn_timer(self, *shape) -> torch.Tensor:
         return torch.randint(1, self.invader_respawn_max + 1, shape, generator=self._rng, device=self.device)
 
-    def _edge_points(self, *shape) -> torch.Tensor:
-        """Uniform points on the field's boundary (where invaders appear)."""
-        side = torch.randint(0, 4, shape, generator=self._rng, device=self.device)
-        along = (self._rand(*shape) * 2 - 1) * self.half
-        fixed = torch.where(side % 2 == 0, -self.half, self.half) + 0 * along
-        return torch.where((side < 2)[..., None], torch.stack([fixed, along], -1), torch.stack([along, fixed], -1))
+    def _edge_points(self, B: int, I: int) -> torch.Tensor:
+        """Uniform points on the field's boundary (where invaders appear), batch-last [I, 2, B]."""
+        side = torch.randint(0, 4, (B, I), generator=self._rng, device=self.device)
+        along = (self._rand(B, I) * 2 - 1) * self.half
+        fixed = torch.where(side % 2 == 0, -self.half, self.half)
+        vertical = side < 2  # sides 0, 1: x fixed; sides 2, 3: y fixed
+        x, y = torch.where(vertical, fixed, along), torch.where(vertical, along, fixed)
+        return torch.stack([x.t(), y.t()], 1)
 
     def _resource_candidates(self, *shape, n_candidates: int = 8) -> torch.Tensor:
         """Candidate spawn points on the annulus [resource_min_radius, field edge] around home."""
@@ -263,203 +338,268 @@ class ResourceCollectionEnv(EnvBase):
         return torch.stack([r * torch.cos(angle), r * torch.sin(angle)], -1)               # [..., C, 2]
 
     def _spawn_resources(self, res_pos: torch.Tensor, respawn: torch.Tensor) -> torch.Tensor:
-        """New positions for the slots in ``respawn`` [B, R], avoiding the other resources.
+        """New positions ``[M, R, 2]`` for the slots in ``respawn`` [M, R], avoiding the other resources.
 
         Each slot draws a few candidates and keeps the first that overlaps no resource that
         stays; with 6 resources on ~30 m^2 a clash among the candidates is very rare.
         """
-        cand = self._resource_candidates(*respawn.shape)                                     # [B, R, C, 2]
-        d = (cand.unsqueeze(-2) - res_pos[:, None, None]).norm(dim=-1)                       # [B, R, C, R]
-        blocking = (~respawn)[:, None, None, :] & (d < 2 * self.resource_radius)
-        free = ~blocking.any(-1)                                                             # [B, R, C]
+        cand = self._resource_candidates(*respawn.shape)                                     # [M, R, C, 2]
+        dx = cand[..., 0, None] - res_pos[:, None, None, :, 0]                               # [M, R, C, R]
+        dy = cand[..., 1, None] - res_pos[:, None, None, :, 1]
+        blocking = (~respawn)[:, None, None, :] & (dx * dx + dy * dy < (2 * self.resource_radius) ** 2)
+        free = ~_any(blocking, -1)                                                           # [M, R, C]
         first = free.to(torch.uint8).argmax(-1)                                              # first free or 0
         chosen = cand.gather(2, first[..., None, None].expand(-1, -1, 1, 2)).squeeze(2)
         return torch.where(respawn[..., None], chosen, res_pos)
 
     def _random_walk(self, start: torch.Tensor) -> torch.Tensor:
-        """K waypoints ``p + cumsum(eps)``, eps ~ N(0, sigma^2 I), clipped to the field."""
-        steps = self._randn(*start.shape[:-1], self.n_waypoints, 2) * self.waypoint_sigma
-        return (start.unsqueeze(-2) + steps.cumsum(-2)).clamp(-self.half, self.half)
+        """K waypoints ``p + cumsum(eps)``, eps ~ N(0, sigma^2 I), clipped to the field.
+
+        ``start`` is batch-last ``[N, 2, B]``; returns ``[B, N, K, 2]``.
+        """
+        B = start.shape[-1]
+        steps = _batch_last(self._randn(B, self.n_agents, self.n_waypoints, 2)) * self.waypoint_sigma
+        return _batch_first((start.unsqueeze(1) + steps.cumsum(1)).clamp(-self.half, self.half))
 
     # ------------------------------------------------------------------ reset
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
         B, N, R, I = self.num_envs, self.n_agents, self.n_resources, self.n_invaders
+        dev = self.device
         mask = None
         if tensordict is not None and "_reset" in tensordict.keys():
             mask = tensordict.get("_reset").reshape(B)
         lim = self.half - self.agent_radius
         pos = (self._rand(B, N, 2) * 2 - 1) * lim
-        res_pos = torch.full((B, R, 2), 10 * self.field_size, device=self.device)
+        res_pos = torch.full((B, R, 2), 10 * self.field_size, device=dev)
         for j in range(R):  # sequential so initial resources do not overlap (reset only)
-            only_j = torch.zeros(B, R, dtype=torch.bool, device=self.device)
+            only_j = torch.zeros(B, R, dtype=torch.bool, device=dev)
             only_j[:, j] = True
             res_pos = self._spawn_resources(res_pos, only_j)
-        fresh = dict(
-            pos=pos, vel=torch.zeros_like(pos), carry=torch.zeros(B, N, dtype=torch.bool, device=self.device),
-            defended=torch.zeros(B, N, dtype=torch.bool, device=self.device), res_pos=res_pos,
-            inv_pos=self._edge_points(B, I), inv_vel=torch.zeros(B, I, 2, device=self.device),
-            inv_active=torch.zeros(B, I, dtype=torch.bool, device=self.device),
-            inv_timer=self._respawn_timer(B, I), t=torch.zeros(B, dtype=torch.int64, device=self.device),
+        pos_bl = _batch_last(pos)
+        fresh = dict(  # batch-last, in the order the random numbers are drawn
+            _pos=pos_bl, _vel=torch.zeros_like(pos_bl), _carry=torch.zeros(N, B, dtype=torch.bool, device=dev),
+            _defended=torch.zeros(N, B, dtype=torch.bool, device=dev), _res=_batch_last(res_pos),
+            _inv=self._edge_points(B, I), _inv_vel=torch.zeros(I, 2, B, device=dev),
+            _inv_on=torch.zeros(I, B, dtype=torch.bool, device=dev),
+            _inv_timer=self._respawn_timer(B, I).t().contiguous(),
         )
-        fresh["waypoints"] = self._random_walk(pos) if self.waypoint_mode == "random_walk" else pos.unsqueeze(-2).expand(B, N, self.n_waypoints, 2).clone()
-        for name, value in fresh.items():
-            current = getattr(self, name)
-            if mask is None:
-                setattr(self, name, value)
-            else:
-                m = mask.view(B, *([1] * (value.dim() - 1)))
-                setattr(self, name, torch.where(m, value, current))
-        out = self._observe()
-        zeros = torch.zeros(B, dtype=torch.int64, device=self.device)
-        out.set("events", TensorDict({**{k: zeros for k in _EVENTS}, "inst_reward": torch.zeros(B, device=self.device)}, [B]))
-        false = torch.zeros(B, 1, dtype=torch.bool, device=self.device)
-        out.update({"done": false, "terminated": false, "truncated": false})
-        return out
+        if mask is None:
+            self._put(**fresh)
+        else:
+            self._put(**{name: torch.where(mask, value, getattr(self, name)) for name, value in fresh.items()})
+        # Batch-first entries.
+        wp = self._random_walk(pos_bl) if self.waypoint_mode == "random_walk" else pos.unsqueeze(-2).expand(B, N, self.n_waypoints, 2).clone()
+        t = torch.zeros(B, dtype=torch.int64, device=dev)
+        if mask is not None:
+            wp = torch.where(mask.view(B, 1, 1, 1), wp, self._wp)
+            t = torch.where(mask, t, self.t)
+        self._put(_wp=wp, t=t)
+        zeros = torch.zeros(B, dtype=torch.int64, device=dev)
+        false = torch.zeros(B, 1, dtype=torch.bool, device=dev)
+        return self._output(
+            events={**{k: zeros for k in _EVENTS}, "inst_reward": torch.zeros(B, device=dev)},
+            done=false, terminated=false, truncated=false)
 
     # ------------------------------------------------------------------ step
+    def _read_action(self, tensordict: TensorDictBase) -> torch.Tensor:
+        """The action as ``[B, N]`` indices, checked when ``validate``."""
+        action = tensordict.get(("agents", "action"))
+        if action.shape != (self.num_envs, self.n_agents):  # one-hot or trailing dim: take the index
+            action = action.argmax(-1) if action.shape[-1] == N_ACTIONS and action.dim() == 3 else action.reshape(self.num_envs, self.n_agents)
+        if self.validate:
+            lo, hi = torch.aminmax(action)
+            if lo < 0 or hi >= N_ACTIONS:
+                raise ValueError(f"('agents', 'action') must be in [0, {N_ACTIONS - 1}], got {action.tolist()}")
+        return action
+
     def _read_waypoints(self, tensordict: TensorDictBase) -> None:
         wp = tensordict.get(("agents", "waypoints"), None)
         if wp is None:
             return
-        self.waypoints = self._check_waypoints(wp)
+        emitted, version = self._wp_emitted
+        if wp is emitted and wp._version == version:
+            return  # the very tensor this env emitted, untouched: already checked and stored
+        self._put(_wp=self._check_waypoints(wp))
 
     def _check_waypoints(self, wp: torch.Tensor) -> torch.Tensor:
         expected = (self.num_envs, self.n_agents, self.n_waypoints, 2)
         if tuple(wp.shape) != expected:
             raise ValueError(f"('agents', 'waypoints') must have shape {list(expected)}, got {list(wp.shape)}")
         wp = wp.to(self.device, torch.float32)
-        if self.validate and not torch.isfinite(wp).all():
+        if self.validate and not torch.isfinite(wp).view(torch.uint8).all():
             raise ValueError("('agents', 'waypoints') contains non-finite values")
         return wp.clamp(-self.half, self.half)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        action = tensordict.get(("agents", "action"))
-        if action.shape != (self.num_envs, self.n_agents):  # one-hot or trailing dim: take the index
-            action = action.argmax(-1) if action.shape[-1] == N_ACTIONS and action.dim() == 3 else action.reshape(self.num_envs, self.n_agents)
-        if self.validate and ((action < 0) | (action >= N_ACTIONS)).any():
-            raise ValueError(f"('agents', 'action') must be in [0, {N_ACTIONS - 1}], got {action.tolist()}")
+        action = self._read_action(tensordict)
         self._read_waypoints(tensordict)
-        B, N = self.num_envs, self.n_agents
-        dev = self.device
+        B, N, I = self.num_envs, self.n_agents, self.n_invaders
+        r2 = lambda r: r * r  # noqa: E731  (contacts compare squared distances)
 
-        # Robots: damped point masses with a speed cap, kept inside the field.
-        vel = self.damping * self.vel + (self.dt * self.accel) * self._action_dirs[action]
-        speed = vel.norm(dim=-1, keepdim=True)
-        vel = vel * (self.max_speed / speed.clamp_min(self.max_speed))
+        # Robots: damped point masses with a speed cap, kept inside the field. [N, 2, B]
+        force = self._action_force.index_select(0, action.reshape(-1)).view(B, 2 * N).t().view(N, 2, B)
+        vel = self._vel * self.damping + force
+        speed = vel.square().sum(1, keepdim=True).sqrt_()
+        vel = vel * (self.max_speed / speed.clamp_min_(self.max_speed))
         lim = self.half - self.agent_radius
-        raw = self.pos + self.dt * vel
-        new_pos = raw.clamp(-lim, lim)
-        vel = torch.where(new_pos != raw, torch.zeros_like(vel), vel)
-        disp = new_pos - self.pos
-        r_inst = self._instruction_reward(self.pos, new_pos, disp)                            # [B, N]
-        self.pos, self.vel = new_pos, vel
+        old_pos = self._pos
+        raw = old_pos + self.dt * vel
+        pos = raw.clamp(-lim, lim)
+        vel = vel.masked_fill_(pos != raw, 0.0)  # a wall stops that axis
+        r_inst = self._instruction_reward(old_pos, pos)                                       # [N, B]
 
-        # Invaders walk straight home.
-        to_home = -self.inv_pos
-        dist_home = to_home.norm(dim=-1, keepdim=True)
-        move = to_home * (self.invader_speed / dist_home.clamp_min(self.invader_speed))
-        self.inv_vel = torch.where(self.inv_active[..., None], move, torch.zeros_like(move))
-        self.inv_pos = self.inv_pos + self.inv_vel
+        # Invaders walk straight home. [I, 2, B]
+        on = self._inv_on
+        dist_home = self._inv.square().sum(1, keepdim=True).sqrt_()
+        move = -self._inv * (self.invader_speed / dist_home.clamp_min_(self.invader_speed))
+        inv_vel = torch.where(on[:, None], move, 0.0)
+        inv = self._inv + inv_vel
 
         # Events; one per robot per step, defense > pick > collect, ties to the lower index.
-        d_inv = torch.cdist(self.pos, self.inv_pos)                                          # [B, N, I]
-        hit = _assign((d_inv < self.agent_radius + self.invader_radius) & self.inv_active[:, None, :])
-        defense = hit.any(-1)                                                                 # [B, N]
-        removed = hit.any(1)                                                                  # [B, I]
-        invaded = self.inv_active & ~removed & (self.inv_pos.norm(dim=-1) < self.home_radius + self.invader_radius)
+        hit = _assign((_pair_d2(pos, inv) < r2(self.agent_radius + self.invader_radius)) & on)  # [N, I, B]
+        defense = _any(hit, 1)                                                                # [N, B]
+        removed = _any(hit, 0)                                                                # [I, B]
+        invaded = on & ~removed & (inv.square().sum(1) < r2(self.home_radius + self.invader_radius))
         gone = removed | invaded
-        timer = torch.where(gone, self._respawn_timer(B, self.n_invaders), self.inv_timer - (~self.inv_active).long())
-        respawn = ~self.inv_active & ~gone & (timer <= 0)
-        self.inv_pos = torch.where(respawn[..., None], self._edge_points(B, self.n_invaders), self.inv_pos)
-        self.inv_active = (self.inv_active & ~gone) | respawn
-        self.inv_timer = timer
+        timer = torch.where(gone, self._respawn_timer(B, I).t(), self._inv_timer - (~on).long())
+        respawn = ~on & ~gone & (timer <= 0)
+        inv = torch.where(respawn[:, None], self._edge_points(B, I), inv)
+        on = (on & ~gone) | respawn
 
-        was_carrying = self.carry
-        d_res = torch.cdist(self.pos, self.res_pos)                                          # [B, N, R]
-        took = _assign((d_res < self.agent_radius + self.resource_radius) & ~(was_carrying | defense)[..., None])
-        pick = took.any(-1)
-        collect = was_carrying & ~defense & (self.pos.norm(dim=-1) < self.home_radius + self.agent_radius)
-        self.carry = (was_carrying & ~collect) | pick
-        picked = took.any(1)                                                                  # [B, R]
-        rows = picked.any(1).nonzero().squeeze(-1)  # respawn only where something was picked
-        if rows.numel():
-            self.res_pos = self.res_pos.index_put((rows,), self._spawn_resources(self.res_pos[rows], picked[rows]))
-        self.defended = defense
+        carry = self._carry
+        contact = _pair_d2(pos, self._res) < r2(self.agent_radius + self.resource_radius)     # [N, R, B]
+        took = _assign(contact & ~(carry | defense)[:, None])
+        pick = _any(took, 1)                                                                  # [N, B]
+        collect = carry & ~defense & (pos.square().sum(1) < r2(self.home_radius + self.agent_radius))
+        res = self._respawn_picked(_any(took, 0))                                            # [R, 2, B]
 
-        n_invasion = invaded.sum(-1)                                                          # [B]
+        n_invasion = invaded.sum(0)                                                           # [B]
         w = self.event_rewards
         agent_reward = (w["pick"] * pick + w["collect"] * collect + w["defense"] * defense).float() \
-            + (w["invasion"] / N) * n_invasion[:, None].float() + r_inst
-        self.t = self.t + 1
+            + (w["invasion"] / N) * n_invasion.float() + r_inst                              # [N, B]
+        self._put(_pos=pos, _vel=vel, _carry=(carry & ~collect) | pick, _defended=defense, _res=res,
+                  _inv=inv, _inv_vel=inv_vel, _inv_on=on, _inv_timer=timer, t=self.t + 1)
         if self.waypoint_mode == "random_walk":
             refresh = self.t % self.waypoint_interval == 0
-            if bool(refresh.any()):
-                self.waypoints = torch.where(refresh[:, None, None, None], self._random_walk(self.pos), self.waypoints)
+            if _any_flag(refresh):
+                self._put(_wp=torch.where(refresh[:, None, None, None], self._random_walk(pos), self._wp))
 
-        out = self._observe()
-        out.set(("agents", "reward"), agent_reward.unsqueeze(-1))
-        out.set("reward", agent_reward.sum(-1, keepdim=True))
-        out.set("events", TensorDict(dict(pick=pick.sum(-1), collect=collect.sum(-1), defense=defense.sum(-1),
-                                          invasion=n_invasion, inst_reward=r_inst.sum(-1)), [B]))
+        counts = torch.stack([pick, collect, defense]).sum(1)                                 # [3, B]
         truncated = (self.t >= self.max_steps).unsqueeze(-1)
-        out.update({"done": truncated, "terminated": torch.zeros_like(truncated), "truncated": truncated})
-        return out
+        return self._output(
+            agent_reward=agent_reward, reward=agent_reward.sum(0).unsqueeze(-1),
+            events=dict(pick=counts[0], collect=counts[1], defense=counts[2], invasion=n_invasion,
+                        inst_reward=r_inst.sum(0)),
+            done=truncated, terminated=torch.zeros_like(truncated), truncated=truncated)
 
-    def _instruction_reward(self, old_pos: torch.Tensor, new_pos: torch.Tensor, disp: torch.Tensor) -> torch.Tensor:
-        """``r_inst = scale * (e_cossim + coef * e_dist)`` per robot.
+    def _respawn_picked(self, picked: torch.Tensor) -> torch.Tensor:
+        """Resource positions after respawning the ``picked`` [R, B] ones (only envs with a pick)."""
+        res = self._res
+        rows = _any(picked, 0).nonzero().squeeze(-1)
+        if not rows.numel():
+            return res
+        new = self._spawn_resources(res[:, :, rows].permute(2, 0, 1), picked[:, rows].t())   # [M, R, 2]
+        return res.index_copy(2, rows, new.permute(1, 2, 0))
+
+    def _instruction_reward(self, old_pos: torch.Tensor, new_pos: torch.Tensor) -> torch.Tensor:
+        """``r_inst = scale * (e_cossim + coef * e_dist)`` per robot, [N, B].
 
         e_cossim: cosine between this step's displacement and the vector from the waypoint
         nearest to the robot (before the move) to the second-nearest one; 0 when either is
         zero. e_dist: minus the distance from the new position to its nearest waypoint.
         """
-        wp = self.waypoints
-        d_old = (wp - old_pos.unsqueeze(-2)).norm(dim=-1)                                     # [B, N, K]
-        nearest2 = d_old.topk(2, dim=-1, largest=False).indices                               # [B, N, 2]
-        pair = wp.gather(2, nearest2[..., None].expand(-1, -1, -1, 2))                        # [B, N, 2, 2]
-        path = pair[:, :, 1] - pair[:, :, 0]
-        cos = (disp * path).sum(-1) / (disp.norm(dim=-1) * path.norm(dim=-1)).clamp_min(1e-8)
-        e_dist = -(wp - new_pos.unsqueeze(-2)).norm(dim=-1).min(-1).values
+        wp = self._waypoints_bl()                                                             # [N, K, 2, B]
+        d_old = (wp - old_pos.unsqueeze(1)).square_().sum(2)                                 # [N, K, B]
+        first = d_old.min(1, keepdim=True).indices                                           # [N, 1, B]
+        second = d_old.scatter_(1, first, math.inf).min(1, keepdim=True).indices
+        pick = lambda i: wp.gather(1, i.unsqueeze(2).expand(-1, -1, 2, -1)).squeeze(1)  # noqa: E731
+        path = pick(second) - pick(first)                                                    # [N, 2, B]
+        disp = new_pos - old_pos
+        norms = disp.square().sum(1).sqrt_() * path.square().sum(1).sqrt_()
+        cos = (disp * path).sum(1) / norms.clamp_min_(1e-8)
+        e_dist = -(wp - new_pos.unsqueeze(1)).square_().sum(2).amin(1).sqrt_()
         return self.inst_reward_scale * (cos + self.inst_dist_coef * e_dist)
 
     # ------------------------------------------------------------------ observations
-    def _observe(self) -> TensorDictBase:
-        B, N, R, I, L = self.num_envs, self.n_agents, self.n_resources, self.n_invaders, self.layout
-        dev = self.device
-        # One table of every entity: [x, y, vx, vy, flag, exists] (robots, resources, invaders, home).
-        table = torch.zeros(B, N + R + I + 1, 6, device=dev)
-        table[:, :N, 0:2], table[:, :N, 2:4], table[:, :N, 4] = self.pos, self.vel, self.carry.float()
-        table[:, N:N + R, 0:2] = self.res_pos
-        table[:, N + R:N + R + I, 0:2], table[:, N + R:N + R + I, 2:4] = self.inv_pos, self.inv_vel
-        table[:, N + R:N + R + I, 4] = self.inv_active.float()
-        table[:, :, 5] = 1.0
-        table[:, N + R:N + R + I, 5] = self.inv_active.float()
+    def _output(self, agent_reward: torch.Tensor | None = None, events: dict | None = None, **root) -> TensorDictBase:
+        """The TensorDict ``_reset``/``_step`` return: observation, state and ``root`` entries."""
+        B, N = self.num_envs, self.n_agents
+        obs, state = self._observe()
+        wp = self._wp.clone()  # the emitted copy; _read_waypoints recognises it next step
+        self._put(_wp_emitted=(wp, wp._version))
+        agents = {"observation": obs, "waypoints": wp}
+        if agent_reward is not None:
+            agents["reward"] = _batch_first(agent_reward).unsqueeze(-1)
+        out = TensorDict({"agents": TensorDict(agents, [B, N], device=self.device),
+                          "state": state, "step_count": self.t.unsqueeze(-1),
+                          "events": TensorDict(events, [B], device=self.device), **root},
+                         [B], device=self.device)
+        return out
 
-        obs = torch.empty(B, N, L.obs_dim, device=dev)
-        obs[..., 0:2], obs[..., 2:4], obs[..., 4] = self.pos, self.vel, self.carry.float()
-        obs[..., 5:L.own_dim] = (self.waypoints - self.pos.unsqueeze(2)).flatten(2)
-        # What each robot sees: entities within vision_radius, relative to itself (else zeros).
-        seen = table[:, self._others_idx]                                                    # [B, N, E, 6]
-        ent = obs[..., L.own_dim:].view(B, N, L.n_entities, L.entity_dim)
-        torch.sub(seen[..., 0:4], obs[..., 0:4].unsqueeze(2), out=ent[..., 0:4])
-        ent[..., 4:8] = self._entity_type[self._others_idx]
-        ent[..., 8] = seen[..., 4]
-        visible = (ent[..., 0:2].square().sum(-1) <= self.vision_radius ** 2) & (seen[..., 5] > 0)
-        ent[..., 9] = 1.0
-        ent.mul_(visible.unsqueeze(-1))
+    def _observe(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Per-robot observations [B, N, obs_dim] and the global state [B, state_dim]."""
+        B, N, L = self.num_envs, self.n_agents, self.layout
+        pos, vel, carry = self._pos, self._vel, self._carry.float()
+        wp = self._waypoints_bl()
+        # Own features, robot-major [N, own_dim, B], then one transpose into the zeroed output.
+        own = torch.cat([pos, vel, carry.unsqueeze(1), (wp - pos.unsqueeze(1)).flatten(1, 2)], 1)
+        obs = torch.zeros(B, N, L.obs_dim, device=self.device)
+        obs[..., :L.own_dim] = own.view(N * L.own_dim, B).t().contiguous().view(B, N, L.own_dim)
+        self._write_visible_entities(obs[..., L.own_dim:].view(B, N, L.n_entities, L.entity_dim))
 
-        # Global state: robots (with their absolute waypoints), resources, invaders.
-        n_tok = L.state_tokens
-        tok = torch.zeros(B, n_tok, L.state_token_dim, device=dev)
-        tok[..., 0:4] = table[:, :n_tok, 0:4] * table[:, :n_tok, 5:6]
-        tok[..., 4:7] = self._state_type
-        tok[..., 7] = table[:, :n_tok, 4]
-        tok[:, :N, 8] = self.defended.float()
-        tok[:, :N, 9:] = self.waypoints.flatten(2)
-        return TensorDict({
-            "agents": TensorDict({"observation": obs, "waypoints": self.waypoints.clone()}, [B, N]),
-            "state": tok.flatten(1),
-            "step_count": self.t.unsqueeze(-1),
-        }, [B], device=dev)
+        # Global state: gather its columns from one compact table of everything it holds.
+        on = self._inv_on.float()
+        src = torch.cat([self._zero_row, self._one_row, pos.flatten(0, 1), vel.flatten(0, 1), carry,
+                         self._defended.float(), wp.flatten(0, 2), self._res.flatten(0, 1),
+                         (self._inv * on.unsqueeze(1)).flatten(0, 1),
+                         (self._inv_vel * on.unsqueeze(1)).flatten(0, 1), on], 0)           # [S, B]
+        state = src.t().contiguous().index_select(1, self._state_cols)
+        return obs, state
+
+    def _write_visible_entities(self, ent: torch.Tensor) -> None:
+        """Fill the tokens [B, N, E, 10] of the entities each robot sees (the rest stay zero)."""
+        N, R, I = self.n_agents, self.n_resources, self.n_invaders
+        on = self._inv_on
+        # Every entity, batch-last [E_all, 5, B]: x, y, vx, vy, flag. Inactive invaders are far.
+        inv_seen = torch.where(on.unsqueeze(1), self._inv, _FAR)
+        xy = torch.cat([self._pos, self._res, inv_seen, self._home], 0)
+        table = torch.cat([xy, torch.cat([self._vel, self._res.new_zeros(R, 2, xy.shape[-1]), self._inv_vel,
+                                          self._home], 0),
+                           torch.cat([self._carry, self._res.new_zeros(R, xy.shape[-1], dtype=torch.bool),
+                                      on, self._home[:, 0].bool()], 0).float().unsqueeze(1)], 1)
+        d2 = _pair_d2(self._pos, xy)                                                          # [N, E_all, B]
+        visible = d2 <= self.vision_radius ** 2
+        visible[:, :N].diagonal(0, 0, 1).fill_(False)  # a robot is not its own entity
+        n, j, b = visible.nonzero().unbind(1)
+        if not n.numel():
+            return
+        seen, me = table[j, :, b], table[n, :4, b]                                          # [V, 5], [V, 4]
+        tokens = torch.cat([seen[:, :4] - me, self._entity_type[j], seen[:, 4:], seen.new_ones(len(n), 1)], 1)
+        slot = j - (j > n).long()  # entity j's place in robot n's list (itself removed)
+        ent.index_put_((b, n, slot), tokens)
+
+    def _state_columns(self) -> torch.Tensor:
+        """For each state entry, its row in the compact table built by :meth:`_observe`."""
+        N, R, I, K = self.n_agents, self.n_resources, self.n_invaders, self.n_waypoints
+        rows, at = {}, 0
+        for name, size in (("zero", 1), ("one", 1), ("pos", 2 * N), ("vel", 2 * N), ("carry", N), ("defended", N),
+                           ("wp", 2 * K * N), ("res", 2 * R), ("inv", 2 * I), ("inv_vel", 2 * I), ("on", I)):
+            rows[name], at = at, at + size
+        zero, one = rows["zero"], rows["one"]
+        cols = []
+        for n in range(N):
+            cols += [rows["pos"] + 2 * n, rows["pos"] + 2 * n + 1, rows["vel"] + 2 * n, rows["vel"] + 2 * n + 1,
+                     one, zero, zero, rows["carry"] + n, rows["defended"] + n]
+            cols += [rows["wp"] + 2 * K * n + k for k in range(2 * K)]
+        for r in range(R):
+            cols += [rows["res"] + 2 * r, rows["res"] + 2 * r + 1, zero, zero, zero, one, zero, zero, zero]
+            cols += [zero] * (2 * K)
+        for i in range(I):
+            cols += [rows["inv"] + 2 * i, rows["inv"] + 2 * i + 1, rows["inv_vel"] + 2 * i,
+                     rows["inv_vel"] + 2 * i + 1, zero, zero, one, rows["on"] + i, zero]
+            cols += [zero] * (2 * K)
+        assert len(cols) == self.layout.state_dim
+        return torch.tensor(cols)
 
     # ------------------------------------------------------------------ instructions
     def write_waypoints(self, tensordict: TensorDictBase, waypoints: torch.Tensor) -> TensorDictBase:
@@ -470,20 +610,28 @@ class ResourceCollectionEnv(EnvBase):
         acts on them at this very step. With ``waypoint_mode="external"`` they are kept until
         the next call; in random-walk mode the env overwrites them at its next refresh.
         """
-        self.waypoints = self._check_waypoints(torch.as_tensor(waypoints, device=self.device))
-        obs = self._observe()
-        tensordict.set(("agents", "observation"), obs.get(("agents", "observation")))
-        tensordict.set(("agents", "waypoints"), obs.get(("agents", "waypoints")))
-        tensordict.set("state", obs.get("state"))
+        self._put(_wp=self._check_waypoints(torch.as_tensor(waypoints, device=self.device)))
+        obs, state = self._observe()
+        wp = self._wp.clone()
+        self._put(_wp_emitted=(wp, wp._version))
+        tensordict.set(("agents", "observation"), obs)
+        tensordict.set(("agents", "waypoints"), wp)
+        tensordict.set("state", state)
         return tensordict
 
 
+def _pair_d2(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Squared distances ``[Na, Nb, B]`` between batch-last points ``a`` [Na, 2, B] and ``b`` [Nb, 2, B]."""
+    dx = b[None, :, 0] - a[:, None, 0]
+    dy = b[None, :, 1] - a[:, None, 1]
+    return dx.mul_(dx).add_(dy.mul_(dy))
+
+
 def _assign(contact: torch.Tensor) -> torch.Tensor:
-    """Resolve contacts ``[B, N, M]`` into at most one item per robot and one robot per item.
+    """Resolve contacts ``[N, M, B]`` into at most one item per robot and one robot per item.
 
     Each robot claims the lowest-index item it touches; a claimed item goes to the lowest-index
     claimant (the loser gets nothing this step).
     """
-    first = contact.to(torch.uint8).argmax(-1)
-    claim = torch.nn.functional.one_hot(first, contact.shape[-1]).bool() & contact.any(-1, keepdim=True)
-    return claim & (claim.long().cumsum(1) == 1)
+    claim = contact & (contact.cumsum(1, dtype=torch.int32) == 1)
+    return claim & (claim.cumsum(0, dtype=torch.int32) == 1)

@@ -87,6 +87,9 @@ class EvalConfig:
     episodes: int = 1
     gif: bool = False
     out_dir: Optional[str] = None
+    checkpoints: list[str] = field(default_factory=list)
+    steps: int = 145
+    replan_every: Optional[int] = None
 
 
 @dataclass
