@@ -15,9 +15,13 @@ from torch import nn
 class EntityAttentionEncoder(nn.Module):
     """One "self" token attends over entity tokens; returns ``[..., hidden]``.
 
-    Input ``x = [own (own_dim + extra), tokens (n_entities * entity_dim)]``. A token whose last
-    feature (the visibility flag) is 0 is masked out; with nothing visible the attention
-    read-out is zero.
+    Input ``x = [own (own_dim), tokens (n_entities * entity_dim)]``. A token whose last feature
+    (the visibility flag) is 0 is masked out; with nothing visible the attention read-out is 0.
+
+    Keys and values are linear in the raw tokens, so the attention is evaluated in token space:
+    ``q . (W_k t + b_k) = (W_k^T q) . t + q . b_k`` and ``sum_e w_e (W_v t_e + b_v) =
+    W_v (sum_e w_e t_e) + b_v sum_e w_e``. Same function as projecting every token, without the
+    ``[.., n_entities, hidden]`` tensors (the update is several times faster).
     """
 
     def __init__(self, own_dim: int, n_entities: int, entity_dim: int, hidden: int):
@@ -34,10 +38,12 @@ class EntityAttentionEncoder(nn.Module):
         own, tokens = x[..., : self.own_dim], x[..., self.own_dim:]
         tokens = tokens.unflatten(-1, (self.n_entities, self.entity_dim))
         h = torch.relu(self.own(own))
-        logits = (self.key(tokens) @ self.query(h).unsqueeze(-1)).squeeze(-1) * self.scale
+        q = self.query(h) * self.scale
+        logits = (tokens @ (q @ self.key.weight).unsqueeze(-1)).squeeze(-1) + (q @ self.key.bias).unsqueeze(-1)
         visible = tokens[..., -1] > 0
         weights = torch.softmax(logits.masked_fill(~visible, -1e9), -1) * visible
-        read = (weights.unsqueeze(-1) * self.value(tokens)).sum(-2)
+        pooled = (weights.unsqueeze(-2) @ tokens).squeeze(-2)                       # [..., entity_dim]
+        read = pooled @ self.value.weight.T + weights.sum(-1, keepdim=True) * self.value.bias
         return self.out(torch.cat([h, read], -1))
 
 

@@ -1,0 +1,141 @@
+"""End-to-end training SPS (env steps per second, learning included) and peak RSS.
+
+Side by side, same frame budget, same collector batch, same updates per batch and the same
+number of transitions per update:
+
+- ``icco`` and ``qmix``: this project's pipeline (``icco train``'s loop, recurrent agents, segments);
+- ``torchrl_qmix``: TorchRL's reference QMIX recipe (feed-forward ``MultiAgentMLP`` agents +
+  ``QMixer`` + ``QMixerLoss`` + ``Collector``, the structure of TorchRL's
+  ``sota-implementations/multiagent/qmix_vdn.py``) on our env.
+
+Each config runs in its own subprocess so peak RSS is its own. Writes
+``benchmarks/results/train_throughput.json``.
+
+    python benchmarks/train_throughput.py --frames 60000 --threads 1
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+
+def run_ours(method: str, args) -> dict:
+    from icco_torchrl.training.build import compose_config
+    from icco_torchrl.training.trainer import train
+
+    cfg = compose_config([f"method={method}", f"device={args.device}", f"env.num_envs={args.num_envs}",
+                          f"train.total_frames={args.frames}", f"train.steps_per_batch={args.steps_per_batch}",
+                          f"train.updates_per_batch={args.updates}", f"train.batch_segments={args.batch_segments}",
+                          "train.warmup_segments=0", "train.eval_interval=0", "train.checkpoint_interval=0",
+                          f"train.threads={args.threads}", "logger.progress=false", "train.eval_envs=2"])
+    with tempfile.TemporaryDirectory() as run_dir:
+        train(cfg, run_dir)
+        last = (Path(run_dir) / "timing.csv").read_text().strip().splitlines()[-1].split(",")
+    return {"sps": float(last[1]), "frames": int(last[0])}
+
+
+def run_reference(args) -> dict:
+    """TorchRL's multi-agent QMIX example structure, on our env, with a matched budget."""
+    from torchrl.collectors import Collector
+    from torchrl.data import LazyTensorStorage, RandomSampler, TensorDictReplayBuffer
+    from torchrl.modules import EGreedyModule, MultiAgentMLP, QMixer, QValueModule, SafeSequential
+    from torchrl.objectives import HardUpdate, QMixerLoss, ValueEstimators
+    from tensordict.nn import TensorDictModule
+
+    from icco_torchrl.envs import ResourceCollectionEnv
+
+    torch.set_num_threads(args.threads)
+    torch.manual_seed(0)
+    device = torch.device(args.device)
+    env = ResourceCollectionEnv(num_envs=args.num_envs, device=device, seed=0)
+    L = env.layout
+    net = TensorDictModule(MultiAgentMLP(L.obs_dim, 5, L.n_agents, centralized=False, share_params=True, depth=2,
+                                         num_cells=64, activation_class=torch.nn.ReLU, device=device),
+                           in_keys=[("agents", "observation")], out_keys=[("agents", "action_value")])
+    qnet = SafeSequential(net, QValueModule(action_value_key=("agents", "action_value"),
+                                            out_keys=[("agents", "action"), ("agents", "action_value"),
+                                                      ("agents", "chosen_action_value")],
+                                            spec=env.full_action_spec_unbatched, action_space=None))
+    explore = EGreedyModule(spec=env.full_action_spec_unbatched, eps_init=1.0, eps_end=0.05,
+                            annealing_num_steps=args.frames, action_key=("agents", "action"))
+    policy = SafeSequential(qnet, explore)
+    mixer = TensorDictModule(QMixer(state_shape=(L.state_dim,), mixing_embed_dim=32, n_agents=L.n_agents, device=device),
+                             in_keys=[("agents", "chosen_action_value"), "state"], out_keys=["chosen_action_value"])
+    loss = QMixerLoss(qnet, mixer, delay_value=True, action_space="categorical")
+    loss.make_value_estimator(ValueEstimators.TD0, gamma=0.99)
+    updater = HardUpdate(loss, value_network_update_interval=200)
+    optim = torch.optim.RMSprop(loss.parameters(), lr=3e-4, alpha=0.99, eps=1e-5)
+    frames_per_batch = args.num_envs * args.steps_per_batch
+    buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(args.frames, device=device), sampler=RandomSampler(),
+                                    batch_size=args.batch_segments * 4)
+    collector = Collector(env, policy, frames_per_batch=frames_per_batch, total_frames=args.frames, device=device,
+                          storing_device=device, auto_register_policy_transforms=False)
+    start, frames = time.perf_counter(), 0
+    for batch in collector:
+        frames += batch.numel()
+        buffer.extend(batch.reshape(-1))
+        for _ in range(args.updates):
+            out = loss(buffer.sample())
+            optim.zero_grad()
+            out["loss"].backward()
+            torch.nn.utils.clip_grad_norm_(loss.parameters(), 10.0)
+            optim.step()
+            updater.step()
+        explore.step(batch.numel())
+    collector.shutdown()
+    return {"sps": frames / (time.perf_counter() - start), "frames": frames}
+
+
+def child(args) -> None:
+    torch.set_num_threads(args.threads)
+    result = run_reference(args) if args.config == "torchrl_qmix" else run_ours(args.config, args)
+    result["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    print("RESULT " + json.dumps(result))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--frames", type=int, default=60_000)
+    parser.add_argument("--num-envs", type=int, default=32)
+    parser.add_argument("--steps-per-batch", type=int, default=16)
+    parser.add_argument("--updates", type=int, default=2, help="gradient updates per collector batch")
+    parser.add_argument("--batch-segments", type=int, default=128, help="segments of 4 steps per update")
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    parser.add_argument("--configs", nargs="+", default=["qmix", "torchrl_qmix", "icco"])
+    parser.add_argument("--out", default="benchmarks/results/train_throughput.json")
+    parser.add_argument("--config", help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.config:
+        return child(args)
+    rows = []
+    for config in args.configs:
+        cmd = [sys.executable, __file__, "--config", config] + [
+            f"--{k.replace('_', '-')}={v}" for k, v in vars(args).items() if k not in ("config", "configs", "out")]
+        proc = subprocess.run(cmd, capture_output=True, text=True)
+        line = next((x for x in proc.stdout.splitlines() if x.startswith("RESULT ")), None)
+        if line is None:
+            raise RuntimeError(f"{config} failed:\n{proc.stderr[-3000:]}")
+        rows.append({"config": config, **json.loads(line[7:])})
+    ref = next((r["sps"] for r in rows if r["config"] == "torchrl_qmix"), None)
+    print(f"{'config':<14} {'SPS':>9} {'vs torchrl_qmix':>16} {'peak RSS MB':>12}")
+    for r in rows:
+        r["ratio_vs_reference"] = r["sps"] / ref if ref else None
+        ratio = f"{r['ratio_vs_reference']:.2f}x" if ref else "-"
+        print(f"{r['config']:<14} {r['sps']:>9.0f} {ratio:>16} {r['peak_rss_mb']:>12.0f}")
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps({"device": args.device, "threads": args.threads, "settings": {
+        k: v for k, v in vars(args).items() if k not in ("config", "configs", "out")}, "results": rows}, indent=2))
+
+
+if __name__ == "__main__":
+    main()
