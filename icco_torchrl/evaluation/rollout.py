@@ -26,12 +26,20 @@ def episode_metrics(rollout: TensorDictBase) -> dict[str, torch.Tensor]:
 
 
 def evaluate(env: EnvBase, policy, *, steps: int | None = None) -> dict[str, float]:
-    """Mean and std over the env batch of one greedy episode's totals (``reward``, ``reward_std``, ...)."""
+    """Mean and std over the env batch of one greedy episode's totals (``reward``, ``reward_std``, ...).
+
+    ``policy=None`` rolls out uniformly random actions (the baseline a trained policy must beat).
+    """
     if steps is None:
         steps = getattr(env, "base_env", env).max_steps
     metrics = episode_metrics(greedy_rollout(env, policy, steps))
+    return summarize(metrics)
+
+
+def summarize(metrics: dict[str, torch.Tensor]) -> dict[str, float]:
+    """``{key: mean, key_std: std}`` over trials."""
     out = {}
     for key, value in metrics.items():
-        out[key] = value.mean().item()
-        out[f"{key}_std"] = value.std(unbiased=False).item()
+        out[key] = value.float().mean().item()
+        out[f"{key}_std"] = value.float().std(unbiased=False).item()
     return out

@@ -5,6 +5,7 @@ the ``method`` config group.
 """
 from __future__ import annotations
 
+import json
 import math
 import time
 from pathlib import Path
@@ -139,6 +140,10 @@ def train(cfg: DictConfig, run_dir: str | Path) -> dict:
                      f"defense={metrics['defense']:.2f} invasion={metrics['invasion']:.2f}")
         return metrics
 
+    if resume is None:  # the bar a trained policy must clear, on the same evaluation envs
+        baseline = evaluate(eval_env, None)
+        (run_dir / "random_policy.json").write_text(json.dumps(baseline, indent=2))
+        logger.print(f"[eval] random policy: reward={baseline['reward']:.2f}±{baseline['reward_std']:.2f}")
     timers = {"collect": 0.0, "train": 0.0, "eval": 0.0}
     evaluated: list[dict] = []
     tracker = EpisodeTracker(cfg.env.num_envs, device)
@@ -250,6 +255,9 @@ def plot_learning_curve(run_dir: Path) -> Path | None:
     s = np.array([float(r["reward_std"]) for r in ev])
     ax.plot(x, y, marker="o", label="greedy evaluation")
     ax.fill_between(x, y - s, y + s, alpha=0.2)
+    baseline = run_dir / "random_policy.json"
+    if baseline.exists():
+        ax.axhline(json.loads(baseline.read_text())["reward"], color="gray", ls="--", label="random policy")
     ax.set_xlabel("env steps")
     ax.set_ylabel("episode team reward")
     ax.legend()
