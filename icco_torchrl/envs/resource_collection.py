@@ -93,10 +93,6 @@ def _any(mask: torch.Tensor, dim: int) -> torch.Tensor:
     return mask.view(torch.uint8).amax(dim).view(torch.bool)
 
 
-def _any_flag(mask: torch.Tensor) -> bool:
-    return bool(mask.view(torch.uint8).any())
-
-
 def _state_property(name: str, doc: str) -> property:
     """Public ``[B, ...]`` view of the batch-last state tensor ``name`` (writable in place)."""
 
@@ -318,29 +314,31 @@ class ResourceCollectionEnv(EnvBase):
         self._rng.manual_seed(int(seed) if seed is not None else 0)
 
     # ------------------------------------------------------------------ sampling
+    # Random numbers are drawn only for what (re)spawns, so a quiet step draws none. The draws
+    # are a deterministic function of the seed and the trajectory.
     def _rand(self, *shape) -> torch.Tensor:
         return torch.rand(*shape, generator=self._rng, device=self.device)
 
     def _randn(self, *shape) -> torch.Tensor:
         return torch.randn(*shape, generator=self._rng, device=self.device)
 
-    def _respawn_timer(self, *shape) -> torch.Tensor:
-        return torch.randint(1, self.invader_respawn_max + 1, shape, generator=self._rng, device=self.device)
+    def _respawn_timer(self, n: int) -> torch.Tensor:
+        """``n`` waits U{1..invader_respawn_max} before an invader comes back."""
+        return torch.randint(1, self.invader_respawn_max + 1, (n,), generator=self._rng, device=self.device)
 
-    def _edge_points(self, B: int, I: int) -> torch.Tensor:
-        """Uniform points on the field's boundary (where invaders appear), batch-last [I, 2, B]."""
-        side = torch.randint(0, 4, (B, I), generator=self._rng, device=self.device)
-        along = (self._rand(B, I) * 2 - 1) * self.half
+    def _edge_points(self, n: int) -> torch.Tensor:
+        """``n`` uniform points on the field's boundary (where invaders appear), [n, 2]."""
+        side = torch.randint(0, 4, (n,), generator=self._rng, device=self.device)
+        along = (self._rand(n) * 2 - 1) * self.half
         fixed = torch.where(side % 2 == 0, -self.half, self.half)
         vertical = side < 2  # sides 0, 1: x fixed; sides 2, 3: y fixed
-        x, y = torch.where(vertical, fixed, along), torch.where(vertical, along, fixed)
-        return torch.stack([x.t(), y.t()], 1)
+        return torch.stack([torch.where(vertical, fixed, along), torch.where(vertical, along, fixed)], -1)
 
-    def _resource_candidates(self, *shape, n_candidates: int = 8) -> torch.Tensor:
-        """Candidate spawn points on the annulus [resource_min_radius, field edge] around home."""
-        r = self.resource_min_radius + self._rand(*shape, n_candidates) * (self.half - self.resource_min_radius)
-        angle = self._rand(*shape, n_candidates) * (2 * math.pi)
-        return torch.stack([r * torch.cos(angle), r * torch.sin(angle)], -1)               # [..., C, 2]
+    def _resource_candidates(self, n: int, n_candidates: int = 8) -> torch.Tensor:
+        """``n`` sets of candidate spawn points [n, C, 2] on the annulus [resource_min_radius, edge]."""
+        r = self.resource_min_radius + self._rand(n, n_candidates) * (self.half - self.resource_min_radius)
+        angle = self._rand(n, n_candidates) * (2 * math.pi)
+        return torch.stack([r * torch.cos(angle), r * torch.sin(angle)], -1)
 
     def _spawn_resources(self, res_pos: torch.Tensor, respawn: torch.Tensor) -> torch.Tensor:
         """New positions ``[M, R, 2]`` for the slots in ``respawn`` [M, R], avoiding the other resources.
@@ -348,57 +346,55 @@ class ResourceCollectionEnv(EnvBase):
         Each slot draws a few candidates and keeps the first that overlaps no resource that
         stays; with 6 resources on ~30 m^2 a clash among the candidates is very rare.
         """
-        cand = self._resource_candidates(*respawn.shape)                                     # [M, R, C, 2]
-        dx = cand[..., 0, None] - res_pos[:, None, None, :, 0]                               # [M, R, C, R]
-        dy = cand[..., 1, None] - res_pos[:, None, None, :, 1]
-        blocking = (~respawn)[:, None, None, :] & (dx * dx + dy * dy < (2 * self.resource_radius) ** 2)
-        free = ~_any(blocking, -1)                                                           # [M, R, C]
-        first = free.to(torch.uint8).argmax(-1)                                              # first free or 0
-        chosen = cand.gather(2, first[..., None, None].expand(-1, -1, 1, 2)).squeeze(2)
-        return torch.where(respawn[..., None], chosen, res_pos)
+        env, slot = respawn.nonzero(as_tuple=True)
+        if not env.numel():
+            return res_pos
+        cand = self._resource_candidates(env.numel())                                        # [P, C, 2]
+        d2 = (cand.unsqueeze(2) - res_pos[env].unsqueeze(1)).square().sum(-1)                # [P, C, R]
+        blocking = (~respawn[env]).unsqueeze(1) & (d2 < (2 * self.resource_radius) ** 2)
+        first = (~_any(blocking, -1)).to(torch.uint8).argmax(-1)                             # first free or 0
+        chosen = cand[torch.arange(env.numel(), device=self.device), first]                 # [P, 2]
+        return res_pos.index_put((env, slot), chosen)
 
     def _random_walk(self, start: torch.Tensor) -> torch.Tensor:
         """K waypoints ``p + cumsum(eps)``, eps ~ N(0, sigma^2 I), clipped to the field.
 
-        ``start`` is batch-last ``[N, 2, B]``; returns ``[B, N, K, 2]``.
+        ``start`` is batch-last ``[N, 2, M]``; returns ``[M, N, K, 2]``.
         """
-        B = start.shape[-1]
-        steps = _batch_last(self._randn(B, self.n_agents, self.n_waypoints, 2)) * self.waypoint_sigma
+        M = start.shape[-1]
+        steps = _batch_last(self._randn(M, self.n_agents, self.n_waypoints, 2)) * self.waypoint_sigma
         return _batch_first((start.unsqueeze(1) + steps.cumsum(1)).clamp(-self.half, self.half))
 
     # ------------------------------------------------------------------ reset
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
         B, N, R, I = self.num_envs, self.n_agents, self.n_resources, self.n_invaders
         dev = self.device
-        mask = None
+        ids = None  # the envs to reset (None: all); only they draw random numbers
         if tensordict is not None and "_reset" in tensordict.keys():
-            mask = tensordict.get("_reset").reshape(B)
+            ids = tensordict.get("_reset").reshape(B).nonzero().squeeze(-1)
+        M = B if ids is None else ids.numel()
         lim = self.half - self.agent_radius
-        pos = (self._rand(B, N, 2) * 2 - 1) * lim
-        res_pos = torch.full((B, R, 2), 10 * self.field_size, device=dev)
+        pos = (self._rand(M, N, 2) * 2 - 1) * lim
+        res_pos = torch.full((M, R, 2), 10 * self.field_size, device=dev)
         for j in range(R):  # sequential so initial resources do not overlap (reset only)
-            only_j = torch.zeros(B, R, dtype=torch.bool, device=dev)
+            only_j = torch.zeros(M, R, dtype=torch.bool, device=dev)
             only_j[:, j] = True
             res_pos = self._spawn_resources(res_pos, only_j)
         pos_bl = _batch_last(pos)
         fresh = dict(  # batch-last, in the order the random numbers are drawn
-            _pos=pos_bl, _vel=torch.zeros_like(pos_bl), _carry=torch.zeros(N, B, dtype=torch.bool, device=dev),
-            _defended=torch.zeros(N, B, dtype=torch.bool, device=dev), _res=_batch_last(res_pos),
-            _inv=self._edge_points(B, I), _inv_vel=torch.zeros(I, 2, B, device=dev),
-            _inv_on=torch.zeros(I, B, dtype=torch.bool, device=dev),
-            _inv_timer=self._respawn_timer(B, I).t().contiguous(),
+            _pos=pos_bl, _vel=torch.zeros_like(pos_bl), _carry=torch.zeros(N, M, dtype=torch.bool, device=dev),
+            _defended=torch.zeros(N, M, dtype=torch.bool, device=dev), _res=_batch_last(res_pos),
+            _inv=_batch_last(self._edge_points(M * I).view(M, I, 2)), _inv_vel=torch.zeros(I, 2, M, device=dev),
+            _inv_on=torch.zeros(I, M, dtype=torch.bool, device=dev),
+            _inv_timer=self._respawn_timer(M * I).view(M, I).t().contiguous(),
         )
-        if mask is None:
-            self._put(**fresh)
-        else:
-            self._put(**{name: torch.where(mask, value, getattr(self, name)) for name, value in fresh.items()})
-        # Batch-first entries.
-        wp = self._random_walk(pos_bl) if self.waypoint_mode == "random_walk" else pos.unsqueeze(-2).expand(B, N, self.n_waypoints, 2).clone()
-        t = torch.zeros(B, dtype=torch.int64, device=dev)
-        if mask is not None:
-            wp = torch.where(mask.view(B, 1, 1, 1), wp, self._wp)
-            t = torch.where(mask, t, self.t)
-        self._put(_wp=wp, t=t)
+        wp = self._random_walk(pos_bl) if self.waypoint_mode == "random_walk" else pos.unsqueeze(-2).expand(M, N, self.n_waypoints, 2).clone()
+        t = torch.zeros(M, dtype=torch.int64, device=dev)
+        if ids is None:
+            self._put(**fresh, _wp=wp, t=t)
+        else:  # batch-last state: envs on the last dim; waypoints and t: on the first
+            self._put(**{name: getattr(self, name).index_copy(-1, ids, value) for name, value in fresh.items()},
+                      _wp=self._wp.index_copy(0, ids, wp), t=self.t.index_copy(0, ids, t))
         zeros = torch.zeros(B, dtype=torch.int64, device=dev)
         false = torch.zeros(B, 1, dtype=torch.bool, device=dev)
         return self._output(
@@ -438,7 +434,7 @@ class ResourceCollectionEnv(EnvBase):
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = self._read_action(tensordict)
         self._read_waypoints(tensordict)
-        B, N, I = self.num_envs, self.n_agents, self.n_invaders
+        B, N = self.num_envs, self.n_agents
         r2 = lambda r: r * r  # noqa: E731  (contacts compare squared distances)
 
         # Robots: damped point masses with a speed cap, kept inside the field. [N, 2, B]
@@ -466,9 +462,14 @@ class ResourceCollectionEnv(EnvBase):
         removed = _any(hit, 0)                                                                # [I, B]
         invaded = on & ~removed & (_sq_norm(inv) < r2(self.home_radius + self.invader_radius))
         gone = removed | invaded
-        timer = torch.where(gone, self._respawn_timer(B, I).t(), self._inv_timer - (~on).long())
+        timer = self._inv_timer - (~on).long()
+        n_gone = int(gone.sum())
+        if n_gone:
+            timer.masked_scatter_(gone, self._respawn_timer(n_gone))
         respawn = ~on & ~gone & (timer <= 0)
-        inv = torch.where(respawn[:, None], self._edge_points(B, I), inv)
+        which, env = respawn.nonzero(as_tuple=True)
+        if env.numel():
+            inv[which, :, env] = self._edge_points(env.numel())
         on = (on & ~gone) | respawn
 
         carry = self._carry
@@ -485,9 +486,7 @@ class ResourceCollectionEnv(EnvBase):
         self._put(_pos=pos, _vel=vel, _carry=(carry & ~collect) | pick, _defended=defense, _res=res,
                   _inv=inv, _inv_vel=inv_vel, _inv_on=on, _inv_timer=timer, t=self.t + 1)
         if self.waypoint_mode == "random_walk":
-            refresh = self.t % self.waypoint_interval == 0
-            if _any_flag(refresh):
-                self._put(_wp=torch.where(refresh[:, None, None, None], self._random_walk(pos), self._wp))
+            self._refresh_waypoints((self.t % self.waypoint_interval == 0).nonzero().squeeze(-1))
 
         counts = torch.stack([pick, collect, defense]).sum(1)                                 # [3, B]
         truncated = (self.t >= self.max_steps).unsqueeze(-1)
@@ -496,6 +495,13 @@ class ResourceCollectionEnv(EnvBase):
             events=dict(pick=counts[0], collect=counts[1], defense=counts[2], invasion=n_invasion,
                         inst_reward=r_inst.sum(0)),
             done=truncated, terminated=torch.zeros_like(truncated), truncated=truncated)
+
+    def _refresh_waypoints(self, ids: torch.Tensor) -> None:
+        """New random-walk waypoints from the current positions for the envs ``ids``."""
+        if ids.numel() == self.num_envs:
+            self._put(_wp=self._random_walk(self._pos))
+        elif ids.numel():
+            self._put(_wp=self._wp.index_copy(0, ids, self._random_walk(self._pos[..., ids])))
 
     def _respawn_picked(self, picked: torch.Tensor) -> torch.Tensor:
         """Resource positions after respawning the ``picked`` [R, B] ones (only envs with a pick)."""

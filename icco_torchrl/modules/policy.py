@@ -39,7 +39,7 @@ def make_policy(agent: TensorDictModule, action_spec, coordinator: TensorDictMod
     action_key = (group, action_name)
     q_value = QValueModule(action_value_key=(group, "action_value"),
                            out_keys=[action_key, (group, "action_value"), (group, "chosen_action_value")],
-                           spec=action_spec, action_space=None)
+                           spec=None, action_space="categorical")
     explore = EGreedyModule(spec=action_spec, eps_init=eps_init, eps_end=eps_end,
                             annealing_num_steps=annealing_num_steps, action_key=action_key)
     remember = TensorDictModule(nn.Identity(), in_keys=[action_key], out_keys=[("next", group, "prev_action")])

@@ -64,7 +64,7 @@ class ICCOLoss(LossModule):
     class _AcceptedKeys:
         """Every key the loss reads; rename with ``set_keys(...)``.
 
-        ``reward``, ``done`` and ``terminated`` are read under ``"next"``; ``mask`` is optional
+        ``reward`` and ``terminated`` are read under ``"next"``; ``mask`` is optional
         (absent means every step is valid).
         """
 
@@ -77,7 +77,6 @@ class ICCOLoss(LossModule):
         z_noise: NestedKey = ("agents", "z_noise")
         step_count: NestedKey = "step_count"
         reward: NestedKey = "reward"
-        done: NestedKey = "done"
         terminated: NestedKey = "terminated"
         mask: NestedKey = "mask"
 
@@ -140,23 +139,27 @@ class ICCOLoss(LossModule):
         obs_shape = (N, self._get(td, k.observation, "[S, T, N, obs_dim]", ndim=4).shape[-1])
         out = dict(
             obs=self._get(td, k.observation, "[S, T, N, obs_dim]", trailing=obs_shape),
-            next_obs=self._get(td, ("next", k.observation), "[S, T, N, obs_dim]", trailing=obs_shape),
+            next_obs=self._get(td, _next(k.observation), "[S, T, N, obs_dim]", trailing=obs_shape),
             action=td.get(k.action),
             prev_action=self._get(td, k.prev_action, "[S, T, N]", trailing=(N,)),
             hidden=self._get(td, k.rnn_hidden, f"[S, T, N, {net.hidden}]", trailing=(N, net.hidden)),
             state=self._get(td, k.state, "[S, T, state_dim]", ndim=3),
-            next_state=self._get(td, ("next", k.state), "[S, T, state_dim]", ndim=3),
-            reward=self._get(td, ("next", k.reward), "[S, T, 1]", trailing=(1,)),
-            terminated=self._get(td, ("next", k.terminated), "[S, T, 1]", trailing=(1,)),
+            next_state=self._get(td, _next(k.state), "[S, T, state_dim]", ndim=3),
+            reward=self._get(td, _next(k.reward), "[S, T, 1]", trailing=(1,)),
+            terminated=self._get(td, _next(k.terminated), "[S, T, 1]", trailing=(1,)),
         )
         mask = td.get(k.mask, None)
-        out["mask"] = torch.ones(S, T, dtype=torch.bool, device=td.device) if mask is None else mask.reshape(S, T).bool()
+        if mask is None:
+            mask = torch.ones(S, T, dtype=torch.bool, device=td.device)
+        elif tuple(mask.shape) not in ((S, T), (S, T, 1)):
+            raise ValueError(f"ICCOLoss: key {k.mask!r} must have shape [S, T] or [S, T, 1], got {list(mask.shape)}")
+        out["mask"] = mask.reshape(S, T).bool()
         if self.has_coordinator:
             z_shape = (N, net.z_dim)
             out["z"] = self._get(td, k.z, f"[S, T, N, {net.z_dim}]", trailing=z_shape)
             out["z_noise"] = self._get(td, k.z_noise, f"[S, T, N, {net.z_dim}]", trailing=z_shape)
             out["step_count"] = self._get(td, k.step_count, "[S, T, 1]", trailing=(1,)).squeeze(-1)
-            out["next_step_count"] = self._get(td, ("next", k.step_count), "[S, T, 1]", trailing=(1,)).squeeze(-1)
+            out["next_step_count"] = self._get(td, _next(k.step_count), "[S, T, 1]", trailing=(1,)).squeeze(-1)
         return out
 
     # ------------------------------------------------------------------ pieces
@@ -166,7 +169,7 @@ class ICCOLoss(LossModule):
         Step 0: rebuilt from the stored noise if it is a broadcast step, else the stored z. Step
         k+1: a new draw at ``next_state[k]`` where ``next step_count % period == 0``, else held.
         """
-        with params.to_module(self.coordinator):
+        with params.to_module(self.coordinator, preserve_module_state=False):
             loc0, scale0 = self.coordinator.module.distribution(x["state"][:, 0])
             loc_n, scale_n = self.coordinator.module.distribution(x["next_state"])
         broadcast0 = (x["step_count"][:, 0] % self.period == 0)[:, None, None]
@@ -179,12 +182,12 @@ class ICCOLoss(LossModule):
         obs = torch.cat([x["obs"][:, :1], x["next_obs"]], 1)                                     # [S, T+1, N, F]
         prev = torch.cat([x["prev_action"][:, :1], x["action"]], 1)
         state = torch.cat([x["state"][:, :1], x["next_state"]], 1)
-        with params.to_module(self.agent):
+        with params.to_module(self.agent, preserve_module_state=False):
             return self.agent.module.sequence(obs, prev, x["hidden"][:, 0], z=z_seq,
                                               state=state if self.agent.module.full_state else None)
 
     def _mix(self, params: TensorDictParams, q: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
-        with params.to_module(self.mixer):
+        with params.to_module(self.mixer, preserve_module_state=False):
             return self.mixer.module(q.unsqueeze(-1).contiguous(), state.contiguous())          # [S, T, 1]
 
     # ------------------------------------------------------------------ forward
@@ -224,7 +227,7 @@ class ICCOLoss(LossModule):
             bad = [name for name, v in out.items() if name.startswith("loss_") and not torch.isfinite(v).all()]
             if bad:
                 raise NonFiniteLossError(f"non-finite loss terms {bad}: "
-                                         + ", ".join(f"{n}={float(v):.4g}" for n, v in out.items()))
+                                         + ", ".join(f"{n}={v.item():.4g}" for n, v in out.items()))
         return TensorDict(out, [])
 
     def _consistency(self, x: dict, z0, loc0, scale0, mask) -> dict[str, torch.Tensor]:
@@ -246,6 +249,10 @@ class ICCOLoss(LossModule):
             loss = loss + out["ce_nll"]
         out["loss_ce"] = loss
         return out
+
+
+def _next(key: NestedKey) -> tuple:
+    return ("next", *key) if isinstance(key, tuple) else ("next", key)
 
 
 def total_loss(losses: TensorDictBase) -> torch.Tensor:

@@ -31,13 +31,14 @@ class SegmentCutter:
             raise ValueError(f"expected a [num_envs, time] batch, got batch size {list(batch.batch_size)}")
         data = batch if self._tail is None else torch.cat([self._tail, batch], 1)
         T, span = self.length, data.shape[1]
+        keep_from = max(span - T + 1, 0)                                   # windows starting here are incomplete
         starts = data.get(self.step_key).reshape(data.shape) % self.period == 0
-        starts[:, span - T + 1:] = False                                   # incomplete: wait for the next batch
+        starts[:, keep_from:] = False                                      # wait for the next batch
         env_idx, t_idx = starts.nonzero(as_tuple=True)
         steps = t_idx.unsqueeze(1) + torch.arange(T, device=t_idx.device)
         segments = data[env_idx.unsqueeze(1), steps]                      # [S, T]
         done = segments.get(self.done_key).reshape(segments.shape)
         ended_before = torch.cumsum(done.long(), 1) - done.long()          # episode ends strictly before step k
         segments.set(self.mask_key, ended_before == 0)
-        self._tail = data[:, span - T + 1:] if T > 1 else None
+        self._tail = data[:, keep_from:] if T > 1 else None
         return segments

@@ -1,0 +1,203 @@
+"""Evaluation metrics: per-step quantities, per-trial and per-segment totals, summaries, tables.
+
+Counts and rewards are summed over a segment's steps, so a trial's segments add up to its
+episode; distances and fractions are averaged over steps, so the episode value is the
+step-weighted mean of its segments'. Standard deviations are over trials (population std,
+as in :func:`icco_torchrl.evaluation.rollout.evaluate`).
+"""
+from __future__ import annotations
+
+import csv
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterable, Mapping, Sequence
+
+import numpy as np
+import torch
+
+from icco_torchrl.instructions.sources import QUADRANT_SIGNS
+
+# Summed over steps: team reward, its instruction part, its task part, and the event counts.
+ADDITIVE = ("reward", "task_reward", "inst_reward", "pick", "collect", "defense", "invasion")
+# Averaged over steps: distance (m) from each robot to its nearest waypoint, and the fraction of
+# robots strictly inside the instructed quadrant (NaN for segments without a quadrant).
+AVERAGED = ("waypoint_dist", "in_quadrant")
+METRICS = ADDITIVE + AVERAGED
+EPISODE = "episode"  # the segment name of a whole-episode row
+METHOD_LABELS = {"icco": "ICCO", "icco_wo_ce": "ICCO w/o CE", "qmix": "QMIX", "qmix_full": "QMIX (FULL)"}
+TASK_REWARDS = ("pick_reward", "collect_reward", "defense_reward", "invasion_penalty")
+
+
+def method_label(cfg: Mapping, suffix: str = "") -> str:
+    """The paper's name for a trained configuration, ``suffix`` appended (e.g. "-TAP"); agents
+    trained on the instruction reward alone (every task reward zero, ``experiment=inst_only``)
+    get " w/o TR", as in "QMIX-TAP w/o TR"."""
+    name = cfg["method"]["name"]
+    label = METHOD_LABELS.get(name, name) + suffix
+    params = cfg["env"]["params"]
+    if all(float(params.get(key, 1.0)) == 0.0 for key in TASK_REWARDS):
+        label += " w/o TR"
+    return label
+
+
+def step_values(env, nxt, waypoints: torch.Tensor, quadrant: int | None) -> dict[str, torch.Tensor]:
+    """This step's ``[B]`` values from the raw env (after the step) and its ``"next"`` TensorDict."""
+    reward = nxt.get("reward").reshape(-1).float()
+    inst = nxt.get(("events", "inst_reward")).float()
+    out = {"reward": reward, "task_reward": reward - inst, "inst_reward": inst}
+    for key in ("pick", "collect", "defense", "invasion"):
+        out[key] = nxt.get(("events", key)).float()
+    out["waypoint_dist"] = (waypoints - env.pos.unsqueeze(-2)).norm(dim=-1).min(-1).values.mean(-1)
+    if quadrant is None:
+        out["in_quadrant"] = torch.full_like(reward, math.nan)
+    else:
+        signs = torch.tensor(QUADRANT_SIGNS[quadrant], device=env.pos.device)
+        out["in_quadrant"] = (env.pos * signs > 0).all(-1).float().mean(-1)
+    return out
+
+
+def trial_rows(per_step: Mapping[str, np.ndarray], names: Sequence[str], bounds: Sequence[tuple[int, int]],
+               **labels) -> list[dict]:
+    """One row per trial and segment, then one ``"episode"`` row per trial.
+
+    ``per_step[key]`` is ``[T, B]``; ``bounds`` are the segments' ``[start, stop)`` steps;
+    ``labels`` (method, seed, ...) are copied into every row.
+    """
+    n_trials = next(iter(per_step.values())).shape[1]
+    rows = []
+    for b in range(n_trials):
+        for name, (start, stop) in [*zip(names, bounds), (EPISODE, (bounds[0][0], bounds[-1][1]))]:
+            row = {**labels, "trial": b, "segment": name, "steps": stop - start}
+            for key in ADDITIVE:
+                row[key] = float(per_step[key][start:stop, b].sum())
+            for key in AVERAGED:
+                values = per_step[key][start:stop, b]
+                row[key] = float(np.nanmean(values)) if np.isfinite(values).any() else math.nan
+            rows.append(row)
+    return rows
+
+
+def _stats(values: np.ndarray) -> tuple[float, float]:
+    values = values[np.isfinite(values)]
+    return (float(values.mean()), float(values.std())) if len(values) else (math.nan, math.nan)
+
+
+def summarize(rows: Iterable[Mapping], by: Sequence[str] = ("method", "segment")) -> list[dict]:
+    """Mean and std over trials (``{key}`` and ``{key}_std``) per group, in first-seen order;
+    ``n`` counts the trials and ``seeds`` the distinct ``seed`` values in the group."""
+    groups: dict[tuple, list[Mapping]] = {}
+    for row in rows:
+        groups.setdefault(tuple(row[k] for k in by), []).append(row)
+    out = []
+    for key, members in groups.items():
+        summary = dict(zip(by, key), n=len(members), seeds=len({m.get("seed") for m in members}))
+        for metric in METRICS:
+            summary[metric], summary[f"{metric}_std"] = _stats(np.array([m[metric] for m in members], float))
+        out.append(summary)
+    return out
+
+
+def _cell(summary: Mapping, metric: str, digits: int) -> str:
+    mean, std = summary[metric], summary[f"{metric}_std"]
+    return "–" if not math.isfinite(mean) else f"{mean:.{digits}f} ± {std:.{digits}f}"
+
+
+def markdown_table(summary: Sequence[Mapping], metrics: Sequence[str] = METRICS, *, segment: str = EPISODE,
+                   missing: Sequence[str] = ()) -> str:
+    """A Markdown table of ``segment`` rows, one per method (mean ± std over trials); methods
+    in ``missing`` get a row saying so, so a comparison never silently loses one."""
+    digits = {"waypoint_dist": 2, "in_quadrant": 2}
+    head = ["method", "trials"] + list(metrics)
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for row in summary:
+        if row["segment"] == segment:
+            cells = [str(row["method"]), f"{row['n']} ({row['seeds']} seed{'s' * (row['seeds'] != 1)})"]
+            lines.append("| " + " | ".join(cells + [_cell(row, m, digits.get(m, 1)) for m in metrics]) + " |")
+    for method in missing:
+        lines.append("| " + " | ".join([method, "missing"] + ["–"] * len(metrics)) + " |")
+    return "\n".join(lines)
+
+
+def segment_table(summary: Sequence[Mapping], metric: str = "reward") -> str:
+    """A Markdown table of ``metric`` per segment (columns) and method (rows)."""
+    segments = list(dict.fromkeys(row["segment"] for row in summary))
+    methods = list(dict.fromkeys(row["method"] for row in summary))
+    cell = {(row["method"], row["segment"]): _cell(row, metric, 1) for row in summary}
+    lines = ["| method | " + " | ".join(segments) + " |", "|" + "---|" * (len(segments) + 1)]
+    for method in methods:
+        lines.append(f"| {method} | " + " | ".join(cell.get((method, s), "–") for s in segments) + " |")
+    return "\n".join(lines)
+
+
+def write_csv(rows: Sequence[Mapping], path: str | Path) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fields = list(dict.fromkeys(k for row in rows for k in row))
+    with path.open("w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=fields)
+        writer.writeheader()
+        writer.writerows(rows)
+    return path
+
+
+def write_json(payload, path: str | Path) -> Path:
+    """JSON with NaN written as null (strict JSON readers reject NaN)."""
+    def clean(value):
+        if isinstance(value, float) and not math.isfinite(value):
+            return None
+        if isinstance(value, dict):
+            return {k: clean(v) for k, v in value.items()}
+        if isinstance(value, (list, tuple)):
+            return [clean(v) for v in value]
+        return value
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(clean(payload), indent=2))
+    return path
+
+
+@dataclass
+class Curve:
+    """A learning curve across seeds: ``mean`` and ``std`` of ``column`` at each of ``frames``."""
+
+    frames: np.ndarray
+    mean: np.ndarray
+    std: np.ndarray
+    runs: list[str]
+
+
+def read_column(run_dir: str | Path, stream: str, column: str) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(frames, values)`` of a run's ``{stream}.csv`` (rows with an empty or NaN value skipped)."""
+    path = Path(run_dir) / f"{stream}.csv"
+    if not path.is_file():
+        return None
+    with path.open() as handle:
+        reader = csv.DictReader(handle)
+        if column not in (reader.fieldnames or []):
+            raise ValueError(f"{path} has no column {column!r} (columns: {reader.fieldnames})")
+        pairs = [(float(r["frames"]), float(r[column])) for r in reader if r[column] not in ("", "nan")]
+    if not pairs:
+        return None
+    frames, values = map(np.array, zip(*pairs))
+    return frames, values
+
+
+def learning_curves(runs: Mapping[str, Sequence[str | Path]], stream: str = "eval",
+                    column: str = "reward") -> dict[str, Curve]:
+    """Mean ± std over seeds of each method's runs (``{label: [run_dir, ...]}``).
+
+    Seeds are aligned on the frames of the shortest run (interpolating the others), so runs
+    stopped at different budgets still average point by point; runs without the CSV are skipped.
+    """
+    curves = {}
+    for label, dirs in runs.items():
+        read = [(str(d), c) for d in dirs if (c := read_column(d, stream, column)) is not None]
+        if not read:
+            continue
+        grid = min((c[0] for _, c in read), key=lambda f: f[-1])
+        values = np.stack([np.interp(grid, frames, vals) for _, (frames, vals) in read])
+        curves[label] = Curve(grid, values.mean(0), values.std(0), [d for d, _ in read])
+    return curves

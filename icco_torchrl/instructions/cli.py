@@ -1,0 +1,64 @@
+"""``icco instruct "TEXT" checkpoint=PATH``: run trained policies with language instructions.
+
+    icco instruct "Go right" checkpoint=runs/icco/.../checkpoint.pt
+    icco instruct "Go right; Move top; Gather center; Spread out" eval.checkpoints='[a.pt,b.pt]'
+    icco instruct "Go right" checkpoint=qmix.pt llm.prompt=tap          # QMIX-TAP (paper Sec. V-D)
+    icco instruct "Go right" checkpoint=... llm=openai                   # GPT-4o, as in the paper
+
+Instructions separated by ``;`` are given one after the other, ``eval.steps`` (145) steps
+each, in one episode per trial; the planner (``cfg.llm``) is prompted once per instruction
+with the robots' positions at that moment (``eval.replan_every`` re-prompts more often). The
+metrics, tables and figures are those of ``icco eval`` (one segment per instruction), written
+to ``eval.out_dir`` or ``instruct_<instructions>/`` next to the checkpoint(s).
+"""
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+from omegaconf import DictConfig
+
+from icco_torchrl.evaluation.cli import slug, clean_errors, default_out_dir, evaluate_and_report, find_checkpoints
+from icco_torchrl.instructions.llm import LLMPlanner
+from icco_torchrl.instructions.planner import PROVIDER, UnknownInstruction, parse
+from icco_torchrl.instructions.sources import LLMSource
+
+
+def split_instructions(text: str) -> list[str]:
+    """``"Go right; Move top"`` -> ``["Go right", "Move top"]``; empty parts are an error."""
+    parts = [part.strip() for part in text.split(";")]
+    if not text.strip() or not all(parts):
+        raise ValueError(f"instruction {text!r} has an empty part: give e.g. \"Go right; Move top\"")
+    return parts
+
+
+def run_instruct(cfg: DictConfig, run_dir: str | Path, instruction: str) -> float:
+    """The mean episode team reward of the first method (see the module doc)."""
+    for name in ("LiteLLM", "LiteLLM Router", "LiteLLM Proxy"):  # Hydra's INFO root level: one line per request
+        logging.getLogger(name).setLevel(logging.WARNING)
+    with clean_errors("instruct"):
+        instructions = split_instructions(instruction)
+        planner = LLMPlanner.from_config(cfg.llm, field_size=float(cfg.env.params.field_size))
+        # The offline rule planner is deterministic: if it declines an instruction it never
+        # understands it, so say so now (naming it) rather than run on fallback waypoints.
+        offline = planner.model.startswith(f"{PROVIDER}/")
+        if offline:
+            for text in instructions:
+                try:
+                    parse(text, float(cfg.env.params.field_size) / 2)
+                except UnknownInstruction as err:
+                    raise ValueError(f"the offline planner does not understand {text!r}: {err}") from None
+        paths = find_checkpoints(cfg)
+        name = f"instruct_{slug('_'.join(instructions))[:60]}"
+        out_dir = Path(cfg.eval.out_dir) if cfg.eval.out_dir else default_out_dir(paths, name)
+
+        def schedule():
+            return [(text, LLMSource(planner, text, replan_every=cfg.eval.replan_every, strict=offline),
+                     cfg.eval.steps) for text in instructions]
+
+        title = (f"Language instructions via {planner.model} ({planner.prompt} prompt): "
+                 + " -> ".join(f'"{text}"' for text in instructions))
+        return evaluate_and_report(cfg, paths, schedule, name="instruct", out_dir=out_dir, title=title,
+                                   label_suffix="-TAP" if planner.prompt == "tap" else "",
+                                   meta=dict(llm_backend=cfg.llm.backend, model=planner.model, prompt=planner.prompt,
+                                             instructions=instructions, replan_every=cfg.eval.replan_every))

@@ -1,0 +1,556 @@
+"""Behaviour of ICCOLoss, the target updaters and the segment cutter.
+
+The TD target is checked against hand-computed numbers with stand-in networks (a Q table and
+a sum mixer); gradients, recurrent replay and segment cutting are checked on real rollouts of
+the resource-collection env.
+"""
+import pytest
+import torch
+from tensordict import TensorDict
+from tensordict.nn import TensorDictModule
+from torch import nn
+
+from icco_torchrl.modules.coordinator import Coordinator, gaussian_entropy
+from icco_torchrl.objectives import ICCOLoss, NonFiniteLossError, make_target_updater, total_loss
+from icco_torchrl.training.build import build_components, compose_config
+from icco_torchrl.training.segments import SegmentCutter
+
+torch.set_num_threads(1)
+
+
+# ============================================================================ stand-in networks
+class TableAgent(nn.Module):
+    """Q(obs) = table[obs[..., 0]]: a learnable lookup keyed by an integer id in the observation."""
+
+    hidden, z_dim, full_state = 4, 0, False
+
+    def __init__(self, table):
+        super().__init__()
+        self.table = nn.Parameter(torch.as_tensor(table, dtype=torch.float32).clone())
+
+    def sequence(self, obs, prev_action, hidden0, z=None, state=None):
+        assert hidden0.shape[-1] == self.hidden and z is None and state is None
+        return self.table[obs[..., 0].long()]
+
+
+class SumMixer(nn.Module):
+    def forward(self, q, state):
+        return q.sum(-2)
+
+
+def table_loss(online, target, *, gamma, double_q):
+    agent = TensorDictModule(TableAgent(online), in_keys=[("agents", "observation")],
+                             out_keys=[("agents", "action_value")])
+    mixer = TensorDictModule(SumMixer(), in_keys=[("agents", "chosen_action_value"), "state"],
+                             out_keys=["chosen_action_value"])
+    loss = ICCOLoss(agent, mixer, gamma=gamma, double_q=double_q, ce_coef=0.0, entropy_coef=0.0)
+    loss.target_agent_params["module", "table"].data.copy_(torch.as_tensor(target, dtype=torch.float32))
+    return loss
+
+
+def segment_batch(ids, actions, rewards, terminated=None, mask=None):
+    """Segments from observation ids ``[S, T+1, N]`` (step k reads ids[:, k], its next step ids[:, k+1])."""
+    ids = torch.as_tensor(ids, dtype=torch.float32)
+    S, T1, N = ids.shape
+    T = T1 - 1
+    obs = ids.unsqueeze(-1).expand(S, T1, N, 2).clone()          # feature 0: the id, feature 1: copy
+    if terminated is None:
+        terminated = torch.zeros(S, T, 1, dtype=torch.bool)
+    terminated = torch.as_tensor(terminated).reshape(S, T, 1)
+    td = TensorDict({
+        "agents": TensorDict({"observation": obs[:, :T], "action": torch.as_tensor(actions).reshape(S, T, N),
+                              "prev_action": torch.zeros(S, T, N, dtype=torch.long),
+                              "rnn_hidden": torch.zeros(S, T, N, 4)}, [S, T, N]),
+        "state": torch.zeros(S, T, 3),
+        "step_count": torch.arange(T).expand(S, T).unsqueeze(-1).clone(),
+        "next": TensorDict({
+            "agents": TensorDict({"observation": obs[:, 1:]}, [S, T, N]),
+            "state": torch.zeros(S, T, 3),
+            "reward": torch.as_tensor(rewards, dtype=torch.float32).reshape(S, T, 1),
+            "done": terminated.clone(), "terminated": terminated,
+        }, [S, T]),
+    }, [S, T])
+    if mask is not None:
+        td["mask"] = torch.as_tensor(mask).reshape(S, T)
+    return td
+
+
+# Online / target tables over 6 ids and 2 actions (numbers chosen so the two argmaxes differ).
+Q_ONLINE = [[1, 2], [3, 0], [0, 5], [2, 1], [4, 1], [0, 2]]
+Q_TARGET = [[0, 0], [0, 0], [1, 3], [2, 6], [2, 7], [5, 1]]
+IDS = [[[0, 1], [2, 3], [4, 5]]]            # S=1, T=2, N=2
+ACTIONS = [[[1, 0], [0, 1]]]
+REWARDS = [[1.0, -3.0]]
+# chosen: step 0 = Qo[0][1] + Qo[1][0] = 5 ; step 1 = Qo[2][0] + Qo[3][1] = 1. gamma = 0.5.
+# double-Q: step 0 -> argmax Qo[2]=1, Qo[3]=0 -> Qt[2][1] + Qt[3][0] = 3 + 2 = 5 -> y0 = 1 + 2.5 = 3.5
+#           step 1 -> argmax Qo[4]=0, Qo[5]=1 -> Qt[4][0] + Qt[5][1] = 2 + 1 = 3 -> y1 = -3 + 1.5 = -1.5
+# max-Q:    step 0 -> 3 + 6 = 9 -> y0 = 5.5 ; step 1 -> 7 + 5 = 12 -> y1 = 3
+CASES = [
+    # double_q, terminated, mask, expected loss_td
+    (True, None, None, ((5 - 3.5) ** 2 + (1 + 1.5) ** 2) / 2),              # 4.25
+    (False, None, None, ((5 - 5.5) ** 2 + (1 - 3) ** 2) / 2),               # 2.125
+    (True, [[False, True]], None, ((5 - 3.5) ** 2 + (1 + 3) ** 2) / 2),     # y1 = r1 = -3: 9.125
+    (True, [[True, False]], None, ((5 - 1) ** 2 + (1 + 1.5) ** 2) / 2),     # y0 = r0 = 1: 11.125
+    (True, None, [[True, False]], (5 - 3.5) ** 2),                          # only step 0: 2.25
+    (True, None, [[False, True]], (1 + 1.5) ** 2),                          # only step 1: 6.25
+    (False, [[False, True]], [[True, True]], ((5 - 5.5) ** 2 + (1 + 3) ** 2) / 2),  # 8.125
+]
+
+
+@pytest.mark.parametrize("double_q,terminated,mask,expected", CASES)
+def test_td_target_hand_computed(double_q, terminated, mask, expected):
+    loss = table_loss(Q_ONLINE, Q_TARGET, gamma=0.5, double_q=double_q)
+    out = loss(segment_batch(IDS, ACTIONS, REWARDS, terminated, mask))
+    assert out["loss_td"].item() == pytest.approx(expected, abs=1e-6)
+    assert "loss_ce" not in out.keys()
+    # gradient reaches only the online table, at the chosen entries: d/dQ = 2 (q_tot - y) / n_valid
+    out["loss_td"].backward()
+    grad = loss.agent_params["module", "table"].grad
+    assert grad is not None and loss.target_agent_params["module", "table"].grad is None
+    assert grad[0, 0] == 0 and grad[2, 1] == 0 and grad[4:].abs().sum() == 0
+
+
+def test_td_gradient_hand_computed():
+    loss = table_loss(Q_ONLINE, Q_TARGET, gamma=0.5, double_q=True)
+    loss(segment_batch(IDS, ACTIONS, REWARDS))["loss_td"].backward()
+    grad = loss.agent_params["module", "table"].grad
+    expected = torch.zeros(6, 2)
+    expected[0, 1] = expected[1, 0] = 2 * (5 - 3.5) / 2          # step 0 chosen entries
+    expected[2, 0] = expected[3, 1] = 2 * (1 + 1.5) / 2          # step 1 chosen entries
+    torch.testing.assert_close(grad, expected)
+
+
+def _reference_td(ids, actions, rewards, terminated, mask, q_on, q_tg, gamma, double_q):
+    """Plain-python TD loss for the table agent and sum mixer."""
+    q_on = torch.as_tensor(q_on, dtype=torch.float64).tolist()
+    q_tg = torch.as_tensor(q_tg, dtype=torch.float64).tolist()
+    total, count = 0.0, 0
+    for s in range(len(ids)):
+        for k in range(len(ids[s]) - 1):
+            if not mask[s][k]:
+                continue
+            chosen = sum(q_on[ids[s][k][i]][actions[s][k][i]] for i in range(len(ids[s][k])))
+            boot = 0.0
+            for i, nid in enumerate(ids[s][k + 1]):
+                src = q_on[nid] if double_q else q_tg[nid]
+                a = max(range(len(src)), key=lambda j: src[j])
+                boot += q_tg[nid][a]
+            y = rewards[s][k] + (0.0 if terminated[s][k] else gamma * boot)
+            total += (chosen - y) ** 2
+            count += 1
+    return total / count
+
+
+@pytest.mark.parametrize("double_q", [True, False])
+def test_td_target_random_batch_matches_reference(double_q):
+    g = torch.Generator().manual_seed(0)
+    S, T, N, A, n_ids = 2, 5, 3, 4, 20
+    q_on, q_tg = torch.randn(n_ids, A, generator=g), torch.randn(n_ids, A, generator=g)
+    ids = torch.randint(0, n_ids, (S, T + 1, N), generator=g)
+    actions = torch.randint(0, A, (S, T, N), generator=g)
+    rewards = torch.randn(S, T, generator=g)
+    terminated = torch.zeros(S, T, dtype=torch.bool)
+    terminated[0, 2] = True
+    mask = torch.ones(S, T, dtype=torch.bool)
+    mask[0, 3:] = False
+    mask[1, 4] = False
+    loss = table_loss(q_on, q_tg, gamma=0.9, double_q=double_q)
+    out = loss(segment_batch(ids, actions, rewards, terminated, mask))
+    ref = _reference_td(ids.tolist(), actions.tolist(), rewards.tolist(), terminated.tolist(), mask.tolist(),
+                        q_on, q_tg, 0.9, double_q)
+    assert out["loss_td"].item() == pytest.approx(ref, rel=1e-5)
+
+
+# ============================================================================ real ICCO batches
+def _rollout_segments(parts, steps=24, seed=0):
+    torch.manual_seed(seed)
+    parts["env"].set_seed(seed)
+    with torch.no_grad():
+        ro = parts["env"].rollout(steps, parts["policy"], break_when_any_done=False)
+    parts["cutter"].reset()
+    return ro, parts["cutter"](ro)
+
+
+@pytest.fixture(scope="module")
+def icco():
+    parts = build_components(method="icco", num_envs=8)
+    ro, seg = _rollout_segments(parts)
+    return parts, ro, seg
+
+
+def _grads(params):
+    return {k: v.grad for k, v in params.items(True, True)}
+
+
+def _has_grad(params):
+    return any(g is not None and g.abs().sum() > 0 for g in _grads(params).values())
+
+
+def _zero(loss):
+    for p in loss.parameters():
+        p.grad = None
+
+
+def test_coordinator_gets_gradient_from_td_alone(icco):
+    parts, _, seg = icco
+    loss = parts["loss"]
+    _zero(loss)
+    out = loss(seg)
+    out["loss_td"].backward()
+    cp = loss.coordinator_params
+    assert _has_grad(cp.select(("module", "loc"))), "L_RL must reach the coordinator's mean through z"
+    assert _has_grad(cp.select(("module", "logvar"))), "L_RL must reach the coordinator's scale through z"
+    assert _has_grad(cp.select(("module", "encoder")))
+    assert _has_grad(loss.agent_params) and _has_grad(loss.mixer_params)
+    assert not any(p.grad is not None and p.grad.abs().sum() > 0 for p in loss.posterior.parameters()), \
+        "the posterior appears only in L_CE"
+
+
+def test_coordinator_gets_gradient_from_ce_alone(icco):
+    parts, _, seg = icco
+    loss = parts["loss"]
+    _zero(loss)
+    out = loss(seg)
+    assert {"loss_td", "loss_ce"} <= set(out.keys())
+    torch.testing.assert_close(out["loss_ce"], out["ce_nll"] + out["ce_neg_entropy"])
+    out["loss_ce"].backward()
+    assert _has_grad(loss.coordinator_params.select(("module", "loc")))
+    assert _has_grad(loss.coordinator_params.select(("module", "logvar")))
+    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in loss.posterior.parameters())
+    assert not _has_grad(loss.agent_params) and not _has_grad(loss.mixer_params)
+    # total_loss is the sum of both terms
+    torch.testing.assert_close(total_loss(out), out["loss_td"] + out["loss_ce"])
+
+
+@pytest.mark.parametrize("combine", ["product", "sum"])
+def test_ce_term_scores_the_z_the_agents_acted_on(combine):
+    cfg = compose_config(["method=icco", f"method.posterior={combine}", "env.params.max_steps=10"])
+    parts = build_components(cfg, num_envs=4)
+    _, seg = _rollout_segments(parts, steps=16)
+    loss = parts["loss"]
+    assert loss.posterior.module.combine == combine
+    out = loss(seg)
+    z0 = seg["agents", "z"][:, 0]                                        # stored at the broadcast step
+    with torch.no_grad():
+        log_q = loss.posterior.module(z0, seg["state"], seg["agents", "action"], seg["agents", "observation"],
+                                      seg["mask"])                      # [S, N]
+        _, scale0 = loss.coordinator.module.distribution(seg["state"][:, 0])
+    entropy = gaussian_entropy(scale0).mean()
+    assert out["log_q"].item() == pytest.approx(log_q.mean().item(), abs=1e-4)
+    assert out["entropy"].item() == pytest.approx(entropy.item(), abs=1e-4)
+    assert out["loss_ce"].item() == pytest.approx(-loss.ce_coef * log_q.mean().item()
+                                                  - loss.entropy_coef * entropy.item(), abs=1e-6)
+
+
+def test_target_params_receive_no_grad(icco):
+    parts, _, seg = icco
+    loss = parts["loss"]
+    _zero(loss)
+    total_loss(loss(seg)).backward()
+    names = [n for n in ("agent", "mixer", "coordinator") if hasattr(loss, f"target_{n}_params")]
+    assert names == ["agent", "mixer", "coordinator"]
+    target_ids = set()
+    for n in names:
+        for key, p in getattr(loss, f"target_{n}_params").items(True, True):
+            assert p.grad is None, (n, key)
+            target_ids.add(p.data_ptr())
+    online_ids = {p.data_ptr() for p in loss.parameters()}
+    assert not target_ids & online_ids, "target params must be distinct tensors that the optimiser never sees"
+
+
+def test_target_params_never_require_grad():
+    parts = build_components(method="icco", num_envs=2)
+    loss = parts["loss"]
+    _, seg = _rollout_segments(parts, steps=8)
+    loss(seg)
+    for n in ("agent", "mixer", "coordinator"):
+        for key, p in getattr(loss, f"target_{n}_params").items(True, True):
+            assert not p.requires_grad, (n, key)
+    make_target_updater(loss, "hard", interval=5)     # TorchRL refuses targets that require grad
+
+
+def test_target_update_after_forward_reaches_the_loss():
+    """The loss bootstraps from the very tensors the updater writes, also after forward passes."""
+    loss = table_loss(Q_ONLINE, Q_TARGET, gamma=0.5, double_q=True)
+    updater = make_target_updater(loss, "hard", interval=1)   # TorchRL's init_ copies online -> target
+    loss.target_agent_params["module", "table"].data.copy_(torch.tensor(Q_TARGET, dtype=torch.float32))
+    batch = segment_batch(IDS, ACTIONS, REWARDS)
+    assert loss(batch)["loss_td"].item() == pytest.approx(4.25)
+    updater.step()                                       # target := online
+    # with Qt = Qo: y0 = 1 + 0.5 * (Qo[2][1] + Qo[3][0]) = 4.5, y1 = -3 + 0.5 * (Qo[4][0] + Qo[5][1]) = 0
+    assert loss(batch)["loss_td"].item() == pytest.approx(((5 - 4.5) ** 2 + (1 - 0) ** 2) / 2)
+
+
+def test_icco_wo_ce_has_no_posterior_and_no_ce():
+    parts = build_components(method="icco_wo_ce", num_envs=4)
+    _, seg = _rollout_segments(parts, steps=12)
+    loss = parts["loss"]
+    assert parts["posterior"] is None and loss.posterior is None
+    assert not any("posterior" in n for n, _ in loss.named_parameters())
+    out = loss(seg)
+    assert "loss_ce" not in out.keys() and "log_q" not in out.keys()
+    out["loss_td"].backward()
+    assert _has_grad(loss.coordinator_params), "w/o CE the coordinator is trained by L_RL alone"
+
+
+def test_qmix_has_no_coordinator():
+    parts = build_components(method="qmix", num_envs=4)
+    _, seg = _rollout_segments(parts, steps=12)
+    loss = parts["loss"]
+    assert parts["coordinator"] is None and not loss.has_coordinator
+    assert not any(isinstance(m, Coordinator) for m in parts["policy"].modules())
+    assert not any("coordinator" in n for n, _ in loss.named_parameters())
+    assert ("agents", "z") not in seg.keys(True)
+    out = loss(seg)
+    assert set(k for k in out.keys() if k.startswith("loss_")) == {"loss_td"}
+
+
+def test_ce_without_posterior_is_refused(icco):
+    parts = icco[0]
+    with pytest.raises(ValueError, match="posterior"):
+        ICCOLoss(parts["agent"], parts["mixer"], parts["coordinator"], None, ce_coef=1e-3)
+    # ... and a coordinator must match an agent that takes z
+    with pytest.raises(ValueError, match="z"):
+        ICCOLoss(parts["agent"], parts["mixer"], None, None, ce_coef=0.0)
+
+
+# ============================================================================ target updates
+def _small_loss():
+    return build_components(method="icco", num_envs=2)["loss"]
+
+
+def _online_target_pairs(loss):
+    for n in ("agent", "mixer", "coordinator"):
+        online, target = getattr(loss, f"{n}_params"), getattr(loss, f"target_{n}_params")
+        for key, p in online.items(True, True):
+            yield p, target.get(key)
+
+
+def _perturb(loss, value):
+    with torch.no_grad():
+        for p, _ in _online_target_pairs(loss):
+            p.add_(value)
+
+
+@pytest.mark.parametrize("k", [1, 3])
+def test_hard_update_copies_exactly_every_k_steps(k):
+    loss = _small_loss()
+    updater = make_target_updater(loss, "hard", interval=k)
+    for call in range(1, 3 * k + 1):
+        _perturb(loss, 0.5)                                     # online moves away before every call
+        before = [t.clone() for _, t in _online_target_pairs(loss)]
+        updater.step()
+        pairs = list(_online_target_pairs(loss))
+        if call % k == 0:
+            assert all(torch.equal(t, p) for p, t in pairs), f"call {call} must copy (interval {k})"
+        else:
+            assert all(torch.equal(t, b) for (_, t), b in zip(pairs, before)), f"call {call} must not copy"
+            assert not all(torch.equal(t, p) for p, t in pairs)
+
+
+def test_soft_update_moves_by_tau():
+    loss = _small_loss()
+    tau = 0.1
+    updater = make_target_updater(loss, "soft", tau=tau)
+    _perturb(loss, 1.0)
+    before = [(p.detach().clone(), t.clone()) for p, t in _online_target_pairs(loss)]
+    updater.step()
+    for (p0, t0), (_, t1) in zip(before, _online_target_pairs(loss)):
+        torch.testing.assert_close(t1, (1 - tau) * t0 + tau * p0)
+    assert any(not torch.equal(t0, t1) for (_, t0), (_, t1) in zip(before, _online_target_pairs(loss)))
+
+
+def test_target_updater_rejects_bad_arguments():
+    loss = _small_loss()
+    with pytest.raises(ValueError):
+        make_target_updater(loss, "hard", interval=0)
+    with pytest.raises(ValueError):
+        make_target_updater(loss, "soft", tau=0.0)
+    with pytest.raises(ValueError):
+        make_target_updater(loss, "polyak")
+
+
+# ============================================================================ recurrent replay
+@pytest.mark.parametrize("method", ["icco", "qmix_full"])
+def test_replay_reproduces_collection_action_values(method):
+    cfg = compose_config([f"method={method}", "env.params.max_steps=10"])   # episode ends inside segments
+    parts = build_components(cfg, num_envs=6)
+    ro, seg = _rollout_segments(parts, steps=30)
+    assert (~seg["mask"]).any() and (seg["step_count"][:, 0] == 0).any()
+    loss = parts["loss"]
+    x = loss._read(seg)
+    with torch.no_grad():
+        z_seq = None
+        if loss.has_coordinator:
+            z_seq, _, _ = loss._z_sequences(x, loss.coordinator_params, x["z_noise"][:, 0],
+                                            torch.randn_like(x["z_noise"]))
+            torch.testing.assert_close(z_seq[:, :-1][seg["mask"]], seg["agents", "z"][seg["mask"]], atol=1e-5, rtol=0)
+        q = loss._q_sequence(loss.agent_params, x, z_seq)
+    T = seg.shape[1]
+    valid = seg["mask"]
+    torch.testing.assert_close(q[:, :T][valid], seg["agents", "action_value"][valid], atol=1e-5, rtol=0)
+    # forward itself: its q_taken / q_tot summaries are the collection values of the taken actions
+    out = loss(seg)
+    chosen = seg["agents", "action_value"].gather(-1, seg["agents", "action"].unsqueeze(-1)).squeeze(-1)
+    assert out["q_taken"].item() == pytest.approx(chosen[valid].mean().item(), abs=1e-5)
+    with torch.no_grad():
+        q_tot = loss.mixer.module(chosen.unsqueeze(-1), seg["state"]).squeeze(-1)
+    assert out["q_tot"].item() == pytest.approx(q_tot[valid].mean().item(), abs=1e-5)
+
+
+# ============================================================================ segment cutter
+@pytest.fixture(scope="module")
+def short_episode_rollout():
+    cfg = compose_config(["method=icco", "env.params.max_steps=10"])
+    parts = build_components(cfg, num_envs=3)
+    torch.manual_seed(1)
+    with torch.no_grad():
+        ro = parts["env"].rollout(37, parts["policy"], break_when_any_done=False)
+    B, L = ro.shape
+    ro["tid"] = torch.arange(L).expand(B, L).clone()
+    ro["eid"] = torch.arange(B)[:, None].expand(B, L).clone()
+    return ro, parts["cfg"].method.period
+
+
+def _sorted(seg):
+    order = torch.argsort(seg["eid"][:, 0] * 10_000 + seg["tid"][:, 0])
+    return seg[order]
+
+
+def test_segments_start_at_broadcast_steps(short_episode_rollout):
+    ro, T = short_episode_rollout
+    seg = SegmentCutter(T)(ro)
+    assert seg.shape[1] == T
+    assert (seg["step_count"][:, 0] % T == 0).all()
+    torch.testing.assert_close(seg["tid"], seg["tid"][:, :1] + torch.arange(T))
+    assert (seg["eid"] == seg["eid"][:, :1]).all()
+    # exactly one segment per complete broadcast start
+    L = ro.shape[1]
+    starts = (ro["step_count"].squeeze(-1) % T == 0) & (ro["tid"] <= L - T)
+    assert seg.shape[0] == int(starts.sum())
+    # contents are the rollout's own steps
+    got = _sorted(seg)
+    e, t = starts.nonzero(as_tuple=True)
+    for j in range(T):
+        torch.testing.assert_close(got["agents", "observation"][:, j], ro["agents", "observation"][e, t + j])
+
+
+@pytest.mark.parametrize("chunks", [[7, 5], [4], [13, 1, 3]])
+def test_segments_stitched_across_batches(short_episode_rollout, chunks):
+    ro, T = short_episode_rollout
+    whole = _sorted(SegmentCutter(T)(ro))
+    cutter, parts, start, i = SegmentCutter(T), [], 0, 0
+    while start < ro.shape[1]:
+        size = chunks[i % len(chunks)]
+        parts.append(cutter(ro[:, start:start + size]))
+        start, i = start + size, i + 1
+    stitched = _sorted(torch.cat([p for p in parts if p.shape[0]], 0))
+    assert stitched.shape == whole.shape
+    assert (stitched == whole).all()
+
+
+def test_segments_stitched_across_tiny_batches(short_episode_rollout):
+    ro, T = short_episode_rollout
+    whole = _sorted(SegmentCutter(T)(ro))
+    cutter = SegmentCutter(T)
+    out = [cutter(ro[:, s:s + 2]) for s in range(0, ro.shape[1], 2)]
+    stitched = _sorted(torch.cat([p for p in out if p.shape[0]], 0))
+    assert (stitched == whole).all()
+
+
+def test_mask_false_after_episode_end(short_episode_rollout):
+    ro, T = short_episode_rollout
+    seg = SegmentCutter(T)(ro)
+    done = seg["next", "done"].squeeze(-1)
+    mask = seg["mask"]
+    assert mask[:, 0].all()
+    crossing = done[:, :-1].any(-1)
+    assert crossing.any(), "max_steps=10 with T=4 puts an episode end inside some segments"
+    for s in range(seg.shape[0]):
+        end = done[s].nonzero()
+        last = int(end[0]) if len(end) else T - 1
+        expected = torch.arange(T) <= last
+        assert torch.equal(mask[s], expected), (seg["step_count"][s].squeeze(-1), done[s], mask[s])
+    # the masked steps really belong to the next episode
+    assert (seg["step_count"][~mask] < T).all()
+
+
+def test_cutter_rejects_bad_input():
+    with pytest.raises(ValueError):
+        SegmentCutter(0)
+    with pytest.raises(ValueError, match="batch"):
+        SegmentCutter(4)(TensorDict({"step_count": torch.zeros(5, 1)}, [5]))
+
+
+# ============================================================================ bad input
+def _seg_copy(icco):
+    return icco[2].clone()
+
+
+def _named(key):
+    """How the message names a key: the full nested key, e.g. ('next', 'agents', 'observation')."""
+    return repr(key)
+
+
+@pytest.mark.parametrize("key,expected", [
+    (("agents", "observation"), "[S, T, N, obs_dim]"),
+    (("agents", "rnn_hidden"), "[S, T, N, 64]"),
+    ("state", "[S, T, state_dim]"),
+    (("next", "reward"), "[S, T, 1]"),
+    (("agents", "z_noise"), "[S, T, N, 32]"),
+    ("step_count", "[S, T, 1]"),
+])
+def test_missing_key_names_key_and_shape(icco, key, expected):
+    td = _seg_copy(icco)
+    del td[key]
+    with pytest.raises(KeyError) as err:
+        icco[0]["loss"](td)
+    msg = err.value.args[0]
+    assert _named(key) in msg and expected in msg
+
+
+@pytest.mark.parametrize("key,bad_shape_fn,expected", [
+    (("agents", "rnn_hidden"), lambda v: v[..., :10], "[S, T, N, 64]"),
+    (("next", "reward"), lambda v: v.squeeze(-1), "[S, T, 1]"),
+    (("agents", "action"), lambda v: v.unsqueeze(-1), "[S, T, N]"),
+    (("agents", "z"), lambda v: v[..., :5], "[S, T, N, 32]"),
+    (("next", "agents", "observation"), lambda v: v[..., :7], "[S, T, N, obs_dim]"),
+])
+def test_wrong_shape_names_key_and_shape(icco, key, bad_shape_fn, expected):
+    td = _seg_copy(icco)
+    value = bad_shape_fn(td.get(key))
+    td = td.exclude(key)
+    td.set(key, value)
+    with pytest.raises(ValueError) as err:
+        icco[0]["loss"](td)
+    msg = str(err.value)
+    assert _named(key) in msg and expected in msg
+
+
+def test_wrong_mask_shape_names_key(icco):
+    td = _seg_copy(icco)
+    S, T = td.shape
+    td["mask"] = torch.ones(S, T, 2, dtype=torch.bool)
+    with pytest.raises(ValueError, match="mask"):
+        icco[0]["loss"](td)
+
+
+def test_segments_without_time_dim_are_refused(icco):
+    with pytest.raises(ValueError, match=r"\[S, T\]"):
+        icco[0]["loss"](_seg_copy(icco)[:, 0])
+
+
+def test_non_finite_loss_raises(icco):
+    td = _seg_copy(icco)
+    td["next", "reward"][0, 1] = float("nan")
+    with pytest.raises(NonFiniteLossError, match="loss_td"):
+        icco[0]["loss"](td)
+    assert issubclass(NonFiniteLossError, FloatingPointError)
+
+
+def test_loss_rejects_bad_coefficients(icco):
+    parts = icco[0]
+    with pytest.raises(ValueError, match="gamma"):
+        ICCOLoss(parts["agent"], parts["mixer"], parts["coordinator"], parts["posterior"], gamma=1.5)
+    with pytest.raises(ValueError, match="ce_coef"):
+        ICCOLoss(parts["agent"], parts["mixer"], parts["coordinator"], parts["posterior"], ce_coef=-1.0)

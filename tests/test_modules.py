@@ -1,0 +1,315 @@
+"""Behaviour of ICCO's networks: posterior maths, entropy, mixer, encoders, recurrent agent, coordinator.
+
+Every numeric check compares against either a hand computation on explicit numbers or an
+independent implementation (``torch.distributions``); every structural check (masking,
+invariance, holding z) is written so that a plausible regression makes it fail.
+"""
+import math
+
+import pytest
+import torch
+from torch.distributions import Independent, Normal
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from icco_torchrl.envs.resource_collection import ObsLayout
+from icco_torchrl.modules import (EntityAttentionEncoder, Posterior, RecurrentQNet, combine_log_prob,
+                                  diag_normal_log_prob, gaussian_entropy, make_mixer)
+from icco_torchrl.modules.coordinator import Coordinator
+from icco_torchrl.training.build import build_components, compose_config
+
+torch.set_num_threads(1)
+
+LOG_2PI = math.log(2 * math.pi)
+
+
+# ---------------------------------------------------------------------------- Gaussian maths
+def test_diag_normal_log_prob_hand_and_torch():
+    x = torch.tensor([0.5, -1.0])
+    loc = torch.tensor([0.0, 1.0])
+    scale = torch.tensor([1.0, 2.0])
+    # dim 0: -0.5*0.25 - log 1 - 0.5 log 2pi ; dim 1: -0.5*(2/2)^2 - log 2 - 0.5 log 2pi
+    hand = (-0.125 - 0.5 * LOG_2PI) + (-0.5 - math.log(2.0) - 0.5 * LOG_2PI)
+    assert diag_normal_log_prob(x, loc, scale).item() == pytest.approx(hand, abs=1e-6)
+
+    g = torch.Generator().manual_seed(0)
+    x, loc = torch.randn(4, 3, 5, generator=g), torch.randn(4, 3, 5, generator=g)
+    scale = torch.rand(4, 3, 5, generator=g) + 0.1
+    ref = Independent(Normal(loc, scale), 1).log_prob(x)
+    torch.testing.assert_close(diag_normal_log_prob(x, loc, scale), ref, atol=1e-5, rtol=1e-5)
+
+
+def _factors():
+    """S=1, K=3 factors, N=1 robot, Z=2; the third factor is garbage and masked out."""
+    loc = torch.tensor([[[[0.0, 1.0]], [[2.0, 1.0]], [[50.0, -40.0]]]])        # [1, 3, 1, 2]
+    scale = torch.tensor([[[[1.0, 1.0]], [[1.0, 2.0]], [[0.01, 0.01]]]])
+    mask = torch.tensor([[True, True, False]])
+    z = torch.tensor([[[0.5, 1.0]]])                                           # [1, 1, 2]
+    return z, loc, scale, mask
+
+
+def test_product_of_gaussians_hand_computation():
+    z, loc, scale, mask = _factors()
+    # dim 0: N(0,1) x N(2,1) -> precision 2, mean 1, var 1/2; z=0.5: -0.5*0.25/0.5 - 0.5*log(2pi*0.5)
+    d0 = -0.25 - 0.5 * math.log(math.pi)
+    # dim 1: N(1,1) x N(1,4) -> precision 1.25, mean 1, var 0.8; z=1: -0.5*log(2pi*0.8)
+    d1 = -0.5 * math.log(2 * math.pi * 0.8)
+    out = combine_log_prob(z, loc, scale, mask, "product")
+    assert out.shape == (1, 1)
+    assert out.item() == pytest.approx(d0 + d1, abs=1e-5)
+    # against torch.distributions with the precision-weighted mean and variance
+    ref = Independent(Normal(torch.tensor([1.0, 1.0]), torch.tensor([0.5, 0.8]).sqrt()), 1).log_prob(z[0, 0])
+    assert out.item() == pytest.approx(ref.item(), abs=1e-5)
+
+
+def test_sum_of_log_likelihoods_hand_computation():
+    z, loc, scale, mask = _factors()
+    # factor 0: dim0 N(0.5;0,1) = -0.125-c, dim1 N(1;1,1) = -c ; factor 1: dim0 N(0.5;2,1) = -1.125-c,
+    # dim1 N(1;1,2) = -log 2 - c ; c = 0.5 log 2pi
+    hand = -0.125 - 1.125 - math.log(2.0) - 4 * 0.5 * LOG_2PI
+    out = combine_log_prob(z, loc, scale, mask, "sum")
+    assert out.item() == pytest.approx(hand, abs=1e-5)
+    ref = sum(Independent(Normal(loc[0, k, 0], scale[0, k, 0]), 1).log_prob(z[0, 0]) for k in (0, 1))
+    assert out.item() == pytest.approx(ref.item(), abs=1e-5)
+
+
+@pytest.mark.parametrize("combine", ["product", "sum"])
+def test_masked_factors_are_ignored(combine):
+    g = torch.Generator().manual_seed(1)
+    S, K, N, Z = 3, 4, 2, 3
+    loc, z = torch.randn(S, K, N, Z, generator=g), torch.randn(S, N, Z, generator=g)
+    scale = torch.rand(S, K, N, Z, generator=g) + 0.2
+    mask = torch.tensor([[True, True, False, False], [True, False, True, False], [True, True, True, True]])
+    out = combine_log_prob(z, loc, scale, mask, combine)
+    loc2, scale2 = loc.clone(), scale.clone()
+    loc2[~mask] = 1e3 * torch.randn_like(loc2[~mask])
+    scale2[~mask] = 1e-3
+    torch.testing.assert_close(combine_log_prob(z, loc2, scale2, mask, combine), out)
+    # each row equals the same computation on its valid factors only
+    for s in range(S):
+        keep = mask[s]
+        if combine == "product":
+            prec = (1 / scale[s, keep] ** 2).sum(0)
+            mean = (loc[s, keep] / scale[s, keep] ** 2).sum(0) / prec
+            ref = Independent(Normal(mean, prec.rsqrt()), 1).log_prob(z[s])
+        else:
+            ref = Independent(Normal(loc[s, keep], scale[s, keep]), 1).log_prob(z[s].unsqueeze(0)).sum(0)
+        torch.testing.assert_close(out[s], ref, atol=1e-4, rtol=1e-5)
+
+
+def test_combine_rejects_unknown_mode():
+    z, loc, scale, mask = _factors()
+    with pytest.raises(ValueError, match="combine"):
+        combine_log_prob(z, loc, scale, mask, "mean")
+
+
+def test_posterior_scores_its_own_factors():
+    layout = ObsLayout(n_agents=2, n_waypoints=2, own_dim=4, n_entities=2, entity_dim=3, state_tokens=3,
+                       state_token_dim=4)
+    torch.manual_seed(0)
+    post = Posterior(layout, z_dim=3, hidden=8, combine="product")
+    S, T, N = 2, 4, 2
+    state, obs = torch.randn(S, T, layout.state_dim), torch.randn(S, T, N, layout.obs_dim)
+    action, z = torch.randint(0, 5, (S, T, N)), torch.randn(S, N, 3)
+    mask = torch.tensor([[True, True, True, False], [True, False, False, False]])
+    loc, scale = post.factors(state, action, obs)
+    assert loc.shape == scale.shape == (S, T, N, 3)
+    torch.testing.assert_close(post(z, state, action, obs, mask), combine_log_prob(z, loc, scale, mask, "product"))
+    # later factors read only their own step: changing a masked step's observation changes nothing
+    obs2 = obs.clone()
+    obs2[0, 3] += 5.0
+    torch.testing.assert_close(post(z, state, action, obs2, mask), post(z, state, action, obs, mask))
+
+
+def test_gaussian_entropy_closed_form_and_torch():
+    scale = torch.tensor([1.0, math.e])
+    assert gaussian_entropy(scale).item() == pytest.approx(math.log(2 * math.pi * math.e) + 1.0, abs=1e-6)
+    g = torch.Generator().manual_seed(2)
+    scale = torch.rand(5, 3, 7, generator=g) * 2 + 0.01
+    ref = Normal(torch.zeros_like(scale), scale).entropy().sum(-1)
+    torch.testing.assert_close(gaussian_entropy(scale), ref, atol=1e-5, rtol=1e-5)
+    closed = 0.5 * 7 * math.log(2 * math.pi * math.e) + scale.log().sum(-1)
+    torch.testing.assert_close(gaussian_entropy(scale), closed, atol=1e-5, rtol=1e-5)
+
+
+# ---------------------------------------------------------------------------- mixer
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_qmixer_is_monotone_in_every_local_q(seed):
+    torch.manual_seed(seed)
+    N, D = 3, 7
+    mixer = make_mixer(D, N, embed_dim=8).module
+    with torch.no_grad():
+        for p in mixer.parameters():
+            p.normal_(0.0, 1.0)           # random weights, negative ones included
+    q = (torch.randn(4, 5, N, 1) * 5).requires_grad_(True)          # leading [S, T]
+    state = torch.randn(4, 5, D)
+    out = mixer(q, state)
+    assert out.shape == (4, 5, 1)
+    (grad,) = torch.autograd.grad(out.sum(), q)   # rows are independent: d out[s,t] / d q[s,t,i]
+    assert (grad >= 0).all(), grad.min()
+    assert (grad > 0).any()
+    # and a direct check: raising one agent's Q never lowers Q_tot
+    bumped = q.detach().clone()
+    bumped[..., 1, :] += 1.0
+    assert (mixer(bumped, state) >= out.detach() - 1e-5).all()
+
+
+# ---------------------------------------------------------------------------- encoders
+def _encoder_input(g, B=6, own=3, E=4, F=5):
+    x = torch.randn(B, own + E * F, generator=g)
+    tokens = x[:, own:].view(B, E, F)
+    tokens[..., -1] = (torch.rand(B, E, generator=g) > 0.4).float()
+    tokens[0, :, -1] = torch.tensor([1.0, 0.0, 1.0, 0.0])
+    return x
+
+
+def test_entity_attention_ignores_invisible_tokens():
+    torch.manual_seed(0)
+    g = torch.Generator().manual_seed(3)
+    enc = EntityAttentionEncoder(own_dim=3, n_entities=4, entity_dim=5, hidden=16)
+    x = _encoder_input(g)
+    out = enc(x)
+    tokens = x[:, 3:].view(6, 4, 5)
+    invisible = tokens[..., -1] == 0
+    assert invisible.any() and (~invisible).any()
+    x2 = x.clone()
+    t2 = x2[:, 3:].view(6, 4, 5)
+    t2[..., :-1] = torch.where(invisible[..., None], 100 * torch.randn(6, 4, 4, generator=g), t2[..., :-1])
+    torch.testing.assert_close(enc(x2), out)
+    # a visible token does matter (the test can fail)
+    x3 = x.clone()
+    x3[0, 3:8] += 3.0                                 # entity 0 of row 0 is visible
+    assert not torch.allclose(enc(x3)[0], out[0])
+    # nothing visible: the read-out is zero, so the output equals the one with all tokens zeroed
+    x4 = x.clone()
+    x4[:, 3:].view(6, 4, 5)[..., -1] = 0
+    x5 = x4.clone()
+    x5[:, 3:] = 0
+    torch.testing.assert_close(enc(x4), enc(x5))
+
+
+def test_entity_attention_is_permutation_invariant():
+    torch.manual_seed(1)
+    g = torch.Generator().manual_seed(4)
+    enc = EntityAttentionEncoder(own_dim=3, n_entities=4, entity_dim=5, hidden=16)
+    x = _encoder_input(g)
+    perm = torch.tensor([2, 0, 3, 1])
+    xp = x.clone()
+    xp[:, 3:] = x[:, 3:].view(6, 4, 5)[:, perm].reshape(6, 20)
+    torch.testing.assert_close(enc(xp), enc(x), atol=1e-5, rtol=1e-5)
+
+
+# ---------------------------------------------------------------------------- recurrent agent
+LAYOUT = ObsLayout(n_agents=3, n_waypoints=2, own_dim=9, n_entities=4, entity_dim=5, state_tokens=4, state_token_dim=6)
+
+
+def _agent_inputs(g, B=2, L=6):
+    N = LAYOUT.n_agents
+    obs = torch.randn(B, L, N, LAYOUT.obs_dim, generator=g)
+    obs[..., LAYOUT.own_dim:].view(B, L, N, 4, 5)[..., -1] = (torch.rand(B, L, N, 4, generator=g) > 0.5).float()
+    prev = torch.randint(0, 5, (B, L, N), generator=g)
+    z = torch.randn(B, L, N, 4, generator=g)
+    state = torch.randn(B, L, LAYOUT.state_dim, generator=g)
+    h0 = torch.randn(B, N, 16, generator=g)
+    return obs, prev, z, state, h0
+
+
+@pytest.mark.parametrize("encoder,full_state,z_dim",
+                         [("attention", False, 4), ("mlp", True, 0), ("attention", True, 4)])
+def test_agent_one_step_forward_equals_sequence(encoder, full_state, z_dim):
+    torch.manual_seed(0)
+    net = RecurrentQNet(LAYOUT, hidden=16, z_dim=z_dim, full_state=full_state, encoder=encoder)
+    obs, prev, z, state, h0 = _agent_inputs(torch.Generator().manual_seed(5))
+    z = z if z_dim else None
+    B, L = obs.shape[:2]
+    seq = net.sequence(obs, prev, h0, z=z, state=state if full_state else None)
+    assert seq.shape == (B, L, 3, 5)
+    h, steps = h0, []
+    step_count = torch.full((B, 1), 3)              # never a reset
+    for t in range(L):
+        q, h = net(obs[:, t], prev[:, t], h, step_count, z=None if z is None else z[:, t],
+                   state=state[:, t] if full_state else None)
+        steps.append(q)
+    torch.testing.assert_close(torch.stack(steps, 1), seq, atol=1e-5, rtol=1e-5)
+    # the hidden state carries information: another h0 gives other values after step 0
+    other = net.sequence(obs, prev, torch.zeros_like(h0), z=z, state=state if full_state else None)
+    assert not torch.allclose(other, seq)
+
+
+def test_agent_hidden_restarts_at_step_zero():
+    torch.manual_seed(0)
+    net = RecurrentQNet(LAYOUT, hidden=16, z_dim=4)
+    obs, prev, z, _, h = _agent_inputs(torch.Generator().manual_seed(6), B=4, L=1)
+    obs, prev, z = obs[:, 0], prev[:, 0], z[:, 0]
+    step_count = torch.tensor([[0], [5], [0], [1]])
+    q, h_new = net(obs, prev, h, step_count, z=z)
+    q0, h0_new = net(obs, prev, torch.zeros_like(h), step_count, z=z)
+    restart = step_count.squeeze(-1) == 0
+    torch.testing.assert_close(q[restart], q0[restart])
+    torch.testing.assert_close(h_new[restart], h0_new[restart])
+    assert not torch.allclose(q[~restart], q0[~restart])
+    # the returned hidden state is the GRU output fed to the next step
+    q1, _ = net(obs, prev, h_new, torch.full_like(step_count, 7), z=z)
+    seq = net.sequence(torch.stack([obs, obs], 1), torch.stack([prev, prev], 1), h * (~restart)[:, None, None],
+                       z=torch.stack([z, z], 1))
+    torch.testing.assert_close(q1, seq[:, 1], atol=1e-5, rtol=1e-5)
+
+
+# ---------------------------------------------------------------------------- coordinator in rollouts
+@pytest.fixture(scope="module")
+def icco_short_episodes():
+    torch.manual_seed(0)
+    cfg = compose_config(["method=icco", "env.params.max_steps=10"])
+    return build_components(cfg, num_envs=4)
+
+
+def _blocks(step_count, period):
+    """Id of the hold period each step belongs to, per env: increments at every broadcast step."""
+    return torch.cumsum((step_count % period == 0).long(), dim=1)
+
+
+def test_coordinator_holds_z_for_period_steps(icco_short_episodes):
+    parts = icco_short_episodes
+    env, policy = parts["env"], parts["policy"]
+    period = parts["coordinator"].module.period
+    env.set_seed(0)
+    with torch.no_grad():
+        ro = env.rollout(26, policy, break_when_any_done=False)
+    sc = ro["step_count"].squeeze(-1)
+    assert (sc == 0).sum() >= 2 * ro.shape[0], "the rollout should cross episode ends"
+    z, noise = ro["agents", "z"], ro["agents", "z_noise"]
+    blocks = _blocks(sc, period)
+    same_block = blocks[:, 1:] == blocks[:, :-1]
+    dz = (z[:, 1:] - z[:, :-1]).abs().flatten(2).amax(-1)
+    assert (dz[same_block] == 0).all(), "z must be held within a hold period"
+    assert (dz[~same_block] > 1e-4).all(), "z must be redrawn at every broadcast step"
+    dn = (noise[:, 1:] - noise[:, :-1]).abs().flatten(2).amax(-1)
+    assert (dn[same_block] == 0).all()
+    # at broadcast steps z is the reparameterised draw loc + scale * noise (and not the mean)
+    fresh = sc % period == 0
+    torch.testing.assert_close(z[fresh], (ro["agents", "z_loc"] + ro["agents", "z_scale"] * noise)[fresh])
+    assert not torch.allclose(z[fresh], ro["agents", "z_loc"][fresh])
+
+
+def test_coordinator_emits_mean_when_deterministic(icco_short_episodes):
+    parts = icco_short_episodes
+    env, policy = parts["env"], parts["policy"]
+    period = parts["coordinator"].module.period
+    with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+        ro = env.rollout(14, policy, break_when_any_done=False)
+    sc = ro["step_count"].squeeze(-1)
+    z, loc = ro["agents", "z"], ro["agents", "z_loc"]
+    fresh = sc % period == 0
+    torch.testing.assert_close(z[fresh], loc[fresh])
+    # in between, the mean computed at the block's broadcast step is held
+    blocks = _blocks(sc, period)
+    for b in range(sc.shape[0]):
+        for t in range(sc.shape[1]):
+            start = int((fresh[b, : t + 1].nonzero()[-1]).item())
+            assert blocks[b, start] == blocks[b, t]
+            torch.testing.assert_close(z[b, t], loc[b, start])
+    assert (ro["agents", "z_noise"] == 0).all()
+
+
+def test_coordinator_rejects_bad_period():
+    with pytest.raises(ValueError, match="period"):
+        Coordinator(LAYOUT, z_dim=4, hidden=8, period=0)
