@@ -43,6 +43,8 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
+from icco_torchrl.envs._kernels import Params, any_, batch_first, batch_last, dynamics, pair_sq_dist
+
 N_ACTIONS = 5
 # Unit force per action: no-op, -x, +x, -y, +y (COPA's order).
 _ACTION_DIRS = ((0.0, 0.0), (-1.0, 0.0), (1.0, 0.0), (0.0, -1.0), (0.0, 1.0))
@@ -78,21 +80,6 @@ def _positive(name: str, value, integer: bool = False) -> None:
         raise ValueError(f"{name} must be {kind}, got {value!r}")
 
 
-def _batch_last(x: torch.Tensor) -> torch.Tensor:
-    """``[B, *rest]`` -> contiguous ``[*rest, B]`` (one 2-D transpose, the fast copy kernel)."""
-    return x.reshape(x.shape[0], -1).t().contiguous().view(*x.shape[1:], x.shape[0])
-
-
-def _batch_first(x: torch.Tensor) -> torch.Tensor:
-    """``[*rest, B]`` -> contiguous ``[B, *rest]``."""
-    return x.reshape(-1, x.shape[-1]).t().contiguous().view(x.shape[-1], *x.shape[:-1])
-
-
-def _any(mask: torch.Tensor, dim: int) -> torch.Tensor:
-    """``mask.any(dim)``; a max over uint8 is ~10x faster than the bool reduction on CPU."""
-    return mask.view(torch.uint8).amax(dim).view(torch.bool)
-
-
 def _state_property(name: str, doc: str) -> property:
     """Public ``[B, ...]`` view of the batch-last state tensor ``name`` (writable in place)."""
 
@@ -100,7 +87,7 @@ def _state_property(name: str, doc: str) -> property:
         return getattr(self, name).movedim(-1, 0)
 
     def set(self, value):
-        self._put(**{name: _batch_last(torch.as_tensor(value, device=self.device))})
+        self._put(**{name: batch_last(torch.as_tensor(value, device=self.device))})
 
     return property(get, set, doc=doc)
 
@@ -140,6 +127,8 @@ class ResourceCollectionEnv(EnvBase):
         resource_min_radius: resources spawn between this distance from home and the field
             edge (1.5).
         validate: check actions and supplied waypoints at every step (costs a device sync).
+        compile: run the step's dynamics through ``torch.compile`` (the first step then takes
+            tens of seconds to compile). Off by default; see ``benchmarks/env_profile.py``.
     """
 
     batch_locked = True
@@ -178,6 +167,7 @@ class ResourceCollectionEnv(EnvBase):
         invader_respawn_max: int = 10,
         resource_min_radius: float = 1.5,
         validate: bool = True,
+        compile: bool = False,
     ):
         for name, value in dict(num_envs=num_envs, n_agents=n_agents, n_resources=n_resources,
                                 n_invaders=n_invaders, max_steps=max_steps, n_waypoints=n_waypoints,
@@ -224,6 +214,14 @@ class ResourceCollectionEnv(EnvBase):
         self._entity_type = torch.nn.functional.one_hot(types, 4).float().to(dev)           # [E_all, 4]
         self._state_cols = self._state_columns().to(dev)
         self._agents_batch = torch.Size([num_envs, n_agents])
+        r2 = lambda a, b: (a + b) ** 2  # noqa: E731
+        self._params = Params(
+            damping=damping, max_speed=max_speed, dt=dt, wall=self.half - agent_radius, invader_speed=invader_speed,
+            touch_invader2=r2(agent_radius, invader_radius), touch_resource2=r2(agent_radius, resource_radius),
+            invader_home2=r2(home_radius, invader_radius), robot_home2=r2(home_radius, agent_radius),
+            inst_scale=self.inst_reward_scale, inst_dist_coef=self.inst_dist_coef, pick=pick_reward,
+            collect=collect_reward, defense=defense_reward, invasion_share=-invasion_penalty / n_agents)
+        self._dynamics = torch.compile(dynamics, dynamic=False, fullgraph=True) if compile else dynamics
         self._rng = torch.Generator(device=dev)
         self._rng.manual_seed(int(seed) if seed is not None else int(torch.empty((), dtype=torch.int64).random_().item()))
         self._make_specs()
@@ -306,7 +304,7 @@ class ResourceCollectionEnv(EnvBase):
         wp = self._wp
         cached_for, version, cache = self._wp_cache
         if cached_for is not wp or version != wp._version:
-            cache = _batch_last(wp)
+            cache = batch_last(wp)
             self._put(_wp_cache=(wp, wp._version, cache))
         return cache
 
@@ -352,7 +350,7 @@ class ResourceCollectionEnv(EnvBase):
         cand = self._resource_candidates(env.numel())                                        # [P, C, 2]
         d2 = (cand.unsqueeze(2) - res_pos[env].unsqueeze(1)).square().sum(-1)                # [P, C, R]
         blocking = (~respawn[env]).unsqueeze(1) & (d2 < (2 * self.resource_radius) ** 2)
-        first = (~_any(blocking, -1)).to(torch.uint8).argmax(-1)                             # first free or 0
+        first = (~any_(blocking, -1)).to(torch.uint8).argmax(-1)                             # first free or 0
         chosen = cand[torch.arange(env.numel(), device=self.device), first]                 # [P, 2]
         return res_pos.index_put((env, slot), chosen)
 
@@ -362,8 +360,8 @@ class ResourceCollectionEnv(EnvBase):
         ``start`` is batch-last ``[N, 2, M]``; returns ``[M, N, K, 2]``.
         """
         M = start.shape[-1]
-        steps = _batch_last(self._randn(M, self.n_agents, self.n_waypoints, 2)) * self.waypoint_sigma
-        return _batch_first((start.unsqueeze(1) + steps.cumsum(1)).clamp(-self.half, self.half))
+        steps = batch_last(self._randn(M, self.n_agents, self.n_waypoints, 2)) * self.waypoint_sigma
+        return batch_first((start.unsqueeze(1) + steps.cumsum(1)).clamp(-self.half, self.half))
 
     # ------------------------------------------------------------------ reset
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
@@ -380,11 +378,11 @@ class ResourceCollectionEnv(EnvBase):
             only_j = torch.zeros(M, R, dtype=torch.bool, device=dev)
             only_j[:, j] = True
             res_pos = self._spawn_resources(res_pos, only_j)
-        pos_bl = _batch_last(pos)
+        pos_bl = batch_last(pos)
         fresh = dict(  # batch-last, in the order the random numbers are drawn
             _pos=pos_bl, _vel=torch.zeros_like(pos_bl), _carry=torch.zeros(N, M, dtype=torch.bool, device=dev),
-            _defended=torch.zeros(N, M, dtype=torch.bool, device=dev), _res=_batch_last(res_pos),
-            _inv=_batch_last(self._edge_points(M * I).view(M, I, 2)), _inv_vel=torch.zeros(I, 2, M, device=dev),
+            _defended=torch.zeros(N, M, dtype=torch.bool, device=dev), _res=batch_last(res_pos),
+            _inv=batch_last(self._edge_points(M * I).view(M, I, 2)), _inv_vel=torch.zeros(I, 2, M, device=dev),
             _inv_on=torch.zeros(I, M, dtype=torch.bool, device=dev),
             _inv_timer=self._respawn_timer(M * I).view(M, I).t().contiguous(),
         )
@@ -434,66 +432,26 @@ class ResourceCollectionEnv(EnvBase):
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = self._read_action(tensordict)
         self._read_waypoints(tensordict)
-        B, N = self.num_envs, self.n_agents
-        r2 = lambda r: r * r  # noqa: E731  (contacts compare squared distances)
-
-        # Robots: damped point masses with a speed cap, kept inside the field. [N, 2, B]
-        force = self._action_force.index_select(0, action.reshape(-1)).view(B, 2 * N).t().view(N, 2, B)
-        vel = self._vel * self.damping + force
-        speed = _sq_norm(vel).sqrt_().unsqueeze(1)
-        vel = vel * (self.max_speed / speed.clamp_min_(self.max_speed))
-        lim = self.half - self.agent_radius
-        old_pos = self._pos
-        raw = old_pos + self.dt * vel
-        pos = raw.clamp(-lim, lim)
-        vel = vel.masked_fill_(pos != raw, 0.0)  # a wall stops that axis
-        r_inst = self._instruction_reward(old_pos, pos)                                       # [N, B]
-
-        # Invaders walk straight home. [I, 2, B]
-        on = self._inv_on
-        dist_home = _sq_norm(self._inv).sqrt_().unsqueeze(1)
-        move = -self._inv * (self.invader_speed / dist_home.clamp_min_(self.invader_speed))
-        inv_vel = torch.where(on[:, None], move, 0.0)
-        inv = self._inv + inv_vel
-
-        # Events; one per robot per step, defense > pick > collect, ties to the lower index.
-        hit = _assign((_pair_d2(pos, inv) < r2(self.agent_radius + self.invader_radius)) & on)  # [N, I, B]
-        defense = _any(hit, 1)                                                                # [N, B]
-        removed = _any(hit, 0)                                                                # [I, B]
-        invaded = on & ~removed & (_sq_norm(inv) < r2(self.home_radius + self.invader_radius))
-        gone = removed | invaded
-        timer = self._inv_timer - (~on).long()
-        n_gone = int(gone.sum())
+        d = self._dynamics(self._pos, self._vel, self._carry, self._res, self._inv, self._inv_on, self._inv_timer,
+                           self._waypoints_bl(), action, self._action_force, self._params)
+        # Respawns draw from the env's generator, so they happen here, only where needed.
+        timer, inv, on = d.timer, d.inv, d.inv_on
+        n_gone = int(d.gone.sum())
         if n_gone:
-            timer.masked_scatter_(gone, self._respawn_timer(n_gone))
-        respawn = ~on & ~gone & (timer <= 0)
-        which, env = respawn.nonzero(as_tuple=True)
+            timer.masked_scatter_(d.gone, self._respawn_timer(n_gone))
+        which, env = d.respawn.nonzero(as_tuple=True)
         if env.numel():
             inv[which, :, env] = self._edge_points(env.numel())
-        on = (on & ~gone) | respawn
-
-        carry = self._carry
-        contact = _pair_d2(pos, self._res) < r2(self.agent_radius + self.resource_radius)     # [N, R, B]
-        took = _assign(contact & ~(carry | defense)[:, None])
-        pick = _any(took, 1)                                                                  # [N, B]
-        collect = carry & ~defense & (_sq_norm(pos) < r2(self.home_radius + self.agent_radius))
-        res = self._respawn_picked(_any(took, 0))                                            # [R, 2, B]
-
-        n_invasion = invaded.sum(0)                                                           # [B]
-        w = self.event_rewards
-        agent_reward = (w["pick"] * pick + w["collect"] * collect + w["defense"] * defense).float() \
-            + (w["invasion"] / N) * n_invasion.float() + r_inst                              # [N, B]
-        self._put(_pos=pos, _vel=vel, _carry=(carry & ~collect) | pick, _defended=defense, _res=res,
-                  _inv=inv, _inv_vel=inv_vel, _inv_on=on, _inv_timer=timer, t=self.t + 1)
+            on = on | d.respawn
+        self._put(_pos=d.pos, _vel=d.vel, _carry=d.carry, _defended=d.defense, _res=self._respawn_picked(d.picked),
+                  _inv=inv, _inv_vel=d.inv_vel, _inv_on=on, _inv_timer=timer, t=self.t + 1)
         if self.waypoint_mode == "random_walk":
             self._refresh_waypoints((self.t % self.waypoint_interval == 0).nonzero().squeeze(-1))
 
-        counts = torch.stack([pick, collect, defense]).sum(1)                                 # [3, B]
         truncated = (self.t >= self.max_steps).unsqueeze(-1)
         return self._output(
-            agent_reward=agent_reward, reward=agent_reward.sum(0).unsqueeze(-1),
-            events=dict(pick=counts[0], collect=counts[1], defense=counts[2], invasion=n_invasion,
-                        inst_reward=r_inst.sum(0)),
+            agent_reward=d.agent_reward, reward=d.agent_reward.sum(0).unsqueeze(-1),
+            events=dict(zip(_EVENTS, d.counts), inst_reward=d.r_inst.sum(0)),
             done=truncated, terminated=torch.zeros_like(truncated), truncated=truncated)
 
     def _refresh_waypoints(self, ids: torch.Tensor) -> None:
@@ -506,30 +464,11 @@ class ResourceCollectionEnv(EnvBase):
     def _respawn_picked(self, picked: torch.Tensor) -> torch.Tensor:
         """Resource positions after respawning the ``picked`` [R, B] ones (only envs with a pick)."""
         res = self._res
-        rows = _any(picked, 0).nonzero().squeeze(-1)
+        rows = any_(picked, 0).nonzero().squeeze(-1)
         if not rows.numel():
             return res
         new = self._spawn_resources(res[:, :, rows].permute(2, 0, 1), picked[:, rows].t())   # [M, R, 2]
         return res.index_copy(2, rows, new.permute(1, 2, 0))
-
-    def _instruction_reward(self, old_pos: torch.Tensor, new_pos: torch.Tensor) -> torch.Tensor:
-        """``r_inst = scale * (e_cossim + coef * e_dist)`` per robot, [N, B].
-
-        e_cossim: cosine between this step's displacement and the vector from the waypoint
-        nearest to the robot (before the move) to the second-nearest one; 0 when either is
-        zero. e_dist: minus the distance from the new position to its nearest waypoint.
-        """
-        wp = self._waypoints_bl()                                                             # [N, K, 2, B]
-        d_old = _d2(wp, old_pos.unsqueeze(1))                                                 # [N, K, B]
-        first = d_old.min(1, keepdim=True).indices                                           # [N, 1, B]
-        second = d_old.scatter_(1, first, math.inf).min(1, keepdim=True).indices
-        pair = wp.gather(1, torch.cat([first, second], 1).unsqueeze(2).expand(-1, -1, 2, -1))  # [N, 2, 2, B]
-        path = pair[:, 1] - pair[:, 0]                                                       # [N, 2, B]
-        disp = new_pos - old_pos
-        norms = _sq_norm(disp).sqrt_().mul_(_sq_norm(path).sqrt_())
-        cos = (disp * path).sum(1).div_(norms.clamp_min_(1e-8))
-        e_dist = _d2(wp, new_pos.unsqueeze(1)).amin(1).sqrt_().neg_()
-        return self.inst_reward_scale * (cos + self.inst_dist_coef * e_dist)
 
     # ------------------------------------------------------------------ observations
     def _output(self, agent_reward: torch.Tensor | None = None, events: dict | None = None, **root) -> TensorDictBase:
@@ -539,7 +478,7 @@ class ResourceCollectionEnv(EnvBase):
         self._put(_wp_emitted=(wp, wp._version))
         agents = {"observation": obs, "waypoints": wp}
         if agent_reward is not None:
-            agents["reward"] = _batch_first(agent_reward).unsqueeze(-1)
+            agents["reward"] = batch_first(agent_reward).unsqueeze(-1)
         return self._td({"agents": self._td(agents, self._agents_batch), "state": state,
                          "step_count": self.t.unsqueeze(-1), "events": self._td(events, self.batch_size), **root},
                         self.batch_size)
@@ -580,7 +519,7 @@ class ResourceCollectionEnv(EnvBase):
         table[N:N + R, 0:2] = self._res
         table[inv, 0:2] = torch.where(on.unsqueeze(1), self._inv, _FAR)
         table[inv, 2:4], table[inv, 8] = self._inv_vel, on
-        visible = _pair_d2(self._pos, table[:, 0:2]) <= self.vision_radius ** 2             # [N, E_all, B]
+        visible = pair_sq_dist(self._pos, table[:, 0:2]) <= self.vision_radius ** 2             # [N, E_all, B]
         visible[:, :N].diagonal(0, 0, 1).fill_(False)  # a robot is not its own entity
         n, j, b = visible.nonzero().unbind(1)
         if not n.numel():
@@ -631,38 +570,3 @@ class ResourceCollectionEnv(EnvBase):
         tensordict.set("state", state)
         return tensordict
 
-
-def _d2(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Squared distances between batch-last points (x, y on dim -2), broadcasting ``a`` against ``b``."""
-    dx = a.select(-2, 0) - b.select(-2, 0)
-    dy = a.select(-2, 1) - b.select(-2, 1)
-    return dx.mul_(dx).add_(dy.mul_(dy))
-
-
-def _sq_norm(p: torch.Tensor) -> torch.Tensor:
-    """Squared length of batch-last vectors (x, y on dim -2)."""
-    x, y = p.select(-2, 0), p.select(-2, 1)
-    return (x * x).add_(y * y)
-
-
-def _pair_d2(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Squared distances ``[Na, Nb, B]`` between batch-last points ``a`` [Na, 2, B] and ``b`` [Nb, 2, B]."""
-    return _d2(b.unsqueeze(0), a.unsqueeze(1))
-
-
-def _first(mask: torch.Tensor, dim: int) -> torch.Tensor:
-    """Keep only the first True along ``dim`` (a cumsum or argmax there is several times slower)."""
-    size = mask.shape[dim]
-    dtype = torch.uint8 if size < 255 else torch.int32
-    rank = torch.arange(size, 0, -1, dtype=dtype, device=mask.device).view([size] + [1] * (mask.dim() - dim - 1))
-    score = mask.to(dtype) * rank  # size - index where True, 0 elsewhere
-    return mask & (score == score.amax(dim, keepdim=True))
-
-
-def _assign(contact: torch.Tensor) -> torch.Tensor:
-    """Resolve contacts ``[N, M, B]`` into at most one item per robot and one robot per item.
-
-    Each robot claims the lowest-index item it touches; a claimed item goes to the lowest-index
-    claimant (the loser gets nothing this step).
-    """
-    return _first(_first(contact, 1), 0)

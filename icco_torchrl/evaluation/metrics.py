@@ -107,14 +107,16 @@ def _cell(summary: Mapping, metric: str, digits: int) -> str:
 def markdown_table(summary: Sequence[Mapping], metrics: Sequence[str] = METRICS, *, segment: str = EPISODE,
                    missing: Sequence[str] = ()) -> str:
     """A Markdown table of ``segment`` rows, one per method (mean ± std over trials); methods
-    in ``missing`` get a row saying so, so a comparison never silently loses one."""
+    in ``missing`` get a row saying so, so a comparison never silently loses one. Metrics
+    without a value in any row (``in_quadrant`` without quadrants) are left out."""
     digits = {"waypoint_dist": 2, "in_quadrant": 2}
-    head = ["method", "trials"] + list(metrics)
+    rows = [row for row in summary if row["segment"] == segment]
+    metrics = [m for m in metrics if any(math.isfinite(row[m]) for row in rows)] if rows else list(metrics)
+    head = ["method", "trials"] + metrics
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    for row in summary:
-        if row["segment"] == segment:
-            cells = [str(row["method"]), f"{row['n']} ({row['seeds']} seed{'s' * (row['seeds'] != 1)})"]
-            lines.append("| " + " | ".join(cells + [_cell(row, m, digits.get(m, 1)) for m in metrics]) + " |")
+    for row in rows:
+        cells = [str(row["method"]), f"{row['n']} ({row['seeds']} seed{'s' * (row['seeds'] != 1)})"]
+        lines.append("| " + " | ".join(cells + [_cell(row, m, digits.get(m, 1)) for m in metrics]) + " |")
     for method in missing:
         lines.append("| " + " | ".join([method, "missing"] + ["–"] * len(metrics)) + " |")
     return "\n".join(lines)

@@ -86,8 +86,7 @@ def draw_segment(ax, run: ScheduleRun, segment: int, trial: int = 0) -> None:
     ax.set_xlim(-half * 1.03, half * 1.03)
     ax.set_ylim(-half * 1.03, half * 1.03)
     ax.set_aspect("equal")
-    ax.set_xticks([])
-    ax.set_yticks([])
+    ax.set_axis_off()  # the field's own border frames the panel
 
 
 def plot_trajectories(runs: Mapping[str, ScheduleRun], stem: str | Path, segments: Sequence[int] = (0,),
@@ -95,7 +94,8 @@ def plot_trajectories(runs: Mapping[str, ScheduleRun], stem: str | Path, segment
     """A grid of panels, one row per segment and one column per method (``runs`` by label)."""
     if not runs:
         raise ValueError("plot_trajectories needs at least one run")
-    fig = Figure(figsize=(2.8 * len(runs), 2.9 * len(segments) + 0.6))
+    height = 2.9 * len(segments) + 0.5
+    fig = Figure(figsize=(2.8 * len(runs), height))
     axes = fig.subplots(len(segments), len(runs), squeeze=False)
     for col, (label, run) in enumerate(runs.items()):
         for row, segment in enumerate(segments):
@@ -104,7 +104,7 @@ def plot_trajectories(runs: Mapping[str, ScheduleRun], stem: str | Path, segment
                 axes[row, col].set_title(f"{label}\n" + axes[row, col].get_title(), fontsize=8)
     handles, labels = axes[0, 0].get_legend_handles_labels()
     fig.legend(handles, labels, loc="lower center", ncol=len(labels), fontsize=7, frameon=False)
-    fig.tight_layout(rect=(0, 0.06, 1, 1))
+    fig.tight_layout(rect=(0, 0.4 / height, 1, 1))
     return save(fig, stem)
 
 

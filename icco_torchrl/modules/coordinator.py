@@ -16,36 +16,36 @@ from torch import nn
 from torchrl.envs.utils import ExplorationType, exploration_type
 
 from icco_torchrl.envs.resource_collection import ObsLayout
+from icco_torchrl.modules.encoders import EntityAttentionEncoder
 
 LOGVAR_MIN, LOGVAR_MAX = -10.0, 0.0
 
 
 class StateTokenEncoder(nn.Module):
-    """Per-robot features ``[..., N, hidden]`` from the flat global state."""
+    """Per-robot features ``[..., N, hidden]`` from the flat global state.
+
+    ``attention``: each robot's state token queries all state tokens (single-head entity
+    attention, as in the agents' encoder). ``mlp``: the flat state through an MLP to N outputs.
+    """
 
     def __init__(self, layout: ObsLayout, hidden: int, kind: str = "attention"):
         super().__init__()
-        self.kind, self.n_agents = kind, layout.n_agents
+        self.kind, self.n_agents, self.hidden = kind, layout.n_agents, hidden
         self.n_tokens, self.token_dim = layout.state_tokens, layout.state_token_dim
         if kind == "attention":
-            self.embed = nn.Linear(self.token_dim, hidden)
-            self.attn = nn.MultiheadAttention(hidden, num_heads=4, batch_first=True)
-            self.out = nn.Sequential(nn.Linear(2 * hidden, hidden), nn.ReLU())
+            self.net = EntityAttentionEncoder(self.token_dim, self.n_tokens, self.token_dim, hidden, masked=False)
         elif kind == "mlp":
             self.net = nn.Sequential(nn.Linear(layout.state_dim, hidden), nn.ReLU(),
                                      nn.Linear(hidden, self.n_agents * hidden), nn.ReLU())
         else:
             raise ValueError(f"encoder must be 'attention' or 'mlp', got {kind!r}")
-        self.hidden = hidden
 
     def forward(self, state: torch.Tensor) -> torch.Tensor:
-        lead = state.shape[:-1]
         if self.kind == "mlp":
-            return self.net(state).reshape(*lead, self.n_agents, self.hidden)
-        tokens = torch.relu(self.embed(state.reshape(-1, self.n_tokens, self.token_dim)))
-        agents = tokens[:, : self.n_agents]
-        read, _ = self.attn(agents, tokens, tokens, need_weights=False)
-        return self.out(torch.cat([agents, read], -1)).reshape(*lead, self.n_agents, self.hidden)
+            return self.net(state).unflatten(-1, (self.n_agents, self.hidden))
+        robots = state[..., : self.n_agents * self.token_dim].unflatten(-1, (self.n_agents, self.token_dim))
+        every = state.unsqueeze(-2).expand(*state.shape[:-1], self.n_agents, state.shape[-1])
+        return self.net(torch.cat([robots, every], -1))
 
 
 class Coordinator(nn.Module):

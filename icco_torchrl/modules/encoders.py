@@ -15,8 +15,9 @@ from torch import nn
 class EntityAttentionEncoder(nn.Module):
     """One "self" token attends over entity tokens; returns ``[..., hidden]``.
 
-    Input ``x = [own (own_dim), tokens (n_entities * entity_dim)]``. A token whose last feature
-    (the visibility flag) is 0 is masked out; with nothing visible the attention read-out is 0.
+    Input ``x = [own (own_dim), tokens (n_entities * entity_dim)]``. With ``masked=True`` a token
+    whose last feature (the visibility flag) is 0 is left out; with nothing visible the
+    attention read-out is 0.
 
     Keys and values are linear in the raw tokens, so the attention is evaluated in token space:
     ``q . (W_k t + b_k) = (W_k^T q) . t + q . b_k`` and ``sum_e w_e (W_v t_e + b_v) =
@@ -24,9 +25,9 @@ class EntityAttentionEncoder(nn.Module):
     ``[.., n_entities, hidden]`` tensors (the update is several times faster).
     """
 
-    def __init__(self, own_dim: int, n_entities: int, entity_dim: int, hidden: int):
+    def __init__(self, own_dim: int, n_entities: int, entity_dim: int, hidden: int, masked: bool = True):
         super().__init__()
-        self.own_dim, self.n_entities, self.entity_dim = own_dim, n_entities, entity_dim
+        self.own_dim, self.n_entities, self.entity_dim, self.masked = own_dim, n_entities, entity_dim, masked
         self.own = nn.Linear(own_dim, hidden)
         self.key = nn.Linear(entity_dim, hidden)
         self.value = nn.Linear(entity_dim, hidden)
@@ -40,8 +41,11 @@ class EntityAttentionEncoder(nn.Module):
         h = torch.relu(self.own(own))
         q = self.query(h) * self.scale
         logits = (tokens @ (q @ self.key.weight).unsqueeze(-1)).squeeze(-1) + (q @ self.key.bias).unsqueeze(-1)
-        visible = tokens[..., -1] > 0
-        weights = torch.softmax(logits.masked_fill(~visible, -1e9), -1) * visible
+        if self.masked:
+            visible = tokens[..., -1] > 0
+            weights = torch.softmax(logits.masked_fill(~visible, -1e9), -1) * visible
+        else:
+            weights = torch.softmax(logits, -1)
         pooled = (weights.unsqueeze(-2) @ tokens).squeeze(-2)                       # [..., entity_dim]
         read = pooled @ self.value.weight.T + weights.sum(-1, keepdim=True) * self.value.bias
         return self.out(torch.cat([h, read], -1))

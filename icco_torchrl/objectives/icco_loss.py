@@ -169,9 +169,10 @@ class ICCOLoss(LossModule):
         Step 0: rebuilt from the stored noise if it is a broadcast step, else the stored z. Step
         k+1: a new draw at ``next_state[k]`` where ``next step_count % period == 0``, else held.
         """
+        states = torch.cat([x["state"][:, :1], x["next_state"]], 1)                               # one call
         with params.to_module(self.coordinator, preserve_module_state=False):
-            loc0, scale0 = self.coordinator.module.distribution(x["state"][:, 0])
-            loc_n, scale_n = self.coordinator.module.distribution(x["next_state"])
+            loc, scale = self.coordinator.module.distribution(states)
+        loc0, scale0, loc_n, scale_n = loc[:, 0], scale[:, 0], loc[:, 1:], scale[:, 1:]
         broadcast0 = (x["step_count"][:, 0] % self.period == 0)[:, None, None]
         z0 = torch.where(broadcast0, loc0 + scale0 * first_noise, x["z"][:, 0])
         new = (x["next_step_count"] % self.period == 0)[..., None, None]                        # [S, T, 1, 1]

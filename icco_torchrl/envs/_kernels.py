@@ -1,0 +1,170 @@
+"""Pure tensor kernels of :class:`~icco_torchrl.envs.ResourceCollectionEnv`.
+
+All tensors are *batch-last*: the env index is the last dimension (robot positions are
+``[N, 2, B]``, x and y on dim -2), so every elementwise op runs over contiguous rows of
+length ``B``. On CPU that is 5-20x faster per element than the ``[B, N, 2]`` layout, whose
+innermost loop has 2 elements.
+
+:func:`dynamics` is one env step without its random draws; the env calls it directly, or
+through ``torch.compile`` when built with ``compile=True``. It has no data-dependent shapes
+and draws no random numbers (respawns are drawn afterwards by the env, only where needed).
+"""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+
+
+# ---------------------------------------------------------------- layout and small helpers
+def batch_last(x: torch.Tensor) -> torch.Tensor:
+    """``[B, *rest]`` -> contiguous ``[*rest, B]`` (one 2-D transpose, the fast copy kernel)."""
+    return x.reshape(x.shape[0], -1).t().contiguous().view(*x.shape[1:], x.shape[0])
+
+
+def batch_first(x: torch.Tensor) -> torch.Tensor:
+    """``[*rest, B]`` -> contiguous ``[B, *rest]``."""
+    return x.reshape(-1, x.shape[-1]).t().contiguous().view(x.shape[-1], *x.shape[:-1])
+
+
+def any_(mask: torch.Tensor, dim: int) -> torch.Tensor:
+    """``mask.any(dim)``; a max over uint8 is ~10x faster than the bool reduction on CPU."""
+    return mask.view(torch.uint8).amax(dim).view(torch.bool)
+
+
+def sq_norm(p: torch.Tensor) -> torch.Tensor:
+    """Squared length of vectors with x, y on dim -2."""
+    x, y = p.select(-2, 0), p.select(-2, 1)
+    return (x * x).add_(y * y)
+
+
+def sq_dist(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Squared distances between points with x, y on dim -2, broadcasting ``a`` against ``b``."""
+    dx = a.select(-2, 0) - b.select(-2, 0)
+    dy = a.select(-2, 1) - b.select(-2, 1)
+    return dx.mul_(dx).add_(dy.mul_(dy))
+
+
+def pair_sq_dist(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Squared distances ``[Na, Nb, B]`` from every point of ``a`` [Na, 2, B] to every point of ``b`` [Nb, 2, B]."""
+    return sq_dist(b.unsqueeze(0), a.unsqueeze(1))
+
+
+def first(mask: torch.Tensor, dim: int) -> torch.Tensor:
+    """Keep only the first True along ``dim`` (a cumsum or argmax there is several times slower)."""
+    size = mask.shape[dim]
+    dtype = torch.uint8 if size < 255 else torch.int32
+    rank = torch.arange(size, 0, -1, dtype=dtype, device=mask.device).view([size] + [1] * (mask.dim() - dim - 1))
+    score = mask.to(dtype) * rank  # size - index where True, 0 elsewhere
+    return mask & (score == score.amax(dim, keepdim=True))
+
+
+def assign(contact: torch.Tensor) -> torch.Tensor:
+    """Resolve contacts ``[N, M, B]`` into at most one item per robot and one robot per item.
+
+    Each robot claims the lowest-index item it touches; a claimed item goes to the lowest-index
+    claimant (the loser gets nothing this step).
+    """
+    return first(first(contact, 1), 0)
+
+
+# ---------------------------------------------------------------- one step
+class Params(NamedTuple):
+    """The constants :func:`dynamics` needs (squared radii: contacts compare squared distances)."""
+
+    damping: float
+    max_speed: float
+    dt: float
+    wall: float               # robots' centres stay within [-wall, wall]
+    invader_speed: float
+    touch_invader2: float     # (agent_radius + invader_radius) ** 2
+    touch_resource2: float    # (agent_radius + resource_radius) ** 2
+    invader_home2: float      # (home_radius + invader_radius) ** 2
+    robot_home2: float        # (home_radius + agent_radius) ** 2
+    inst_scale: float
+    inst_dist_coef: float
+    pick: float
+    collect: float
+    defense: float
+    invasion_share: float     # -invasion_penalty / n_agents
+
+
+class Dynamics(NamedTuple):
+    """Everything one step decides before its random respawns (batch-last)."""
+
+    pos: torch.Tensor          # [N, 2, B]
+    vel: torch.Tensor          # [N, 2, B]
+    carry: torch.Tensor        # [N, B]
+    defense: torch.Tensor      # [N, B]
+    inv: torch.Tensor          # [I, 2, B] moved; respawning invaders still to be placed
+    inv_vel: torch.Tensor      # [I, 2, B]
+    inv_on: torch.Tensor       # [I, B] active and not removed this step (respawns still to add)
+    gone: torch.Tensor         # [I, B] removed this step: needs a new respawn timer
+    respawn: torch.Tensor      # [I, B] inactive invaders whose timer ran out: need an edge point
+    timer: torch.Tensor        # [I, B] respawn timers (entries of `gone` still to draw)
+    picked: torch.Tensor       # [R, B] resources picked this step: need a new position
+    agent_reward: torch.Tensor  # [N, B]
+    r_inst: torch.Tensor       # [N, B]
+    counts: torch.Tensor       # [4, B] picks, collects, defenses, invasions
+
+
+def dynamics(pos, vel, carry, res, inv, inv_on, timer, wp, action, action_force, p: Params) -> Dynamics:
+    """One step of robots, invaders and events (see the env's docstring for the rules).
+
+    ``wp`` [N, K, 2, B] are the waypoints, ``action`` [B, N] indices into ``action_force`` [5, 2].
+    """
+    N, B = pos.shape[0], pos.shape[-1]
+    # Robots: damped point masses with a speed cap, kept inside the field.
+    force = action_force.index_select(0, action.reshape(-1)).view(B, 2 * N).t().view(N, 2, B)
+    new_vel = vel * p.damping + force
+    speed = sq_norm(new_vel).sqrt_().unsqueeze(1)
+    new_vel = new_vel * (p.max_speed / speed.clamp_min_(p.max_speed))
+    raw = pos + p.dt * new_vel
+    new_pos = raw.clamp(-p.wall, p.wall)
+    new_vel = new_vel.masked_fill_(new_pos != raw, 0.0)  # a wall stops that axis
+    r_inst = instruction_reward(wp, pos, new_pos, p.inst_scale, p.inst_dist_coef)
+
+    # Invaders walk straight home.
+    dist_home = sq_norm(inv).sqrt_().unsqueeze(1)
+    move = -inv * (p.invader_speed / dist_home.clamp_min_(p.invader_speed))
+    inv_vel = torch.where(inv_on.unsqueeze(1), move, 0.0)
+    inv = inv + inv_vel
+
+    # Events; one per robot per step, defense > pick > collect, ties to the lower index.
+    hit = assign((pair_sq_dist(new_pos, inv) < p.touch_invader2) & inv_on)                  # [N, I, B]
+    defense = any_(hit, 1)
+    removed = any_(hit, 0)
+    invaded = inv_on & ~removed & (sq_norm(inv) < p.invader_home2)
+    gone = removed | invaded
+    timer = timer - (~inv_on).long()
+    respawn = ~inv_on & ~gone & (timer <= 0)
+    took = assign((pair_sq_dist(new_pos, res) < p.touch_resource2) & ~(carry | defense).unsqueeze(1))  # [N, R, B]
+    pick = any_(took, 1)
+    collect = carry & ~defense & (sq_norm(new_pos) < p.robot_home2)
+
+    n_invasion = invaded.sum(0)
+    agent_reward = (p.pick * pick + p.collect * collect + p.defense * defense).float() \
+        + p.invasion_share * n_invasion.float() + r_inst
+    counts = torch.cat([torch.stack([pick, collect, defense]).sum(1), n_invasion.unsqueeze(0)])
+    return Dynamics(pos=new_pos, vel=new_vel, carry=(carry & ~collect) | pick, defense=defense, inv=inv,
+                    inv_vel=inv_vel, inv_on=inv_on & ~gone, gone=gone, respawn=respawn, timer=timer,
+                    picked=any_(took, 0), agent_reward=agent_reward, r_inst=r_inst, counts=counts)
+
+
+def instruction_reward(wp, old_pos, new_pos, scale: float, dist_coef: float) -> torch.Tensor:
+    """``r_inst = scale * (e_cossim + dist_coef * e_dist)`` per robot, [N, B].
+
+    e_cossim: cosine between this step's displacement and the vector from the waypoint
+    nearest to the robot (before the move) to the second-nearest one; 0 when either is
+    zero. e_dist: minus the distance from the new position to its nearest waypoint.
+    """
+    d_old = sq_dist(wp, old_pos.unsqueeze(1))                                                # [N, K, B]
+    first_k = d_old.min(1, keepdim=True).indices                                             # [N, 1, B]
+    second_k = d_old.scatter_(1, first_k, float("inf")).min(1, keepdim=True).indices
+    pair = wp.gather(1, torch.cat([first_k, second_k], 1).unsqueeze(2).expand(-1, -1, 2, -1))  # [N, 2, 2, B]
+    path = pair[:, 1] - pair[:, 0]
+    disp = new_pos - old_pos
+    norms = sq_norm(disp).sqrt_().mul_(sq_norm(path).sqrt_())
+    cos = (disp * path).sum(1).div_(norms.clamp_min_(1e-8))
+    e_dist = sq_dist(wp, new_pos.unsqueeze(1)).amin(1).sqrt_().neg_()
+    return scale * (cos + dist_coef * e_dist)
