@@ -11,16 +11,16 @@ configurations (the env seed is ``seed + 20000``). Outputs go to ``eval.out_dir`
 ``eval_<protocol>/`` next to the checkpoint(s): ``<name>_trials.csv`` (one row per
 checkpoint, trial and segment, plus the whole episode), ``<name>_summary.csv``,
 ``<name>.json``, ``<name>.md`` and figures (PNG + PDF, GIFs with ``eval.gif=true``).
-:func:`evaluate_and_report` is shared with ``icco instruct``.
+:func:`evaluate_checkpoints` and :func:`write_report` are shared with ``icco instruct``.
 """
 from __future__ import annotations
 
 import glob
-import logging
 import os
 import re
 import sys
 from contextlib import contextmanager
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -29,11 +29,10 @@ from omegaconf import DictConfig, OmegaConf
 
 from icco_torchrl.evaluation.metrics import (EPISODE, markdown_table, method_label, segment_table, summarize,
                                              write_csv, write_json)
-from icco_torchrl.evaluation.protocols import PROTOCOLS, Schedule, ScheduleRun, check_schedule, run_schedule, schedule_env
+from icco_torchrl.evaluation.protocols import PROTOCOLS, Schedule, check_schedule, run_schedule, schedule_env
 from icco_torchrl.training.checkpoint import CheckpointError, load_checkpoint
 from icco_torchrl.training.config import ConfigError
 
-logger = logging.getLogger(__name__)
 EVAL_SEED_OFFSET = 20_000  # evaluation envs never replay the training envs' episodes
 GIF_MAX_FRAMES = 300       # longer episodes are recorded every few steps
 GIF_SIZE = 320
@@ -101,75 +100,95 @@ def _gif_recorder(total: int):
     return on_step, frames
 
 
-def evaluate_and_report(cfg: DictConfig, paths: Sequence[Path], make_schedule: Callable[[], Schedule], *,
-                        name: str, out_dir: Path, title: str, traj_segments: Sequence[int] | None = None,
-                        label_suffix: str = "", meta: dict | None = None) -> float:
-    """Run ``make_schedule()`` (fresh sources per checkpoint) on every checkpoint, write the
-    tables, figures and GIFs into ``out_dir``, print the Markdown; returns the first method's
-    mean episode reward. ``traj_segments`` picks the segments drawn (default: all);
-    ``label_suffix`` is appended to the method names (e.g. "-TAP"); ``meta`` goes into the JSON."""
-    from icco_torchrl.evaluation.plots import plot_bars, plot_trajectories
+@dataclass
+class Evaluation:
+    """Everything :func:`evaluate_checkpoints` measured, ready to be written by :func:`write_report`."""
 
+    rows: list = field(default_factory=list)         # metrics rows of every checkpoint, trial and segment
+    runs: dict = field(default_factory=dict)         # the first ScheduleRun of each method, for figures
+    checkpoints: list = field(default_factory=list)  # path, method, seed, frames, env differences
+    sources: list = field(default_factory=list)      # per-segment counters of the LLM sources
+    gifs: list = field(default_factory=list)
+
+
+def _restore(cfg: DictConfig, path: Path, total: int, eval_params: dict) -> dict:
+    """The checkpoint's policy in the command line's env; a layout clash names the params."""
+    try:
+        return schedule_env(path, total, cfg.eval.trials, device=cfg.device, seed=cfg.seed + EVAL_SEED_OFFSET,
+                            **eval_params)
+    except CheckpointError as err:
+        trained = load_checkpoint(path)["cfg"]["env"]["params"]
+        raise CheckpointError(f"{err} (env.params on the command line vs training: "
+                              f"{'; '.join(_differences(eval_params, trained)) or 'none'})") from None
+
+
+def evaluate_checkpoints(cfg: DictConfig, paths: Sequence[Path], make_schedule: Callable[[int], Schedule], *,
+                         gif_stem: Path | None = None, label_suffix: str = "") -> Evaluation:
+    """Run ``make_schedule(episode)`` (fresh sources per checkpoint and episode) on every
+    checkpoint, ``eval.episodes`` times ``eval.trials`` trials. ``label_suffix`` is appended to
+    the method names (e.g. "-TAP"); with ``gif_stem`` trial 0 of each method's first checkpoint
+    is recorded to ``<gif_stem>_<method>.gif``."""
     torch.set_num_threads(cfg.train.threads)  # tiny networks: extra threads only contend on shared CPUs
     e = cfg.eval
     eval_params = OmegaConf.to_container(cfg.env.params, resolve=True)
-    rows, runs, checkpoints, sources, gifs = [], {}, [], [], []
+    out = Evaluation()
     for path in paths:
-        schedule = make_schedule()
-        total = check_schedule(schedule, e.trials)
-        try:
-            restored = schedule_env(path, total, e.trials, device=cfg.device, seed=cfg.seed + EVAL_SEED_OFFSET,
-                                    **eval_params)
-        except CheckpointError as err:
-            trained = load_checkpoint(path)["cfg"]["env"]["params"]
-            raise CheckpointError(f"{err} (env.params on the command line vs training: "
-                                  f"{'; '.join(_differences(eval_params, trained)) or 'none'})") from None
+        total = check_schedule(make_schedule(0), e.trials)
+        restored = _restore(cfg, path, total, eval_params)
         trained = OmegaConf.to_container(restored["cfg"], resolve=True)
         label, seed = method_label(trained, label_suffix), trained["seed"]
         diffs = _differences(eval_params, trained["env"]["params"])
         if diffs:
             print(f"note: {path} is evaluated in another env than it was trained in: " + "; ".join(diffs))
-        checkpoints.append(dict(path=str(path), method=label, seed=seed, frames=restored["checkpoint"].get("frames"),
-                                env_differences=diffs))
+        out.checkpoints.append(dict(path=str(path), method=label, seed=seed, frames=restored["checkpoint"].get("frames"),
+                                    env_differences=diffs))
         for episode in range(e.episodes):
-            record = e.gif and episode == 0 and label not in runs
+            record = gif_stem is not None and episode == 0 and label not in out.runs
             on_step, frames = _gif_recorder(total) if record else (None, None)
-            run = run_schedule(restored["env"], restored["policy"], schedule, e.trials, on_step=on_step,
+            run = run_schedule(restored["env"], restored["policy"], make_schedule(episode), e.trials, on_step=on_step,
                                method=label, seed=seed, checkpoint=str(path), episode=episode)
-            rows += run.rows
-            sources += [dict(method=label, seed=seed, episode=episode, **s) for s in run.sources]
-            runs.setdefault(label, run)
+            out.rows += run.rows
+            out.sources += [dict(method=label, seed=seed, episode=episode, **s) for s in run.sources]
+            out.runs.setdefault(label, run)
             if record:
                 from icco_torchrl.envs.render import write_gif
 
-                gifs.append(out_dir / f"{name}_{slug(label)}.gif")
-                write_gif(frames, gifs[-1], fps=10)
+                out.gifs.append(gif_stem.with_name(f"{gif_stem.name}_{slug(label)}.gif"))
+                write_gif(frames, out.gifs[-1], fps=10)
+    return out
 
+
+def write_report(result: Evaluation, cfg: DictConfig, *, name: str, out_dir: Path, title: str,
+                 traj_segments: Sequence[int] | None = None, meta: dict | None = None) -> float:
+    """Tables (CSV, Markdown, JSON with ``meta``) and figures into ``out_dir``; prints the
+    Markdown and returns the first method's mean episode reward. ``traj_segments`` picks the
+    segments drawn (default: all)."""
+    from icco_torchrl.evaluation.plots import plot_bars, plot_trajectories
+
+    rows, e = result.rows, cfg.eval
     summary = summarize(rows, by=("method", "segment"))
-    segments = list(dict.fromkeys(r["segment"] for r in rows if r["segment"] != EPISODE))
-    table = markdown_table(summary)
-    per_segment = segment_table(summary, "reward")
     steps = {r["segment"]: r["steps"] for r in rows}
+    segments = [s for s in steps if s != EPISODE]
     header = (f"# {title}\n\n{e.trials} trials x {e.episodes} episode(s) per checkpoint; segments: "
               + ", ".join(f"{s} ({steps[s]} steps)" for s in segments)
               + ".\nMean ± std over trials (seeds pooled). Rewards are team totals (sum over robots).\n")
-    markdown = f"{header}\n## Whole episode\n\n{table}\n\n## Team reward per segment\n\n{per_segment}\n"
+    markdown = (f"{header}\n## Whole episode\n\n{markdown_table(summary)}\n\n"
+                f"## Team reward per segment\n\n{segment_table(summary, 'reward')}\n")
     out_dir.mkdir(parents=True, exist_ok=True)
     write_csv(rows, out_dir / f"{name}_trials.csv")
     write_csv(summary, out_dir / f"{name}_summary.csv")
     (out_dir / f"{name}.md").write_text(markdown)
     figures = plot_bars(summary, out_dir / f"{name}_reward", "reward", segments=[*segments, EPISODE],
                         ylabel="team reward")
-    figures += plot_trajectories(runs, out_dir / f"{name}_trajectories",
+    figures += plot_trajectories(result.runs, out_dir / f"{name}_trajectories",
                                  segments=range(len(segments)) if traj_segments is None else traj_segments)
     write_json(dict(**(meta or {}), title=title, name=name, trials=e.trials, episodes=e.episodes, segments=segments,
-                    segment_steps={s: steps[s] for s in segments},
-                    checkpoints=checkpoints, summary=summary, sources=sources,
-                    figures=[str(p) for p in figures], gifs=[str(p) for p in gifs]), out_dir / f"{name}.json")
+                    segment_steps={s: steps[s] for s in segments}, checkpoints=result.checkpoints, summary=summary,
+                    sources=result.sources, figures=[str(p) for p in figures], gifs=[str(p) for p in result.gifs]),
+               out_dir / f"{name}.json")
     print(markdown)
     print(f"results: {out_dir}")
-    first = next(r for r in summary if r["segment"] == EPISODE)
-    return float(first["reward"])
+    return float(next(r for r in summary if r["segment"] == EPISODE)["reward"])
 
 
 def run_eval(cfg: DictConfig, run_dir: str | Path) -> float:
@@ -183,5 +202,7 @@ def run_eval(cfg: DictConfig, run_dir: str | Path) -> float:
         protocol = PROTOCOLS[name]
         title = {"quadrants": "Four-quadrant protocol (paper Sec. V-B, Fig. 4/5a)",
                  "random_walk": "Random-walk instructions (the training distribution)"}[name]
-        return evaluate_and_report(cfg, paths, lambda: protocol(cfg.eval.steps, seed=cfg.seed), name=name,
-                                   out_dir=out_dir, title=title, traj_segments=[0])
+        # Each episode draws its own reference walks (the env draws its own initial states).
+        result = evaluate_checkpoints(cfg, paths, lambda ep: protocol(cfg.eval.steps, seed=cfg.seed + 1000 * ep),
+                                      gif_stem=out_dir / name if cfg.eval.gif else None)
+        return write_report(result, cfg, name=name, out_dir=out_dir, title=title, traj_segments=[0])

@@ -79,9 +79,11 @@ def run_schedule(env, policy: Callable, schedule: Schedule, trials: int, *,
     if raw.waypoint_mode != "external":
         raise ValueError("the env regenerates its own waypoints: build it with waypoint_mode='external'")
 
+    names = [name for name, _, _ in schedule]
+    ends = np.cumsum([steps for _, _, steps in schedule]).tolist()
+    bounds = list(zip([0, *ends[:-1]], ends))
     states = {key: [] for key in STATE_KEYS}
-    waypoints, values = [], []
-    names, bounds, quadrants, start = [], [], [], 0
+    waypoints, values = [], []  # per step: the waypoints in force, the step's metric values
 
     def record_state():
         for key in STATE_KEYS:
@@ -92,7 +94,7 @@ def run_schedule(env, policy: Callable, schedule: Schedule, trials: int, *,
     with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
         td = env.reset()
         record_state()
-        for name, source, steps in schedule:
+        for _, source, steps in schedule:
             source.reset(env, td)
             for step in range(steps):
                 new = source(env, td, step)
@@ -103,17 +105,14 @@ def run_schedule(env, policy: Callable, schedule: Schedule, trials: int, *,
                 record_state()
                 values.append(step_values(raw, td.get("next"), waypoints[-1], source.quadrant))
                 td = step_mdp(td)
-            names.append(name)
-            bounds.append((start, start + steps))
-            quadrants.append(source.quadrant)
-            start += steps
 
     trajectory = {key: torch.stack(v).cpu().numpy() for key, v in states.items()}
     trajectory["waypoints"] = torch.stack(waypoints).cpu().numpy()
     per_step = {key: torch.stack([v[key] for v in values]).cpu().numpy() for key in values[0]}
     counters = [dict(segment=name, **source.stats) for name, source, _ in schedule if hasattr(source, "stats")]
     geometry = dict(half=raw.half, home_radius=raw.home_radius, resource_radius=raw.resource_radius,
-                      agent_radius=raw.agent_radius, invader_radius=raw.invader_radius)
+                    agent_radius=raw.agent_radius, invader_radius=raw.invader_radius)
+    quadrants = [source.quadrant for _, source, _ in schedule]
     return ScheduleRun(names, bounds, quadrants, trajectory, per_step,
                        trial_rows(per_step, names, bounds, **labels), geometry, counters)
 

@@ -18,7 +18,8 @@ from pathlib import Path
 
 from omegaconf import DictConfig
 
-from icco_torchrl.evaluation.cli import slug, clean_errors, default_out_dir, evaluate_and_report, find_checkpoints
+from icco_torchrl.evaluation.cli import (clean_errors, default_out_dir, evaluate_checkpoints, find_checkpoints, slug,
+                                         write_report)
 from icco_torchrl.instructions.llm import LLMPlanner
 from icco_torchrl.instructions.planner import PROVIDER, UnknownInstruction, parse
 from icco_torchrl.instructions.sources import LLMSource
@@ -52,13 +53,14 @@ def run_instruct(cfg: DictConfig, run_dir: str | Path, instruction: str) -> floa
         name = f"instruct_{slug('_'.join(instructions))[:60]}"
         out_dir = Path(cfg.eval.out_dir) if cfg.eval.out_dir else default_out_dir(paths, name)
 
-        def schedule():
+        def schedule(episode: int):
             return [(text, LLMSource(planner, text, replan_every=cfg.eval.replan_every, strict=offline),
                      cfg.eval.steps) for text in instructions]
 
         title = (f"Language instructions via {planner.model} ({planner.prompt} prompt): "
                  + " -> ".join(f'"{text}"' for text in instructions))
-        return evaluate_and_report(cfg, paths, schedule, name="instruct", out_dir=out_dir, title=title,
-                                   label_suffix="-TAP" if planner.prompt == "tap" else "",
-                                   meta=dict(llm_backend=cfg.llm.backend, model=planner.model, prompt=planner.prompt,
-                                             instructions=instructions, replan_every=cfg.eval.replan_every))
+        result = evaluate_checkpoints(cfg, paths, schedule, gif_stem=out_dir / "instruct" if cfg.eval.gif else None,
+                                      label_suffix="-TAP" if planner.prompt == "tap" else "")
+        return write_report(result, cfg, name="instruct", out_dir=out_dir, title=title,
+                            meta=dict(llm_backend=cfg.llm.backend, model=planner.model, prompt=planner.prompt,
+                                      instructions=instructions, replan_every=cfg.eval.replan_every))

@@ -77,7 +77,8 @@ class _NoisySource(InstructionSource):
         self.sigma, self.interval = sigma, interval
         self._gen = torch.Generator().manual_seed(int(seed))
 
-    def _settings(self, env: ResourceCollectionEnv) -> tuple[float, int]:
+    def settings(self, env: ResourceCollectionEnv) -> tuple[float, int]:
+        """``(sigma, interval)``: the given ones, else the env's training values."""
         sigma = env.waypoint_sigma if self.sigma is None else float(self.sigma)
         return sigma, env.waypoint_interval if self.interval is None else self.interval
 
@@ -99,7 +100,7 @@ class RandomWalkSource(_NoisySource):
 
     def __call__(self, env, td, step):
         env = base_env(env)
-        sigma, interval = self._settings(env)
+        sigma, interval = self.settings(env)
         due = _refresh_mask(env, step, interval)
         if not bool(due.any()):
             return None
@@ -143,7 +144,7 @@ class QuadrantSource(_NoisySource):
 
     def __call__(self, env, td, step):
         env = base_env(env)
-        sigma, interval = self._settings(env)
+        sigma, interval = self.settings(env)
         due = _refresh_mask(env, step, interval)
         if not bool(due.any()):
             return None
@@ -229,12 +230,12 @@ class LLMSource(InstructionSource):
             raise ValueError(f"the planner gives {self.planner.n_waypoints} waypoints per robot, the env uses "
                              f"{env.n_waypoints} (set llm.n_waypoints)")
         pos, previous = env.pos.cpu().numpy(), env.waypoints.cpu().numpy()
-        task = self.prompt == "tap"
         res, inv, active = env.res_pos.cpu().numpy(), env.inv_pos.cpu().numpy(), env.inv_active.cpu().numpy()
         plans = []
         for b in range(env.num_envs):  # one request per env: each has its own configuration
-            context = dict(resources=res[b], invader=inv[b][active[b]]) if task else {}
-            result = self.planner.plan(self.instruction, pos[b], previous=previous[b], **context)
+            # Resources and the invader on the field reach the model only through the "tap" prompt.
+            result = self.planner.plan(self.instruction, pos[b], previous=previous[b], resources=res[b],
+                                       invader=inv[b][active[b]])
             self._count(result)
             plans.append(result.waypoints)
         return torch.as_tensor(np.stack(plans), device=env.device)

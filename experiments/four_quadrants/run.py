@@ -1,0 +1,140 @@
+"""Four-quadrant experiment (paper Sec. V-B, Fig. 4 and 5a): train, evaluate, report.
+
+    python experiments/four_quadrants/run.py                       # default budget, 4 methods x 3 seeds
+    python experiments/four_quadrants/run.py --budget experiment=paper device=cuda
+    python experiments/four_quadrants/run.py --smoke               # seconds-long end-to-end check
+
+1. Training: one Hydra multirun ``icco train -m method=icco,icco_wo_ce,qmix,qmix_full
+   seed=0,1,2 <budget>`` into ``--sweep`` (one folder ``<method>_seed<seed>`` per run). Run the
+   script again after an interruption: finished runs are kept, interrupted ones continue from
+   their checkpoint with ``resume=``, missing ones are started.
+2. Evaluation: ``icco eval`` with the quadrant protocol on every checkpoint (seeds pooled per
+   method) into ``<sweep>/eval_quadrants``.
+3. Report: ``report.py <sweep>`` fills ``README.md`` here from ``README.template.md``.
+
+``--train-only`` stops after step 1 (the language experiment uses it to train its agents).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+from icco_torchrl.training.build import compose_config
+
+HERE = Path(__file__).resolve().parent
+METHODS = ("icco", "icco_wo_ce", "qmix", "qmix_full")
+SEEDS = (0, 1, 2)
+# Seconds per run: proves the pipeline, says nothing about the methods.
+SMOKE_BUDGET = ("experiment=smoke", "train.total_frames=512", "train.eval_interval=256", "train.checkpoint_interval=0",
+                "train.eval_envs=2")
+
+
+def icco(*args: str) -> None:
+    """Run ``icco ARGS`` in a child process; a failure stops the script."""
+    command = [sys.executable, "-m", "icco_torchrl", *args]
+    print("$ icco " + " ".join(args), flush=True)
+    subprocess.run(command, check=True)
+
+
+def run_status(run: Path, total_frames: int) -> str:
+    """``done`` (checkpoint at the budget), ``partial`` (a checkpoint short of it) or ``missing``.
+
+    The budget is this invocation's, so raising ``train.total_frames`` extends finished runs.
+    """
+    checkpoint = run / "checkpoint.pt"
+    if not checkpoint.is_file():
+        return "missing"
+    frames = torch.load(checkpoint, map_location="cpu", weights_only=False).get("frames", 0)
+    return "done" if frames >= total_frames else "partial"
+
+
+def train(sweep: Path, methods, seeds, budget) -> None:
+    """Bring every ``method x seed`` run in ``sweep`` to its budget (see the module doc)."""
+    totals = {m: compose_config([f"method={m}", *budget]).train.total_frames for m in methods}
+    status = {(m, s): run_status(sweep / f"{m}_seed{s}", totals[m]) for m in methods for s in seeds}
+    print("runs: " + ", ".join(f"{m}_seed{s}={v}" for (m, s), v in status.items()), flush=True)
+    common = [*budget, f"hydra.sweep.dir={sweep}"]
+    for (method, seed), state in status.items():
+        run = sweep / f"{method}_seed{seed}"
+        if state == "partial":
+            icco("train", f"method={method}", f"seed={seed}", *budget, f"resume={run / 'checkpoint.pt'}",
+                 f"hydra.run.dir={run}")
+        elif state == "missing" and run.exists():
+            # Died before its first checkpoint: its CSVs would be appended to, so start clean.
+            shutil.move(str(run), str(run.with_name(f"{run.name}.failed-{int(time.time())}")))
+    missing = [key for key, state in status.items() if state == "missing"]
+    if len(missing) == len(status):
+        icco("train", "-m", f"method={','.join(methods)}", f"seed={','.join(map(str, seeds))}", *common)
+    else:
+        for method in methods:
+            todo = [str(s) for m, s in missing if m == method]
+            if todo:
+                icco("train", "-m", f"method={method}", f"seed={','.join(todo)}", *common)
+
+
+def cpu_name() -> str:
+    cpuinfo = Path("/proc/cpuinfo")
+    if cpuinfo.is_file():
+        for line in cpuinfo.read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    return platform.processor() or platform.machine()
+
+
+def machine() -> dict:
+    """What the numbers were measured on (for the README)."""
+    gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else None
+    return dict(host=platform.node(), cpu=cpu_name(), cores=os.cpu_count(),
+                python=platform.python_version(), torch=torch.__version__, gpu=gpu, platform=platform.platform())
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--sweep", type=Path, help="sweep folder (default multirun/four_quadrants[_smoke])")
+    parser.add_argument("--budget", nargs="*", help="training overrides (default experiment=default), "
+                        "e.g. experiment=paper device=cuda; with --smoke, added to the smoke budget")
+    parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
+    parser.add_argument("--seeds", nargs="+", type=int, default=list(SEEDS))
+    parser.add_argument("--trials", type=int, default=20, help="evaluation trials per checkpoint (paper: 20)")
+    parser.add_argument("--steps", type=int, default=145, help="steps per quadrant (paper: 145)")
+    parser.add_argument("--gif", action="store_true", help="also write a GIF per method")
+    parser.add_argument("--smoke", action="store_true", help="tiny budget, 4 trials, 20 steps: a pipeline check")
+    parser.add_argument("--train-only", action="store_true", help="stop after training")
+    parser.add_argument("--readme", type=Path, default=HERE / "README.md", help="where report.py writes")
+    args = parser.parse_args(argv)
+    budget = [*SMOKE_BUDGET, *(args.budget or [])] if args.smoke else (args.budget or ["experiment=default"])
+    trials, steps = (4, 20) if args.smoke else (args.trials, args.steps)
+    sweep = (args.sweep or Path("multirun/four_quadrants" + "_smoke" * args.smoke)).resolve()
+    sweep.mkdir(parents=True, exist_ok=True)
+
+    start = time.time()
+    train(sweep, args.methods, args.seeds, budget)
+    info_path = sweep / "sweep.json"
+    info = json.loads(info_path.read_text()) if info_path.exists() else {"train_wall_s": 0.0}
+    info.update(budget=budget, methods=args.methods, seeds=args.seeds, machine=machine(), smoke=args.smoke)
+    info["train_wall_s"] += time.time() - start  # summed over the script's invocations
+    info_path.write_text(json.dumps(info, indent=2))
+    if args.train_only:
+        return
+
+    checkpoints = [str(p) for m in args.methods for p in sorted(sweep.glob(f"{m}_seed*/checkpoint.pt"))]
+    out = sweep / "eval_quadrants"
+    start = time.time()
+    icco("eval", f"eval.checkpoints=[{','.join(checkpoints)}]", "eval.protocol=quadrants", f"eval.trials={trials}",
+         f"eval.steps={steps}", f"eval.gif={str(args.gif).lower()}", f"eval.out_dir={out}", f"hydra.run.dir={out}")
+    info.update(eval_wall_s=time.time() - start, eval_trials=trials, eval_steps=steps)
+    info_path.write_text(json.dumps(info, indent=2))
+    subprocess.run([sys.executable, str(HERE / "report.py"), str(sweep), "--readme", str(args.readme)], check=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,93 @@
+"""``icco instruct`` and the LLM instruction source, on the offline rule planner (no network)."""
+import json
+
+import pytest
+import torch
+
+from icco_torchrl.envs import ResourceCollectionEnv
+from icco_torchrl.instructions import LLMPlanner, LLMSource
+from icco_torchrl.instructions.cli import split_instructions
+from test_eval_cli import icco, smoke_checkpoints
+
+
+
+@pytest.fixture(scope="module")
+def checkpoint(tmp_path_factory):
+    return smoke_checkpoints(tmp_path_factory, ["icco"])["icco"]
+
+
+def scene(num_envs=4, seed=0):
+    env = ResourceCollectionEnv(num_envs=num_envs, seed=seed, waypoint_mode="external")
+    return env, env.reset()
+
+
+def test_instruct_runs_a_schedule_of_instructions_and_writes_its_outputs(checkpoint, tmp_path, capsys):
+    out = tmp_path / "instruct"
+    code = icco("instruct", "Go right; Move top", f"checkpoint={checkpoint}", "eval.trials=2", "eval.steps=8",
+                "eval.episodes=2", "eval.gif=true", f"eval.out_dir={out}", f"hydra.run.dir={tmp_path / 'hydra'}")
+    assert code == 0, capsys.readouterr().err
+    report = (out / "instruct.md").read_text()
+    assert '"Go right" -> "Move top"' in report and "| ICCO | 4 (1 seed) |" in report  # 2 trials x 2 episodes
+    summary = json.loads((out / "instruct.json").read_text())
+    assert summary["segments"] == ["Go right", "Move top"] and summary["model"] == "offline/rule-planner"
+    # one plan per trial and instruction, counted once per episode
+    assert [(s["episode"], s["segment"], s["plans"], s["fallbacks"]) for s in summary["sources"]] == [
+        (0, "Go right", 2, 0), (0, "Move top", 2, 0), (1, "Go right", 2, 0), (1, "Move top", 2, 0)]
+    for name in ("instruct_trials.csv", "instruct_summary.csv", "instruct_trajectories.png", "instruct_reward.png",
+                 "instruct_icco.gif"):
+        assert (out / name).stat().st_size > 0, name
+
+
+def test_offline_go_right_is_a_line_on_the_right_side():
+    env, td = scene()
+    source = LLMSource(LLMPlanner(), "Go right")
+    source.reset(env, td)
+    waypoints = source(env, td, 0)
+    assert waypoints.shape == (4, 3, 4, 2)
+    final = waypoints[:, :, -1]
+    assert torch.allclose(final[..., 0], torch.full((4, 3), 0.7 * env.half), atol=1e-2)  # x on the right
+    gaps = final[..., 1].sort(-1).values.diff(dim=-1)
+    assert (gaps > 0.5).all()                                                            # spread along y
+    assert ((waypoints[:, :, 0] - env.pos).norm(dim=-1) < (final - env.pos).norm(dim=-1) + 1e-6).all()
+    assert source.stats == {"plans": 4, "failures": 0, "fallbacks": 0, "cache_hits": 0}
+    assert source(env, td, 1) is None  # planned once per instruction
+
+
+def test_task_aligned_prompt_sends_the_task_and_keeps_the_given_planner():
+    env, td = scene(num_envs=2, seed=3)
+    planner = LLMPlanner()
+    source = LLMSource(planner, "Collect the resources and defend home", prompt="tap")
+    assert planner.prompt == "plain" and source.prompt == "tap"
+    source.reset(env, td)
+    final = source(env, td, 0)[:, :, -1]
+    to_resource = (final[:, :, None] - env.res_pos[:, None]).norm(dim=-1).min(-1).values
+    assert (to_resource < 1e-2).any(-1).all()  # some robot is sent to a resource in every env
+
+
+def test_replanning_and_fallbacks_are_counted():
+    env, td = scene(num_envs=2)
+    source = LLMSource(LLMPlanner(), "Spread out", replan_every=3)
+    source.reset(env, td)
+    planned = [step for step in range(7) if source(env, td, step) is not None]
+    assert planned == [0, 3, 6] and source.stats["plans"] == 6
+    lost = LLMSource(LLMPlanner(max_retries=0), "Dance please")
+    lost.reset(env, td)
+    assert lost.stats["fallbacks"] == 2 and "Dance please" in lost.errors[0]
+    assert torch.equal(lost(env, td, 0), env.waypoints)  # the previous waypoints are kept
+
+
+def test_unknown_instruction_is_a_clear_error_naming_it(checkpoint, tmp_path, capsys):
+    code = icco("instruct", "Go right; Dance please", f"checkpoint={checkpoint}", f"hydra.run.dir={tmp_path}")
+    assert code == 2
+    err = capsys.readouterr().err
+    assert err.startswith("icco instruct: ") and "'Dance please'" in err
+    env, td = scene(num_envs=1)
+    with pytest.raises(ValueError, match="'Dance please'"):
+        LLMSource(LLMPlanner(), "Dance please", strict=True).reset(env, td)
+
+
+def test_instruction_schedules_are_split_on_semicolons():
+    assert split_instructions(" Go right ;Move top") == ["Go right", "Move top"]
+    for bad in ("", "Go right;", ";"):
+        with pytest.raises(ValueError, match="empty part"):
+            split_instructions(bad)
