@@ -6,6 +6,7 @@ result is validated against the typed schema before any work starts.
 from __future__ import annotations
 
 import sys
+import tempfile
 
 USAGE = """usage: icco {train,eval,instruct} [overrides...]
 
@@ -68,6 +69,8 @@ def main(argv: list[str] | None = None) -> None:
                   file=sys.stderr)
             raise SystemExit(2)
         _INSTRUCTION, rest = rest[0], rest[1:]
+    if command != "train":  # results go next to the checkpoint; keep Hydra's own files out of runs/
+        rest = [f"hydra.run.dir={tempfile.gettempdir()}/icco_{command}/${{now:%Y%m%d-%H%M%S-%f}}", *rest]
     sys.argv = [f"icco {command}", *rest]
     _run(command)
 

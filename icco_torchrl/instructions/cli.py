@@ -13,7 +13,6 @@ to ``eval.out_dir`` or ``instruct_<instructions>/`` next to the checkpoint(s).
 """
 from __future__ import annotations
 
-import logging
 from pathlib import Path
 
 from omegaconf import DictConfig
@@ -35,8 +34,6 @@ def split_instructions(text: str) -> list[str]:
 
 def run_instruct(cfg: DictConfig, run_dir: str | Path, instruction: str) -> float:
     """The mean episode team reward of the first method (see the module doc)."""
-    for name in ("LiteLLM", "LiteLLM Router", "LiteLLM Proxy"):  # Hydra's INFO root level: one line per request
-        logging.getLogger(name).setLevel(logging.WARNING)
     with clean_errors("instruct"):
         instructions = split_instructions(instruction)
         planner = LLMPlanner.from_config(cfg.llm, field_size=float(cfg.env.params.field_size))

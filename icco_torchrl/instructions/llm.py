@@ -85,6 +85,8 @@ def _litellm() -> Any:
     import litellm
 
     litellm.suppress_debug_info = True
+    for name in ("LiteLLM", "LiteLLM Router", "LiteLLM Proxy"):  # else one INFO line per request under Hydra
+        logging.getLogger(name).setLevel(logging.WARNING)
     register_offline_provider(litellm)
     return litellm
 

@@ -204,7 +204,7 @@ def train(cfg: DictConfig, run_dir: str | Path) -> dict:
         if collector is not None:
             collector.shutdown()
     path = checkpoint()
-    if not interrupted:
+    if not interrupted and remaining > 0:  # a resumed run already at its budget has nothing new to evaluate
         final = run_eval() if last_eval != frames or not evaluated else evaluated[-1]
         plot_learning_curve(run_dir)
     logger.print(f"checkpoint: {path}")
