@@ -10,10 +10,10 @@ Usage::
     python benchmarks/env_profile.py                          # ms/step and env-steps/s
     python benchmarks/env_profile.py --baseline old_env.py    # old vs current, interleaved
     python benchmarks/env_profile.py --profile --sizes 4096   # torch.profiler top ops
-    python benchmarks/env_profile.py --compile                # also the compile=True variant
 
 The machine may be shared and noisy, so variants are timed in alternating rounds in one
-process and the median round is reported.
+process; each line gives the median round (wall clock and this thread's CPU time) and the
+fastest round's CPU time, the closest to an idle machine.
 """
 from __future__ import annotations
 
@@ -74,32 +74,29 @@ def bench(variants: dict, sizes, steps: int, rounds: int) -> None:
         for name, ts in times.items():
             ms = statistics.median(t for t, _ in ts) * 1e3
             cpu = statistics.median(c for _, c in ts) * 1e3
-            line.append(f"{name}: {ms:7.3f} ms/step (cpu {cpu:7.3f}) {num_envs / ms * 1e3 / 1e6:6.3f} M env-steps/s")
+            best = min(c for _, c in ts) * 1e3
+            line.append(f"{name}: {ms:7.3f} ms/step (cpu {cpu:7.3f}, best {best:7.3f}) "
+                        f"{num_envs / ms * 1e3 / 1e6:6.3f} M env-steps/s (best {num_envs / best * 1e3 / 1e6:5.3f})")
         print(" | ".join(line) + f"  (setup {setup:.1f}s)", flush=True)
 
 
-def profile(env_cls, num_envs: int, steps: int, rows: int, **kwargs) -> None:
+def profile(env_cls, num_envs: int, steps: int, rows: int) -> None:
     from torch.profiler import ProfilerActivity
     from torch.profiler import profile as torch_profile
 
-    runner = _Runner(env_cls, num_envs, **kwargs)
+    runner = _Runner(env_cls, num_envs)
     runner.run(steps)
-    with torch_profiler_ctx(torch_profile, ProfilerActivity) as prof:
+    with torch_profile(activities=[ProfilerActivity.CPU]) as prof:
         runner.run(steps)
     print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=rows))
-
-
-def torch_profiler_ctx(torch_profile, activity):
-    return torch_profile(activities=[activity.CPU])
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--sizes", type=int, nargs="+", default=[1024, 4096, 16384])
-    parser.add_argument("--steps", type=int, default=100, help="steps per timed round")
-    parser.add_argument("--rounds", type=int, default=5)
+    parser.add_argument("--steps", type=int, default=20, help="steps per timed round")
+    parser.add_argument("--rounds", type=int, default=15)
     parser.add_argument("--baseline", default=None, help="path of another resource_collection.py to compare")
-    parser.add_argument("--compile", action="store_true", help="also time compile=True")
     parser.add_argument("--profile", action="store_true", help="print torch.profiler's top ops instead")
     parser.add_argument("--rows", type=int, default=30)
     parser.add_argument("--threads", type=int, default=1)
@@ -110,14 +107,12 @@ def main() -> None:
     if args.profile:
         for n in args.sizes:
             print(f"== num_envs={n}")
-            profile(current, n, args.steps, args.rows, **({"compile": True} if args.compile else {}))
+            profile(current, n, args.steps, args.rows)
         return
     variants = {}
     if args.baseline:
         variants["baseline"] = (_load_env_class(args.baseline), {})
     variants["current"] = (current, {})
-    if args.compile:
-        variants["compiled"] = (current, {"compile": True})
     bench(variants, args.sizes, args.steps, args.rounds)
 
 

@@ -31,7 +31,10 @@ arithmetic on rows of length ``B``; the public attributes (``env.pos`` ``[B, N, 
 views of that storage in the documented layout and may be written in place. Entity tokens are
 mostly zeros (vision is short), so only the visible ones are computed and scattered into a
 zeroed observation. Waypoints stay ``[B, N, K, 2]`` (their input/output layout) with a
-batch-last copy that is refreshed only when they change.
+batch-last copy that is refreshed only when they change. The step's arithmetic is in
+:mod:`._kernels`. Random numbers are drawn only for what actually respawns (invader timers and
+edge points, picked resources, refreshed waypoints, reset envs), so a run is reproducible
+under a seed but its stream differs from versions that drew for every env at every step.
 """
 from __future__ import annotations
 
@@ -127,8 +130,6 @@ class ResourceCollectionEnv(EnvBase):
         resource_min_radius: resources spawn between this distance from home and the field
             edge (1.5).
         validate: check actions and supplied waypoints at every step (costs a device sync).
-        compile: run the step's dynamics through ``torch.compile`` (the first step then takes
-            tens of seconds to compile). Off by default; see ``benchmarks/env_profile.py``.
     """
 
     batch_locked = True
@@ -167,7 +168,6 @@ class ResourceCollectionEnv(EnvBase):
         invader_respawn_max: int = 10,
         resource_min_radius: float = 1.5,
         validate: bool = True,
-        compile: bool = False,
     ):
         for name, value in dict(num_envs=num_envs, n_agents=n_agents, n_resources=n_resources,
                                 n_invaders=n_invaders, max_steps=max_steps, n_waypoints=n_waypoints,
@@ -208,20 +208,14 @@ class ResourceCollectionEnv(EnvBase):
                                 state_tokens=N + R + I, state_token_dim=9 + 2 * K)
         dev = self.device
         self._action_dirs = torch.tensor(_ACTION_DIRS, device=dev)
-        self._action_force = (self.dt * self.accel) * self._action_dirs                      # [5, 2]
         # Entity table seen by robots: robots, resources, invaders, home.
         types = torch.cat([torch.zeros(N), torch.ones(R), torch.full((I,), 2.0), torch.full((1,), 3.0)]).long()
         self._entity_type = torch.nn.functional.one_hot(types, 4).float().to(dev)           # [E_all, 4]
-        self._state_cols = self._state_columns().to(dev)
+        template, cols = self._state_layout()
+        self._state_template, self._state_cols = template.to(dev), cols.to(dev)
+        L = self.layout
+        self._own_cols = (torch.arange(N)[:, None] * L.obs_dim + torch.arange(L.own_dim)).view(-1).to(dev)
         self._agents_batch = torch.Size([num_envs, n_agents])
-        r2 = lambda a, b: (a + b) ** 2  # noqa: E731
-        self._params = Params(
-            damping=damping, max_speed=max_speed, dt=dt, wall=self.half - agent_radius, invader_speed=invader_speed,
-            touch_invader2=r2(agent_radius, invader_radius), touch_resource2=r2(agent_radius, resource_radius),
-            invader_home2=r2(home_radius, invader_radius), robot_home2=r2(home_radius, agent_radius),
-            inst_scale=self.inst_reward_scale, inst_dist_coef=self.inst_dist_coef, pick=pick_reward,
-            collect=collect_reward, defense=defense_reward, invasion_share=-invasion_penalty / n_agents)
-        self._dynamics = torch.compile(dynamics, dynamic=False, fullgraph=True) if compile else dynamics
         self._rng = torch.Generator(device=dev)
         self._rng.manual_seed(int(seed) if seed is not None else int(torch.empty((), dtype=torch.int64).random_().item()))
         self._make_specs()
@@ -290,8 +284,6 @@ class ResourceCollectionEnv(EnvBase):
             _inv_timer=torch.zeros(I, B, dtype=torch.int64, device=dev),
             _wp=torch.zeros(B, N, K, 2, device=dev), _wp_cache=(None, None, None), _wp_emitted=(None, None),
             t=torch.zeros(B, dtype=torch.int64, device=dev),
-            # Constant rows used to assemble outputs.
-            _zero_row=torch.zeros(1, B, device=dev), _one_row=torch.ones(1, B, device=dev),
         )
         # Scratch entity table for _write_visible_entities: one-hot types and "visible" are fixed.
         table = torch.zeros(N + R + I + 1, 10, B, device=dev)
@@ -386,7 +378,10 @@ class ResourceCollectionEnv(EnvBase):
             _inv_on=torch.zeros(I, M, dtype=torch.bool, device=dev),
             _inv_timer=self._respawn_timer(M * I).view(M, I).t().contiguous(),
         )
-        wp = self._random_walk(pos_bl) if self.waypoint_mode == "random_walk" else pos.unsqueeze(-2).expand(M, N, self.n_waypoints, 2).clone()
+        if self.waypoint_mode == "random_walk":
+            wp = self._random_walk(pos_bl)
+        else:
+            wp = pos.unsqueeze(-2).expand(M, N, self.n_waypoints, 2).clone()
         t = torch.zeros(M, dtype=torch.int64, device=dev)
         if ids is None:
             self._put(**fresh, _wp=wp, t=t)
@@ -432,8 +427,8 @@ class ResourceCollectionEnv(EnvBase):
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = self._read_action(tensordict)
         self._read_waypoints(tensordict)
-        d = self._dynamics(self._pos, self._vel, self._carry, self._res, self._inv, self._inv_on, self._inv_timer,
-                           self._waypoints_bl(), action, self._action_force, self._params)
+        d = dynamics(self._pos, self._vel, self._carry, self._res, self._inv, self._inv_on, self._inv_timer,
+                     self._waypoints_bl(), action, (self.dt * self.accel) * self._action_dirs, self._params())
         # Respawns draw from the env's generator, so they happen here, only where needed.
         timer, inv, on = d.timer, d.inv, d.inv_on
         n_gone = int(d.gone.sum())
@@ -453,6 +448,19 @@ class ResourceCollectionEnv(EnvBase):
             agent_reward=d.agent_reward, reward=d.agent_reward.sum(0).unsqueeze(-1),
             events=dict(zip(_EVENTS, d.counts), inst_reward=d.r_inst.sum(0)),
             done=truncated, terminated=torch.zeros_like(truncated), truncated=truncated)
+
+    def _params(self) -> Params:
+        """The constants of :func:`dynamics`, read from the attributes at every step."""
+        r2 = lambda a, b: (a + b) ** 2  # noqa: E731  (contacts compare squared distances)
+        w = self.event_rewards
+        return Params(
+            damping=self.damping, max_speed=self.max_speed, dt=self.dt, wall=self.half - self.agent_radius,
+            invader_speed=self.invader_speed, touch_invader2=r2(self.agent_radius, self.invader_radius),
+            touch_resource2=r2(self.agent_radius, self.resource_radius),
+            invader_home2=r2(self.home_radius, self.invader_radius),
+            robot_home2=r2(self.home_radius, self.agent_radius),
+            inst_scale=self.inst_reward_scale, inst_dist_coef=self.inst_dist_coef, pick=w["pick"],
+            collect=w["collect"], defense=w["defense"], invasion_share=w["invasion"] / self.n_agents)
 
     def _refresh_waypoints(self, ids: torch.Tensor) -> None:
         """New random-walk waypoints from the current positions for the envs ``ids``."""
@@ -489,23 +497,29 @@ class ResourceCollectionEnv(EnvBase):
         return TensorDict._new_unsafe(source, batch_size=batch_size, device=self.device)
 
     def _observe(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """Per-robot observations [B, N, obs_dim] and the global state [B, state_dim]."""
+        """Per-robot observations [B, N, obs_dim] and the global state [B, state_dim].
+
+        Both are built batch-first from batch-last rows with ``index_copy_`` along dim 1: it
+        reads each source row contiguously: 1.3-2x faster than a transpose + strided copy or gather.
+        """
         B, N, L = self.num_envs, self.n_agents, self.layout
         pos, vel, carry = self._pos, self._vel, self._carry.float()
         wp = self._waypoints_bl()
-        # Own features, robot-major [N, own_dim, B], then one transpose into the zeroed output.
+        # Own features [N, own_dim, B] into the zeroed observation; then the visible entities.
         own = torch.cat([pos, vel, carry.unsqueeze(1), (wp - pos.unsqueeze(1)).flatten(1, 2)], 1)
-        obs = torch.zeros(B, N, L.obs_dim, device=self.device)
-        obs[..., :L.own_dim] = own.view(N * L.own_dim, B).t().contiguous().view(B, N, L.own_dim)
+        obs = torch.zeros(B, N * L.obs_dim, device=self.device)
+        obs.index_copy_(1, self._own_cols, own.reshape(N * L.own_dim, B).t())
+        obs = obs.view(B, N, L.obs_dim)
         self._write_visible_entities(obs[..., L.own_dim:].view(B, N, L.n_entities, L.entity_dim))
 
-        # Global state: gather its columns from one compact table of everything it holds.
+        # Global state: the constant entries (types, zeros) from a template, then every varying
+        # entry from one batch-last table of them, each row to its column.
         on = self._inv_on.float()
-        src = torch.cat([self._zero_row, self._one_row, pos.flatten(0, 1), vel.flatten(0, 1), carry,
-                         self._defended.float(), wp.flatten(0, 2), self._res.flatten(0, 1),
-                         (self._inv * on.unsqueeze(1)).flatten(0, 1),
-                         (self._inv_vel * on.unsqueeze(1)).flatten(0, 1), on], 0)           # [S, B]
-        state = src.t().contiguous().index_select(1, self._state_cols)
+        src = torch.cat([pos.flatten(0, 1), vel.flatten(0, 1), carry, self._defended.float(), wp.flatten(0, 2),
+                         self._res.flatten(0, 1), (self._inv * on.unsqueeze(1)).flatten(0, 1),
+                         (self._inv_vel * on.unsqueeze(1)).flatten(0, 1), on], 0)                # [S, B]
+        state = self._state_template.expand(B, -1).clone()
+        state.index_copy_(1, self._state_cols, src.t())
         return obs, state
 
     def _write_visible_entities(self, ent: torch.Tensor) -> None:
@@ -521,36 +535,34 @@ class ResourceCollectionEnv(EnvBase):
         table[inv, 2:4], table[inv, 8] = self._inv_vel, on
         visible = pair_sq_dist(self._pos, table[:, 0:2]) <= self.vision_radius ** 2             # [N, E_all, B]
         visible[:, :N].diagonal(0, 0, 1).fill_(False)  # a robot is not its own entity
-        n, j, b = visible.nonzero().unbind(1)
-        if not n.numel():
+        flat = visible.reshape(-1).nonzero().squeeze(1)  # 1-D nonzero: ~2x faster than on [N, E_all, B]
+        if not flat.numel():
             return
+        E_all, B = visible.shape[1:]
+        n, rest = flat.div(E_all * B, rounding_mode="floor"), flat % (E_all * B)
+        j, b = rest.div(B, rounding_mode="floor"), rest % B
         tokens = table[j, :, b]                                                              # [V, 10]
         tokens[:, :4] -= table[n, :4, b]  # relative position and velocity
         slot = j - (j > n).long()  # entity j's place in robot n's list (itself removed)
         ent.index_put_((b, n, slot), tokens)
 
-    def _state_columns(self) -> torch.Tensor:
-        """For each state entry, its row in the compact table built by :meth:`_observe`."""
-        N, R, I, K = self.n_agents, self.n_resources, self.n_invaders, self.n_waypoints
-        rows, at = {}, 0
-        for name, size in (("zero", 1), ("one", 1), ("pos", 2 * N), ("vel", 2 * N), ("carry", N), ("defended", N),
-                           ("wp", 2 * K * N), ("res", 2 * R), ("inv", 2 * I), ("inv_vel", 2 * I), ("on", I)):
-            rows[name], at = at, at + size
-        zero, one = rows["zero"], rows["one"]
-        cols = []
-        for n in range(N):
-            cols += [rows["pos"] + 2 * n, rows["pos"] + 2 * n + 1, rows["vel"] + 2 * n, rows["vel"] + 2 * n + 1,
-                     one, zero, zero, rows["carry"] + n, rows["defended"] + n]
-            cols += [rows["wp"] + 2 * K * n + k for k in range(2 * K)]
-        for r in range(R):
-            cols += [rows["res"] + 2 * r, rows["res"] + 2 * r + 1, zero, zero, zero, one, zero, zero, zero]
-            cols += [zero] * (2 * K)
-        for i in range(I):
-            cols += [rows["inv"] + 2 * i, rows["inv"] + 2 * i + 1, rows["inv_vel"] + 2 * i,
-                     rows["inv_vel"] + 2 * i + 1, zero, zero, one, rows["on"] + i, zero]
-            cols += [zero] * (2 * K)
-        assert len(cols) == self.layout.state_dim
-        return torch.tensor(cols)
+    def _state_layout(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The state's constant template [state_dim] and, for each row of the table built by
+        :meth:`_observe`, the state column it goes to [S]."""
+        N, R, I, K, L = self.n_agents, self.n_resources, self.n_invaders, self.n_waypoints, self.layout
+        D = L.state_token_dim
+        robot, res, inv = (lambda n: n * D), (lambda r: (N + r) * D), (lambda i: (N + R + i) * D)
+        # Token features: x, y, vx, vy, type (3), flag, defended, waypoints (2K).
+        cols = [robot(n) + c for n in range(N) for c in (0, 1)] + [robot(n) + c for n in range(N) for c in (2, 3)]
+        cols += [robot(n) + 7 for n in range(N)] + [robot(n) + 8 for n in range(N)]              # carry, defended
+        cols += [robot(n) + 9 + k for n in range(N) for k in range(2 * K)]                       # waypoints
+        cols += [res(r) + c for r in range(R) for c in (0, 1)]
+        cols += [inv(i) + c for i in range(I) for c in (0, 1)] + [inv(i) + c for i in range(I) for c in (2, 3)]
+        cols += [inv(i) + 7 for i in range(I)]                                                   # active
+        template = torch.zeros(L.state_tokens, D)
+        template[:, 4:7] = self._entity_type[:L.state_tokens, :3].cpu()
+        assert sorted(set(cols)) == sorted(cols) and not template.view(-1)[cols].any()
+        return template.view(-1), torch.tensor(cols)
 
     # ------------------------------------------------------------------ instructions
     def write_waypoints(self, tensordict: TensorDictBase, waypoints: torch.Tensor) -> TensorDictBase:
