@@ -296,9 +296,6 @@ def test_one_event_per_robot_per_step_defense_first():
     assert torch.allclose(env.res_pos[0, 0], torch.tensor([0.2, -1.0]))
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "env bug: resources respawned in the same step are checked only against resources that stay, "
-    "not against each other, so two simultaneous picks can respawn overlapping resources"))
 def test_simultaneous_respawns_do_not_overlap():
     env, td = quiet_scene(num_envs=2048)
     env.res_pos[:, :3] = env.pos  # every robot picks one resource in the same step

@@ -156,8 +156,9 @@ def motion(pos, vel, inv, inv_on, wp, action, action_force, p: Params):
     # Invaders walk straight home.
     dist_home = sq_norm(inv).sqrt_().unsqueeze(1)
     move = -inv * (p.invader_speed / dist_home.clamp_min_(p.invader_speed))
-    inv_vel = torch.where(inv_on.unsqueeze(1), move, 0.0)
-    return new_pos, new_vel, r_inst, inv + inv_vel, inv_vel
+    move = torch.where(inv_on.unsqueeze(1), move, 0.0)
+    return new_pos, new_vel, r_inst, inv + move, move / p.dt  # velocity in m/s, like the robots'
+
 
 
 def instruction_reward(wp, old_pos, new_pos, scale: float, dist_coef: float) -> torch.Tensor:

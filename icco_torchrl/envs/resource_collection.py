@@ -301,7 +301,7 @@ class ResourceCollectionEnv(EnvBase):
         return cache
 
     def _set_seed(self, seed: int | None):
-        self._rng.manual_seed(int(seed) if seed is not None else 0)
+        self._rng.manual_seed(int(seed) if seed is not None else int(torch.empty((), dtype=torch.int64).random_().item()))
 
     # ------------------------------------------------------------------ sampling
     # Random numbers are drawn only for what (re)spawns, so a quiet step draws none. The draws
@@ -331,20 +331,28 @@ class ResourceCollectionEnv(EnvBase):
         return torch.stack([r * torch.cos(angle), r * torch.sin(angle)], -1)
 
     def _spawn_resources(self, res_pos: torch.Tensor, respawn: torch.Tensor) -> torch.Tensor:
-        """New positions ``[M, R, 2]`` for the slots in ``respawn`` [M, R], avoiding the other resources.
+        """New positions ``[M, R, 2]`` for the slots in ``respawn`` [M, R], avoiding every other resource.
 
-        Each slot draws a few candidates and keeps the first that overlaps no resource that
-        stays; with 6 resources on ~30 m^2 a clash among the candidates is very rare.
+        Each slot draws a few candidates and keeps the first that overlaps no resource already
+        in place. Slots respawning in the same env are placed in rounds (the k-th of each env in
+        round k), so they avoid each other too; a round is vectorised over envs and there are as
+        many rounds as the most simultaneous respawns in one env (usually one).
         """
-        env, slot = respawn.nonzero(as_tuple=True)
-        if not env.numel():
+        if not bool(respawn.any()):
             return res_pos
-        cand = self._resource_candidates(env.numel())                                        # [P, C, 2]
-        d2 = (cand.unsqueeze(2) - res_pos[env].unsqueeze(1)).square().sum(-1)                # [P, C, R]
-        blocking = (~respawn[env]).unsqueeze(1) & (d2 < (2 * self.resource_radius) ** 2)
-        first = (~any_(blocking, -1)).to(torch.uint8).argmax(-1)                             # first free or 0
-        chosen = cand[torch.arange(env.numel(), device=self.device), first]                 # [P, 2]
-        return res_pos.index_put((env, slot), chosen)
+        rank = respawn.long().cumsum(-1) - 1                                                 # k-th respawn of its env
+        pending = respawn
+        for k in range(int(rank.masked_fill(~respawn, 0).max()) + 1):
+            now = pending & (rank == k)
+            env, slot = now.nonzero(as_tuple=True)
+            cand = self._resource_candidates(env.numel())                                    # [P, C, 2]
+            d2 = (cand.unsqueeze(2) - res_pos[env].unsqueeze(1)).square().sum(-1)            # [P, C, R]
+            blocking = (~pending[env]).unsqueeze(1) & (d2 < (2 * self.resource_radius) ** 2)
+            first = (~any_(blocking, -1)).to(torch.uint8).argmax(-1)                         # first free or 0
+            chosen = cand[torch.arange(env.numel(), device=self.device), first]             # [P, 2]
+            res_pos = res_pos.index_put((env, slot), chosen)
+            pending = pending & ~now
+        return res_pos
 
     def _random_walk(self, start: torch.Tensor) -> torch.Tensor:
         """K waypoints ``p + cumsum(eps)``, eps ~ N(0, sigma^2 I), clipped to the field.
@@ -365,11 +373,7 @@ class ResourceCollectionEnv(EnvBase):
         M = B if ids is None else ids.numel()
         lim = self.half - self.agent_radius
         pos = (self._rand(M, N, 2) * 2 - 1) * lim
-        res_pos = torch.full((M, R, 2), 10 * self.field_size, device=dev)
-        for j in range(R):  # sequential so initial resources do not overlap (reset only)
-            only_j = torch.zeros(M, R, dtype=torch.bool, device=dev)
-            only_j[:, j] = True
-            res_pos = self._spawn_resources(res_pos, only_j)
+        res_pos = self._spawn_resources(torch.zeros(M, R, 2, device=dev), torch.ones(M, R, dtype=torch.bool, device=dev))
         pos_bl = batch_last(pos)
         fresh = dict(  # batch-last, in the order the random numbers are drawn
             _pos=pos_bl, _vel=torch.zeros_like(pos_bl), _carry=torch.zeros(N, M, dtype=torch.bool, device=dev),
