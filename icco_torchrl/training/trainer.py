@@ -175,11 +175,11 @@ def train(cfg: DictConfig, run_dir: str | Path) -> dict:
                         optim.zero_grad(set_to_none=True)
                         total_loss(losses).backward()
                         if t.grad_clip > 0:
-                            row["grad_norm"] = float(torch.nn.utils.clip_grad_norm_(loss.parameters(), t.grad_clip))
+                            losses["grad_norm"] = torch.nn.utils.clip_grad_norm_(loss.parameters(), t.grad_clip)
                         optim.step()
                         updater.step()
                         updates += 1
-                    row.update({k: v.item() for k, v in losses.items()})
+                    row = {k: v.item() for k, v in losses.items()}  # one host sync per batch, for logging
                 timers["train"] += time.perf_counter() - tick
 
                 if batches % cfg.logger.log_interval == 0:
