@@ -21,8 +21,9 @@ test: $(STAMP)
 	OMP_NUM_THREADS=1 $(PY) -m pytest tests $(ARGS)
 
 bench: $(STAMP)
-	$(PY) benchmarks/env_throughput.py $(ARGS)
-	$(PY) benchmarks/loss_step.py $(ARGS)
+	$(PY) benchmarks/env_throughput.py
+	$(PY) benchmarks/loss_step.py
+	$(PY) benchmarks/train_throughput.py
 
 train: $(STAMP)
 	$(VENV)/bin/icco train $(ARGS)
