@@ -37,8 +37,10 @@ def test_every_method_trains_end_to_end(tmp_path, method):
 
 
 def test_same_seed_gives_identical_metrics(tmp_path):
-    for name in ("a", "b"):
-        run_cli("train", *SMOKE, "seed=3", f"hydra.run.dir={tmp_path / name}")
+    run_cli("train", *SMOKE, "seed=3", f"hydra.run.dir={tmp_path / 'a'}")
+    # The second run also logs to wandb in offline mode: no network, no account, same metrics.
+    run_cli("train", *SMOKE, "seed=3", "logger.wandb.mode=offline", f"hydra.run.dir={tmp_path / 'b'}")
+    assert list((tmp_path / "b" / "wandb").glob("offline-run-*")), "wandb offline wrote nothing"
     for stream in ("train.csv", "eval.csv"):
         assert (tmp_path / "a" / stream).read_text() == (tmp_path / "b" / stream).read_text()
     run_cli("train", *SMOKE, "seed=4", "train.total_frames=1024", f"hydra.run.dir={tmp_path / 'c'}")
