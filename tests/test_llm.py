@@ -441,3 +441,21 @@ def test_llm_configs_are_commented_and_build_a_planner(name: str) -> None:
     planner = LLMPlanner.from_config(cfg, field_size=2 * HALF)
     assert planner.model.split("/")[0] in ("offline", "openai", "ollama_chat")
     assert planner.prompt in ("plain", "tap") and planner.n_waypoints == K
+
+
+def test_task_aligned_prompt_bends_the_plan_toward_the_task():
+    """Offline QMIX-TAP differs from plain planning: an interceptor and resource detours."""
+    from icco_torchrl.instructions.planner import rule_plan
+
+    positions = np.array([[0.0, 0.0], [1.0, 1.0], [-1.0, -2.0]])
+    plain, _ = rule_plan("Go right", positions, n_waypoints=4, half=3.25)
+    invader, resource = np.array([[3.2, -3.0]]), np.array([[1.5, 1.2], [-2.5, 2.5]])
+    tap, strategy = rule_plan("Go right", positions, n_waypoints=4, half=3.25, resources=resource, invader=invader)
+    assert "intercepts the invader" in strategy
+    interceptor = int(strategy.split("agent_")[1][0])
+    path = invader[0] * (1 - np.linspace(0, 1, 50))[:, None]  # the invader's straight path home
+    assert np.min(np.linalg.norm(path - tap[interceptor, -1], axis=1)) < 0.2
+    detour = [i for i in range(3) if i != interceptor and np.allclose(tap[i, 1], resource[0], atol=1e-6)]
+    assert detour, "the robot next to a resource should pass through it"
+    others = [i for i in range(3) if i != interceptor]
+    np.testing.assert_allclose(tap[others, -1], plain[others, -1])  # they still end on the instructed line

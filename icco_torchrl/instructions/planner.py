@@ -52,6 +52,7 @@ CIRCLE_RADIUS = 0.5  # "form a circle" around home
 LOCAL_RADIUS = 0.25  # a circle at a quadrant or off-centre place
 CLUSTER_RADIUS = 0.25  # metres; tight but agents (radius ~0.15 m) do not overlap
 GUARD_RADIUS = 0.6  # metres; the ring around home for "defend home"
+DETOUR_RADIUS = 1.5  # metres; a resource this close is worth a detour under the task-aligned prompt
 
 _SUPPORTED = (
     "directions (left/right/up/down/top/bottom, diagonals), quadrant 1-4, points '(x, y)', "
@@ -363,7 +364,41 @@ def rule_plan(
     targets = np.clip(_targets(intent, positions, half, resources, invader), -half, half)
     fractions = np.arange(1, n_waypoints + 1) / n_waypoints
     waypoints = positions[:, None] + fractions[None, :, None] * (targets - positions)[:, None]
-    return waypoints, f"Rule planner (not an LLM): {intent.description}."
+    strategy = f"Rule planner (not an LLM): {intent.description}."
+    if intent.kind != "task" and (len(resources) or len(invader)):  # the task-aligned prompt
+        waypoints, note = _align_with_task(waypoints, positions, resources, invader, half)
+        strategy = f"{strategy[:-1]}; {note}."
+    return np.clip(waypoints, -half, half), strategy
+
+
+def _align_with_task(waypoints: np.ndarray, positions: np.ndarray, resources: np.ndarray, invader: np.ndarray,
+                     half: float) -> tuple[np.ndarray, str]:
+    """Bend an instruction's plan toward the task, as the task-aligned prompt asks an LLM to.
+
+    The robot that reaches the invader's path home first intercepts it; each other robot with a
+    resource within ``DETOUR_RADIUS`` of its position goes through it on the first half of its
+    waypoints, then on to its instructed slot.
+    """
+    waypoints = waypoints.copy()
+    notes, busy = [], set()
+    if len(invader):
+        meets = [_intercept(p, invader[0]) for p in positions]
+        best = int(np.argmin([m[0] for m in meets]))
+        waypoints[best] = meets[best][1]
+        busy.add(best)
+        notes.append(f"agent_{best} intercepts the invader")
+    k = waypoints.shape[1]
+    taken: set[int] = set()
+    for i in (i for i in range(len(positions)) if i not in busy and len(resources)):
+        distance = np.linalg.norm(resources - positions[i], axis=1)
+        distance[list(taken)] = np.inf
+        j = int(np.argmin(distance))
+        if distance[j] <= DETOUR_RADIUS:
+            taken.add(j)
+            first = max(k // 2, 1)
+            waypoints[i, :first] = positions[i] + np.arange(1, first + 1)[:, None] / first * (resources[j] - positions[i])
+            notes.append(f"agent_{i} picks the resource at ({resources[j][0]:.1f}, {resources[j][1]:.1f}) on the way")
+    return waypoints, "; ".join(notes) or "no task detour needed"
 
 
 # --- litellm provider: the rule planner behind the same API as a real model. -------------
