@@ -124,10 +124,10 @@ def main(argv=None) -> int:
                 "learned nothing. Re-run without `--smoke` for results.**" if smoke else ""),
         steps=steps, model=model, trials=fig5b["trials"],
         planner_note=("**Planner caveat.** The default planner is the offline rule program (not a language model): "
-                      "it draws the four formations exactly, and for these four instructions it ignores the "
-                      "task-aligned prompt's extra information (it uses it only for task orders such as \"collect "
-                      "the resources\"), so offline QMIX-TAP is QMIX driven by the plain formations. Run with "
-                      "`--llm openai` (or any litellm model) for the paper's setting." if offline else ""),
+                      "it draws the four formations exactly, and under the task-aligned prompt it bends them toward "
+                      "the task by a fixed rule (the robot nearest the invader's path intercepts it; a robot within "
+                      "1.5 m of a resource passes through it on the way to its slot). A language model decides this "
+                      "itself: run with `--llm openai` (or any litellm model) for the paper's setting." if offline else ""),
         run_args="--smoke" if smoke else ("" if offline else f"--llm {shlex.quote(fig5b['llm_backend'])}"),
         out=shlex.quote(os.path.relpath(args.out)),
         fig5b_table=segment_table(fig5b["summary"], "reward") + "\n\nWhole episode:\n\n"
