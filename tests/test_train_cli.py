@@ -123,7 +123,7 @@ def test_ctrl_c_saves_a_checkpoint_and_exits_cleanly(tmp_path):
         time.sleep(0.5)
     time.sleep(1.0)
     proc.send_signal(signal.SIGINT)
-    out, err = proc.communicate(timeout=60)
+    out, err = proc.communicate(timeout=180)
     assert proc.returncode == 0, err[-2000:]
     ckpt = torch.load(tmp_path / "checkpoint.pt", weights_only=False)
     assert 0 < ckpt["frames"] < 10_000_000

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import math
+import signal
 import time
 from pathlib import Path
 
@@ -58,6 +59,31 @@ class EpisodeTracker:
                 finished.append(self.sums[done[:, t]].clone())
                 self.sums[done[:, t]] = 0
         return torch.cat(finished) if finished else self.sums.new_zeros(0, self.sums.shape[1])
+
+
+class GracefulInterrupt:
+    """The first Ctrl-C (SIGINT) asks the loop to stop after the current batch; a second one raises.
+
+    Stopping between batches, not inside the collector or an update, keeps every object in a
+    state that can be checkpointed.
+    """
+
+    def __init__(self):
+        self.requested = False
+        try:
+            self._previous = signal.signal(signal.SIGINT, self._handle)
+        except ValueError:  # not the main thread: keep Python's default behaviour
+            self._previous = None
+
+    def _handle(self, signum, frame):
+        if self.requested:
+            raise KeyboardInterrupt
+        self.requested = True
+
+    def restore(self) -> None:
+        if self._previous is not None:
+            signal.signal(signal.SIGINT, self._previous)
+            self._previous = None
 
 
 def _rng_state(env) -> dict:
@@ -151,8 +177,8 @@ def train(cfg: DictConfig, run_dir: str | Path) -> dict:
     episode_stats = {k: float("nan") for k in ["episode_reward"] + [f"episode_{k}" for k in EVENT_KEYS]}
     last_eval = last_ckpt = frames
     final = {}
-    interrupted = False
     collector = None
+    stop = GracefulInterrupt()
     try:
         if remaining > 0:
             collector = Collector(env, policy, frames_per_batch=frames_per_batch, total_frames=remaining,
@@ -196,13 +222,18 @@ def train(cfg: DictConfig, run_dir: str | Path) -> dict:
                 logger.progress(frames, SPS=sps, eps=float(explore.eps), R=episode_stats["episode_reward"],
                                 pick=episode_stats["episode_pick"], coll=episode_stats["episode_collect"],
                                 dfn=episode_stats["episode_defense"], inv=episode_stats["episode_invasion"])
+                if stop.requested:
+                    break
                 tick = time.perf_counter()
-    except KeyboardInterrupt:
-        interrupted = True
-        logger.print(f"interrupted at {frames} frames: saving a checkpoint")
+    except KeyboardInterrupt:  # a second Ctrl-C: stop at once
+        stop.requested = True
     finally:
+        stop.restore()
         if collector is not None:
             collector.shutdown()
+    interrupted = stop.requested
+    if interrupted:
+        logger.print(f"interrupted at {frames} frames: saving a checkpoint")
     path = checkpoint()
     if not interrupted and remaining > 0:  # a resumed run already at its budget has nothing new to evaluate
         final = run_eval() if last_eval != frames or not evaluated else evaluated[-1]
