@@ -61,7 +61,8 @@ def budget_section(runs: dict[str, list[Path]], info: dict) -> tuple[str, bool]:
         lines.append(f"| {label} | {len(dirs)} | {mean(frames):,.0f} | {mean(wall) / 60:.1f} min | {mean(sps):,.0f} |")
     m = info.get("machine", {})
     lines += ["", f"Training overrides: `{' '.join(info.get('budget', [])) or '(defaults)'}`; seeds "
-              f"{info.get('seeds', '?')}. Sweep wall time: {_duration(info.get('train_wall_s'))} training, "
+              f"{info.get('seeds', '?')}. Training wall time summed over run.py invocations (parallel "
+              f"invocations add up): {_duration(info.get('train_wall_s'))}; "
               f"{_duration(info.get('eval_wall_s'))} evaluation.",
               f"Machine: {m.get('cpu', '?')} ({m.get('cores', '?')} cores), GPU: {m.get('gpu') or 'none'}, "
               f"torch {m.get('torch', '?')}, Python {m.get('python', '?')}, {m.get('platform', '?')}."]
