@@ -20,14 +20,11 @@ import time
 
 import torch
 from tensordict import TensorDict, TensorDictBase
-from tensordict.nn import TensorDictModule, TensorDictSequential
-from torch import nn
 from torchrl.collectors import Collector
 from torchrl.data import (Bounded, Categorical, Composite, LazyTensorStorage, RandomSampler, TensorDictReplayBuffer,
                           Unbounded)
 from torchrl.envs import EnvBase, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
-from torchrl.modules import EGreedyModule, QValueModule
 
 from icco_torchrl.envs.resource_collection import ObsLayout
 from icco_torchrl.modules import make_agent, make_coordinator, make_mixer, make_posterior

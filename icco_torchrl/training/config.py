@@ -42,7 +42,7 @@ class EnvConfig:
 
 @dataclass
 class TrainConfig:
-    total_frames: int = 600_000
+    total_frames: int = 1_200_000
     steps_per_batch: int = 16
     buffer_segments: int = 20_000
     batch_segments: int = 128
@@ -58,7 +58,7 @@ class TrainConfig:
     tau: float = 0.005
     eps_init: float = 1.0
     eps_end: float = 0.05
-    eps_decay_frames: int = 400_000
+    eps_decay_frames: int = 800_000
     eval_interval: int = 100_000
     eval_envs: int = 16
     checkpoint_interval: int = 200_000
