@@ -86,6 +86,13 @@ class _NoisySource(InstructionSource):
         shape = (env.num_envs, env.n_agents, env.n_waypoints, 2)
         return (torch.randn(shape, generator=self._gen) * sigma).to(env.device)
 
+    def _due(self, env, step: int):
+        """``(raw env, sigma, due mask [B])`` when some env refreshes at this step, else None."""
+        env = base_env(env)
+        sigma, interval = self.settings(env)
+        due = _refresh_mask(env, step, interval)
+        return (env, sigma, due) if bool(due.any()) else None
+
 
 class RandomWalkSource(_NoisySource):
     """The training distribution: every ``interval`` steps, K waypoints
@@ -99,11 +106,9 @@ class RandomWalkSource(_NoisySource):
         super().__init__(sigma, interval, seed)
 
     def __call__(self, env, td, step):
-        env = base_env(env)
-        sigma, interval = self.settings(env)
-        due = _refresh_mask(env, step, interval)
-        if not bool(due.any()):
+        if (refresh := self._due(env, step)) is None:
             return None
+        env, sigma, due = refresh
         walk = (env.pos.unsqueeze(-2) + self._noise(env, sigma).cumsum(-2)).clamp(-env.half, env.half)
         return torch.where(due[:, None, None, None], walk, env.waypoints)
 
@@ -143,11 +148,9 @@ class QuadrantSource(_NoisySource):
         return low, low + (far - near)
 
     def __call__(self, env, td, step):
-        env = base_env(env)
-        sigma, interval = self.settings(env)
-        due = _refresh_mask(env, step, interval)
-        if not bool(due.any()):
+        if (refresh := self._due(env, step)) is None:
             return None
+        env, sigma, due = refresh
         low, high = self.bounds(env)
         limit = 3 * sigma if self.max_step is None else float(self.max_step)
         noise = self._noise(env, sigma).clamp(-limit, limit)
