@@ -15,6 +15,7 @@ from pathlib import Path
 
 import torch
 
+from icco_torchrl.objectives import total_loss
 from icco_torchrl.training.build import METHODS, build_components
 
 
@@ -31,9 +32,8 @@ def time_updates(method: str, batch: int, steps: int, runs: int, device: str) ->
 
     def update():
         out = loss(sample)
-        total = sum(v for k, v in out.items() if k.startswith("loss_"))
         optim.zero_grad(set_to_none=True)
-        total.backward()
+        total_loss(out).backward()
         torch.nn.utils.clip_grad_norm_(loss.parameters(), 10.0)
         optim.step()
 

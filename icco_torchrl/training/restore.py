@@ -21,8 +21,8 @@ def restore(path: str | Path, *, num_envs: int | None = None, device: str = "cpu
     """
     ckpt = load_checkpoint(path)
     cfg = validate(OmegaConf.create(ckpt["cfg"]))
-    cfg.device = str(resolve_device(device))
     dev = resolve_device(device)
+    cfg.device = str(dev)
     env = make_env(cfg, num_envs=num_envs, seed=cfg.seed + 20_000 if seed is None else seed, device=dev, **env_overrides)
     layout = env.base_env.layout
     saved = ckpt.get("layout", {})

@@ -18,14 +18,13 @@ from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, RandomSampler, TensorDictReplayBuffer
 
 from icco_torchrl.evaluation.rollout import EVENT_KEYS, evaluate
-from icco_torchrl.modules.policy import exploration_module
+from icco_torchrl.modules.policy import exploration_module, make_policy
 from icco_torchrl.objectives import make_target_updater, total_loss
 from icco_torchrl.training.build import make_env, make_loss, make_modules
 from icco_torchrl.training.checkpoint import check_compatible, load_checkpoint, save_checkpoint
 from icco_torchrl.training.config import resolve_device
 from icco_torchrl.training.logger import RunLogger
 from icco_torchrl.training.segments import SegmentCutter
-from icco_torchrl.modules.policy import make_policy
 
 # What the loss reads; everything else the collector records is left out of the replay buffer.
 REPLAY_KEYS = [("agents", "observation"), "state", ("agents", "action"), ("agents", "prev_action"),
@@ -259,31 +258,21 @@ def _log_train(logger: RunLogger, frames: int, updates: int, eps: float, row: di
 
 def plot_learning_curve(run_dir: Path) -> Path | None:
     """``learning_curve.png``: greedy evaluation reward (and training episodes) against frames."""
-    import csv
-
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    def read(name):
-        path = run_dir / f"{name}.csv"
-        if not path.exists():
-            return None
-        rows = list(csv.DictReader(path.open()))
-        return rows or None
+    from icco_torchrl.evaluation.metrics import read_column
 
-    ev, tr = read("eval"), read("train")
-    if ev is None:
+    evaluation = read_column(run_dir, "eval", "reward")
+    if evaluation is None:
         return None
     fig, ax = plt.subplots(figsize=(6, 4))
-    if tr is not None:
-        pts = [(float(r["frames"]), float(r["episode_reward"])) for r in tr if r["episode_reward"] not in ("", "nan")]
-        if pts:
-            ax.plot(*zip(*pts), alpha=0.4, label="training episodes (epsilon-greedy)")
-    x = [float(r["frames"]) for r in ev]
-    y = np.array([float(r["reward"]) for r in ev])
-    s = np.array([float(r["reward_std"]) for r in ev])
+    episodes = read_column(run_dir, "train", "episode_reward")
+    if episodes is not None:
+        ax.plot(*episodes, alpha=0.4, label="training episodes (epsilon-greedy)")
+    (x, y), (_, s) = evaluation, read_column(run_dir, "eval", "reward_std")
     ax.plot(x, y, marker="o", label="greedy evaluation")
     ax.fill_between(x, y - s, y + s, alpha=0.2)
     baseline = run_dir / "random_policy.json"
