@@ -4,19 +4,24 @@ Side by side, same frame budget, same collector batch, same updates per batch an
 number of transitions per update:
 
 - ``icco`` and ``qmix``: this project's pipeline (``icco train``'s loop, recurrent agents, segments);
-- ``torchrl_qmix``: TorchRL's reference QMIX recipe (feed-forward ``MultiAgentMLP`` agents +
-  ``QMixer`` + ``QMixerLoss`` + ``Collector``, the structure of TorchRL's
-  ``sota-implementations/multiagent/qmix_vdn.py``) on our env.
+- ``torchrl_qmix``: TorchRL's reference QMIX recipe, ``sota-implementations/multiagent/qmix_vdn.py``
+  as written (feed-forward ``MultiAgentMLP``, depth 2, 256 cells, Tanh, shared parameters +
+  ``QMixer`` (embed 32) + ``QMixerLoss`` (TD(0)) + ``SoftUpdate`` (tau 0.005) + Adam +
+  ``Collector``) on our env, with our budget (frames, collector batch, updates per batch,
+  transitions per update: ``batch_segments * 4``);
+- ``torchrl_qmix_w64``: the same recipe with 64 cells, the width of our networks.
 
-Each config runs in its own subprocess so peak RSS is its own. Writes
+Each config runs in its own subprocess so peak RSS is its own; ``--repeats`` runs the configs
+round-robin (the machines are shared and noisy) and reports the median SPS. Writes
 ``benchmarks/results/train_throughput.json``.
 
-    python benchmarks/train_throughput.py --frames 60000 --threads 1
+    python benchmarks/train_throughput.py --frames 40000 --threads 1 --repeats 3
 """
 from __future__ import annotations
 
 import argparse
 import json
+import statistics
 import resource
 import subprocess
 import sys
@@ -25,6 +30,9 @@ import time
 from pathlib import Path
 
 import torch
+
+
+SUPERVISOR_ARGS = ("config", "configs", "out", "repeats")
 
 
 def run_ours(method: str, args) -> dict:
@@ -42,12 +50,12 @@ def run_ours(method: str, args) -> dict:
     return {"sps": float(last[1]), "frames": int(last[0])}
 
 
-def run_reference(args) -> dict:
-    """TorchRL's multi-agent QMIX example structure, on our env, with a matched budget."""
+def run_reference(args, num_cells: int) -> dict:
+    """TorchRL's multi-agent QMIX example (model, loss, target update, optimiser) on our env, our budget."""
     from torchrl.collectors import Collector
     from torchrl.data import LazyTensorStorage, RandomSampler, TensorDictReplayBuffer
     from torchrl.modules import EGreedyModule, MultiAgentMLP, QMixer, QValueModule, SafeSequential
-    from torchrl.objectives import HardUpdate, QMixerLoss, ValueEstimators
+    from torchrl.objectives import QMixerLoss, SoftUpdate, ValueEstimators
     from tensordict.nn import TensorDictModule
 
     from icco_torchrl.envs import ResourceCollectionEnv
@@ -58,7 +66,7 @@ def run_reference(args) -> dict:
     env = ResourceCollectionEnv(num_envs=args.num_envs, device=device, seed=0)
     L = env.layout
     net = TensorDictModule(MultiAgentMLP(L.obs_dim, 5, L.n_agents, centralized=False, share_params=True, depth=2,
-                                         num_cells=64, activation_class=torch.nn.ReLU, device=device),
+                                         num_cells=num_cells, activation_class=torch.nn.Tanh, device=device),
                            in_keys=[("agents", "observation")], out_keys=[("agents", "action_value")])
     qnet = SafeSequential(net, QValueModule(action_value_key=("agents", "action_value"),
                                             out_keys=[("agents", "action"), ("agents", "action_value"),
@@ -71,8 +79,8 @@ def run_reference(args) -> dict:
                              in_keys=[("agents", "chosen_action_value"), "state"], out_keys=["chosen_action_value"])
     loss = QMixerLoss(qnet, mixer, delay_value=True, action_space="categorical")
     loss.make_value_estimator(ValueEstimators.TD0, gamma=0.99)
-    updater = HardUpdate(loss, value_network_update_interval=200)
-    optim = torch.optim.RMSprop(loss.parameters(), lr=3e-4, alpha=0.99, eps=1e-5)
+    updater = SoftUpdate(loss, eps=1 - 0.005)
+    optim = torch.optim.Adam(loss.parameters(), lr=5e-5)
     frames_per_batch = args.num_envs * args.steps_per_batch
     buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(args.frames, device=device), sampler=RandomSampler(),
                                     batch_size=args.batch_segments * 4)
@@ -86,7 +94,7 @@ def run_reference(args) -> dict:
             out = loss(buffer.sample())
             optim.zero_grad()
             out["loss"].backward()
-            torch.nn.utils.clip_grad_norm_(loss.parameters(), 10.0)
+            torch.nn.utils.clip_grad_norm_(loss.parameters(), 40.0)
             optim.step()
             updater.step()
         explore.step(batch.numel())
@@ -96,7 +104,10 @@ def run_reference(args) -> dict:
 
 def child(args) -> None:
     torch.set_num_threads(args.threads)
-    result = run_reference(args) if args.config == "torchrl_qmix" else run_ours(args.config, args)
+    if args.config.startswith("torchrl_qmix"):
+        result = run_reference(args, num_cells=64 if args.config.endswith("_w64") else 256)
+    else:
+        result = run_ours(args.config, args)
     result["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     print("RESULT " + json.dumps(result))
 
@@ -110,31 +121,37 @@ def main() -> None:
     parser.add_argument("--batch-segments", type=int, default=128, help="segments of 4 steps per update")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
-    parser.add_argument("--configs", nargs="+", default=["qmix", "torchrl_qmix", "icco"])
+    parser.add_argument("--configs", nargs="+", default=["qmix", "torchrl_qmix", "torchrl_qmix_w64", "icco"])
+    parser.add_argument("--repeats", type=int, default=3, help="round-robin runs per config (median reported)")
     parser.add_argument("--out", default="benchmarks/results/train_throughput.json")
     parser.add_argument("--config", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.config:
         return child(args)
-    rows = []
-    for config in args.configs:
-        cmd = [sys.executable, __file__, "--config", config] + [
-            f"--{k.replace('_', '-')}={v}" for k, v in vars(args).items() if k not in ("config", "configs", "out")]
-        proc = subprocess.run(cmd, capture_output=True, text=True)
-        line = next((x for x in proc.stdout.splitlines() if x.startswith("RESULT ")), None)
-        if line is None:
-            raise RuntimeError(f"{config} failed:\n{proc.stderr[-3000:]}")
-        rows.append({"config": config, **json.loads(line[7:])})
+    runs = {config: [] for config in args.configs}
+    for repeat in range(args.repeats):
+        for config in args.configs:
+            cmd = [sys.executable, __file__, "--config", config] + [
+                f"--{k.replace('_', '-')}={v}" for k, v in vars(args).items() if k not in SUPERVISOR_ARGS]
+            proc = subprocess.run(cmd, capture_output=True, text=True)
+            line = next((x for x in proc.stdout.splitlines() if x.startswith("RESULT ")), None)
+            if line is None:
+                raise RuntimeError(f"{config} failed:\n{proc.stderr[-3000:]}")
+            runs[config].append(json.loads(line[7:]))
+            print(f"[{repeat + 1}/{args.repeats}] {config}: {runs[config][-1]['sps']:.0f} SPS", flush=True)
+    rows = [{"config": config, "sps": statistics.median(r["sps"] for r in results),
+             "sps_runs": [round(r["sps"]) for r in results], "frames": results[0]["frames"],
+             "peak_rss_mb": max(r["peak_rss_mb"] for r in results)} for config, results in runs.items()]
     ref = next((r["sps"] for r in rows if r["config"] == "torchrl_qmix"), None)
-    print(f"{'config':<14} {'SPS':>9} {'vs torchrl_qmix':>16} {'peak RSS MB':>12}")
+    print(f"{'config':<18} {'median SPS':>10} {'vs torchrl_qmix':>16} {'peak RSS MB':>12}  runs")
     for r in rows:
         r["ratio_vs_reference"] = r["sps"] / ref if ref else None
         ratio = f"{r['ratio_vs_reference']:.2f}x" if ref else "-"
-        print(f"{r['config']:<14} {r['sps']:>9.0f} {ratio:>16} {r['peak_rss_mb']:>12.0f}")
+        print(f"{r['config']:<18} {r['sps']:>10.0f} {ratio:>16} {r['peak_rss_mb']:>12.0f}  {r['sps_runs']}")
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps({"device": args.device, "threads": args.threads, "settings": {
-        k: v for k, v in vars(args).items() if k not in ("config", "configs", "out")}, "results": rows}, indent=2))
+        k: v for k, v in vars(args).items() if k not in ("config", "out")}, "results": rows}, indent=2))
 
 
 if __name__ == "__main__":

@@ -13,6 +13,7 @@ from torch import nn
 
 from icco_torchrl.envs.resource_collection import N_ACTIONS, ObsLayout
 from icco_torchrl.modules.encoders import make_encoder
+from icco_torchrl.modules.tdmodule import TensorModule
 
 
 class RecurrentQNet(nn.Module):
@@ -26,7 +27,14 @@ class RecurrentQNet(nn.Module):
         self.encoder = make_encoder(encoder, own_dim=layout.own_dim + extra, n_entities=layout.n_entities,
                                     entity_dim=layout.entity_dim, hidden=hidden)
         self._own_dim = layout.own_dim
-        self.embed = nn.Sequential(nn.Linear(hidden + n_actions, hidden), nn.ReLU())
+        # embed([features; one_hot(prev_action)]) written as a linear map plus a per-action row:
+        # the same function without building the one-hot and the concatenation.
+        self.embed = nn.Linear(hidden, hidden)
+        self.prev_action_embed = nn.Embedding(n_actions, hidden)
+        bound = 1.0 / (hidden + n_actions) ** 0.5  # nn.Linear's init for the concatenated input
+        nn.init.uniform_(self.embed.weight, -bound, bound)
+        nn.init.uniform_(self.embed.bias, -bound, bound)
+        nn.init.uniform_(self.prev_action_embed.weight, -bound, bound)
         self.gru = nn.GRU(hidden, hidden, batch_first=True)
         self.head = nn.Sequential(nn.Linear(hidden + z_dim, hidden), nn.ReLU(), nn.Linear(hidden, n_actions))
 
@@ -34,8 +42,7 @@ class RecurrentQNet(nn.Module):
         if self.full_state:
             state = state.unsqueeze(-2).expand(*obs.shape[:-1], state.shape[-1])
             obs = torch.cat([obs[..., : self._own_dim], state, obs[..., self._own_dim:]], -1)
-        prev = nn.functional.one_hot(prev_action.long(), self.n_actions).to(obs.dtype)
-        return self.embed(torch.cat([self.encoder(obs), prev], -1))
+        return torch.relu(self.embed(self.encoder(obs)) + self.prev_action_embed(prev_action.long()))
 
     def _q(self, h, z):
         return self.head(torch.cat([h, z], -1) if self.z_dim else h)
@@ -44,9 +51,9 @@ class RecurrentQNet(nn.Module):
         """One step for ``[B, N, ...]`` inputs; the hidden state restarts at zero when step_count == 0."""
         hidden = hidden * (step_count != 0).unsqueeze(-1).to(hidden.dtype)
         x = self._features(obs, prev_action, state)
-        lead = x.shape[:-1]
-        out, _ = self.gru(x.reshape(-1, 1, self.hidden), hidden.reshape(1, -1, self.hidden).contiguous())
-        h = out.reshape(*lead, self.hidden)
+        g = self.gru  # one step of the same nn.GRU, without its sequence-call overhead
+        h = torch.gru_cell(x.reshape(-1, self.hidden), hidden.reshape(-1, self.hidden), g.weight_ih_l0,
+                           g.weight_hh_l0, g.bias_ih_l0, g.bias_hh_l0).reshape(x.shape)
         return self._q(h, z), h
 
     def sequence(self, obs, prev_action, hidden0, z=None, state=None):
@@ -75,5 +82,5 @@ def make_agent(layout: ObsLayout, *, hidden: int = 64, z_dim: int = 0, full_stat
         in_keys["z"] = (*group, "z")
     if full_state:
         in_keys["state"] = state_key
-    return TensorDictModule(net, in_keys=in_keys,
+    return TensorModule(net, in_keys=in_keys,
                             out_keys=[(*group, "action_value"), ("next", *group, "rnn_hidden")])

@@ -17,6 +17,7 @@ from torchrl.envs.utils import ExplorationType, exploration_type
 
 from icco_torchrl.envs.resource_collection import ObsLayout
 from icco_torchrl.modules.encoders import EntityAttentionEncoder
+from icco_torchrl.modules.tdmodule import TensorModule
 
 LOGVAR_MIN, LOGVAR_MAX = -10.0, 0.0
 
@@ -93,7 +94,7 @@ def make_coordinator(layout: ObsLayout, *, z_dim: int = 32, hidden: int = 64, pe
     out: ``(group, "z")``, ``(group, "z_noise")``, ``(group, "z_loc")``, ``(group, "z_scale")``
     """
     net = Coordinator(layout, z_dim=z_dim, hidden=hidden, period=period, encoder=encoder)
-    return TensorDictModule(
+    return TensorModule(
         net, in_keys={"state": state_key, "step_count": "step_count", "z_prev": (group, "z"),
                       "noise_prev": (group, "z_noise")},
         out_keys=[(group, "z"), (group, "z_noise"), (group, "z_loc"), (group, "z_scale")])

@@ -20,16 +20,17 @@ class EntityAttentionEncoder(nn.Module):
     attention read-out is 0.
 
     Keys and values are linear in the raw tokens, so the attention is evaluated in token space:
-    ``q . (W_k t + b_k) = (W_k^T q) . t + q . b_k`` and ``sum_e w_e (W_v t_e + b_v) =
-    W_v (sum_e w_e t_e) + b_v sum_e w_e``. Same function as projecting every token, without the
-    ``[.., n_entities, hidden]`` tensors (the update is several times faster).
+    ``q . (W_k t) = (W_k^T q) . t`` and ``sum_e w_e (W_v t_e + b_v) = W_v (sum_e w_e t_e) +
+    b_v sum_e w_e``. Same function as projecting every token, without the
+    ``[.., n_entities, hidden]`` tensors (the update is several times faster). The keys carry no
+    bias: ``q . b_k`` is the same for every token and softmax ignores a constant shift.
     """
 
     def __init__(self, own_dim: int, n_entities: int, entity_dim: int, hidden: int, masked: bool = True):
         super().__init__()
         self.own_dim, self.n_entities, self.entity_dim, self.masked = own_dim, n_entities, entity_dim, masked
         self.own = nn.Linear(own_dim, hidden)
-        self.key = nn.Linear(entity_dim, hidden)
+        self.key = nn.Linear(entity_dim, hidden, bias=False)
         self.value = nn.Linear(entity_dim, hidden)
         self.query = nn.Linear(hidden, hidden)
         self.out = nn.Sequential(nn.Linear(2 * hidden, hidden), nn.ReLU())
@@ -39,8 +40,8 @@ class EntityAttentionEncoder(nn.Module):
         own, tokens = x[..., : self.own_dim], x[..., self.own_dim:]
         tokens = tokens.unflatten(-1, (self.n_entities, self.entity_dim))
         h = torch.relu(self.own(own))
-        q = self.query(h) * self.scale
-        logits = (tokens @ (q @ self.key.weight).unsqueeze(-1)).squeeze(-1) + (q @ self.key.bias).unsqueeze(-1)
+        q = self.query(h) @ self.key.weight * self.scale                          # the query in token space
+        logits = (tokens @ q.unsqueeze(-1)).squeeze(-1)
         if self.masked:
             visible = tokens[..., -1] > 0
             weights = torch.softmax(logits.masked_fill(~visible, -1e9), -1) * visible

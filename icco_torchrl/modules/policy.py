@@ -15,6 +15,7 @@ from torchrl.envs import TensorDictPrimer
 from torchrl.modules import EGreedyModule, QValueModule
 
 from icco_torchrl.envs.resource_collection import N_ACTIONS
+from icco_torchrl.modules.tdmodule import TensorModule
 
 
 def make_primer(n_agents: int, hidden: int, z_dim: int = 0, device="cpu", group: str = "agents") -> TensorDictPrimer:
@@ -42,7 +43,7 @@ def make_policy(agent: TensorDictModule, action_spec, coordinator: TensorDictMod
                            spec=None, action_space="categorical")
     explore = EGreedyModule(spec=action_spec, eps_init=eps_init, eps_end=eps_end,
                             annealing_num_steps=annealing_num_steps, action_key=action_key)
-    remember = TensorDictModule(nn.Identity(), in_keys=[action_key], out_keys=[("next", group, "prev_action")])
+    remember = TensorModule(nn.Identity(), in_keys=[action_key], out_keys=[("next", group, "prev_action")])
     modules = ([coordinator] if coordinator is not None else []) + [agent, q_value, explore, remember]
     return TensorDictSequential(*modules)
 

@@ -190,7 +190,7 @@ def train(cfg: DictConfig, run_dir: str | Path) -> dict:
                 batches += 1
                 explore.eps.fill_(epsilon(frames, t))
                 recent.append(tracker.update(batch))
-                buffer.extend(cutter(batch).select(*REPLAY_KEYS, strict=False))
+                buffer.extend(cutter(batch.select(*REPLAY_KEYS, strict=False)))  # cut only what is replayed
 
                 tick = time.perf_counter()
                 row = {}
