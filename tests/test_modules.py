@@ -313,3 +313,25 @@ def test_coordinator_emits_mean_when_deterministic(icco_short_episodes):
 def test_coordinator_rejects_bad_period():
     with pytest.raises(ValueError, match="period"):
         Coordinator(LAYOUT, z_dim=4, hidden=8, period=0)
+
+
+# ---------------------------------------------------------------------------- TensorModule
+def test_tensor_module_writes_what_tensordict_module_writes():
+    from tensordict import TensorDict
+    from tensordict.nn import TensorDictModule
+
+    from icco_torchrl.modules.tdmodule import TensorModule
+
+    def two(x):
+        return x + 1, (x * 2).sum(-1)
+
+    keys = dict(in_keys=[("a", "x")], out_keys=[("a", "y"), ("next", "s")])
+    td = TensorDict({"a": {"x": torch.arange(6.0).view(2, 3)}}, [2])
+    ours, ref = TensorModule(two, **keys)(td.clone()), TensorDictModule(two, **keys)(td.clone())
+    assert set(ours.keys(True, True)) == set(ref.keys(True, True))
+    for key in ref.keys(True, True):
+        torch.testing.assert_close(ours.get(key), ref.get(key))
+    torch.testing.assert_close(ours["next", "s"], torch.tensor([6.0, 24.0]))
+    # a non-inplace module still returns a fresh tensordict with only the outputs
+    out = TensorModule(two, inplace=False, **keys)(td)
+    assert ("a", "x") not in out.keys(True, True) and ("a", "y") in out.keys(True, True)

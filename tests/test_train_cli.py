@@ -12,7 +12,7 @@ import torch
 
 from conftest import run_cli
 from icco_torchrl.training.build import compose_config
-from icco_torchrl.training.checkpoint import CheckpointError, load_checkpoint
+from icco_torchrl.training.checkpoint import FORMAT_VERSION, CheckpointError, load_checkpoint
 
 SMOKE = ("experiment=smoke", "logger.progress=false")
 
@@ -97,6 +97,24 @@ def test_bad_checkpoint_gives_a_clear_error(tmp_path, content):
         path.write_bytes(content)
     with pytest.raises(CheckpointError, match=str(path)):
         load_checkpoint(path)
+
+
+def test_checkpoint_of_another_format_names_both_formats(tmp_path):
+    path = tmp_path / "old.pt"
+    torch.save({"format_version": FORMAT_VERSION - 1, "loss": {}}, path)
+    with pytest.raises(CheckpointError, match=f"format {FORMAT_VERSION - 1}.*format {FORMAT_VERSION}"):
+        load_checkpoint(path)
+
+
+def test_weights_that_do_not_fit_the_networks_are_one_clear_line(tmp_path):
+    run_cli("train", *SMOKE, "method=qmix", "train.total_frames=512", f"hydra.run.dir={tmp_path}")
+    path = tmp_path / "checkpoint.pt"
+    ckpt = torch.load(path, weights_only=False)
+    ckpt["loss"] = {k: v for k, v in ckpt["loss"].items() if "prev_action_embed" not in k}
+    torch.save(ckpt, path)
+    proc = run_cli("train", *SMOKE, "method=qmix", "train.total_frames=1024", f"resume={path}", check=False)
+    assert proc.returncode == 2 and "does not match the qmix networks" in proc.stderr
+    assert "Traceback" not in proc.stderr
 
 
 def test_bad_checkpoint_on_the_cli_is_one_clear_line(tmp_path):

@@ -13,7 +13,8 @@ class CheckpointError(RuntimeError):
     """A checkpoint is missing, unreadable, or does not match the requested config."""
 
 
-FORMAT_VERSION = 1
+# 2: agent embeds the previous action with nn.Embedding, attention keys have no bias.
+FORMAT_VERSION = 2
 
 
 def save_checkpoint(path: str | Path, payload: dict[str, Any]) -> Path:
@@ -41,9 +42,32 @@ def load_checkpoint(path: str | Path, map_location="cpu") -> dict[str, Any]:
         payload = torch.load(path, map_location=map_location, weights_only=False)
     except Exception as err:  # torch raises several types for truncated/corrupt files
         raise CheckpointError(f"checkpoint {path} is truncated or not a checkpoint ({type(err).__name__}: {err})") from None
-    if not isinstance(payload, dict) or payload.get("format_version") != FORMAT_VERSION:
-        raise CheckpointError(f"{path} is not an icco-torchrl checkpoint of format {FORMAT_VERSION}")
+    if not isinstance(payload, dict) or "format_version" not in payload:
+        raise CheckpointError(f"{path} is not an icco-torchrl checkpoint")
+    if payload["format_version"] != FORMAT_VERSION:
+        raise CheckpointError(f"{path} has checkpoint format {payload['format_version']}; this version of icco-torchrl "
+                              f"reads format {FORMAT_VERSION} (the networks changed): retrain, or evaluate it with the "
+                              "release that wrote it")
     return payload
+
+
+def load_weights(loss, state_dict: dict, path: str | Path, method: str) -> None:
+    """``loss.load_state_dict`` with a one-line error when the networks do not match.
+
+    Names and shapes are compared first: ``TensorDictParams`` (TorchRL's functional parameters)
+    silently skips missing entries in ``load_state_dict``, which would leave networks half loaded.
+    """
+    expected = {k: tuple(v.shape) for k, v in loss.state_dict().items()}
+    given = {k: tuple(getattr(v, "shape", ())) for k, v in state_dict.items()}
+    missing, unexpected = sorted(set(expected) - set(given)), sorted(set(given) - set(expected))
+    reshaped = sorted(k for k in set(expected) & set(given) if expected[k] != given[k])
+    if missing or unexpected or reshaped:
+        raise CheckpointError(f"checkpoint {path} does not match the {method} networks: missing {missing[:4]}, "
+                              f"unexpected {unexpected[:4]}, other shapes {reshaped[:4]}")
+    try:
+        loss.load_state_dict(state_dict)
+    except (RuntimeError, KeyError) as err:
+        raise CheckpointError(f"checkpoint {path} does not match the {method} networks: {err}") from None
 
 
 def check_compatible(saved_cfg: dict, cfg: dict, path: str | Path) -> None:

@@ -7,7 +7,7 @@ from omegaconf import OmegaConf
 
 from icco_torchrl.modules.policy import make_policy
 from icco_torchrl.training.build import make_env, make_loss, make_modules
-from icco_torchrl.training.checkpoint import CheckpointError, load_checkpoint
+from icco_torchrl.training.checkpoint import CheckpointError, load_checkpoint, load_weights
 from icco_torchrl.training.config import resolve_device, validate
 
 
@@ -31,9 +31,6 @@ def restore(path: str | Path, *, num_envs: int | None = None, device: str = "cpu
         raise CheckpointError(f"checkpoint {path} was trained for another env layout: " + "; ".join(diffs))
     mods = make_modules(cfg, layout, dev)
     loss = make_loss(cfg, mods)
-    try:
-        loss.load_state_dict(ckpt["loss"])
-    except (RuntimeError, KeyError) as err:
-        raise CheckpointError(f"checkpoint {path} does not match the {cfg.method.name} networks: {err}") from None
+    load_weights(loss, ckpt["loss"], path, cfg.method.name)
     policy = make_policy(mods["agent"], env.full_action_spec_unbatched, mods["coordinator"])
     return {"cfg": cfg, "env": env, "policy": policy, "loss": loss, "layout": layout, "checkpoint": ckpt}

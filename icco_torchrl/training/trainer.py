@@ -21,7 +21,7 @@ from icco_torchrl.evaluation.rollout import EVENT_KEYS, evaluate
 from icco_torchrl.modules.policy import exploration_module, make_policy
 from icco_torchrl.objectives import make_target_updater, total_loss
 from icco_torchrl.training.build import make_env, make_loss, make_modules
-from icco_torchrl.training.checkpoint import check_compatible, load_checkpoint, save_checkpoint
+from icco_torchrl.training.checkpoint import check_compatible, load_checkpoint, load_weights, save_checkpoint
 from icco_torchrl.training.config import resolve_device
 from icco_torchrl.training.logger import RunLogger
 from icco_torchrl.training.segments import SegmentCutter
@@ -132,7 +132,7 @@ def train(cfg: DictConfig, run_dir: str | Path) -> dict:
 
     frames, updates, batches = 0, 0, 0
     if resume is not None:
-        loss.load_state_dict(resume["loss"])
+        load_weights(loss, resume["loss"], cfg.resume, cfg.method.name)
         optim.load_state_dict(resume["optimizer"])
         updater.load_state_dict(resume["updater"])
         frames, updates, batches = resume["frames"], resume["updates"], resume["batches"]
