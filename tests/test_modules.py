@@ -286,8 +286,10 @@ def test_coordinator_holds_z_for_period_steps(icco_short_episodes):
     assert (dn[same_block] == 0).all()
     # at broadcast steps z is the reparameterised draw loc + scale * noise (and not the mean)
     fresh = sc % period == 0
-    torch.testing.assert_close(z[fresh], (ro["agents", "z_loc"] + ro["agents", "z_scale"] * noise)[fresh])
-    assert not torch.allclose(z[fresh], ro["agents", "z_loc"][fresh])
+    with torch.no_grad():
+        loc, scale = parts["coordinator"].module.distribution(ro["state"])
+    torch.testing.assert_close(z[fresh], (loc + scale * noise)[fresh])
+    assert not torch.allclose(z[fresh], loc[fresh])
 
 
 def test_coordinator_emits_mean_when_deterministic(icco_short_episodes):
@@ -297,7 +299,9 @@ def test_coordinator_emits_mean_when_deterministic(icco_short_episodes):
     with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
         ro = env.rollout(14, policy, break_when_any_done=False)
     sc = ro["step_count"].squeeze(-1)
-    z, loc = ro["agents", "z"], ro["agents", "z_loc"]
+    z = ro["agents", "z"]
+    with torch.no_grad():
+        loc, _ = parts["coordinator"].module.distribution(ro["state"])
     fresh = sc % period == 0
     torch.testing.assert_close(z[fresh], loc[fresh])
     # in between, the mean computed at the block's broadcast step is held
@@ -308,6 +312,24 @@ def test_coordinator_emits_mean_when_deterministic(icco_short_episodes):
             assert blocks[b, start] == blocks[b, t]
             torch.testing.assert_close(z[b, t], loc[b, start])
     assert (ro["agents", "z_noise"] == 0).all()
+
+
+def test_coordinator_redraws_only_envs_at_a_broadcast_step():
+    torch.manual_seed(0)
+    coord = Coordinator(LAYOUT, z_dim=4, hidden=8, period=4)
+    B, N = 4, LAYOUT.n_agents
+    state = torch.randn(B, LAYOUT.state_dim)
+    z_prev, noise_prev = torch.randn(B, N, 4), torch.randn(B, N, 4)
+    with torch.no_grad():
+        loc, scale = coord.distribution(state)
+        # envs out of phase: only env 0 (step 8) redraws, the others hold exactly
+        z, noise = coord(state, torch.tensor([[8], [1], [2], [7]]), z_prev, noise_prev)
+        torch.testing.assert_close(z[0], loc[0] + scale[0] * noise[0])
+        assert not torch.equal(noise[0], noise_prev[0])
+        assert torch.equal(z[1:], z_prev[1:]) and torch.equal(noise[1:], noise_prev[1:])
+        # no env at a broadcast step (the network is skipped): everything held
+        z, noise = coord(state, torch.tensor([[1], [2], [3], [5]]), z_prev, noise_prev)
+        assert torch.equal(z, z_prev) and torch.equal(noise, noise_prev)
 
 
 def test_coordinator_rejects_bad_period():

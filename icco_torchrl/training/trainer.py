@@ -180,8 +180,10 @@ def train(cfg: DictConfig, run_dir: str | Path) -> dict:
     stop = GracefulInterrupt()
     try:
         if remaining > 0:
+            # No trajectory ids: segments are cut on step_count, and the ids cost a td update per step.
             collector = Collector(env, policy, frames_per_batch=frames_per_batch, total_frames=remaining,
-                                  device=device, storing_device=device, auto_register_policy_transforms=False)
+                                  device=device, storing_device=device, auto_register_policy_transforms=False,
+                                  track_traj_ids=False)
             start_wall, start_frames = time.perf_counter(), frames
             tick = time.perf_counter()
             for batch in collector:
