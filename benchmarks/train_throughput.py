@@ -46,8 +46,10 @@ def run_ours(method: str, args) -> dict:
                           f"train.threads={args.threads}", "logger.progress=false", "train.eval_envs=2"])
     with tempfile.TemporaryDirectory() as run_dir:
         train(cfg, run_dir)
-        last = (Path(run_dir) / "timing.csv").read_text().strip().splitlines()[-1].split(",")
-    return {"sps": float(last[1]), "frames": int(last[0])}
+        header, *rows = (Path(run_dir) / "timing.csv").read_text().strip().splitlines()
+        last = dict(zip(header.split(","), rows[-1].split(",")))
+    wall = int(last["frames"]) / float(last["sps"])
+    return {"sps": float(last["sps"]), "frames": int(last["frames"]), "train_share": float(last["time_train"]) / wall}
 
 
 def run_reference(args, num_cells: int) -> dict:
@@ -86,8 +88,9 @@ def run_reference(args, num_cells: int) -> dict:
                                     batch_size=args.batch_segments * 4)
     collector = Collector(env, policy, frames_per_batch=frames_per_batch, total_frames=args.frames, device=device,
                           storing_device=device, auto_register_policy_transforms=False)
-    start, frames = time.perf_counter(), 0
+    start, frames, train_time = time.perf_counter(), 0, 0.0
     for batch in collector:
+        tick = time.perf_counter()
         frames += batch.numel()
         buffer.extend(batch.reshape(-1))
         for _ in range(args.updates):
@@ -98,8 +101,10 @@ def run_reference(args, num_cells: int) -> dict:
             optim.step()
             updater.step()
         explore.step(batch.numel())
+        train_time += time.perf_counter() - tick
     collector.shutdown()
-    return {"sps": frames / (time.perf_counter() - start), "frames": frames}
+    wall = time.perf_counter() - start
+    return {"sps": frames / wall, "frames": frames, "train_share": train_time / wall}
 
 
 def child(args) -> None:
@@ -141,13 +146,15 @@ def main() -> None:
             print(f"[{repeat + 1}/{args.repeats}] {config}: {runs[config][-1]['sps']:.0f} SPS", flush=True)
     rows = [{"config": config, "sps": statistics.median(r["sps"] for r in results),
              "sps_runs": [round(r["sps"]) for r in results], "frames": results[0]["frames"],
+             "train_share": statistics.median(r["train_share"] for r in results),
              "peak_rss_mb": max(r["peak_rss_mb"] for r in results)} for config, results in runs.items()]
     ref = next((r["sps"] for r in rows if r["config"] == "torchrl_qmix"), None)
-    print(f"{'config':<18} {'median SPS':>10} {'vs torchrl_qmix':>16} {'peak RSS MB':>12}  runs")
+    print(f"{'config':<18} {'median SPS':>10} {'vs torchrl_qmix':>16} {'training share':>15} {'peak RSS MB':>12}  runs")
     for r in rows:
         r["ratio_vs_reference"] = r["sps"] / ref if ref else None
         ratio = f"{r['ratio_vs_reference']:.2f}x" if ref else "-"
-        print(f"{r['config']:<18} {r['sps']:>10.0f} {ratio:>16} {r['peak_rss_mb']:>12.0f}  {r['sps_runs']}")
+        print(f"{r['config']:<18} {r['sps']:>10.0f} {ratio:>16} {r['train_share']:>15.0%} {r['peak_rss_mb']:>12.0f}  "
+              f"{r['sps_runs']}")
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps({"device": args.device, "threads": args.threads, "settings": {
