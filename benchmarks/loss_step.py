@@ -28,7 +28,7 @@ def time_updates(method: str, batch: int, steps: int, runs: int, device: str) ->
     segs = cutter(data)
     idx = torch.randint(0, segs.shape[0], (batch,))
     sample = segs[idx].contiguous()
-    optim = torch.optim.RMSprop(loss.parameters(), lr=3e-4, alpha=0.99, eps=1e-5)
+    optim = torch.optim.RMSprop(loss.parameters(), lr=3e-4, alpha=0.99, eps=1e-5, foreach=True)
 
     def update():
         out = loss(sample)
