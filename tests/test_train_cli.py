@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import csv
+import shutil
 import signal
 import subprocess
 import sys
@@ -53,7 +54,9 @@ def test_resume_continues_frames_and_schedules(tmp_path):
     run_cli("train", *SMOKE, "train.total_frames=1024", f"hydra.run.dir={tmp_path / 'part'}")
     first = torch.load(tmp_path / "part" / "checkpoint.pt", weights_only=False)
     assert first["frames"] == 1024
-    run_cli("train", *SMOKE, f"resume={tmp_path / 'part' / 'checkpoint.pt'}", f"hydra.run.dir={tmp_path / 'other'}")
+    assert first["replay_segments"] > 0 and (tmp_path / "part" / "replay").is_dir()
+    proc = run_cli("train", *SMOKE, f"resume={tmp_path / 'part' / 'checkpoint.pt'}", f"hydra.run.dir={tmp_path / 'other'}")
+    assert f"replay buffer restored: {first['replay_segments']} segments" in proc.stdout
     resumed = torch.load(tmp_path / "part" / "checkpoint.pt", weights_only=False)
     assert resumed["frames"] == 2048
     assert resumed["updates"] > first["updates"]
@@ -66,6 +69,27 @@ def test_resume_continues_frames_and_schedules(tmp_path):
     run_cli("train", *SMOKE, f"hydra.run.dir={tmp_path / 'full'}")
     full = read_csv(tmp_path / "full" / "train.csv")
     assert int(full[-1]["frames"]) == 2048 and float(full[-1]["epsilon"]) == pytest.approx(eps[-1])
+
+
+def test_resume_without_the_replay_dump_says_so_and_refills(tmp_path):
+    run_cli("train", *SMOKE, "train.total_frames=1024", f"hydra.run.dir={tmp_path}")
+    shutil.rmtree(tmp_path / "replay")
+    proc = run_cli("train", *SMOKE, f"resume={tmp_path / 'checkpoint.pt'}")
+    assert "resuming with an empty buffer" in proc.stdout
+    assert torch.load(tmp_path / "checkpoint.pt", weights_only=False)["frames"] == 2048
+
+
+def test_unreadable_replay_dump_is_one_clear_line(tmp_path):
+    run_cli("train", *SMOKE, "train.total_frames=1024", f"hydra.run.dir={tmp_path}")
+    shutil.rmtree(tmp_path / "replay" / "storage")
+    proc = run_cli("train", *SMOKE, f"resume={tmp_path / 'checkpoint.pt'}", check=False)
+    assert proc.returncode == 2 and "replay buffer dump" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_replay_dump_can_be_turned_off(tmp_path):
+    run_cli("train", *SMOKE, "train.total_frames=1024", "train.checkpoint_buffer=false", f"hydra.run.dir={tmp_path}")
+    assert not (tmp_path / "replay").exists()
+    assert torch.load(tmp_path / "checkpoint.pt", weights_only=False)["replay_segments"] == 0
 
 
 @pytest.mark.parametrize("override, field", [

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import os
+import shutil
 import tempfile
 from pathlib import Path
 from typing import Any
@@ -83,3 +84,39 @@ def check_compatible(saved_cfg: dict, cfg: dict, path: str | Path) -> None:
             diffs.append(f"env.params.{key}: checkpoint {a!r} vs config {b!r}")
     if diffs:
         raise CheckpointError(f"checkpoint {path} was trained with an incompatible config: " + "; ".join(diffs))
+
+
+def save_replay(buffer, path: str | Path) -> Path:
+    """Dump a TorchRL replay buffer (storage, writer, sampler) into the directory ``path``.
+
+    Written to a temporary directory first and swapped in, so an interrupted write leaves the
+    previous dump (or ``.<name>.old`` during the swap) intact.
+    """
+    path = Path(path)
+    old = path.with_name(f".{path.name}.old")
+    tmp = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp"))
+    try:
+        buffer.dumps(tmp)
+        shutil.rmtree(old, ignore_errors=True)
+        if path.exists():
+            os.replace(path, old)
+        os.replace(tmp, path)
+        shutil.rmtree(old, ignore_errors=True)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return path
+
+
+def load_replay(buffer, path: str | Path) -> bool:
+    """Fill ``buffer`` from a :func:`save_replay` dump; False when there is none to read."""
+    path = Path(path)
+    if not path.is_dir():
+        path = path.with_name(f".{path.name}.old")  # a swap was interrupted
+    if not path.is_dir():
+        return False
+    try:
+        buffer.loads(path)
+    except Exception as err:  # a partial or foreign dump: one clear line, not a torch traceback
+        raise CheckpointError(f"replay buffer dump {path} is unreadable ({type(err).__name__}: {err}); "
+                              "delete it to resume with an empty buffer") from None
+    return True

@@ -62,6 +62,7 @@ class TrainConfig:
     eval_interval: int = 100_000
     eval_envs: int = 16
     checkpoint_interval: int = 200_000
+    checkpoint_buffer: bool = True
     threads: int = 1
 
 

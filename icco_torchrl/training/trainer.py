@@ -21,10 +21,13 @@ from icco_torchrl.evaluation.rollout import EVENT_KEYS, evaluate
 from icco_torchrl.modules.policy import exploration_module, make_policy
 from icco_torchrl.objectives import make_target_updater, total_loss
 from icco_torchrl.training.build import make_env, make_loss, make_modules
-from icco_torchrl.training.checkpoint import check_compatible, load_checkpoint, load_weights, save_checkpoint
+from icco_torchrl.training.checkpoint import (check_compatible, load_checkpoint, load_replay, load_weights,
+                                              save_checkpoint, save_replay)
 from icco_torchrl.training.config import resolve_device
 from icco_torchrl.training.logger import RunLogger
 from icco_torchrl.training.segments import SegmentCutter
+
+REPLAY_DIR = "replay"  # the replay buffer dump beside checkpoint.pt (train.checkpoint_buffer)
 
 # What the loss reads; everything else the collector records is left out of the replay buffer.
 REPLAY_KEYS = [("agents", "observation"), "state", ("agents", "action"), ("agents", "prev_action"),
@@ -148,12 +151,20 @@ def train(cfg: DictConfig, run_dir: str | Path) -> dict:
                                     sampler=RandomSampler(), batch_size=t.batch_segments)
     logger = RunLogger(run_dir, cfg, total_frames=t.total_frames, initial_frames=frames)
     OmegaConf.save(cfg, run_dir / "config.yaml")
+    if resume is not None and resume.get("replay_segments"):
+        if load_replay(buffer, run_dir / REPLAY_DIR):
+            logger.print(f"replay buffer restored: {len(buffer)} segments")
+        else:
+            logger.print(f"no replay buffer dump in {run_dir}: resuming with an empty buffer (warm-up again)")
 
     def checkpoint(name: str = "checkpoint.pt") -> Path:
+        if t.checkpoint_buffer:  # first the data, then the checkpoint that refers to it
+            save_replay(buffer, run_dir / REPLAY_DIR)
         return save_checkpoint(run_dir / name, {
             "cfg": OmegaConf.to_container(cfg, resolve=True), "layout": layout.__dict__, "frames": frames,
             "updates": updates, "batches": batches, "loss": loss.state_dict(), "optimizer": optim.state_dict(),
-            "updater": updater.state_dict(), "rng": _rng_state(env), "epsilon": float(explore.eps)})
+            "updater": updater.state_dict(), "rng": _rng_state(env), "epsilon": float(explore.eps),
+            "replay_segments": len(buffer) if t.checkpoint_buffer else 0})
 
     def run_eval() -> dict:
         start = time.perf_counter()
