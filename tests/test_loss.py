@@ -370,6 +370,27 @@ def test_target_updater_rejects_bad_arguments():
         make_target_updater(loss, "polyak")
 
 
+def test_coordinator_on_two_states_equals_every_state(icco):
+    """Segments cut at broadcasts only broadcast again at their end: the short path is exact."""
+    parts, _, seg = icco
+    loss = parts["loss"]
+    x = loss._read(seg)
+    noise = torch.randn_like(x["z_noise"])
+    full = loss._z_sequences(x, loss.coordinator_params, x["z_noise"][:, 0], noise, every_step=True)
+    short = loss._z_sequences(x, loss.coordinator_params, x["z_noise"][:, 0], noise, every_step=False)
+    for a, b in zip(full, short):
+        torch.testing.assert_close(a, b)
+    # a segment that starts mid-period broadcasts inside: the default takes the all-states path
+    cutter = SegmentCutter(length=4, period=2)
+    mixed = loss._read(cutter(_rollout_segments(parts)[0]))
+    assert (mixed["next_step_count"][:, :-1] % loss.period == 0).any()
+    noise = torch.randn_like(mixed["z_noise"])
+    auto = loss._z_sequences(mixed, loss.coordinator_params, mixed["z_noise"][:, 0], noise)
+    full = loss._z_sequences(mixed, loss.coordinator_params, mixed["z_noise"][:, 0], noise, every_step=True)
+    for a, b in zip(auto, full):
+        torch.testing.assert_close(a, b)
+
+
 # ============================================================================ recurrent replay
 @pytest.mark.parametrize("method", ["icco", "qmix_full"])
 def test_replay_reproduces_collection_action_values(method):

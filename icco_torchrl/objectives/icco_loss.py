@@ -163,21 +163,35 @@ class ICCOLoss(LossModule):
         return out
 
     # ------------------------------------------------------------------ pieces
-    def _z_sequences(self, x: dict, params: TensorDictParams, first_noise: torch.Tensor, fresh_noise: torch.Tensor):
+    def _z_sequences(self, x: dict, params: TensorDictParams, first_noise: torch.Tensor, fresh_noise: torch.Tensor,
+                     every_step: bool | None = None):
         """z for the T+1 inputs of the segment under ``params``, plus (loc, scale) at step 0.
 
         Step 0: rebuilt from the stored noise if it is a broadcast step, else the stored z. Step
         k+1: a new draw at ``next_state[k]`` where ``next step_count % period == 0``, else held.
+
+        Segments cut at broadcast steps with length ``period`` broadcast again only at their
+        last next-state, so the coordinator runs on 2 states instead of T+1 (same values).
+        ``every_step`` forces (True) or forbids (False) the all-states path; by default it is
+        used when a broadcast falls inside the segment, or on accelerators, where the check
+        would cost a host sync.
         """
-        states = torch.cat([x["state"][:, :1], x["next_state"]], 1)                               # one call
+        new = (x["next_step_count"] % self.period == 0)[..., None, None]                        # [S, T, 1, 1]
+        if every_step is None:
+            every_step = x["state"].device.type != "cpu" or bool(new[:, :-1].any())
+        states = torch.cat([x["state"][:, :1], x["next_state"] if every_step else x["next_state"][:, -1:]], 1)
         with params.to_module(self.coordinator, preserve_module_state=False):
-            loc, scale = self.coordinator.module.distribution(states)
+            loc, scale = self.coordinator.module.distribution(states)                          # one call
         loc0, scale0, loc_n, scale_n = loc[:, 0], scale[:, 0], loc[:, 1:], scale[:, 1:]
         broadcast0 = (x["step_count"][:, 0] % self.period == 0)[:, None, None]
         z0 = torch.where(broadcast0, loc0 + scale0 * first_noise, x["z"][:, 0])
-        new = (x["next_step_count"] % self.period == 0)[..., None, None]                        # [S, T, 1, 1]
-        z_next = torch.where(new, loc_n + scale_n * fresh_noise, z0.unsqueeze(1))
-        return torch.cat([z0.unsqueeze(1), z_next], 1), loc0, scale0
+        held = z0.unsqueeze(1)
+        if every_step:
+            z_next = torch.where(new, loc_n + scale_n * fresh_noise, held)
+        else:  # steps 1..T-1 hold z0; only the last next-state may broadcast
+            last = torch.where(new[:, -1:], loc_n + scale_n * fresh_noise[:, -1:], held)
+            z_next = torch.cat([held.expand(-1, new.shape[1] - 1, -1, -1), last], 1)
+        return torch.cat([held, z_next], 1), loc0, scale0
 
     def _q_sequence(self, params: TensorDictParams, x: dict, z_seq: torch.Tensor | None) -> torch.Tensor:
         obs = torch.cat([x["obs"][:, :1], x["next_obs"]], 1)                                     # [S, T+1, N, F]
