@@ -43,7 +43,8 @@ def run_ours(method: str, args) -> dict:
                           f"train.total_frames={args.frames}", f"train.steps_per_batch={args.steps_per_batch}",
                           f"train.updates_per_batch={args.updates}", f"train.batch_segments={args.batch_segments}",
                           "train.warmup_segments=0", "train.eval_interval=0", "train.checkpoint_interval=0",
-                          f"train.threads={args.threads}", "logger.progress=false", "train.eval_envs=2"])
+                          f"train.threads={args.threads}", "logger.progress=false", "train.eval_envs=2",
+                          "train.checkpoint_buffer=false"])
     with tempfile.TemporaryDirectory() as run_dir:
         train(cfg, run_dir)
         header, *rows = (Path(run_dir) / "timing.csv").read_text().strip().splitlines()
