@@ -391,6 +391,28 @@ def test_coordinator_on_two_states_equals_every_state(icco):
         torch.testing.assert_close(a, b)
 
 
+@pytest.mark.parametrize("method", ["icco", "qmix_full"])
+def test_online_pass_with_a_separate_bootstrap_step_equals_one_sequence(method):
+    parts = build_components(compose_config([f"method={method}", "env.params.max_steps=10"]), num_envs=4)
+    _, seg = _rollout_segments(parts, steps=20)
+    loss = parts["loss"]
+    x = loss._read(seg)
+    z = None
+    if loss.has_coordinator:
+        z, _, _ = loss._z_sequences(x, loss.coordinator_params, x["z_noise"][:, 0], torch.randn_like(x["z_noise"]))
+    with torch.no_grad():
+        full = loss._q_sequence(loss.agent_params, x, z)                                      # [S, T+1, N, A]
+        q, q_boot = loss._q_online(x, z)
+    T = seg.shape[1]
+    torch.testing.assert_close(q, full[:, :T], atol=1e-6, rtol=0)
+    torch.testing.assert_close(q_boot, full[:, T], atol=1e-6, rtol=0)
+    assert q.requires_grad is False  # computed under no_grad here; in forward the first T steps carry grad
+    loss.double_q = False
+    q_single, none = loss._q_online(x, z)
+    assert none is None
+    torch.testing.assert_close(q_single, full[:, :T], atol=1e-6, rtol=0)
+
+
 # ============================================================================ recurrent replay
 @pytest.mark.parametrize("method", ["icco", "qmix_full"])
 def test_replay_reproduces_collection_action_values(method):

@@ -50,19 +50,25 @@ class RecurrentQNet(nn.Module):
     def forward(self, obs, prev_action, hidden, step_count, z=None, state=None):
         """One step for ``[B, N, ...]`` inputs; the hidden state restarts at zero when step_count == 0."""
         hidden = hidden * (step_count != 0).unsqueeze(-1).to(hidden.dtype)
+        return self.step(obs, prev_action, hidden, z, state)
+
+    def step(self, obs, prev_action, hidden, z=None, state=None):
+        """One step from ``hidden`` as given (no restart): Q ``[B, N, A]`` and the new hidden state."""
         x = self._features(obs, prev_action, state)
         g = self.gru  # one step of the same nn.GRU, without its sequence-call overhead
         h = torch.gru_cell(x.reshape(-1, self.hidden), hidden.reshape(-1, self.hidden), g.weight_ih_l0,
                            g.weight_hh_l0, g.bias_ih_l0, g.bias_hh_l0).reshape(x.shape)
         return self._q(h, z), h
 
-    def sequence(self, obs, prev_action, hidden0, z=None, state=None):
-        """A segment in one GRU call: inputs ``[S, L, N, ...]``, ``hidden0 [S, N, H]`` -> Q ``[S, L, N, A]``."""
+    def sequence(self, obs, prev_action, hidden0, z=None, state=None, return_hidden: bool = False):
+        """A segment in one GRU call: inputs ``[S, L, N, ...]``, ``hidden0 [S, N, H]`` -> Q ``[S, L, N, A]``
+        (and, with ``return_hidden``, the hidden state after the last step, ``[S, N, H]``)."""
         x = self._features(obs, prev_action, state)
         S, L, N, H = x.shape
-        out, _ = self.gru(x.permute(0, 2, 1, 3).reshape(S * N, L, H), hidden0.reshape(1, S * N, H).contiguous())
+        out, h_last = self.gru(x.permute(0, 2, 1, 3).reshape(S * N, L, H), hidden0.reshape(1, S * N, H).contiguous())
         h = out.reshape(S, N, L, H).permute(0, 2, 1, 3)
-        return self._q(h, z)
+        q = self._q(h, z)
+        return (q, h_last.reshape(S, N, H)) if return_hidden else q
 
 
 def make_agent(layout: ObsLayout, *, hidden: int = 64, z_dim: int = 0, full_state: bool = False,

@@ -17,8 +17,9 @@ Input: segments ``[S, T]`` (TorchRL layout, time last) that start at a broadcast
 
 Recurrent state (R2D2 "stored state"): the agent's GRU starts from the hidden state recorded at
 the segment's first step during collection, and the whole segment (T+1 observations: the T
-steps and the final next-observation) runs through one ``nn.GRU`` call for the online and one
-for the target network. Steps after an episode end inside a segment are masked out.
+steps and the final next-observation) runs through one ``nn.GRU`` call for the target network;
+the online network runs the T steps with autograd and, for double-Q, the bootstrap step
+without. Steps after an episode end inside a segment are masked out.
 
 z: the online z of the segment is rebuilt as ``mu_phi(s_0) + sigma_phi(s_0) * eps_0`` with the
 noise ``eps_0`` stored at collection, so gradients of L_RL reach the coordinator through z. The
@@ -47,7 +48,11 @@ class ICCOLoss(LossModule):
     """TD + consistency loss over segments for ICCO and its QMIX baselines.
 
     Args:
-        agent: TensorDictModule wrapping a :class:`~icco_torchrl.modules.RecurrentQNet` (shared by robots).
+        agent: TensorDictModule wrapping a :class:`~icco_torchrl.modules.RecurrentQNet` (shared by robots),
+            or any module with ``sequence(obs, prev_action, hidden0, z=None, state=None)`` and the
+            attributes ``hidden``, ``z_dim``, ``full_state``; with ``step(...)`` and
+            ``sequence(..., return_hidden=True)`` as well, double-Q skips the backward pass of the
+            bootstrap step.
         mixer: TensorDictModule wrapping a monotone mixer ``(Q [.., N, 1], state) -> [.., 1]``.
         coordinator: TensorDictModule wrapping a :class:`~icco_torchrl.modules.Coordinator`, or None (QMIX).
         posterior: TensorDictModule wrapping a :class:`~icco_torchrl.modules.Posterior`, or None.
@@ -194,12 +199,41 @@ class ICCOLoss(LossModule):
         return torch.cat([held, z_next], 1), loc0, scale0
 
     def _q_sequence(self, params: TensorDictParams, x: dict, z_seq: torch.Tensor | None) -> torch.Tensor:
+        """Q over the T+1 inputs of the segment, ``[S, T+1, N, A]``, in one GRU call."""
+        net = self.agent.module
+        obs, prev, state = self._inputs(x)
+        with params.to_module(self.agent, preserve_module_state=False):
+            return net.sequence(obs, prev, x["hidden"][:, 0], z=z_seq, state=state)
+
+    def _q_online(self, x: dict, z_seq: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Online Q over steps 0..T-1 (with autograd) and, for double-Q, at the bootstrap step T.
+
+        Step T only feeds the double-Q argmax, so it is computed without autograd from the GRU
+        state after step T-1 (agents with a ``step`` method; others run the T+1 sequence) and
+        skipped altogether without double-Q. Same values as slicing one T+1 sequence.
+        """
+        net = self.agent.module
+        obs, prev, state = self._inputs(x)
+        cut = (lambda v: None if v is None else v[:, :-1])  # noqa: E731
+        with self.agent_params.to_module(self.agent, preserve_module_state=False):
+            if not self.double_q:
+                return net.sequence(obs[:, :-1], prev[:, :-1], x["hidden"][:, 0], z=cut(z_seq), state=cut(state)), None
+            if not hasattr(net, "step"):
+                q = net.sequence(obs, prev, x["hidden"][:, 0], z=z_seq, state=state)
+                return q[:, :-1], q[:, -1].detach()
+            q, h_last = net.sequence(obs[:, :-1], prev[:, :-1], x["hidden"][:, 0], z=cut(z_seq), state=cut(state),
+                                     return_hidden=True)
+            with torch.no_grad():
+                last = (lambda v: None if v is None else v[:, -1])  # noqa: E731
+                q_boot, _ = net.step(obs[:, -1], prev[:, -1], h_last, last(z_seq), last(state))
+        return q, q_boot
+
+    def _inputs(self, x: dict):
+        """The T+1 observations, previous actions and (QMIX (FULL)) states of a segment."""
         obs = torch.cat([x["obs"][:, :1], x["next_obs"]], 1)                                     # [S, T+1, N, F]
         prev = torch.cat([x["prev_action"][:, :1], x["action"]], 1)
-        state = torch.cat([x["state"][:, :1], x["next_state"]], 1)
-        with params.to_module(self.agent, preserve_module_state=False):
-            return self.agent.module.sequence(obs, prev, x["hidden"][:, 0], z=z_seq,
-                                              state=state if self.agent.module.full_state else None)
+        state = torch.cat([x["state"][:, :1], x["next_state"]], 1) if self.agent.module.full_state else None
+        return obs, prev, state
 
     def _mix(self, params: TensorDictParams, q: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
         with params.to_module(self.mixer, preserve_module_state=False):
@@ -217,12 +251,12 @@ class ICCOLoss(LossModule):
             with torch.no_grad():
                 z_tgt, _, _ = self._z_sequences(x, self.target_coordinator_params, x["z_noise"][:, 0], fresh)
 
-        q_online = self._q_sequence(self.agent_params, x, z_on)                                 # [S, T+1, N, A]
-        chosen = q_online[:, :T].gather(-1, x["action"].long().unsqueeze(-1)).squeeze(-1)        # [S, T, N]
+        q_online, q_boot = self._q_online(x, z_on)                                             # [S, T, N, A], [S, N, A]
+        chosen = q_online.gather(-1, x["action"].long().unsqueeze(-1)).squeeze(-1)               # [S, T, N]
         q_tot = self._mix(self.mixer_params, chosen, x["state"])
         with torch.no_grad():
             q_target = self._q_sequence(self.target_agent_params, x, z_tgt)[:, 1:]
-            greedy_source = q_online[:, 1:] if self.double_q else q_target
+            greedy_source = torch.cat([q_online[:, 1:], q_boot.unsqueeze(1)], 1) if self.double_q else q_target
             greedy = greedy_source.argmax(-1, keepdim=True)
             next_value = q_target.gather(-1, greedy).squeeze(-1)
             q_tot_next = self._mix(self.target_mixer_params, next_value, x["next_state"])
