@@ -212,20 +212,19 @@ class ICCOLoss(LossModule):
         state after step T-1 (agents with a ``step`` method; others run the T+1 sequence) and
         skipped altogether without double-Q. Same values as slicing one T+1 sequence.
         """
-        net = self.agent.module
+        net, h0 = self.agent.module, x["hidden"][:, 0]
         obs, prev, state = self._inputs(x)
-        cut = (lambda v: None if v is None else v[:, :-1])  # noqa: E731
+        first, last = slice(None, -1), -1  # steps 0..T-1, step T
         with self.agent_params.to_module(self.agent, preserve_module_state=False):
             if not self.double_q:
-                return net.sequence(obs[:, :-1], prev[:, :-1], x["hidden"][:, 0], z=cut(z_seq), state=cut(state)), None
+                return net.sequence(obs[:, first], prev[:, first], h0, z=_at(z_seq, first), state=_at(state, first)), None
             if not hasattr(net, "step"):
-                q = net.sequence(obs, prev, x["hidden"][:, 0], z=z_seq, state=state)
-                return q[:, :-1], q[:, -1].detach()
-            q, h_last = net.sequence(obs[:, :-1], prev[:, :-1], x["hidden"][:, 0], z=cut(z_seq), state=cut(state),
+                q = net.sequence(obs, prev, h0, z=z_seq, state=state)
+                return q[:, first], q[:, last].detach()
+            q, h_last = net.sequence(obs[:, first], prev[:, first], h0, z=_at(z_seq, first), state=_at(state, first),
                                      return_hidden=True)
             with torch.no_grad():
-                last = (lambda v: None if v is None else v[:, -1])  # noqa: E731
-                q_boot, _ = net.step(obs[:, -1], prev[:, -1], h_last, last(z_seq), last(state))
+                q_boot, _ = net.step(obs[:, last], prev[:, last], h_last, _at(z_seq, last), _at(state, last))
         return q, q_boot
 
     def _inputs(self, x: dict):
@@ -298,6 +297,11 @@ class ICCOLoss(LossModule):
             loss = loss + out["ce_nll"]
         out["loss_ce"] = loss
         return out
+
+
+def _at(value: torch.Tensor | None, steps) -> torch.Tensor | None:
+    """``value[:, steps]`` for optional inputs (z without a coordinator, state without full_state)."""
+    return None if value is None else value[:, steps]
 
 
 def _next(key: NestedKey) -> tuple:
