@@ -5,17 +5,17 @@ number of transitions per update:
 
 - ``icco`` and ``qmix``: this project's pipeline (``icco train``'s loop, recurrent agents, segments);
 - ``torchrl_qmix``: TorchRL's reference QMIX recipe, ``sota-implementations/multiagent/qmix_vdn.py``
-  as written (feed-forward ``MultiAgentMLP``, depth 2, 256 cells, Tanh, shared parameters +
-  ``QMixer`` (embed 32) + ``QMixerLoss`` (TD(0)) + ``SoftUpdate`` (tau 0.005) + Adam +
-  ``Collector``) on our env, with our budget (frames, collector batch, updates per batch,
-  transitions per update: ``batch_segments * 4``);
+  as written (env wrapped with ``RewardSum``; feed-forward ``MultiAgentMLP``, depth 2, 256 cells,
+  Tanh, shared parameters + ``QMixer`` (embed 32) + ``QMixerLoss`` (TD(0)) + ``SoftUpdate``
+  (tau 0.005) + Adam + ``Collector``) on our env, with our budget (frames, collector batch,
+  updates per batch, transitions per update: ``batch_segments * 4``);
 - ``torchrl_qmix_w64``: the same recipe with 64 cells, the width of our networks.
 
 Each config runs in its own subprocess so peak RSS is its own; ``--repeats`` runs the configs
 round-robin (the machines are shared and noisy) and reports the median SPS. Writes
 ``benchmarks/results/train_throughput.json``.
 
-    python benchmarks/train_throughput.py --frames 40000 --threads 1 --repeats 3
+    python benchmarks/train_throughput.py --frames 30000 --threads 1 --repeats 5
 """
 from __future__ import annotations
 
@@ -57,6 +57,7 @@ def run_reference(args, num_cells: int) -> dict:
     """TorchRL's multi-agent QMIX example (model, loss, target update, optimiser) on our env, our budget."""
     from torchrl.collectors import Collector
     from torchrl.data import LazyTensorStorage, RandomSampler, TensorDictReplayBuffer
+    from torchrl.envs import RewardSum, TransformedEnv
     from torchrl.modules import EGreedyModule, MultiAgentMLP, QMixer, QValueModule, SafeSequential
     from torchrl.objectives import QMixerLoss, SoftUpdate, ValueEstimators
     from tensordict.nn import TensorDictModule
@@ -66,8 +67,10 @@ def run_reference(args, num_cells: int) -> dict:
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
     device = torch.device(args.device)
-    env = ResourceCollectionEnv(num_envs=args.num_envs, device=device, seed=0)
-    L = env.layout
+    # As in the example: the env wrapped with RewardSum (episode reward per robot, for logging).
+    env = TransformedEnv(ResourceCollectionEnv(num_envs=args.num_envs, device=device, seed=0),
+                         RewardSum(in_keys=[("agents", "reward")], out_keys=[("agents", "episode_reward")]))
+    L = env.base_env.layout
     net = TensorDictModule(MultiAgentMLP(L.obs_dim, 5, L.n_agents, centralized=False, share_params=True, depth=2,
                                          num_cells=num_cells, activation_class=torch.nn.Tanh, device=device),
                            in_keys=[("agents", "observation")], out_keys=[("agents", "action_value")])
