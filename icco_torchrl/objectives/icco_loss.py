@@ -165,6 +165,15 @@ class ICCOLoss(LossModule):
             out["z_noise"] = self._get(td, k.z_noise, f"[S, T, N, {net.z_dim}]", trailing=z_shape)
             out["step_count"] = self._get(td, k.step_count, "[S, T, 1]", trailing=(1,)).squeeze(-1)
             out["next_step_count"] = self._get(td, _next(k.step_count), "[S, T, 1]", trailing=(1,)).squeeze(-1)
+            # Does a broadcast fall inside a segment (z redrawn before its last next-state)? Then the
+            # coordinator runs on every state; the check costs a host sync, so accelerators always do.
+            inner = out["next_step_count"][:, :-1] % self.period == 0
+            out["broadcast_inside"] = out["state"].device.type != "cpu" or bool(inner.any())
+        # The T+1 inputs of the segment (its T steps and the final next-step), shared by the online
+        # and the target networks.
+        out["obs_seq"] = torch.cat([out["obs"][:, :1], out["next_obs"]], 1)                     # [S, T+1, N, F]
+        out["prev_seq"] = torch.cat([out["prev_action"][:, :1], out["action"]], 1)
+        out["state_seq"] = torch.cat([out["state"][:, :1], out["next_state"]], 1) if net.full_state else None
         return out
 
     # ------------------------------------------------------------------ pieces
@@ -178,12 +187,11 @@ class ICCOLoss(LossModule):
         Segments cut at broadcast steps with length ``period`` broadcast again only at their
         last next-state, so the coordinator runs on 2 states instead of T+1 (same values).
         ``every_step`` forces (True) or forbids (False) the all-states path; by default it is
-        used when a broadcast falls inside the segment, or on accelerators, where the check
-        would cost a host sync.
+        ``x["broadcast_inside"]`` (see ``_read``).
         """
         new = (x["next_step_count"] % self.period == 0)[..., None, None]                        # [S, T, 1, 1]
         if every_step is None:
-            every_step = x["state"].device.type != "cpu" or bool(new[:, :-1].any())
+            every_step = x["broadcast_inside"]
         states = torch.cat([x["state"][:, :1], x["next_state"] if every_step else x["next_state"][:, -1:]], 1)
         with params.to_module(self.coordinator, preserve_module_state=False):
             loc, scale = self.coordinator.module.distribution(states)                          # one call
@@ -200,10 +208,9 @@ class ICCOLoss(LossModule):
 
     def _q_sequence(self, params: TensorDictParams, x: dict, z_seq: torch.Tensor | None) -> torch.Tensor:
         """Q over the T+1 inputs of the segment, ``[S, T+1, N, A]``, in one GRU call."""
-        net = self.agent.module
-        obs, prev, state = self._inputs(x)
         with params.to_module(self.agent, preserve_module_state=False):
-            return net.sequence(obs, prev, x["hidden"][:, 0], z=z_seq, state=state)
+            return self.agent.module.sequence(x["obs_seq"], x["prev_seq"], x["hidden"][:, 0], z=z_seq,
+                                              state=x["state_seq"])
 
     def _q_online(self, x: dict, z_seq: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor | None]:
         """Online Q over steps 0..T-1 (with autograd) and, for double-Q, at the bootstrap step T.
@@ -213,7 +220,7 @@ class ICCOLoss(LossModule):
         skipped altogether without double-Q. Same values as slicing one T+1 sequence.
         """
         net, h0 = self.agent.module, x["hidden"][:, 0]
-        obs, prev, state = self._inputs(x)
+        obs, prev, state = x["obs_seq"], x["prev_seq"], x["state_seq"]
         first, last = slice(None, -1), -1  # steps 0..T-1, step T
         with self.agent_params.to_module(self.agent, preserve_module_state=False):
             if not self.double_q:
@@ -226,13 +233,6 @@ class ICCOLoss(LossModule):
             with torch.no_grad():
                 q_boot, _ = net.step(obs[:, last], prev[:, last], h_last, _at(z_seq, last), _at(state, last))
         return q, q_boot
-
-    def _inputs(self, x: dict):
-        """The T+1 observations, previous actions and (QMIX (FULL)) states of a segment."""
-        obs = torch.cat([x["obs"][:, :1], x["next_obs"]], 1)                                     # [S, T+1, N, F]
-        prev = torch.cat([x["prev_action"][:, :1], x["action"]], 1)
-        state = torch.cat([x["state"][:, :1], x["next_state"]], 1) if self.agent.module.full_state else None
-        return obs, prev, state
 
     def _mix(self, params: TensorDictParams, q: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
         with params.to_module(self.mixer, preserve_module_state=False):
