@@ -71,8 +71,33 @@ def main(argv: list[str] | None = None) -> None:
         _INSTRUCTION, rest = rest[0], rest[1:]
     if command != "train":  # results go next to the checkpoint; keep Hydra's own files out of runs/
         rest = [f"hydra.run.dir={tempfile.gettempdir()}/icco_{command}/${{now:%Y%m%d-%H%M%S-%f}}", *rest]
+    bad = unknown_group_option(rest)
+    if bad:
+        print(f"icco {command}: {bad}", file=sys.stderr)
+        raise SystemExit(2)
     sys.argv = [f"icco {command}", *rest]
     _run(command)
+
+
+def unknown_group_option(overrides: list[str]) -> str | None:
+    """One line naming the first ``group=option`` override whose option file does not exist.
+
+    Hydra reports these with a multi-line message and exit 1; we check the config groups of
+    ``conf/`` (method, env, reward, experiment, llm) before Hydra starts. Multirun lists
+    (``method=icco,qmix``) are checked item by item.
+    """
+    from icco_torchrl.training.build import CONF_DIR
+
+    for item in overrides:
+        key, sep, value = item.partition("=")
+        group = key.lstrip("+~")
+        if not sep or "." in group or "/" in group or not (CONF_DIR / group).is_dir() or group == "hydra":
+            continue
+        known = sorted(f.stem for f in (CONF_DIR / group).glob("*.yaml"))
+        for option in value.split(","):
+            if option and option not in known:
+                return f"config group '{group}' has no option {option!r}; choose from {', '.join(known)}"
+    return None
 
 
 if __name__ == "__main__":

@@ -53,9 +53,63 @@ def test_resources_always_on_the_field_and_apart(long_rollout):
     assert res.shape[-2] == env.n_resources
     assert torch.isfinite(xy).all()
     assert xy.abs().max() <= env.half + 1e-5
-    assert xy.norm(dim=-1).min() >= env.resource_min_radius - 1e-5
+    # spawn="uniform" (default): anywhere but on home
+    assert xy.norm(dim=-1).min() >= env.home_radius + env.resource_radius - 1e-5
     gap = torch.cdist(xy, xy) + torch.eye(env.n_resources) * 1e3
     assert gap.min() > 0
+
+
+def test_copa_spawn_keeps_resources_on_the_ring_and_invaders_on_the_edge():
+    env = ResourceCollectionEnv(num_envs=64, seed=0, spawn="copa")
+    ro = env.rollout(300, policy=random_policy(env), break_when_any_done=False)
+    _, res, inv = split_state(env, ro["next", "state"])
+    assert res[..., 0:2].norm(dim=-1).min() >= env.resource_min_radius - 1e-5
+    assert not ro["state"][:, 0].unflatten(-1, (env.layout.state_tokens, -1))[:, -1, 7].any()  # starts inactive
+    # An invader is first seen (active) on the edge: the step after it appears.
+    active = inv[..., 7] > 0
+    appeared = active[:, 1:] & ~active[:, :-1]
+    first_xy = inv[:, 1:][appeared][..., 0:2]
+    assert first_xy.numel() > 0 and first_xy.abs().amax(-1).min() >= env.half - env.invader_speed - 1e-4
+
+
+def test_uniform_spawn_fills_the_field():
+    """Initial robots, resources and the invader are uniform in the field (coverage over resets)."""
+    env = ResourceCollectionEnv(num_envs=4096, seed=3)
+    env.reset()
+    h = env.half
+    for name, xy, clear in (("robots", env.pos, 0.0), ("resources", env.res_pos, env.home_radius),
+                            ("invader", env.inv_pos, env.invader_min_radius)):
+        xy = xy.reshape(-1, 2)
+        assert xy.abs().max() <= h + 1e-5, name
+        assert xy.norm(dim=-1).min() >= clear - 1e-5, name
+        # 4 x 4 grid over the field: every cell is hit, and about as often as its area says.
+        cell = ((xy + h) / (2 * h) * 4).clamp(0, 3.999).long()
+        counts = torch.bincount(cell[:, 0] * 4 + cell[:, 1], minlength=16).float()
+        if name == "invader":  # the 4 central cells are 85 % inside the 1.5 m exclusion disc
+            inner = torch.tensor([5, 6, 9, 10])
+            assert counts[inner].max() < 0.6 * counts.mean() and counts[inner].min() > 0, counts
+            counts[inner] = counts.mean()
+        assert counts.min() > 0.8 * counts.mean(), (name, counts)
+        assert (xy[:, 0] > 0).float().mean().sub(0.5).abs() < 0.05, name  # no side preferred
+    assert env.inv_active.all(), "spawn=uniform puts the invader on the field at reset"
+
+
+def test_uniform_respawns_keep_the_invader_clear_of_home():
+    env = ResourceCollectionEnv(num_envs=256, seed=4)
+    ro = env.rollout(400, policy=random_policy(env), break_when_any_done=False)
+    _, _, inv = split_state(env, ro["next", "state"])
+    active = inv[..., 7] > 0
+    appeared = active[:, 1:] & ~active[:, :-1]
+    xy = inv[:, 1:][appeared][..., 0:2]
+    assert xy.shape[0] > 50
+    # seen one step after it appears: at most one invader step closer than its clearance
+    assert xy.norm(dim=-1).min() >= env.invader_min_radius - env.invader_speed - 1e-4
+    assert xy.norm(dim=-1).max() > env.half  # and out to the corners
+
+
+def test_unknown_spawn_mode_is_refused():
+    with pytest.raises(ValueError, match="spawn must be one of"):
+        ResourceCollectionEnv(spawn="edge")
 
 
 def test_carry_changes_only_through_picks_and_collects(long_rollout):
@@ -208,7 +262,7 @@ def test_quiet_scene_is_quiet():
 
 
 def test_pick_scores_sets_carry_and_respawns_resource():
-    env, td = quiet_scene()
+    env, td = quiet_scene(spawn="copa")
     env.res_pos[0, 2] = torch.tensor([0.2, -1.0])  # touching robot 0
     nxt, td = step(env, td)
     assert rewards(nxt) == [5.0, 0.0, 0.0]
@@ -250,7 +304,7 @@ def test_defense_scores_and_removes_invader():
 
 
 def test_invasion_costs_the_team_four_and_invader_respawns_at_the_edge():
-    env, td = quiet_scene()
+    env, td = quiet_scene(spawn="copa")
     env.inv_active[0, 0] = True
     env.inv_pos[0, 0] = torch.tensor([0.3, 0.0])
     nxt, td = step(env, td)

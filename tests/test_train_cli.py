@@ -100,11 +100,22 @@ def test_replay_dump_can_be_turned_off(tmp_path):
     ("device=cuda:7", "device"),
     ("logger.wandb.mode=sometimes", "logger.wandb.mode"),
     ("method=sarsa", "method"),
+    ("env.params.spawn=edge", "env.params.spawn"),
 ])
 def test_bad_config_fails_naming_the_field(override, field):
     with pytest.raises(Exception) as info:
         compose_config(["experiment=smoke", override])
     assert field in str(info.value)
+
+
+@pytest.mark.parametrize("override, message", [
+    ("reward=bogus", "config group 'reward' has no option 'bogus'; choose from calibrated, paper"),
+    ("env.params.spawn=edge", "config field 'env.params.spawn' must be one of"),
+])
+def test_unknown_preset_or_spawn_mode_fails_before_any_work(tmp_path, override, message):
+    proc = run_cli("train", *SMOKE, override, f"hydra.run.dir={tmp_path}", check=False)
+    assert proc.returncode == 2 and message in proc.stderr, proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1 and not (tmp_path / "train.csv").exists()
 
 
 def test_bad_config_on_the_cli_is_one_clear_line(tmp_path):

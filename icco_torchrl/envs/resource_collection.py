@@ -53,6 +53,7 @@ N_ACTIONS = 5
 _ACTION_DIRS = ((0.0, 0.0), (-1.0, 0.0), (1.0, 0.0), (0.0, -1.0), (0.0, 1.0))
 _EVENTS = ("pick", "collect", "defense", "invasion")
 _FAR = 1e9  # where inactive invaders are "seen" from: beyond any vision radius
+SPAWN_MODES = ("uniform", "copa")
 
 
 @dataclass(frozen=True)
@@ -127,8 +128,21 @@ class ResourceCollectionEnv(EnvBase):
             step at full speed).
         invader_speed: metres per step toward home (0.19).
         invader_respawn_max: an invader respawns U{1..this} steps after removal (10).
-        resource_min_radius: resources spawn between this distance from home and the field
-            edge (1.5).
+        spawn: where things appear. ``"uniform"`` (default, the paper: "Agents, Invaders, and
+            Resources are sampled uniformly in the field's range for each episode"): at reset
+            robots, resources and the (active) invader are uniform in the field; a picked
+            resource respawns uniform in the field and an invader, U{1..invader_respawn_max}
+            steps after its removal, uniform in the field at least ``invader_min_radius`` from
+            home. Respawns use the initial distribution, so the state distribution does not
+            drift within an episode, and the invader's clearance leaves the team
+            ``invader_min_radius / invader_speed`` steps to react. ``"copa"`` (COPA's code):
+            invaders start inactive and appear on the field edge, resources on the annulus
+            between ``resource_min_radius`` and the edge. Resources never overlap each other
+            or home, in either mode.
+        resource_min_radius: with ``spawn="copa"``, resources spawn between this distance from
+            home and the field edge (1.5).
+        invader_min_radius: with ``spawn="uniform"``, invaders spawn at least this far from
+            home (1.5 m: about 8 invader steps).
         validate: check actions and supplied waypoints at every step (costs a device sync).
     """
 
@@ -166,7 +180,9 @@ class ResourceCollectionEnv(EnvBase):
         max_speed: float = 1.9,
         invader_speed: float = 0.19,
         invader_respawn_max: int = 10,
+        spawn: str = "uniform",
         resource_min_radius: float = 1.5,
+        invader_min_radius: float = 1.5,
         validate: bool = True,
     ):
         for name, value in dict(num_envs=num_envs, n_agents=n_agents, n_resources=n_resources,
@@ -185,6 +201,10 @@ class ResourceCollectionEnv(EnvBase):
             raise ValueError("waypoint_sigma, inst_reward_scale must be >= 0 and damping in [0, 1)")
         if not 0 < resource_min_radius < field_size / 2:
             raise ValueError(f"resource_min_radius must be in (0, field_size/2), got {resource_min_radius}")
+        if not 0 <= invader_min_radius < field_size / 2:
+            raise ValueError(f"invader_min_radius must be in [0, field_size/2), got {invader_min_radius}")
+        if spawn not in SPAWN_MODES:
+            raise ValueError(f"spawn must be one of {SPAWN_MODES}, got {spawn!r}")
         if waypoint_mode not in ("random_walk", "external"):
             raise ValueError(f"waypoint_mode must be 'random_walk' or 'external', got {waypoint_mode!r}")
         super().__init__(device=device, batch_size=torch.Size([num_envs]))
@@ -201,6 +221,7 @@ class ResourceCollectionEnv(EnvBase):
         self.dt, self.damping, self.accel, self.max_speed = dt, damping, accel, max_speed
         self.invader_speed, self.invader_respawn_max = invader_speed, invader_respawn_max
         self.resource_min_radius, self.validate = resource_min_radius, validate
+        self.spawn, self.invader_min_radius = spawn, float(invader_min_radius)
 
         N, R, I, K = n_agents, n_resources, n_invaders, n_waypoints
         self.layout = ObsLayout(n_agents=N, n_waypoints=K, own_dim=5 + 2 * K,
@@ -316,6 +337,21 @@ class ResourceCollectionEnv(EnvBase):
         """``n`` waits U{1..invader_respawn_max} before an invader comes back."""
         return torch.randint(1, self.invader_respawn_max + 1, (n,), generator=self._rng, device=self.device)
 
+    def _invader_points(self, n: int) -> torch.Tensor:
+        """``n`` spawn points of invaders [n, 2]: see ``spawn`` in the class docstring."""
+        if self.spawn == "copa":
+            return self._edge_points(n)
+        # Uniform in the field outside the disc of radius invader_min_radius: rejection
+        # sampling, vectorised (a few rounds; each keeps the points that fell outside).
+        out = torch.empty(n, 2, device=self.device)
+        todo = torch.arange(n, device=self.device)
+        while todo.numel():
+            cand = (self._rand(todo.numel(), 2) * 2 - 1) * self.half
+            ok = cand.square().sum(-1) >= self.invader_min_radius ** 2
+            out[todo[ok]] = cand[ok]
+            todo = todo[~ok]
+        return out
+
     def _edge_points(self, n: int) -> torch.Tensor:
         """``n`` uniform points on the field's boundary (where invaders appear), [n, 2]."""
         side = torch.randint(0, 4, (n,), generator=self._rng, device=self.device)
@@ -325,7 +361,15 @@ class ResourceCollectionEnv(EnvBase):
         return torch.stack([torch.where(vertical, fixed, along), torch.where(vertical, along, fixed)], -1)
 
     def _resource_candidates(self, n: int, n_candidates: int = 8) -> torch.Tensor:
-        """``n`` sets of candidate spawn points [n, C, 2] on the annulus [resource_min_radius, edge]."""
+        """``n`` sets of candidate spawn points [n, C, 2]: uniform in the field outside home
+        (``spawn="uniform"``) or on the annulus [resource_min_radius, edge] (``"copa"``)."""
+        if self.spawn == "uniform":
+            lim = self.half - self.resource_radius
+            cand = (self._rand(n, n_candidates, 2) * 2 - 1) * lim
+            # A candidate on home is moved out radially to its rim (probability ~0.6 %).
+            clear = self.home_radius + self.resource_radius
+            norm = cand.norm(dim=-1, keepdim=True)
+            return torch.where(norm < clear, cand / norm.clamp_min(1e-6) * clear, cand)
         r = self.resource_min_radius + self._rand(n, n_candidates) * (self.half - self.resource_min_radius)
         angle = self._rand(n, n_candidates) * (2 * math.pi)
         return torch.stack([r * torch.cos(angle), r * torch.sin(angle)], -1)
@@ -378,8 +422,9 @@ class ResourceCollectionEnv(EnvBase):
         fresh = dict(  # batch-last, in the order the random numbers are drawn
             _pos=pos_bl, _vel=torch.zeros_like(pos_bl), _carry=torch.zeros(N, M, dtype=torch.bool, device=dev),
             _defended=torch.zeros(N, M, dtype=torch.bool, device=dev), _res=batch_last(res_pos),
-            _inv=batch_last(self._edge_points(M * I).view(M, I, 2)), _inv_vel=torch.zeros(I, 2, M, device=dev),
-            _inv_on=torch.zeros(I, M, dtype=torch.bool, device=dev),
+            _inv=batch_last(self._invader_points(M * I).view(M, I, 2)), _inv_vel=torch.zeros(I, 2, M, device=dev),
+            # uniform: the invader is on the field from the first step; copa: it appears later.
+            _inv_on=torch.full((I, M), self.spawn == "uniform", dtype=torch.bool, device=dev),
             _inv_timer=self._respawn_timer(M * I).view(M, I).t().contiguous(),
         )
         if self.waypoint_mode == "random_walk":
@@ -440,7 +485,7 @@ class ResourceCollectionEnv(EnvBase):
             timer.masked_scatter_(d.gone, self._respawn_timer(n_gone))
         which, env = d.respawn.nonzero(as_tuple=True)
         if env.numel():
-            inv[which, :, env] = self._edge_points(env.numel())
+            inv[which, :, env] = self._invader_points(env.numel())
             on = on | d.respawn
         self._put(_pos=d.pos, _vel=d.vel, _carry=d.carry, _defended=d.defense, _res=self._respawn_picked(d.picked),
                   _inv=inv, _inv_vel=d.inv_vel, _inv_on=on, _inv_timer=timer, t=self.t + 1)

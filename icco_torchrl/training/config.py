@@ -14,6 +14,8 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
+from icco_torchrl.envs.resource_collection import SPAWN_MODES
+
 
 class ConfigError(ValueError):
     """A config value is missing, unknown, ill-typed or out of range."""
@@ -148,6 +150,9 @@ def validate(cfg: DictConfig | dict) -> DictConfig:
         raise ConfigError("config fields 'train.eps_init'/'train.eps_end' need 0 <= eps_end <= eps_init <= 1")
     if not 0 <= t.gamma <= 1:
         raise ConfigError(f"config field 'train.gamma' must be in [0, 1], got {t.gamma}")
+    spawn = merged.env.params.get("spawn", "uniform")
+    if spawn not in SPAWN_MODES:
+        raise ConfigError(f"config field 'env.params.spawn' must be one of {SPAWN_MODES}, got {spawn!r}")
     resolve_device(merged.device)
     return merged
 

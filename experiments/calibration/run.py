@@ -1,0 +1,111 @@
+"""Calibrate the instruction-reward scale: team reward of the blend family against its radius.
+
+The blend policy (``icco_torchrl.envs.reference_policies``) does the task when its task target
+is within ``r`` metres and follows the waypoints otherwise: ``r = 0`` is the pure follower,
+``r = inf`` the full-information task heuristic. Its behaviour does not depend on the reward
+weights, so one rollout per radius at unit instruction scale gives the team reward at every
+scale ``s`` exactly: ``team(r, s) = task(r) + s * inst(r)``.
+
+A scale is *calibrated* when a policy that both follows and works (an interior radius) beats
+both ends. We pick the scale that maximises that margin, ``min(best - follower, best -
+heuristic)``, and report the radius that wins there.
+
+    python experiments/calibration/run.py               # 512 episodes x 145 steps, ~1 min
+    python experiments/calibration/run.py --episodes 64 --out /tmp/cal   # quick look
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+
+import torch
+
+from icco_torchrl.envs import ResourceCollectionEnv
+from icco_torchrl.envs.reference_policies import make_reference_policy
+from icco_torchrl.evaluation.rollout import episode_metrics
+
+RADII = (0.0, 0.25, 0.5, 0.65, 0.8, 1.0, 1.25, 1.5, 1.75, 2.0, 2.5, 3.0, 4.0, math.inf)
+SCALES = (0.1, 0.15, 0.2, 0.25, 0.3, 0.35, 0.4, 0.5, 0.6, 0.8, 1.0, 1.3)
+EVENTS = ("pick", "collect", "defense", "invasion")
+
+
+def blend_family(episodes: int, seed: int, spawn: str) -> list[dict]:
+    """Task reward, unit-scale instruction reward and events per radius (same episodes each)."""
+    rows = []
+    for r in RADII:
+        env = ResourceCollectionEnv(num_envs=episodes, seed=seed, spawn=spawn, inst_reward_scale=1.0)
+        policy = make_reference_policy("blend", env, radius=r)
+        with torch.no_grad():
+            m = episode_metrics(env.rollout(env.max_steps, policy, break_when_any_done=False))
+        task = m["reward"] - m["inst_reward"]
+        rows.append({"radius": r, "task_reward": task.mean().item(), "task_reward_std": task.std().item(),
+                     "inst_unit": m["inst_reward"].mean().item(),
+                     **{k: m[k].mean().item() for k in EVENTS}})
+        print(f"r={r:>4} task={rows[-1]['task_reward']:7.1f} inst/scale={rows[-1]['inst_unit']:7.1f} "
+              + " ".join(f"{k}={rows[-1][k]:.1f}" for k in EVENTS), flush=True)
+    return rows
+
+
+def choose_scale(rows: list[dict]) -> dict:
+    """Per scale: each radius's team reward, the best radius and its margin over both ends."""
+    table = []
+    for s in SCALES:
+        team = [row["task_reward"] + s * row["inst_unit"] for row in rows]
+        best = max(range(len(rows)), key=team.__getitem__)
+        table.append({"scale": s, "team": team, "best_radius": rows[best]["radius"], "best": team[best],
+                      "follower": team[0], "heuristic": team[-1],
+                      "margin": min(team[best] - team[0], team[best] - team[-1])})
+    return {"per_scale": table, "chosen": max(table, key=lambda t: t["margin"])}
+
+
+def plot(rows: list[dict], calib: dict, out: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    x = [min(row["radius"], 5.0) for row in rows]
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    for t in calib["per_scale"]:
+        bold = t["scale"] == calib["chosen"]["scale"]
+        ax.plot(x, t["team"], marker="o" if bold else ".", lw=2.5 if bold else 1, alpha=1 if bold else 0.6,
+                label=f"scale {t['scale']}" + (" (chosen)" if bold else ""))
+    ax.set_xticks(x[:-1] + [5.0])
+    ax.set_xticklabels([f"{v:g}" for v in x[:-1]] + ["inf"], rotation=45)
+    ax.set_xlabel("blend radius r (m): 0 = pure follower, inf = full-information task heuristic")
+    ax.set_ylabel("team reward per 145-step episode")
+    ax.set_yscale("symlog", linthresh=50)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7, ncol=2)
+    fig.tight_layout()
+    fig.savefig(out, dpi=120)
+    plt.close(fig)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--episodes", type=int, default=512)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--spawn", default="uniform")
+    parser.add_argument("--out", default=str(Path(__file__).parent / "results"))
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    rows = blend_family(args.episodes, args.seed, args.spawn)
+    calib = choose_scale(rows)
+    (out / "calibration.json").write_text(json.dumps(
+        {"episodes": args.episodes, "steps": 145, "seed": args.seed, "spawn": args.spawn, "radii": rows, **calib},
+        indent=1, default=lambda v: None))
+    plot(rows, calib, out / "blend_team_reward.png")
+    print("scale  best_r  best  follower  heuristic  margin")
+    for t in calib["per_scale"]:
+        print(f"{t['scale']:5}  {t['best_radius']:6}  {t['best']:6.1f}  {t['follower']:8.1f}  "
+              f"{t['heuristic']:9.1f}  {t['margin']:6.1f}")
+    print("chosen:", {k: v for k, v in calib["chosen"].items() if k != "team"})
+
+
+if __name__ == "__main__":
+    main()
