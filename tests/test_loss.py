@@ -38,12 +38,13 @@ class SumMixer(nn.Module):
         return q.sum(-2)
 
 
-def table_loss(online, target, *, gamma, double_q):
+def table_loss(online, target, *, gamma, double_q, td_lambda=0.0):
     agent = TensorDictModule(TableAgent(online), in_keys=[("agents", "observation")],
                              out_keys=[("agents", "action_value")])
     mixer = TensorDictModule(SumMixer(), in_keys=[("agents", "chosen_action_value"), "state"],
                              out_keys=["chosen_action_value"])
-    loss = ICCOLoss(agent, mixer, gamma=gamma, double_q=double_q, ce_coef=0.0, entropy_coef=0.0)
+    loss = ICCOLoss(agent, mixer, gamma=gamma, double_q=double_q, td_lambda=td_lambda, ce_coef=0.0,
+                    entropy_coef=0.0)
     loss.target_agent_params["module", "table"].data.copy_(torch.as_tensor(target, dtype=torch.float32))
     return loss
 
@@ -108,6 +109,30 @@ def test_td_target_hand_computed(double_q, terminated, mask, expected):
     grad = loss.agent_params["module", "table"].grad
     assert grad is not None and loss.target_agent_params["module", "table"].grad is None
     assert grad[0, 0] == 0 and grad[2, 1] == 0 and grad[4:].abs().sum() == 0
+
+
+# TD(lambda), double-Q, gamma 0.5: bootstraps 5 (step 0) and 3 (step 1) as above.
+# lambda 0.5: y1 = -3 + 0.5 * 3 = -1.5; y0 = 1 + 0.5 * (0.5 * 5 + 0.5 * y1) = 1.875.
+# lambda 1, terminated at step 1: y1 = -3; y0 = 1 + 0.5 * y1 = -0.5.
+# an episode end after step 0 (mask [T, F]) cuts the return: y0 = 1 + 0.5 * 5 = 3.5.
+LAMBDA_CASES = [
+    (0.5, None, None, ((5 - 1.875) ** 2 + (1 + 1.5) ** 2) / 2),
+    (1.0, [[False, True]], None, ((5 + 0.5) ** 2 + (1 + 3) ** 2) / 2),
+    (0.5, None, [[True, False]], (5 - 3.5) ** 2),
+    (0.0, None, None, ((5 - 3.5) ** 2 + (1 + 1.5) ** 2) / 2),
+]
+
+
+@pytest.mark.parametrize("lam,terminated,mask,expected", LAMBDA_CASES)
+def test_td_lambda_target_hand_computed(lam, terminated, mask, expected):
+    loss = table_loss(Q_ONLINE, Q_TARGET, gamma=0.5, double_q=True, td_lambda=lam)
+    out = loss(segment_batch(IDS, ACTIONS, REWARDS, terminated, mask))
+    assert out["loss_td"].item() == pytest.approx(expected, abs=1e-6)
+
+
+def test_td_lambda_out_of_range_is_refused():
+    with pytest.raises(ValueError, match="td_lambda"):
+        table_loss(Q_ONLINE, Q_TARGET, gamma=0.5, double_q=True, td_lambda=1.5)
 
 
 def test_td_gradient_hand_computed():

@@ -357,3 +357,54 @@ def test_tensor_module_writes_what_tensordict_module_writes():
     # a non-inplace module still returns a fresh tensordict with only the outputs
     out = TensorModule(two, inplace=False, **keys)(td)
     assert ("a", "x") not in out.keys(True, True) and ("a", "y") in out.keys(True, True)
+
+
+# ============================================================================ relative state tokens
+def _relative_scene():
+    from icco_torchrl.envs import ResourceCollectionEnv
+
+    env = ResourceCollectionEnv(num_envs=1, seed=0)
+    env.reset()
+    env.pos[0] = torch.tensor([[1.0, 0.0], [-1.0, -1.0], [2.0, 2.0]])
+    env.vel.zero_()
+    env.res_pos[0] = torch.tensor([[1.0, 1.0], [3.0, 0.0], [-2.0, 2.0], [0.5, -2.5], [-3.0, -3.0], [2.5, -1.0]])
+    env.inv_active[0] = False
+    env.waypoints = env.pos.unsqueeze(-2).expand(1, 3, env.n_waypoints, 2) + 0.5
+    return env, env._observe()[1]
+
+
+def test_relative_tokens_hand_built_scene():
+    from icco_torchrl.modules.relative import relative_dims, relative_tokens
+
+    env, state = _relative_scene()
+    L = env.layout
+    own_dim, E, D = relative_dims(L)
+    x = relative_tokens(state, L)[0]                                   # [N, own + E * D]
+    own, tok = x[:, :own_dim], x[:, own_dim:].unflatten(-1, (E, D))
+    N = L.n_agents
+    torch.testing.assert_close(own[0, :2], torch.tensor([1.0, 0.0]))
+    torch.testing.assert_close(own[0, 6:], torch.full((2 * L.n_waypoints,), 0.5))  # own waypoints, relative
+    res0 = tok[0, N]                                                   # robot 0 sees resource 0
+    torch.testing.assert_close(res0[:3], torch.tensor([0.0, 1.0, 1.0]))  # dx, dy, distance
+    assert res0[5:9].tolist() == [0.0, 1.0, 0.0, 0.0] and res0[-1] == 1  # type resource, present
+    home = tok[0, -1]
+    torch.testing.assert_close(home[:3], torch.tensor([-1.0, 0.0, 1.0]))
+    assert home[5:9].tolist() == [0.0, 0.0, 0.0, 1.0]
+    assert tok[:, N + L.n_agents * 0 + env.n_resources, -1].eq(0).all()  # inactive invader: masked
+    assert [tok[i, i, -1].item() for i in range(N)] == [0.0] * N       # a robot is not its own entity
+    other = tok[0, 1]                                                  # robot 1 seen from robot 0, its waypoints too
+    torch.testing.assert_close(other[:2], torch.tensor([-2.0, -1.0]))
+    torch.testing.assert_close(other[-1 - 2 * L.n_waypoints:-1], torch.tensor([-1.5, -0.5] * L.n_waypoints))
+
+
+def test_relative_encoder_ignores_resource_order():
+    from icco_torchrl.modules.relative import RelativeStateEncoder
+
+    env, state = _relative_scene()
+    L = env.layout
+    enc = RelativeStateEncoder(L, hidden=16)
+    tok = state.unflatten(-1, (L.state_tokens, L.state_token_dim)).clone()
+    perm = torch.tensor([0, 1, 2] + [3 + i for i in (5, 2, 0, 4, 1, 3)] + [9])
+    shuffled = tok[:, perm].flatten(-2)
+    torch.testing.assert_close(enc(state), enc(shuffled), atol=1e-6, rtol=1e-6)
+    assert not torch.allclose(enc(state)[:, 0], enc(state)[:, 1])  # robots get their own views

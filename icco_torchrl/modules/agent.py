@@ -13,6 +13,7 @@ from torch import nn
 
 from icco_torchrl.envs.resource_collection import N_ACTIONS, ObsLayout
 from icco_torchrl.modules.encoders import make_encoder
+from icco_torchrl.modules.relative import STATE_ENCODERS, RelativeStateEncoder
 from icco_torchrl.modules.tdmodule import TensorModule
 
 
@@ -20,12 +21,18 @@ class RecurrentQNet(nn.Module):
     """Q-values ``[..., N, n_actions]`` from observations, previous actions, z and a GRU state."""
 
     def __init__(self, layout: ObsLayout, *, hidden: int = 64, z_dim: int = 0, full_state: bool = False,
-                 encoder: str = "attention", n_actions: int = N_ACTIONS):
+                 encoder: str = "attention", n_actions: int = N_ACTIONS, state_encoder: str = "flat"):
         super().__init__()
+        if state_encoder not in STATE_ENCODERS:
+            raise ValueError(f"state_encoder must be one of {STATE_ENCODERS}, got {state_encoder!r}")
         self.hidden, self.z_dim, self.full_state, self.n_actions = hidden, z_dim, full_state, n_actions
-        extra = layout.state_dim if full_state else 0  # QMIX (FULL): the global state joins the own token
-        self.encoder = make_encoder(encoder, own_dim=layout.own_dim + extra, n_entities=layout.n_entities,
-                                    entity_dim=layout.entity_dim, hidden=hidden)
+        self.relative = full_state and state_encoder == "relative"
+        if self.relative:  # QMIX (FULL): every entity relative to the robot (the coordinator's encoder)
+            self.encoder = RelativeStateEncoder(layout, hidden)
+        else:  # flat: the global state joins the own token of the local-observation encoder
+            extra = layout.state_dim if full_state else 0
+            self.encoder = make_encoder(encoder, own_dim=layout.own_dim + extra, n_entities=layout.n_entities,
+                                        entity_dim=layout.entity_dim, hidden=hidden)
         self._own_dim = layout.own_dim
         # embed([features; one_hot(prev_action)]) written as a linear map plus a per-action row:
         # the same function without building the one-hot and the concatenation.
@@ -39,6 +46,8 @@ class RecurrentQNet(nn.Module):
         self.head = nn.Sequential(nn.Linear(hidden + z_dim, hidden), nn.ReLU(), nn.Linear(hidden, n_actions))
 
     def _features(self, obs, prev_action, state):
+        if self.relative:
+            return torch.relu(self.embed(self.encoder(state)) + self.prev_action_embed(prev_action.long()))
         if self.full_state:
             state = state.unsqueeze(-2).expand(*obs.shape[:-1], state.shape[-1])
             obs = torch.cat([obs[..., : self._own_dim], state, obs[..., self._own_dim:]], -1)
@@ -72,8 +81,8 @@ class RecurrentQNet(nn.Module):
 
 
 def make_agent(layout: ObsLayout, *, hidden: int = 64, z_dim: int = 0, full_state: bool = False,
-               encoder: str = "attention", obs_key=("agents", "observation"), state_key="state",
-               action_key=("agents", "action")) -> TensorDictModule:
+               encoder: str = "attention", state_encoder: str = "flat", obs_key=("agents", "observation"),
+               state_key="state", action_key=("agents", "action")) -> TensorDictModule:
     """The agent as a TensorDictModule for collection (one step).
 
     in:  ``obs_key``, ``("agents", "prev_action")``, ``("agents", "rnn_hidden")``, ``"step_count"``,
@@ -81,7 +90,8 @@ def make_agent(layout: ObsLayout, *, hidden: int = 64, z_dim: int = 0, full_stat
     out: ``("agents", "action_value")``, ``("next", "agents", "rnn_hidden")``
     """
     group = action_key[:-1] if isinstance(action_key, tuple) else ()
-    net = RecurrentQNet(layout, hidden=hidden, z_dim=z_dim, full_state=full_state, encoder=encoder)
+    net = RecurrentQNet(layout, hidden=hidden, z_dim=z_dim, full_state=full_state, encoder=encoder,
+                        state_encoder=state_encoder)
     in_keys = {"obs": obs_key, "prev_action": (*group, "prev_action"), "hidden": (*group, "rnn_hidden"),
                "step_count": "step_count"}  # forward argument -> tensordict key
     if z_dim:

@@ -17,6 +17,7 @@ from torchrl.envs.utils import ExplorationType, exploration_type
 
 from icco_torchrl.envs.resource_collection import ObsLayout
 from icco_torchrl.modules.encoders import EntityAttentionEncoder
+from icco_torchrl.modules.relative import STATE_ENCODERS, RelativeStateEncoder
 from icco_torchrl.modules.tdmodule import TensorModule
 
 LOGVAR_MIN, LOGVAR_MAX = -10.0, 0.0
@@ -53,12 +54,16 @@ class Coordinator(nn.Module):
     """Gaussian TACI per robot; ``forward`` is the rollout step (sample/hold), ``distribution`` the net."""
 
     def __init__(self, layout: ObsLayout, *, z_dim: int = 32, hidden: int = 64, period: int = 4,
-                 encoder: str = "attention"):
+                 encoder: str = "attention", state_encoder: str = "flat"):
         super().__init__()
         if period < 1:
             raise ValueError(f"period must be >= 1, got {period}")
+        if state_encoder not in STATE_ENCODERS:
+            raise ValueError(f"state_encoder must be one of {STATE_ENCODERS}, got {state_encoder!r}")
         self.z_dim, self.period = z_dim, period
-        self.encoder = StateTokenEncoder(layout, hidden, encoder)
+        # relative: entities seen from each robot (modules/relative.py); flat: absolute state tokens
+        self.encoder = (RelativeStateEncoder(layout, hidden) if state_encoder == "relative"
+                        else StateTokenEncoder(layout, hidden, encoder))
         self.loc = nn.Linear(hidden, z_dim)
         self.logvar = nn.Linear(hidden, z_dim)
 
@@ -89,13 +94,15 @@ def gaussian_entropy(scale: torch.Tensor) -> torch.Tensor:
 
 
 def make_coordinator(layout: ObsLayout, *, z_dim: int = 32, hidden: int = 64, period: int = 4,
-                     encoder: str = "attention", state_key="state", group="agents") -> TensorDictModule:
+                     encoder: str = "attention", state_encoder: str = "flat", state_key="state",
+                     group="agents") -> TensorDictModule:
     """The coordinator as a TensorDictModule for rollouts.
 
     in:  ``state_key``, ``"step_count"``, ``(group, "z")`` and ``(group, "z_noise")`` (held values)
     out: ``(group, "z")``, ``(group, "z_noise")`` (the distribution itself: ``module.distribution(state)``)
     """
-    net = Coordinator(layout, z_dim=z_dim, hidden=hidden, period=period, encoder=encoder)
+    net = Coordinator(layout, z_dim=z_dim, hidden=hidden, period=period, encoder=encoder,
+                      state_encoder=state_encoder)
     return TensorModule(
         net, in_keys={"state": state_key, "step_count": "step_count", "z_prev": (group, "z"),
                       "noise_prev": (group, "z_noise")},

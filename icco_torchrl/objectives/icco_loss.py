@@ -59,6 +59,10 @@ class ICCOLoss(LossModule):
 
     Keyword Args:
         gamma: discount.
+        td_lambda: lambda of the TD(lambda) target inside each segment (0: one-step TD, the
+            default). The lambda-return of step t mixes the target Q_tot of the next states of
+            steps t..T-1 (Peng's uncorrected Q(lambda), pymarl2's recipe), bootstrapping from the
+            target networks at the segment's end and at an episode end inside the segment.
         double_q: bootstrap with the online argmax evaluated by the target networks.
         ce_coef: weight of ``-log q`` (COPA: 1e-3); 0 disables the CE term (ICCO w/o CE).
         entropy_coef: weight of ``-H`` (COPA: 1e-4).
@@ -99,11 +103,15 @@ class ICCOLoss(LossModule):
     target_coordinator_params: TensorDictParams
 
     def __init__(self, agent: TensorDictModule, mixer: TensorDictModule, coordinator: TensorDictModule | None = None,
-                 posterior: TensorDictModule | None = None, *, gamma: float = 0.99, double_q: bool = True,
+                 posterior: TensorDictModule | None = None, *, gamma: float = 0.99, td_lambda: float = 0.0,
+                 double_q: bool = True,
                  ce_coef: float = 1e-3, entropy_coef: float = 1e-4, check_finite: bool = True):
         super().__init__()
         if not 0 <= gamma <= 1:
             raise ValueError(f"gamma must be in [0, 1], got {gamma}")
+        if not 0 <= td_lambda <= 1:
+            raise ValueError(f"td_lambda must be in [0, 1], got {td_lambda}")
+        self.td_lambda = float(td_lambda)
         if ce_coef < 0 or entropy_coef < 0:
             raise ValueError(f"ce_coef and entropy_coef must be >= 0, got {ce_coef}, {entropy_coef}")
         self.has_coordinator = coordinator is not None
@@ -259,7 +267,7 @@ class ICCOLoss(LossModule):
             greedy = greedy_source.argmax(-1, keepdim=True)
             next_value = q_target.gather(-1, greedy).squeeze(-1)
             q_tot_next = self._mix(self.target_mixer_params, next_value, x["next_state"])
-            target = x["reward"] + self.gamma * (~x["terminated"]).to(q_tot.dtype) * q_tot_next
+            target = self._targets(x["reward"], (~x["terminated"]).to(q_tot.dtype), q_tot_next, mask)
 
         td_error = (q_tot - target).squeeze(-1)                                                  # [S, T]
         weight = mask.to(td_error.dtype)
@@ -277,6 +285,20 @@ class ICCOLoss(LossModule):
                 raise NonFiniteLossError(f"non-finite loss terms {bad}: "
                                          + ", ".join(f"{n}={v.item():.4g}" for n, v in out.items()))
         return TensorDict(out, [])
+
+    def _targets(self, reward: torch.Tensor, alive: torch.Tensor, q_next: torch.Tensor, mask: torch.Tensor):
+        """One-step or lambda-return targets ``[S, T, 1]`` from the target ``Q_tot`` of each next state."""
+        one_step = reward + self.gamma * alive * q_next
+        if self.td_lambda == 0:
+            return one_step
+        # The return of step t continues into step t+1 only within one episode (mask[t+1]).
+        cont = torch.cat([mask[:, 1:], torch.zeros_like(mask[:, :1])], 1).unsqueeze(-1)
+        lam = self.td_lambda
+        out = [one_step[:, -1]]
+        for t in range(reward.shape[1] - 2, -1, -1):  # T - 1 steps of a short segment, backwards
+            ahead = torch.where(cont[:, t], (1 - lam) * q_next[:, t] + lam * out[-1], q_next[:, t])
+            out.append(reward[:, t] + self.gamma * alive[:, t] * ahead)
+        return torch.stack(out[::-1], 1)
 
     def _consistency(self, x: dict, z0, loc0, scale0, mask) -> dict[str, torch.Tensor]:
         """L_CE on segments whose first step is a broadcast; factors limited to z0's hold period."""

@@ -45,12 +45,13 @@ def make_modules(cfg: DictConfig, layout, device) -> dict:
     """Agent, mixer and (for ICCO) coordinator and posterior, on ``device``."""
     m = cfg.method
     z_dim = m.z_dim if m.coordinator else 0
-    mods = {"agent": make_agent(layout, hidden=m.hidden, z_dim=z_dim, full_state=m.full_state, encoder=m.encoder),
+    mods = {"agent": make_agent(layout, hidden=m.hidden, z_dim=z_dim, full_state=m.full_state, encoder=m.encoder,
+                                state_encoder=m.state_encoder),
             "mixer": make_mixer(layout.state_dim, layout.n_agents, device=device),
             "coordinator": None, "posterior": None}
     if m.coordinator:
         mods["coordinator"] = make_coordinator(layout, z_dim=m.z_dim, hidden=m.hidden, period=m.period,
-                                               encoder=m.encoder)
+                                               encoder=m.encoder, state_encoder=m.state_encoder)
         if m.ce_coef > 0:
             mods["posterior"] = make_posterior(layout, z_dim=m.z_dim, hidden=m.hidden, combine=m.posterior)
     for mod in mods.values():
@@ -62,7 +63,7 @@ def make_modules(cfg: DictConfig, layout, device) -> dict:
 def make_loss(cfg: DictConfig, mods: dict) -> ICCOLoss:
     m, t = cfg.method, cfg.train
     return ICCOLoss(mods["agent"], mods["mixer"], mods["coordinator"], mods["posterior"], gamma=t.gamma,
-                    double_q=t.double_q, ce_coef=m.ce_coef if m.coordinator else 0.0,
+                    td_lambda=t.td_lambda, double_q=t.double_q, ce_coef=m.ce_coef if m.coordinator else 0.0,
                     entropy_coef=m.entropy_coef if m.coordinator else 0.0)
 
 

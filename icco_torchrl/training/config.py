@@ -30,6 +30,7 @@ class MethodConfig:
     entropy_coef: float = 1e-4
     posterior: str = "product"
     encoder: str = "attention"
+    state_encoder: str = "relative"
     hidden: int = 64
     z_dim: int = 32
     period: int = 4
@@ -54,6 +55,7 @@ class TrainConfig:
     optimizer: str = "rmsprop"
     grad_clip: float = 10.0
     gamma: float = 0.99
+    td_lambda: float = 0.0
     double_q: bool = True
     target_update: str = "hard"
     target_update_interval: int = 200
@@ -111,6 +113,7 @@ class Config:
 
 _CHOICES = {
     "method.posterior": ("product", "sum"), "method.encoder": ("attention", "mlp"),
+    "method.state_encoder": ("relative", "flat"),
     "train.optimizer": ("rmsprop", "adam"), "train.target_update": ("hard", "soft"),
     "logger.wandb.mode": ("disabled", "offline", "online"),
 }
@@ -148,6 +151,8 @@ def validate(cfg: DictConfig | dict) -> DictConfig:
                           f"'train.buffer_segments' ({t.buffer_segments})")
     if not 0 <= t.eps_end <= t.eps_init <= 1:
         raise ConfigError("config fields 'train.eps_init'/'train.eps_end' need 0 <= eps_end <= eps_init <= 1")
+    if not 0 <= t.td_lambda <= 1:
+        raise ConfigError(f"config field 'train.td_lambda' must be in [0, 1], got {t.td_lambda}")
     if not 0 <= t.gamma <= 1:
         raise ConfigError(f"config field 'train.gamma' must be in [0, 1], got {t.gamma}")
     spawn = merged.env.params.get("spawn", "uniform")
