@@ -61,11 +61,12 @@ def test_eval_compares_two_methods_and_writes_tables_and_figures(checkpoints, tm
     assert code == 0, printed.err
     table = [line for line in (out / "quadrants.md").read_text().splitlines() if line.startswith("| ")]
     whole = table[:table.index("| method | quadrant 1 | quadrant 2 | quadrant 3 | quadrant 4 | episode |")]
-    assert [row.split(" | ")[0] for row in whole[1:]] == ["| ICCO", "| QMIX"]
+    refs = ["random", "follower", "heuristic", "blend (r=1.75 m)"]  # eval.references, on the same episodes
+    assert [row.split(" | ")[0] for row in whole[1:]] == ["| ICCO", "| QMIX"] + [f"| {r}" for r in refs]
     assert "| ICCO | 2 (1 seed) |" in printed.out  # the table is printed too
     rows = list(csv.DictReader((out / "quadrants_trials.csv").open()))
-    assert len(rows) == 2 * 2 * 5  # methods x trials x (4 quadrants + episode)
-    assert {r["method"] for r in rows} == {"ICCO", "QMIX"}
+    assert len(rows) == 6 * 2 * 5  # (methods + references) x trials x (4 quadrants + episode)
+    assert {r["method"] for r in rows} == {"ICCO", "QMIX", *refs}
     summary = json.loads((out / "quadrants.json").read_text())
     assert [c["method"] for c in summary["checkpoints"]] == ["ICCO", "QMIX"]
     for name in ("quadrants_summary.csv", "quadrants_reward.png", "quadrants_reward.pdf",

@@ -33,6 +33,8 @@ from icco_torchrl.envs._kernels import batch_last, instruction_reward
 from icco_torchrl.envs.resource_collection import _ACTION_DIRS, N_ACTIONS, ResourceCollectionEnv
 
 REFERENCE_POLICIES = ("random", "follower", "heuristic", "blend")
+# The blend radius that wins at the calibrated reward (experiments/calibration/README.md).
+BEST_BLEND_RADIUS = 1.75
 ACTION_KEY = ("agents", "action")
 
 
@@ -181,6 +183,11 @@ class BlendPolicy(HeuristicPolicy):
 
     def __repr__(self) -> str:
         return f"BlendPolicy(radius={self.radius})"
+
+
+def reference_label(name: str, radius: float = BEST_BLEND_RADIUS) -> str:
+    """The row label of a reference policy in tables and figures."""
+    return f"blend (r={radius:g} m)" if name == "blend" else name
 
 
 def make_reference_policy(name: str, env, *, radius: float | None = None, seed: int = 0) -> ReferencePolicy:

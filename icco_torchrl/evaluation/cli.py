@@ -27,6 +27,8 @@ from typing import Callable, Sequence
 import torch
 from omegaconf import DictConfig, OmegaConf
 
+from icco_torchrl.envs import ResourceCollectionEnv
+from icco_torchrl.envs.reference_policies import make_reference_policy, reference_label
 from icco_torchrl.evaluation.metrics import (EPISODE, markdown_table, method_label, segment_table, summarize,
                                              write_csv, write_json)
 from icco_torchrl.evaluation.protocols import PROTOCOLS, Schedule, check_schedule, run_schedule, schedule_env
@@ -132,8 +134,8 @@ def evaluate_checkpoints(cfg: DictConfig, paths: Sequence[Path], make_schedule: 
     e = cfg.eval
     eval_params = OmegaConf.to_container(cfg.env.params, resolve=True)
     out = Evaluation()
+    total = check_schedule(make_schedule(0), e.trials)
     for path in paths:
-        total = check_schedule(make_schedule(0), e.trials)
         restored = _restore(cfg, path, total, eval_params)
         trained = OmegaConf.to_container(restored["cfg"], resolve=True)
         label, seed = method_label(trained, label_suffix), trained["seed"]
@@ -155,6 +157,16 @@ def evaluate_checkpoints(cfg: DictConfig, paths: Sequence[Path], make_schedule: 
 
                 out.gifs.append(gif_stem.with_name(f"{gif_stem.name}_{slug(label)}.gif"))
                 write_gif(frames, out.gifs[-1], fps=10)
+    for name in e.references:  # scripted yardsticks on the same initial configurations
+        label = reference_label(name, e.blend_radius)
+        for episode in range(e.episodes):
+            env = ResourceCollectionEnv(num_envs=e.trials, seed=cfg.seed + EVAL_SEED_OFFSET,
+                                        **{**eval_params, "max_steps": total, "waypoint_mode": "external"})
+            policy = make_reference_policy(name, env, radius=e.blend_radius, seed=cfg.seed + episode)
+            run = run_schedule(env, policy, make_schedule(episode), e.trials, method=label, seed=-1,
+                               checkpoint="", episode=episode)
+            out.rows += run.rows
+            out.runs.setdefault(label, run)
     return out
 
 

@@ -22,16 +22,21 @@ def episode_metrics(rollout: TensorDictBase) -> dict[str, torch.Tensor]:
     out = {"reward": nxt.get("reward").sum((-2, -1)).float()}
     for key in EVENT_KEYS:
         out[key] = nxt.get(("events", key)).sum(-1).float()
+    out["task_reward"] = out["reward"] - out["inst_reward"]
     return out
 
 
-def evaluate(env: EnvBase, policy, *, steps: int | None = None) -> dict[str, float]:
-    """Mean and std over the env batch of one greedy episode's totals (``reward``, ``reward_std``, ...).
+def evaluate(env: EnvBase, policy, *, steps: int | None = None, seed: int | None = None) -> dict[str, float]:
+    """Mean and std over the env batch of one greedy episode's totals (``reward``, ``reward_std``,
+    ``task_reward``, ...). With ``seed`` the env is re-seeded first, so every call (a trained
+    policy at each evaluation, the reference policies) faces the same initial configurations.
 
-    ``policy=None`` rolls out uniformly random actions (the baseline a trained policy must beat).
+    ``policy=None`` rolls out uniformly random actions from the spec.
     """
     if steps is None:
         steps = getattr(env, "base_env", env).max_steps
+    if seed is not None:
+        env.set_seed(seed)
     metrics = episode_metrics(greedy_rollout(env, policy, steps))
     return summarize(metrics)
 

@@ -14,6 +14,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
+from icco_torchrl.envs.reference_policies import REFERENCE_POLICIES
 from icco_torchrl.envs.resource_collection import SPAWN_MODES
 
 
@@ -95,6 +96,8 @@ class EvalConfig:
     checkpoints: list[str] = field(default_factory=list)
     steps: int = 145
     replan_every: Optional[int] = None
+    references: list[str] = field(default_factory=lambda: ["random", "follower", "heuristic", "blend"])
+    blend_radius: float = 1.75
 
 
 @dataclass
@@ -155,6 +158,12 @@ def validate(cfg: DictConfig | dict) -> DictConfig:
         raise ConfigError(f"config field 'train.td_lambda' must be in [0, 1], got {t.td_lambda}")
     if not 0 <= t.gamma <= 1:
         raise ConfigError(f"config field 'train.gamma' must be in [0, 1], got {t.gamma}")
+    unknown = [name for name in merged.eval.references if name not in REFERENCE_POLICIES]
+    if unknown:
+        raise ConfigError(f"config field 'eval.references' has unknown policies {unknown}; "
+                          f"choose from {list(REFERENCE_POLICIES)}")
+    if not merged.eval.blend_radius >= 0:
+        raise ConfigError(f"config field 'eval.blend_radius' must be >= 0, got {merged.eval.blend_radius}")
     spawn = merged.env.params.get("spawn", "uniform")
     if spawn not in SPAWN_MODES:
         raise ConfigError(f"config field 'env.params.spawn' must be one of {SPAWN_MODES}, got {spawn!r}")

@@ -17,6 +17,7 @@ from omegaconf import DictConfig, OmegaConf
 from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, RandomSampler, TensorDictReplayBuffer
 
+from icco_torchrl.envs.reference_policies import make_reference_policy, reference_label
 from icco_torchrl.evaluation.rollout import EVENT_KEYS, evaluate
 from icco_torchrl.modules.policy import exploration_module, make_policy
 from icco_torchrl.objectives import make_target_updater, total_loss
@@ -28,6 +29,7 @@ from icco_torchrl.training.logger import RunLogger
 from icco_torchrl.training.segments import SegmentCutter
 
 REPLAY_DIR = "replay"  # the replay buffer dump beside checkpoint.pt (train.checkpoint_buffer)
+REFERENCES_FILE = "references.json"  # the reference policies' evaluation, beside eval.csv
 
 # What the loss reads; everything else the collector records is left out of the replay buffer.
 REPLAY_KEYS = [("agents", "observation"), "state", ("agents", "action"), ("agents", "prev_action"),
@@ -166,21 +168,28 @@ def train(cfg: DictConfig, run_dir: str | Path) -> dict:
             "updater": updater.state_dict(), "rng": _rng_state(env), "epsilon": float(explore.eps),
             "replay_segments": len(buffer) if t.checkpoint_buffer else 0})
 
+    eval_seed = cfg.seed + 10_000  # every evaluation faces the same initial configurations
+
     def run_eval() -> dict:
         start = time.perf_counter()
-        metrics = evaluate(eval_env, policy)
+        metrics = evaluate(eval_env, policy, seed=eval_seed)
         timers["eval"] += time.perf_counter() - start
         logger.log("eval", {"frames": frames, **metrics})
         evaluated.append(metrics)
         logger.print(f"[eval] frames={frames} reward={metrics['reward']:.2f}±{metrics['reward_std']:.2f} "
-                     f"pick={metrics['pick']:.2f} collect={metrics['collect']:.2f} "
+                     f"task={metrics['task_reward']:.2f} pick={metrics['pick']:.2f} collect={metrics['collect']:.2f} "
                      f"defense={metrics['defense']:.2f} invasion={metrics['invasion']:.2f}")
         return metrics
 
-    if resume is None:  # the bar a trained policy must clear, on the same evaluation envs
-        baseline = evaluate(eval_env, None)
-        (run_dir / "random_policy.json").write_text(json.dumps(baseline, indent=2))
-        logger.print(f"[eval] random policy: reward={baseline['reward']:.2f}±{baseline['reward_std']:.2f}")
+    if resume is None:  # the yardsticks, on the very episodes every evaluation plays
+        references = {}
+        for name in cfg.eval.references:
+            ref = make_reference_policy(name, eval_env, radius=cfg.eval.blend_radius, seed=cfg.seed)
+            references[reference_label(name, cfg.eval.blend_radius)] = evaluate(eval_env, ref, seed=eval_seed)
+        (run_dir / REFERENCES_FILE).write_text(json.dumps(references, indent=2))
+        for label, m in references.items():
+            logger.print(f"[eval] {label}: reward={m['reward']:.2f}±{m['reward_std']:.2f} task={m['task_reward']:.2f} "
+                         f"pick={m['pick']:.2f} defense={m['defense']:.2f}")
     timers = {"collect": 0.0, "train": 0.0, "eval": 0.0}
     evaluated: list[dict] = []
     tracker = EpisodeTracker(cfg.env.num_envs, device)
@@ -271,7 +280,8 @@ def _log_train(logger: RunLogger, frames: int, updates: int, eps: float, row: di
 
 
 def plot_learning_curve(run_dir: Path) -> Path | None:
-    """``learning_curve.png``: greedy evaluation reward (and training episodes) against frames."""
+    """``learning_curve.png``: greedy evaluation (team reward and task reward) against frames,
+    with the reference policies of ``references.json`` as horizontal lines."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -282,20 +292,25 @@ def plot_learning_curve(run_dir: Path) -> Path | None:
     evaluation = read_column(run_dir, "eval", "reward")
     if evaluation is None:
         return None
-    fig, ax = plt.subplots(figsize=(6, 4))
-    episodes = read_column(run_dir, "train", "episode_reward")
-    if episodes is not None:
-        ax.plot(*episodes, alpha=0.4, label="training episodes (epsilon-greedy)")
-    (x, y), (_, s) = evaluation, read_column(run_dir, "eval", "reward_std")
-    ax.plot(x, y, marker="o", label="greedy evaluation")
-    ax.fill_between(x, y - s, y + s, alpha=0.2)
-    baseline = run_dir / "random_policy.json"
-    if baseline.exists():
-        ax.axhline(json.loads(baseline.read_text())["reward"], color="gray", ls="--", label="random policy")
-    ax.set_xlabel("env steps")
-    ax.set_ylabel("episode team reward")
-    ax.legend()
-    ax.grid(alpha=0.3)
+    refs_file = run_dir / REFERENCES_FILE
+    refs = json.loads(refs_file.read_text()) if refs_file.exists() else {}
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    for ax, key, title in ((axes[0], "reward", "team reward (task + instruction)"),
+                           (axes[1], "task_reward", "task reward (picks, deliveries, defenses, invasions)")):
+        column = read_column(run_dir, "eval", key)
+        if column is None:
+            continue
+        (x, y), (_, s) = column, read_column(run_dir, "eval", f"{key}_std")
+        line, = ax.plot(x, y, marker="o", color="C0", label="trained policy, greedy")
+        ax.fill_between(x, y - s, y + s, color=line.get_color(), alpha=0.2, label="± std over episodes")
+        for i, (label, m) in enumerate(refs.items()):
+            if key in m:
+                ax.axhline(m[key], color=f"C{i + 1}", ls="--", lw=1, label=label)
+        ax.set_title(title, fontsize=10)
+        ax.set_xlabel("env steps")
+        ax.set_ylabel("per 145-step episode (team total)")
+        ax.grid(alpha=0.3)
+    axes[1].legend(fontsize=8, loc="best")
     fig.tight_layout()
     out = run_dir / "learning_curve.png"
     fig.savefig(out, dpi=120)
