@@ -29,6 +29,9 @@ from icco_torchrl.evaluation.rollout import episode_metrics
 RADII = (0.0, 0.25, 0.5, 0.65, 0.8, 1.0, 1.25, 1.5, 1.75, 2.0, 2.5, 3.0, 4.0, math.inf)
 SCALES = (0.1, 0.15, 0.2, 0.25, 0.3, 0.35, 0.4, 0.5, 0.6, 0.8, 1.0, 1.3)
 EVENTS = ("pick", "collect", "defense", "invasion")
+QUAD_RADII = (0.65, 1.0, 1.5, 1.75, 2.0, 2.5)
+QUAD_METRICS = ("reward", "task_reward", "inst_reward", "pick", "collect", "defense", "invasion", "in_quadrant",
+                "waypoint_dist")
 
 
 def blend_family(episodes: int, seed: int, spawn: str) -> list[dict]:
@@ -60,25 +63,54 @@ def choose_scale(rows: list[dict]) -> dict:
     return {"per_scale": table, "chosen": max(table, key=lambda t: t["margin"])}
 
 
+def quadrant_references(scale: float, trials: int, seed: int, spawn: str) -> list[dict]:
+    """The reference policies in the four-quadrant protocol (580 steps) at the chosen scale."""
+    from icco_torchrl.evaluation.protocols import quadrant_schedule, run_schedule
+
+    out = []
+    for name, r in [("random", None), ("follower", None), ("heuristic", None)] + [("blend", r) for r in QUAD_RADII]:
+        env = ResourceCollectionEnv(num_envs=trials, seed=seed, spawn=spawn, max_steps=4 * 145,
+                                    waypoint_mode="external", inst_reward_scale=scale)
+        run = run_schedule(env, make_reference_policy(name, env, radius=r), quadrant_schedule(145, seed=seed), trials)
+        rows = [x for x in run.rows if x["segment"] == "episode"]
+        mean = {k: sum(x[k] for x in rows) / len(rows) for k in QUAD_METRICS}
+        out.append({"policy": name if r is None else f"blend r={r}", **mean})
+        print(f"{out[-1]['policy']:>14} " + " ".join(f"{k}={v:.2f}" for k, v in mean.items()), flush=True)
+    return out
+
+
 def plot(rows: list[dict], calib: dict, out: Path) -> None:
+    """Left: team reward against r at a few scales. Right: the blend's advantage over the better
+    of its two ends (pure follower, pure heuristic) at every scale; positive = blending pays."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     x = [min(row["radius"], 5.0) for row in rows]
-    fig, ax = plt.subplots(figsize=(7, 4.5))
-    for t in calib["per_scale"]:
+    labels = [f"{v:g}" for v in x[:-1]] + ["inf"]
+    fig, (left, right) = plt.subplots(1, 2, figsize=(12, 4.5))
+    cmap = plt.get_cmap("viridis")
+    for i, t in enumerate(calib["per_scale"]):
         bold = t["scale"] == calib["chosen"]["scale"]
-        ax.plot(x, t["team"], marker="o" if bold else ".", lw=2.5 if bold else 1, alpha=1 if bold else 0.6,
-                label=f"scale {t['scale']}" + (" (chosen)" if bold else ""))
-    ax.set_xticks(x[:-1] + [5.0])
-    ax.set_xticklabels([f"{v:g}" for v in x[:-1]] + ["inf"], rotation=45)
-    ax.set_xlabel("blend radius r (m): 0 = pure follower, inf = full-information task heuristic")
-    ax.set_ylabel("team reward per 145-step episode")
-    ax.set_yscale("symlog", linthresh=50)
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=7, ncol=2)
+        style = dict(color="crimson" if bold else cmap(i / len(calib["per_scale"])), lw=2.5 if bold else 1,
+                     marker="o" if bold else ".", label=f"scale {t['scale']}" + (" (chosen)" if bold else ""))
+        ends = max(t["follower"], t["heuristic"])
+        right.plot(x, [v - ends for v in t["team"]], **style)
+        if t["scale"] in (0.1, 0.2, 0.3, 0.5, 1.3):
+            left.plot(x, t["team"], **style)
+    for ax in (left, right):
+        ax.set_xticks(x)
+        ax.set_xticklabels(labels, rotation=45)
+        ax.set_xlabel("blend radius r (m): 0 = pure follower, inf = task heuristic")
+        ax.grid(alpha=0.3)
+    left.set_ylabel("team reward per 145-step episode")
+    left.set_title("team reward of the blend family", fontsize=10)
+    left.legend(fontsize=8)
+    right.axhline(0, color="black", lw=0.8)
+    right.set_ylabel("team reward - max(follower, heuristic)")
+    right.set_title("does a policy that follows and works win?", fontsize=10)
+    right.legend(fontsize=7, ncol=2)
     fig.tight_layout()
     fig.savefig(out, dpi=120)
     plt.close(fig)
@@ -89,6 +121,7 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=512)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--spawn", default="uniform")
+    parser.add_argument("--quadrant-trials", type=int, default=40)
     parser.add_argument("--out", default=str(Path(__file__).parent / "results"))
     args = parser.parse_args()
     torch.set_num_threads(1)
@@ -96,8 +129,11 @@ def main() -> None:
     out.mkdir(parents=True, exist_ok=True)
     rows = blend_family(args.episodes, args.seed, args.spawn)
     calib = choose_scale(rows)
+    print(f"four-quadrant protocol at scale {calib['chosen']['scale']} ({args.quadrant_trials} trials x 580 steps):")
+    quad = quadrant_references(calib["chosen"]["scale"], args.quadrant_trials, args.seed + 20_000, args.spawn)
     (out / "calibration.json").write_text(json.dumps(
-        {"episodes": args.episodes, "steps": 145, "seed": args.seed, "spawn": args.spawn, "radii": rows, **calib},
+        {"episodes": args.episodes, "steps": 145, "seed": args.seed, "spawn": args.spawn, "radii": rows, **calib,
+         "quadrants": {"trials": args.quadrant_trials, "steps": 580, "policies": quad}},
         indent=1, default=lambda v: None))
     plot(rows, calib, out / "blend_team_reward.png")
     print("scale  best_r  best  follower  heuristic  margin")

@@ -54,7 +54,7 @@ class Coordinator(nn.Module):
     """Gaussian TACI per robot; ``forward`` is the rollout step (sample/hold), ``distribution`` the net."""
 
     def __init__(self, layout: ObsLayout, *, z_dim: int = 32, hidden: int = 64, period: int = 4,
-                 encoder: str = "attention", state_encoder: str = "flat"):
+                 encoder: str = "attention", state_encoder: str = "flat", init_logvar: float = 0.0):
         super().__init__()
         if period < 1:
             raise ValueError(f"period must be >= 1, got {period}")
@@ -66,6 +66,9 @@ class Coordinator(nn.Module):
                         else StateTokenEncoder(layout, hidden, encoder))
         self.loc = nn.Linear(hidden, z_dim)
         self.logvar = nn.Linear(hidden, z_dim)
+        # The initial noise level of z: at 0 (std ~1) z starts as mostly noise and the agents learn
+        # to ignore it; a lower start lets the TD loss use z from the first updates.
+        nn.init.constant_(self.logvar.bias, init_logvar)
 
     def distribution(self, state: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """``(loc, scale)``, each ``[..., N, z_dim]``."""
@@ -94,15 +97,15 @@ def gaussian_entropy(scale: torch.Tensor) -> torch.Tensor:
 
 
 def make_coordinator(layout: ObsLayout, *, z_dim: int = 32, hidden: int = 64, period: int = 4,
-                     encoder: str = "attention", state_encoder: str = "flat", state_key="state",
-                     group="agents") -> TensorDictModule:
+                     encoder: str = "attention", state_encoder: str = "flat", init_logvar: float = 0.0,
+                     state_key="state", group="agents") -> TensorDictModule:
     """The coordinator as a TensorDictModule for rollouts.
 
     in:  ``state_key``, ``"step_count"``, ``(group, "z")`` and ``(group, "z_noise")`` (held values)
     out: ``(group, "z")``, ``(group, "z_noise")`` (the distribution itself: ``module.distribution(state)``)
     """
     net = Coordinator(layout, z_dim=z_dim, hidden=hidden, period=period, encoder=encoder,
-                      state_encoder=state_encoder)
+                      state_encoder=state_encoder, init_logvar=init_logvar)
     return TensorModule(
         net, in_keys={"state": state_key, "step_count": "step_count", "z_prev": (group, "z"),
                       "noise_prev": (group, "z_noise")},

@@ -51,7 +51,8 @@ def make_modules(cfg: DictConfig, layout, device) -> dict:
             "coordinator": None, "posterior": None}
     if m.coordinator:
         mods["coordinator"] = make_coordinator(layout, z_dim=m.z_dim, hidden=m.hidden, period=m.period,
-                                               encoder=m.encoder, state_encoder=m.state_encoder)
+                                               encoder=m.encoder, state_encoder=m.state_encoder,
+                                               init_logvar=m.z_init_logvar)
         if m.ce_coef > 0:
             mods["posterior"] = make_posterior(layout, z_dim=m.z_dim, hidden=m.hidden, combine=m.posterior)
     for mod in mods.values():

@@ -32,6 +32,7 @@ class MethodConfig:
     posterior: str = "product"
     encoder: str = "attention"
     state_encoder: str = "relative"
+    z_init_logvar: float = 0.0
     hidden: int = 64
     z_dim: int = 32
     period: int = 4
@@ -147,6 +148,8 @@ def validate(cfg: DictConfig | dict) -> DictConfig:
     m, t = merged.method, merged.train
     if m.coordinator and m.z_dim < 1:
         raise ConfigError("config field 'method.z_dim' must be >= 1 when method.coordinator is true")
+    if not -10 <= m.z_init_logvar <= 0:
+        raise ConfigError(f"config field 'method.z_init_logvar' must be in [-10, 0] (the clamp), got {m.z_init_logvar}")
     if m.coordinator and m.full_state:
         raise ConfigError("config fields 'method.coordinator' and 'method.full_state' are exclusive")
     if t.batch_segments > t.buffer_segments:
