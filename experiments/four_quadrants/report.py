@@ -20,7 +20,8 @@ import sys
 from pathlib import Path
 from string import Template
 
-from icco_torchrl.evaluation.metrics import EPISODE, METHOD_LABELS, learning_curves, markdown_table, segment_table
+from icco_torchrl.evaluation.metrics import (EPISODE, METHOD_LABELS, learning_curves, markdown_table, results_json,
+                                             segment_table, write_json)
 from icco_torchrl.evaluation.plots import plot_curves
 
 HERE = Path(__file__).resolve().parent
@@ -143,7 +144,12 @@ def main(argv=None) -> int:
         table=markdown_table(summary, COLUMNS, missing=missing), segment_table=segment_table(summary, "reward"),
         comparison=comparison(summary, missing))
     args.readme.write_text(text)
-    print(f"wrote {args.readme}")
+    frames = {}
+    for c in payload["checkpoints"]:
+        frames[c["method"]] = max(frames.get(c["method"], 0), c.get("frames") or 0)
+    write_json(results_json(summary, protocol="quadrants", steps=4 * steps, trials=payload["trials"], frames=frames,
+                            budget=info.get("budget")), args.readme.parent / "results.json")
+    print(f"wrote {args.readme} and results.json")
     return 0
 
 

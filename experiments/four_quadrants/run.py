@@ -4,10 +4,10 @@
     python experiments/four_quadrants/run.py --budget experiment=paper device=cuda
     python experiments/four_quadrants/run.py --smoke               # seconds-long end-to-end check
 
-1. Training: one Hydra multirun ``icco train -m method=icco,icco_wo_ce,qmix,qmix_full
-   seed=0,1,2 <budget>`` into ``--sweep`` (one folder ``<method>_seed<seed>`` per run). Run the
-   script again after an interruption: finished runs are kept, interrupted ones continue from
-   their checkpoint with ``resume=``, missing ones are started.
+1. Training: one ``icco train method=M seed=S <budget>`` process per run into ``--sweep`` (one
+   folder ``<method>_seed<seed>`` per run), ``--jobs`` (2) side by side. Run the script again
+   after an interruption: finished runs are kept, interrupted ones continue from their
+   checkpoint with ``resume=``, missing ones are started.
 2. Evaluation: ``icco eval`` with the quadrant protocol on every checkpoint (seeds pooled per
    method) into ``<sweep>/eval_quadrants``.
 3. Report: ``report.py <sweep>`` fills ``README.md`` here from ``README.template.md``.
@@ -29,6 +29,7 @@ from pathlib import Path
 import torch
 
 from icco_torchrl.training.build import compose_config
+from icco_torchrl.training.checkpoint import load_checkpoint
 
 HERE = Path(__file__).resolve().parent
 METHODS = ("icco", "icco_wo_ce", "qmix", "qmix_full")
@@ -53,32 +54,48 @@ def run_status(run: Path, total_frames: int) -> str:
     checkpoint = run / "checkpoint.pt"
     if not checkpoint.is_file():
         return "missing"
-    frames = torch.load(checkpoint, map_location="cpu", weights_only=False).get("frames", 0)
+    frames = load_checkpoint(checkpoint).get("frames", 0)
     return "done" if frames >= total_frames else "partial"
 
 
-def train(sweep: Path, methods, seeds, budget) -> None:
-    """Bring every ``method x seed`` run in ``sweep`` to its budget (see the module doc)."""
+def train(sweep: Path, methods, seeds, budget, jobs: int = 2) -> None:
+    """Bring every ``method x seed`` run in ``sweep`` to its budget, ``jobs`` runs at a time.
+
+    Each run is its own ``icco train`` process (one torch thread each: two side by side use a
+    2-core machine fully), logging to ``<sweep>/<method>_seed<k>.log``. A run with a checkpoint
+    short of the budget resumes from it; a run that died before its first checkpoint restarts.
+    """
     totals = {m: compose_config([f"method={m}", *budget]).train.total_frames for m in methods}
     status = {(m, s): run_status(sweep / f"{m}_seed{s}", totals[m]) for m in methods for s in seeds}
     print("runs: " + ", ".join(f"{m}_seed{s}={v}" for (m, s), v in status.items()), flush=True)
-    common = [*budget, f"hydra.sweep.dir={sweep}"]
+    queue = []
     for (method, seed), state in status.items():
         run = sweep / f"{method}_seed{seed}"
-        if state == "partial":
-            icco("train", f"method={method}", f"seed={seed}", *budget, f"resume={run / 'checkpoint.pt'}",
-                 f"hydra.run.dir={run}")
-        elif state == "missing" and run.exists():
+        if state == "done":
+            continue
+        if state == "missing" and run.exists():
             # Died before its first checkpoint: its CSVs would be appended to, so start clean.
             shutil.move(str(run), str(run.with_name(f"{run.name}.failed-{int(time.time())}")))
-    missing = [key for key, state in status.items() if state == "missing"]
-    if len(missing) == len(status):
-        icco("train", "-m", f"method={','.join(methods)}", f"seed={','.join(map(str, seeds))}", *common)
-    else:
-        for method in methods:
-            todo = [str(s) for m, s in missing if m == method]
-            if todo:
-                icco("train", "-m", f"method={method}", f"seed={','.join(todo)}", *common)
+        resume = [f"resume={run / 'checkpoint.pt'}"] if state == "partial" else []
+        queue.append((run, [sys.executable, "-m", "icco_torchrl", "train", f"method={method}", f"seed={seed}",
+                            *budget, *resume, "logger.progress=false", f"hydra.run.dir={run}"]))
+    running: list[tuple[Path, subprocess.Popen]] = []
+    failed = []
+    while queue or running:
+        while queue and len(running) < jobs:
+            run, command = queue.pop(0)
+            print(f"$ icco {' '.join(command[3:])}  > {run}.log", flush=True)
+            log = open(f"{run}.log", "a")
+            running.append((run, subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT)))
+        time.sleep(2)
+        for item in [r for r in running if r[1].poll() is not None]:
+            running.remove(item)
+            run, proc = item
+            print(f"{run.name}: {'done' if proc.returncode == 0 else f'FAILED (exit {proc.returncode})'}", flush=True)
+            if proc.returncode:
+                failed.append(run.name)
+    if failed:
+        raise SystemExit(f"training failed for {failed}: see their .log files in {sweep}")
 
 
 def cpu_name() -> str:
@@ -109,6 +126,7 @@ def main(argv=None) -> None:
     parser.add_argument("--gif", action="store_true", help="also write a GIF per method")
     parser.add_argument("--smoke", action="store_true", help="tiny budget, 4 trials, 20 steps: a pipeline check")
     parser.add_argument("--train-only", action="store_true", help="stop after training")
+    parser.add_argument("--jobs", type=int, default=2, help="training runs side by side (one core each)")
     parser.add_argument("--readme", type=Path, default=HERE / "README.md", help="where report.py writes")
     args = parser.parse_args(argv)
     budget = [*SMOKE_BUDGET, *(args.budget or [])] if args.smoke else (args.budget or ["experiment=default"])
@@ -117,7 +135,7 @@ def main(argv=None) -> None:
     sweep.mkdir(parents=True, exist_ok=True)
 
     start = time.time()
-    train(sweep, args.methods, args.seeds, budget)
+    train(sweep, args.methods, args.seeds, budget, args.jobs)
     info_path = sweep / "sweep.json"
     info = json.loads(info_path.read_text()) if info_path.exists() else {"train_wall_s": 0.0}
     info.update(budget=budget, methods=args.methods, seeds=args.seeds, machine=machine(), smoke=args.smoke)

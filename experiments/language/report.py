@@ -20,7 +20,8 @@ from string import Template
 
 import numpy as np
 
-from icco_torchrl.evaluation.metrics import EPISODE, markdown_table, segment_table
+from icco_torchrl.evaluation.metrics import (EPISODE, METRICS, markdown_table, results_json, segment_table,
+                                             summarize, write_json)
 
 HERE = Path(__file__).resolve().parent
 TABLE2 = ("QMIX-TAP", "QMIX-TAP w/o TR", "ICCO")
@@ -95,6 +96,30 @@ def planner_stats(payloads: dict[str, dict]) -> str:
     return "\n".join(lines)
 
 
+def _frames(*payloads: dict) -> dict[str, int]:
+    frames: dict[str, int] = {}
+    for payload in payloads:
+        for c in payload["checkpoints"]:
+            frames[c["method"]] = max(frames.get(c["method"], 0), c.get("frames") or 0)
+    return frames
+
+
+def language_results(fig5b: dict, fig5b_rows: list[dict], tap: dict, tap_rows: list[dict], steps: int) -> dict:
+    """results.json: Fig. 5b (whole 4-instruction episode) and, under ``table2``, the per-instruction
+    means of Table II (ICCO with the plain prompt, QMIX-TAP and QMIX-TAP w/o TR with the task-aligned one)."""
+    n_segments = len(fig5b["segment_steps"])
+    out = results_json(fig5b["summary"], protocol="language", steps=steps * n_segments, trials=fig5b["trials"],
+                       frames=_frames(fig5b), instructions=list(fig5b["segment_steps"]), model=fig5b["model"])
+    rows = [r for r in fig5b_rows if r["method"] == "ICCO"] + tap_rows
+    per_instruction = [{**{k: float(r[k]) for k in METRICS if r.get(k) not in (None, "")}, "method": r["method"],
+                        "seed": r["seed"], "segment": "instruction"} for r in rows if r["segment"] != EPISODE]
+    for r in per_instruction:
+        r.setdefault("in_quadrant", math.nan)
+    out["table2"] = results_json(summarize(per_instruction), protocol="language_tap", steps=steps,
+                                 trials=tap["trials"] * n_segments, frames=_frames(fig5b, tap), segment="instruction")
+    return out
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("out", type=Path, help="the results folder written by run.py")
@@ -136,7 +161,8 @@ def main(argv=None) -> int:
         table2=table, planner_stats=planner_stats({"fig5b": fig5b, "table2_tap": tap}),
         comparison=comparison(fig5b["summary"], means))
     args.readme.write_text(text)
-    print(f"wrote {args.readme}")
+    write_json(language_results(fig5b, fig5b_rows, tap, tap_rows, steps), args.readme.parent / "results.json")
+    print(f"wrote {args.readme} and results.json")
     return 0
 
 

@@ -161,6 +161,40 @@ def write_json(payload, path: str | Path) -> Path:
     return path
 
 
+# results.json names of the methods and reference policies (labels as the tables print them).
+RESULT_NAMES = {"ICCO": "icco", "ICCO w/o CE": "icco_wo_ce", "QMIX": "qmix", "QMIX (FULL)": "qmix_full",
+                "QMIX-TAP": "qmix_tap", "QMIX-TAP w/o TR": "qmix_tap_wo_tr", "random": "random",
+                "follower": "follower", "heuristic": "heuristic"}
+RESULT_METRICS = ("reward", "task_reward", "inst_reward", "pick", "collect", "defense", "invasion", "in_quadrant")
+
+
+def result_name(label: str) -> str | None:
+    """The results.json key of a table label (``blend (r=...)`` -> ``blend``), None if unknown."""
+    return "blend" if label.startswith("blend") else RESULT_NAMES.get(label)
+
+
+def results_json(summary: Sequence[Mapping], *, protocol: str, steps: int, trials: int,
+                 frames: Mapping[str, int] | None = None, segment: str = EPISODE, **extra) -> dict:
+    """The machine-readable report: ``{"protocol", "steps", "trials", "methods": {name: {"seeds",
+    "frames", metric: {"mean", "std"}}}}`` from :func:`summarize` rows of ``segment``. ``frames``
+    maps a table label to the training frames of its checkpoints (reference policies: 0);
+    ``in_quadrant`` is left out where the protocol has no quadrants."""
+    methods = {}
+    for row in summary:
+        name = result_name(row["method"])
+        if row["segment"] != segment or name is None:
+            continue
+        entry = {"seeds": row["seeds"] if name not in ("random", "follower", "heuristic", "blend") else 0,
+                 "frames": int((frames or {}).get(row["method"], 0))}
+        if name == "blend":
+            entry["label"] = row["method"]
+        for metric in RESULT_METRICS:
+            if math.isfinite(row[metric]):
+                entry[metric] = {"mean": row[metric], "std": row[f"{metric}_std"]}
+        methods[name] = entry
+    return {"protocol": protocol, "steps": steps, "trials": trials, **extra, "methods": methods}
+
+
 @dataclass
 class Curve:
     """A learning curve across seeds: ``mean`` and ``std`` of ``column`` at each of ``frames``."""
