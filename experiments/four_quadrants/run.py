@@ -20,7 +20,6 @@ import argparse
 import json
 import os
 import platform
-import shutil
 import subprocess
 import sys
 import time
@@ -29,7 +28,9 @@ from pathlib import Path
 import torch
 
 from icco_torchrl.training.build import compose_config
-from icco_torchrl.training.checkpoint import load_checkpoint
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from jobs import train_runs  # noqa: E402  (experiments/jobs.py, a sibling script)
 
 HERE = Path(__file__).resolve().parent
 METHODS = ("icco", "icco_wo_ce", "qmix", "qmix_full")
@@ -46,56 +47,11 @@ def icco(*args: str) -> None:
     subprocess.run(command, check=True)
 
 
-def run_status(run: Path, total_frames: int) -> str:
-    """``done`` (checkpoint at the budget), ``partial`` (a checkpoint short of it) or ``missing``.
-
-    The budget is this invocation's, so raising ``train.total_frames`` extends finished runs.
-    """
-    checkpoint = run / "checkpoint.pt"
-    if not checkpoint.is_file():
-        return "missing"
-    frames = load_checkpoint(checkpoint).get("frames", 0)
-    return "done" if frames >= total_frames else "partial"
-
-
 def train(sweep: Path, methods, seeds, budget, jobs: int = 2) -> None:
-    """Bring every ``method x seed`` run in ``sweep`` to its budget, ``jobs`` runs at a time.
-
-    Each run is its own ``icco train`` process (one torch thread each: two side by side use a
-    2-core machine fully), logging to ``<sweep>/<method>_seed<k>.log``. A run with a checkpoint
-    short of the budget resumes from it; a run that died before its first checkpoint restarts.
-    """
+    """Bring every ``method x seed`` run in ``sweep`` to its budget (see ``experiments/jobs.py``)."""
     totals = {m: compose_config([f"method={m}", *budget]).train.total_frames for m in methods}
-    status = {(m, s): run_status(sweep / f"{m}_seed{s}", totals[m]) for m in methods for s in seeds}
-    print("runs: " + ", ".join(f"{m}_seed{s}={v}" for (m, s), v in status.items()), flush=True)
-    queue = []
-    for (method, seed), state in status.items():
-        run = sweep / f"{method}_seed{seed}"
-        if state == "done":
-            continue
-        if state == "missing" and run.exists():
-            # Died before its first checkpoint: its CSVs would be appended to, so start clean.
-            shutil.move(str(run), str(run.with_name(f"{run.name}.failed-{int(time.time())}")))
-        resume = [f"resume={run / 'checkpoint.pt'}"] if state == "partial" else []
-        queue.append((run, [sys.executable, "-m", "icco_torchrl", "train", f"method={method}", f"seed={seed}",
-                            *budget, *resume, "logger.progress=false", f"hydra.run.dir={run}"]))
-    running: list[tuple[Path, subprocess.Popen]] = []
-    failed = []
-    while queue or running:
-        while queue and len(running) < jobs:
-            run, command = queue.pop(0)
-            print(f"$ icco {' '.join(command[3:])}  > {run}.log", flush=True)
-            log = open(f"{run}.log", "a")
-            running.append((run, subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT)))
-        time.sleep(2)
-        for item in [r for r in running if r[1].poll() is not None]:
-            running.remove(item)
-            run, proc = item
-            print(f"{run.name}: {'done' if proc.returncode == 0 else f'FAILED (exit {proc.returncode})'}", flush=True)
-            if proc.returncode:
-                failed.append(run.name)
-    if failed:
-        raise SystemExit(f"training failed for {failed}: see their .log files in {sweep}")
+    train_runs({sweep / f"{m}_seed{s}": ([f"method={m}", f"seed={s}", *budget], totals[m])
+                for m in methods for s in seeds}, jobs)
 
 
 def cpu_name() -> str:

@@ -1,0 +1,62 @@
+"""Resumable training runs, several side by side: the one job runner of the experiment scripts.
+
+A run is ``icco train <overrides> hydra.run.dir=<folder>``. :func:`run_status` says whether its
+checkpoint reached the budget; :func:`train_runs` starts missing runs, resumes partial ones from
+their checkpoint (``resume=``) and keeps ``jobs`` processes busy (one torch thread each: two
+side by side use a 2-core machine fully). Each run logs to ``<folder>.log``.
+"""
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from icco_torchrl.training.checkpoint import load_checkpoint
+
+
+def run_status(run: Path, total_frames: int) -> str:
+    """``done`` (checkpoint at the budget), ``partial`` (a checkpoint short of it) or ``missing``.
+
+    The budget is this invocation's, so raising ``train.total_frames`` extends finished runs.
+    """
+    checkpoint = run / "checkpoint.pt"
+    if not checkpoint.is_file():
+        return "missing"
+    frames = load_checkpoint(checkpoint).get("frames", 0)
+    return "done" if frames >= total_frames else "partial"
+
+
+def train_runs(runs: dict[Path, tuple[list[str], int]], jobs: int = 2) -> None:
+    """Bring every run ``{folder: (overrides, total_frames)}`` to its budget, ``jobs`` at a time."""
+    status = {run: run_status(run, total) for run, (_, total) in runs.items()}
+    print("runs: " + ", ".join(f"{run.name}={state}" for run, state in status.items()), flush=True)
+    queue = []
+    for run, state in status.items():
+        if state == "done":
+            continue
+        if state == "missing" and run.exists():
+            # Died before its first checkpoint: its CSVs would be appended to, so start clean.
+            shutil.move(str(run), str(run.with_name(f"{run.name}.failed-{int(time.time())}")))
+        resume = [f"resume={run / 'checkpoint.pt'}"] if state == "partial" else []
+        queue.append((run, [sys.executable, "-m", "icco_torchrl", "train", *runs[run][0], *resume,
+                            "logger.progress=false", f"hydra.run.dir={run}"]))
+    running: list[tuple[Path, subprocess.Popen]] = []
+    failed = []
+    while queue or running:
+        while queue and len(running) < jobs:
+            run, command = queue.pop(0)
+            run.parent.mkdir(parents=True, exist_ok=True)
+            print(f"$ icco {' '.join(command[3:])}  > {run}.log", flush=True)
+            with open(f"{run}.log", "a") as log:
+                running.append((run, subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT)))
+        time.sleep(2)
+        for item in [r for r in running if r[1].poll() is not None]:
+            running.remove(item)
+            run, proc = item
+            print(f"{run.name}: {'done' if proc.returncode == 0 else f'FAILED (exit {proc.returncode})'}", flush=True)
+            if proc.returncode:
+                failed.append(run.name)
+    if failed:
+        raise SystemExit(f"training failed for {failed}: see their .log files")

@@ -1,0 +1,109 @@
+"""Training-recipe ablation: which levers make ICCO and QMIX (FULL) learn the task on a CPU.
+
+    python experiments/recipe/run.py                      # every lever, resumable, 2 runs side by side
+    python experiments/recipe/run.py --only rel_icco rel_qmix_full
+    python experiments/recipe/run.py --report-only        # rewrite results.md / results.json
+
+Each lever is one ``icco train`` run (seed 0, the calibrated reward, uniform spawns, random-walk
+instructions) in ``--out/<name>``; the table reports its last greedy evaluation (16 episodes of
+145 steps, the same initial configurations at every evaluation) beside the reference policies
+of the same episodes (``references.json``), and its wall time. One seed per lever: a screen,
+not a result; the kept recipe is then measured over 3 seeds by the reproduction.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import sys
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE.parent))
+from jobs import train_runs  # noqa: E402  (experiments/jobs.py)
+
+# The session-1 budget with the first three levers of issue 7's probe (replay ratio 8 updates per
+# batch, a hard target copy every 50 updates, epsilon at its floor after 300k frames).
+PROBE = ["train.updates_per_batch=8", "train.target_update_interval=50", "train.eps_decay_frames=300000"]
+LEVERS = {  # name: (lever, setting, method, overrides)
+    "flat_icco": ("global-state encoder", "flat (absolute tokens)", "icco", [*PROBE, "method.state_encoder=flat"]),
+    "flat_qmix_full": ("global-state encoder", "flat (one vector)", "qmix_full", [*PROBE, "method.state_encoder=flat"]),
+    "rel_icco": ("global-state encoder", "relative tokens", "icco", [*PROBE, "method.state_encoder=relative"]),
+    "rel_qmix_full": ("global-state encoder", "relative tokens", "qmix_full", [*PROBE, "method.state_encoder=relative"]),
+    "rel_lambda08_qmix_full": ("TD(lambda)", "lambda 0.8", "qmix_full", [*PROBE, "train.td_lambda=0.8"]),
+    "rel_logvar5_icco": ("initial z noise", "log-variance -5", "icco", [*PROBE, "method.z_init_logvar=-5"]),
+    "rel_logvar5_adam_icco": ("optimiser", "Adam 1e-3 (+ log-variance -5)", "icco",
+                              [*PROBE, "method.z_init_logvar=-5", "train.optimizer=adam", "train.lr=1e-3"]),
+    "rel_adam_qmix_full": ("optimiser", "Adam 1e-3", "qmix_full", [*PROBE, "train.optimizer=adam", "train.lr=1e-3"]),
+}
+METRICS = ("reward", "task_reward", "inst_reward", "pick", "defense", "invasion")
+
+
+def last_row(path: Path) -> dict | None:
+    if not path.is_file():
+        return None
+    rows = list(csv.DictReader(path.open()))
+    return rows[-1] if rows else None
+
+
+def summarize(out: Path, frames: int) -> list[dict]:
+    table = []
+    for name, (lever, setting, method, overrides) in LEVERS.items():
+        run = out / name
+        ev, timing = last_row(run / "eval.csv"), last_row(run / "timing.csv")
+        if ev is None:
+            continue
+        row = {"name": name, "lever": lever, "setting": setting, "method": method, "frames": int(ev["frames"]),
+               **{k: float(ev[k]) for k in METRICS if k in ev}}
+        if "task_reward" not in row:  # runs from before task_reward was logged
+            row["task_reward"] = row["reward"] - row["inst_reward"]
+        if timing:
+            row["wall_min"] = sum(float(timing[k]) for k in ("time_collect", "time_train", "time_eval")) / 60
+            row["sps"] = float(timing["sps"])
+        refs = run / "references.json"
+        if refs.is_file():
+            row["references"] = {k: {m: v[m] for m in METRICS if m in v} for k, v in json.loads(refs.read_text()).items()}
+        row["command"] = " ".join(["icco train", f"method={method}", *overrides, f"train.total_frames={frames}"])
+        table.append(row)
+    return table
+
+
+def markdown(table: list[dict]) -> str:
+    lines = ["| lever | setting | method | frames | task reward | pick | defense | invasion | instruction reward "
+             "| team reward | wall (min) |", "|" + "---|" * 11]
+    for r in table:
+        lines.append(f"| {r['lever']} | {r['setting']} | {r['method']} | {r['frames']:,} | {r['task_reward']:.1f} | "
+                     f"{r['pick']:.1f} | {r['defense']:.1f} | {r['invasion']:.1f} | {r['inst_reward']:.1f} | "
+                     f"{r['reward']:.1f} | {r.get('wall_min', float('nan')):.1f} |")
+    refs = next((r["references"] for r in table if "references" in r), None)
+    if refs:
+        lines += ["", "Reference policies on the same evaluation episodes:", "",
+                  "| policy | task reward | pick | defense | invasion | instruction reward | team reward |",
+                  "|---|---|---|---|---|---|---|"]
+        for k, m in refs.items():
+            lines.append(f"| {k} | {m['task_reward']:.1f} | {m['pick']:.1f} | {m['defense']:.1f} | "
+                         f"{m['invasion']:.1f} | {m['inst_reward']:.1f} | {m['reward']:.1f} |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--out", type=Path, default=Path("multirun/recipe"))
+    parser.add_argument("--frames", type=int, default=800_000)
+    parser.add_argument("--only", nargs="+", choices=list(LEVERS))
+    parser.add_argument("--jobs", type=int, default=2)
+    parser.add_argument("--report-only", action="store_true")
+    args = parser.parse_args(argv)
+    if not args.report_only:
+        chosen = args.only or list(LEVERS)
+        train_runs({args.out.resolve() / name: ([f"method={LEVERS[name][2]}", *LEVERS[name][3],
+                                                 f"train.total_frames={args.frames}", "train.checkpoint_buffer=false"],
+                                                args.frames) for name in chosen}, args.jobs)
+    table = summarize(args.out, args.frames)
+    (HERE / "results.json").write_text(json.dumps(table, indent=1))
+    (HERE / "results.md").write_text(markdown(table) + "\n")
+    print(markdown(table))
+
+
+if __name__ == "__main__":
+    main()
