@@ -37,6 +37,19 @@ def test_every_method_trains_end_to_end(tmp_path, method):
     assert (tmp_path / "learning_curve.png").stat().st_size > 0
 
 
+def test_training_reports_the_reference_policies(tmp_path):
+    import json
+
+    run_cli("train", *SMOKE, f"hydra.run.dir={tmp_path}")
+    refs = json.loads((tmp_path / "references.json").read_text())
+    assert list(refs) == ["random", "follower", "heuristic", "blend (r=1.75 m)"]
+    assert refs["heuristic"]["task_reward"] > refs["random"]["task_reward"] + 30
+    assert refs["follower"]["inst_reward"] > refs["random"]["inst_reward"] + 30
+    rows = read_csv(tmp_path / "eval.csv")
+    for row in rows:  # the logged task reward is the team reward without the instruction reward
+        assert float(row["task_reward"]) == pytest.approx(float(row["reward"]) - float(row["inst_reward"]), abs=1e-3)
+
+
 def test_same_seed_gives_identical_metrics(tmp_path):
     run_cli("train", *SMOKE, "seed=3", f"hydra.run.dir={tmp_path / 'a'}")
     # The second run also logs to wandb in offline mode: no network, no account, same metrics.
