@@ -6,9 +6,9 @@ import torch
 
 from icco_torchrl.envs import ResourceCollectionEnv
 from icco_torchrl.instructions import LLMPlanner, LLMSource
-from icco_torchrl.instructions.cli import split_instructions
+from fake_openai import closed_port
+from icco_torchrl.instructions.cli import out_dir_name, split_instructions
 from test_eval_cli import icco, smoke_checkpoints
-
 
 
 @pytest.fixture(scope="module")
@@ -91,3 +91,40 @@ def test_instruction_schedules_are_split_on_semicolons():
     for bad in ("", "Go right;", ";"):
         with pytest.raises(ValueError, match="empty part"):
             split_instructions(bad)
+
+
+def test_output_folders_of_different_schedules_are_different():
+    long_a, long_b = "Go right " + "and keep going " * 5 + "then stop", "Go right " + "and keep going " * 5 + "then turn"
+    assert long_a[:60] == long_b[:60]
+    schedules = [["Go right"], ["Go right 🚀"], ["Go right!"], ["go right"], [long_a], [long_b],
+                 ["Go right", "Move top"], ["Go right; Move top"], ["🚀"]]
+    names = [out_dir_name(s) for s in schedules]
+    assert len(set(names)) == len(names), names
+    assert names[0].startswith("instruct_go_right_") and names[-1].startswith("instruct_")
+    assert out_dir_name(split_instructions("Go right ;Move top")) == out_dir_name(["Go right", "Move top"])
+    assert all(name == name.encode("ascii", "ignore").decode() and "/" not in name for name in names)
+
+
+UNREACHABLE = ("llm=openai", "llm.cache_dir=null", "llm.timeout_s=1", "llm.deadline_s=3", "llm.max_retries=1",
+               "llm.backoff_s=0", "eval.trials=1", "eval.episodes=1", "eval.steps=4")
+
+
+def test_an_unreachable_model_stops_instruct_with_one_line(checkpoint, tmp_path, capsys, monkeypatch):
+    monkeypatch.setenv("OPENAI_API_KEY", "sk-test")
+    code = icco("instruct", "Go right", f"checkpoint={checkpoint}", *UNREACHABLE,
+                f"llm.api_base=http://127.0.0.1:{closed_port()}/v1", f"eval.out_dir={tmp_path / 'out'}",
+                f"hydra.run.dir={tmp_path / 'hydra'}")
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and err.startswith("icco instruct: LLM openai/gpt-4o") and len(err.splitlines()) == 1, err
+    assert "Connection refused" in err and "llm.fallback_on_error=true" in err
+    assert not (tmp_path / "out").exists()
+
+
+def test_with_fallbacks_instruct_runs_on_and_counts_them(checkpoint, tmp_path, capsys, monkeypatch):
+    monkeypatch.setenv("OPENAI_API_KEY", "sk-test")
+    code = icco("instruct", "Go right 🚀", f"checkpoint={checkpoint}", *UNREACHABLE, "llm.fallback_on_error=true",
+                f"llm.api_base=http://127.0.0.1:{closed_port()}/v1", f"hydra.run.dir={tmp_path / 'hydra'}")
+    assert code == 0, capsys.readouterr().err
+    out = checkpoint.parent / out_dir_name(["Go right 🚀"])  # the default folder, beside the checkpoint
+    summary = json.loads((out / "instruct.json").read_text())
+    assert summary["sources"] and all(s["fallbacks"] == s["plans"] > 0 for s in summary["sources"])

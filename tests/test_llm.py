@@ -1,14 +1,17 @@
 """Language layer: offline rule planner, prompts, litellm path, validation, fallbacks, cache.
 
-No test touches a network: replies come from litellm's ``mock_response`` or from
-custom providers registered in ``litellm.custom_provider_map``.
+No test touches a network: replies come from litellm's ``mock_response``, from
+custom providers registered in ``litellm.custom_provider_map``, or from a fake
+OpenAI-compatible server on 127.0.0.1 (``fake_openai.py``).
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -17,8 +20,10 @@ import numpy as np
 import pytest
 import yaml
 
+from fake_openai import FakeOpenAI, closed_port
 from icco_torchrl.instructions.llm import (
     LLMPlanner,
+    LLMUnavailable,
     build_messages,
     last_json_object,
     parse_reply,
@@ -334,7 +339,7 @@ def test_bad_output_is_retried_then_falls_back(
     mock = BAD_REPLIES.get(case) if case in BAD_REPLIES else _errors(litellm)[case]
     pos = starts(0)
     previous = np.full((3, K, 2), 0.5) if with_previous else None
-    planner = mocked(max_retries=2)
+    planner = mocked(max_retries=2, fallback_on_error=case not in BAD_REPLIES)  # no reply at all: opt in
     with caplog.at_level(logging.WARNING, logger="icco_torchrl.instructions.llm"):
         result = planner.plan("Go right", pos, previous, mock_response=mock)
     assert not result.ok and result.attempts == 3 and result.error
@@ -459,3 +464,103 @@ def test_task_aligned_prompt_bends_the_plan_toward_the_task():
     assert detour, "the robot next to a resource should pass through it"
     others = [i for i in range(3) if i != interceptor]
     np.testing.assert_allclose(tap[others, -1], plain[others, -1])  # they still end on the instructed line
+
+
+# --- a provider that does not reply ---------------------------------------------------------
+# A fake OpenAI-compatible server on 127.0.0.1 (tests/fake_openai.py): refused, hanging, 401.
+
+
+@pytest.fixture
+def openai_key(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("OPENAI_API_KEY", "sk-test")  # litellm wants one before it sends anything
+
+
+def remote(url: str, **settings: Any) -> LLMPlanner:
+    options = {"timeout": 0.5, "deadline_s": 2.0, "max_retries": 2, "backoff_s": 0.05, **settings}
+    return LLMPlanner(model="openai/gpt-4o", api_base=url, **options)
+
+
+@contextlib.contextmanager
+def provider(case: str):
+    """``(url, server or None)`` of a provider that refuses connections, hangs, or refuses the key."""
+    if case == "refused":
+        yield f"http://127.0.0.1:{closed_port()}/v1", None
+        return
+    with FakeOpenAI("hang" if case == "hang" else "401", lifetime=20.0) as server:
+        yield server.url, server
+
+
+NO_REPLY = {"refused": "Connection refused", "hang": "Timeout", "401": "AuthenticationError"}
+
+
+@pytest.mark.parametrize("case", NO_REPLY)
+def test_a_model_that_never_replies_fails_fast_in_one_line(litellm: Any, openai_key: None, case: str) -> None:
+    with provider(case) as (url, server):
+        planner = remote(url)
+        begin = time.monotonic()
+        with pytest.raises(LLMUnavailable) as info:
+            planner.plan("Go right", starts(0))
+        elapsed = time.monotonic() - begin
+    message = str(info.value)
+    assert elapsed < 3.0, f"took {elapsed:.1f} s for a {planner.deadline_s} s deadline"
+    assert "\n" not in message and NO_REPLY[case] in message and "llm.fallback_on_error=true" in message
+    assert url.removesuffix("/v1") in message
+    if case == "401":  # a refused key is refused again: not retried
+        assert len(server.requests) == 1 and planner.stats["backend_calls"] == 1
+    assert planner.stats["fallbacks"] == 0
+
+
+@pytest.mark.parametrize("case", NO_REPLY)
+def test_with_fallbacks_a_model_that_never_replies_falls_back_and_records_it(litellm: Any, openai_key: None,
+                                                                             case: str) -> None:
+    with provider(case) as (url, _):
+        planner = remote(url, fallback_on_error=True)
+        begin = time.monotonic()
+        result = planner.plan("Go right", starts(0), previous=np.full((3, K, 2), 0.5))
+        elapsed = time.monotonic() - begin
+    assert elapsed < 3.0
+    assert not result.ok and result.fallback == "previous" and NO_REPLY[case] in result.error
+    assert np.allclose(result.waypoints, 0.5) and planner.stats["fallbacks"] == 1
+
+
+def test_retries_and_timeouts_never_outlast_the_deadline(litellm: Any, openai_key: None) -> None:
+    with FakeOpenAI("hang", lifetime=20.0) as server:
+        planner = remote(server.url, timeout=10.0, deadline_s=1.0, max_retries=5, backoff_s=0.0)
+        begin = time.monotonic()
+        with pytest.raises(LLMUnavailable, match="deadline"):
+            planner.plan("Go right", starts(0))
+        assert time.monotonic() - begin < 2.0 and len(server.requests) == 1
+
+
+def test_a_provider_that_ignores_its_timeout_still_ends_at_the_deadline(scripted: Scripted) -> None:
+    release = threading.Event()
+    original = scripted.handler.completion
+
+    def stuck(*args: Any, **kwargs: Any) -> Any:
+        release.wait(10.0)  # a request that never times out by itself (bounded for the test)
+        return original(*args, **kwargs)
+
+    scripted.handler.completion = stuck
+    scripted.replies = [valid_reply()]
+    planner = LLMPlanner(model="scripted/x", timeout=30.0, deadline_s=0.5, max_retries=3)
+    begin = time.monotonic()
+    try:
+        with pytest.raises(LLMUnavailable, match="DeadlineExceeded"):
+            planner.plan("Go right", starts(0))
+        assert time.monotonic() - begin < 1.5
+    finally:
+        release.set()
+
+
+def test_a_fake_openai_server_that_answers_gives_a_plan(litellm: Any, openai_key: None) -> None:
+    with FakeOpenAI("ok", reply=valid_reply(value=0.5)) as server:
+        result = remote(server.url).plan("Go right", starts(0))
+    assert result.ok and result.attempts == 1 and np.allclose(result.waypoints, [0.5, -0.5])
+    assert server.requests[0]["model"] == "gpt-4o" and server.requests[0]["messages"][-1]["role"] == "user"
+
+
+def test_a_bad_reply_still_falls_back_without_fallback_on_error(litellm: Any) -> None:
+    planner = mocked(max_retries=1)
+    assert not planner.fallback_on_error
+    result = planner.plan("Go right", starts(0), mock_response="no plan here")
+    assert not result.ok and result.fallback == "positions" and result.error == "no JSON object in the reply"

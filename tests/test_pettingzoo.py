@@ -118,3 +118,64 @@ def test_render():
     assert frame.shape == (96, 96, 3) and frame.dtype == np.uint8
     with pytest.raises(ValueError, match="render_mode"):
         parallel_env(render_mode="human")
+
+
+@pytest.mark.parametrize("bad", [2.9, 2.0, "2", True, None, -1, N_ACTIONS, np.float32(1.0), [1], np.array(2.0),
+                                 torch.tensor(2.5)])
+def test_an_action_that_is_not_an_integer_in_range_is_one_clear_line(bad):
+    env = parallel_env(seed=0)
+    env.reset()
+    with pytest.raises(ValueError, match=r"action for agent_1 must be an integer in 0\.\.4") as info:
+        env.step({"agent_0": 1, "agent_1": bad, "agent_2": 0})
+    assert "\n" not in str(info.value) and repr(bad) in str(info.value)
+
+
+def test_numpy_integer_actions_are_accepted():
+    env = parallel_env(seed=0)
+    env.reset()
+    env.step({"agent_0": np.int64(4), "agent_1": np.uint8(2), "agent_2": np.array(3)})
+    env.step({"agent_0": torch.tensor(1), "agent_1": 0, "agent_2": np.int32(4)})
+    assert env.agents == env.possible_agents
+
+
+def test_step_before_reset_is_a_clear_error():
+    env = parallel_env(seed=0)
+    with pytest.raises(RuntimeError, match=r"before reset\(\)"):
+        env.step({a: 0 for a in env.possible_agents})
+
+
+EXTREME = [  # valid parameters far from the defaults
+    dict(invader_speed=2.0, vision_radius=1e12, invader_respawn_max=3),  # inactive invaders in sight
+    dict(field_size=1.0, agent_radius=0.8, resource_radius=0.9, home_radius=0.7, vision_radius=1e12,
+         spawn="copa", resource_min_radius=0.1, invader_min_radius=0.0),  # bodies larger than the field
+    dict(dt=0.05, accel=400.0, max_speed=20.0, damping=0.0, field_size=20.0, vision_radius=5.0, invader_speed=5.0,
+         waypoint_sigma=5.0),  # fast robots and invaders
+]
+
+
+@pytest.mark.parametrize("params", EXTREME)
+def test_observations_and_states_stay_in_the_declared_boxes_at_extreme_parameters(params):
+    env = parallel_env(seed=0, max_steps=100, **params)
+    rng = np.random.default_rng(0)
+    inactive_steps = 0
+    for episode in range(3):  # 300 steps in all
+        obs, _ = env.reset(seed=episode)
+        while True:
+            for a in env.possible_agents:
+                space = env.observation_space(a)
+                outside = np.nonzero((obs[a] < space.low) | (obs[a] > space.high))[0]
+                assert not outside.size, f"{a}: features {outside[:5]} = {obs[a][outside[:5]]}"
+                assert np.abs(obs[a]).max() < 1e6  # never the 1e9 placeholder of an inactive invader
+            state = env.state()
+            outside = np.nonzero((state < env.state_space.low) | (state > env.state_space.high))[0]
+            assert not outside.size, f"state features {outside[:5]} = {state[outside[:5]]}"
+            inactive_steps += int((~env._env.inv_active).sum())
+            if not env.agents:
+                break
+            obs, *_ = env.step(random_actions(env, rng))
+    if params.get("vision_radius") == 1e12 and params.get("invader_speed") == 2.0:
+        assert inactive_steps > 10, "the run never had an inactive invader in sight"
+
+
+def test_parallel_api_at_extreme_parameters():
+    parallel_api_test(parallel_env(seed=0, **EXTREME[0]), num_cycles=200)

@@ -32,6 +32,13 @@ class ResourceCollectionParallelEnv(ParallelEnv):
 
     ``infos[agent]["events"]`` holds the team's event counts of the step (pick, collect,
     defense, invasion) and the summed instruction reward, identical for every robot.
+
+    Actions are integers ``0..4`` (Python or numpy integers); anything else is a ``ValueError``.
+    The observation and state ``Box`` bounds are computed from the env parameters (see
+    :func:`space_bounds`) and hold for every valid setting. One difference from the batched
+    env's observation: the token of an *inactive* invader (between its removal and respawn)
+    is all zeros, as for any entity out of sight. The batched env hides such invaders by
+    placing them 1e9 m away, which a robot with a vision radius that large would "see".
     """
 
     metadata = {"render_modes": ["rgb_array"], "name": "resource_collection_v0", "is_parallelizable": True}
@@ -48,14 +55,15 @@ class ResourceCollectionParallelEnv(ParallelEnv):
         self.max_cycles = self._env.max_steps
         self.possible_agents = [f"agent_{i}" for i in range(self._env.n_agents)]
         self.agents: list[str] = []
-        # Every observation feature is a position or a difference of positions inside the
-        # field, a (relative) velocity, or a flag, hence this loose but valid bound.
-        bound = float(self._env.field_size + 2 * self._env.max_speed + 1)
-        obs_dim, state_dim = self._env.layout.obs_dim, self._env.layout.state_dim
-        self.observation_spaces = {a: spaces.Box(-bound, bound, (obs_dim,), np.float32)
-                                   for a in self.possible_agents}
+        (obs_low, obs_high), (state_low, state_high) = space_bounds(self._env)
+        self.observation_spaces = {a: spaces.Box(obs_low, obs_high, dtype=np.float32) for a in self.possible_agents}
         self.action_spaces = {a: spaces.Discrete(N_ACTIONS) for a in self.possible_agents}
-        self.state_space = spaces.Box(-bound, bound, (state_dim,), np.float32)
+        self.state_space = spaces.Box(state_low, state_high, dtype=np.float32)
+        L = self._env.layout
+        # Columns of the invaders' tokens in an observation: after the other robots and resources.
+        first = L.own_dim + (L.n_agents - 1 + self._env.n_resources) * L.entity_dim
+        self._invader_cols = [slice(first + i * L.entity_dim, first + (i + 1) * L.entity_dim)
+                              for i in range(self._env.n_invaders)]
         self._td = None
         self._steps = 0
 
@@ -75,12 +83,14 @@ class ResourceCollectionParallelEnv(ParallelEnv):
         return self._observations(self._td), {a: {} for a in self.agents}
 
     def step(self, actions: dict):
+        if self._td is None:
+            raise RuntimeError("step() called before reset(); call reset() first")
         if not self.agents:
             raise RuntimeError("step() called on a finished episode; call reset() first")
         if set(actions) != set(self.agents):
             raise ValueError(f"actions must have exactly one entry per live agent {self.agents}, "
                              f"got {sorted(actions)}")
-        action = torch.tensor([[int(actions[a]) for a in self.possible_agents]], dtype=torch.int64)
+        action = torch.tensor([[_action_index(a, actions[a]) for a in self.possible_agents]], dtype=torch.int64)
         self._td.set(("agents", "action"), action)
         nxt = self._env.step(self._td).get("next")
         self._td = nxt.exclude("reward", ("agents", "reward"))
@@ -120,5 +130,59 @@ class ResourceCollectionParallelEnv(ParallelEnv):
         """Nothing to release: the env holds only tensors."""
 
     def _observations(self, td) -> dict[str, np.ndarray]:
-        obs = td.get(("agents", "observation"))[0].numpy()
-        return {a: obs[i].astype(np.float32, copy=True) for i, a in enumerate(self.possible_agents)}
+        obs = td.get(("agents", "observation"))[0].numpy().astype(np.float32, copy=True)
+        for cols, active in zip(self._invader_cols, self._env.inv_active[0].tolist()):
+            if not active:  # out of play: no 1e9 placeholder distances (see the class docstring)
+                obs[:, cols] = 0.0
+        return {a: obs[i] for i, a in enumerate(self.possible_agents)}
+
+
+def _action_index(agent: str, value) -> int:
+    """``value`` as an action index; floats, strings, bools and out-of-range integers are refused."""
+    index = value
+    if isinstance(index, (np.ndarray, torch.Tensor)) and index.ndim == 0:
+        index = index.item()  # a 0-d array or tensor, e.g. np.asarray(space.sample()) or q.argmax()
+    if isinstance(index, (int, np.integer)) and not isinstance(index, (bool, np.bool_)) and 0 <= index < N_ACTIONS:
+        return int(index)
+    raise ValueError(f"action for {agent} must be an integer in 0..{N_ACTIONS - 1} "
+                     f"(int or numpy integer), got {value!r}")
+
+
+def _pad(bound: float) -> float:
+    # float32 rounding (speed caps, clamps, squared-distance tests) can exceed a bound by an ulp
+    # or so; a small relative margin keeps the values inside.
+    return bound * (1 + 1e-4) + 1e-6
+
+
+def _sym(bound: float, n: int = 1) -> list[tuple[float, float]]:
+    """``n`` features in ``[-bound, bound]`` (padded)."""
+    return [(-_pad(bound), _pad(bound))] * n
+
+
+def _flags(n: int) -> list[tuple[float, float]]:
+    """``n`` flags or one-hot entries, in ``[0, 1]``."""
+    return [(0.0, 1.0)] * n
+
+
+def space_bounds(env: ResourceCollectionEnv) -> tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]:
+    """``(low, high)`` of every observation feature and of every state feature, from ``env``'s parameters.
+
+    Robots stay within ``|x|, |y| <= |field_size/2 - agent_radius|`` (the wall); invaders and
+    waypoints within the field; resources within the field or on home's rim (a candidate spawn
+    on home is pushed out to ``home_radius + resource_radius``). Speeds are capped at
+    ``max_speed`` (robots) and ``invader_speed / dt`` (invaders, metres per step over dt).
+    A relative position is at most the vision radius, or twice the largest coordinate.
+    """
+    half = env.field_size / 2
+    robot = abs(half - env.agent_radius)
+    extent = max(half, robot, abs(half - env.resource_radius), env.home_radius + env.resource_radius)
+    invader_v = env.invader_speed / env.dt
+    K = env.n_waypoints
+    own = _sym(robot, 2) + _sym(env.max_speed, 2) + _flags(1) + _sym(robot + extent, 2 * K)
+    token = (_sym(min(env.vision_radius, 2 * extent), 2) + _sym(env.max_speed + max(env.max_speed, invader_v), 2)
+             + _flags(6))                                               # one-hot type (4), flag, visible
+    state_token = (_sym(extent, 2) + _sym(max(env.max_speed, invader_v), 2) + _flags(5)   # type (3), flag, defended
+                   + _sym(extent, 2 * K))
+    obs = np.array(own + token * env.layout.n_entities, np.float32)
+    state = np.array(state_token * env.layout.state_tokens, np.float32)
+    return (obs[:, 0], obs[:, 1]), (state[:, 0], state[:, 1])

@@ -9,17 +9,22 @@ Instructions separated by ``;`` are given one after the other, ``eval.steps`` (1
 each, in one episode per trial; the planner (``cfg.llm``) is prompted once per instruction
 with the robots' positions at that moment (``eval.replan_every`` re-prompts more often). The
 metrics, tables and figures are those of ``icco eval`` (one segment per instruction), written
-to ``eval.out_dir`` or ``instruct_<instructions>/`` next to the checkpoint(s).
+to ``eval.out_dir`` or ``instruct_<instructions>_<hash>/`` next to the checkpoint(s). A remote
+model that never replies (down, bad key, timeouts) ends the command with one line and exit
+code 2, unless ``llm.fallback_on_error=true``.
 """
 from __future__ import annotations
 
+import hashlib
+import json
+from contextlib import contextmanager
 from pathlib import Path
 
 from omegaconf import DictConfig
 
 from icco_torchrl.evaluation.cli import (clean_errors, default_out_dir, evaluate_checkpoints, find_checkpoints, slug,
                                          write_report)
-from icco_torchrl.instructions.llm import LLMPlanner
+from icco_torchrl.instructions.llm import LLMPlanner, LLMUnavailable
 from icco_torchrl.instructions.planner import PROVIDER, UnknownInstruction, parse
 from icco_torchrl.instructions.sources import LLMSource
 
@@ -32,9 +37,29 @@ def split_instructions(text: str) -> list[str]:
     return parts
 
 
+def out_dir_name(instructions: list[str]) -> str:
+    """``instruct_<slug>_<hash>``: readable, and distinct for distinct schedules.
+
+    The slug alone drops non-ASCII text and is cut at 60 characters, so "Go right" and
+    "Go right 🚀" (or two long instructions with the same start) would share a folder and
+    overwrite each other's reports; the hash of the full schedule keeps them apart.
+    """
+    digest = hashlib.sha256(json.dumps(instructions, ensure_ascii=False).encode()).hexdigest()[:8]
+    return "_".join(part for part in ("instruct", slug("_".join(instructions))[:60], digest) if part)
+
+
+@contextmanager
+def _llm_errors():
+    """An unreachable model as the one-line error of ``clean_errors`` (which reports ValueErrors)."""
+    try:
+        yield
+    except LLMUnavailable as err:
+        raise ValueError(str(err)) from None
+
+
 def run_instruct(cfg: DictConfig, run_dir: str | Path, instruction: str) -> float:
     """The mean episode team reward of the first method (see the module doc)."""
-    with clean_errors("instruct"):
+    with clean_errors("instruct"), _llm_errors():
         instructions = split_instructions(instruction)
         planner = LLMPlanner.from_config(cfg.llm, field_size=float(cfg.env.params.field_size))
         # The offline rule planner is deterministic: if it declines an instruction it never
@@ -47,7 +72,7 @@ def run_instruct(cfg: DictConfig, run_dir: str | Path, instruction: str) -> floa
                 except UnknownInstruction as err:
                     raise ValueError(f"the offline planner does not understand {text!r}: {err}") from None
         paths = find_checkpoints(cfg)
-        name = f"instruct_{slug('_'.join(instructions))[:60]}"
+        name = out_dir_name(instructions)
         out_dir = Path(cfg.eval.out_dir) if cfg.eval.out_dir else default_out_dir(paths, name)
 
         def schedule(episode: int):

@@ -19,6 +19,11 @@ such as "Go right" into K waypoints per agent, the instruction vectors.
   so the offline path is the same code path as a real model.
 - Bad output is a normal event: retried within ``max_retries`` (with the
   reason fed back), then replaced by a fallback and recorded; never raised.
+- No reply at all is not: a provider that is unreachable, refuses the key or
+  times out on every attempt raises :class:`LLMUnavailable` (one line), so an
+  evaluation never silently runs on fallbacks, unless ``fallback_on_error``
+  asks for them. Errors that a retry cannot fix (401, 403, 404, 400) are not
+  retried. Every ``plan()`` ends within ``deadline_s``, retries included.
 """
 
 from __future__ import annotations
@@ -27,6 +32,7 @@ import json
 import logging
 import os
 import re
+import threading
 import time
 from dataclasses import dataclass
 from functools import cache
@@ -72,6 +78,39 @@ class ReplyError(ValueError):
 
 class PlannerDeclined(ReplyError):
     """The backend answered ``{"error": ...}``: it says it cannot do this order."""
+
+
+class LLMUnavailable(RuntimeError):
+    """The provider gave no reply at all (unreachable, not authorised, timed out) and
+    ``fallback_on_error`` is off."""
+
+
+class DeadlineExceeded(TimeoutError):
+    """A request still running when the plan's ``deadline_s`` ran out."""
+
+
+# HTTP statuses that the same request gets again: retrying only spends the deadline.
+_FINAL_STATUSES = (400, 401, 403, 404)
+
+
+def _is_final(exc: BaseException) -> bool:
+    """Whether a provider error is not worth retrying (bad key, no permission, unknown model or URL)."""
+    return getattr(exc, "status_code", None) in _FINAL_STATUSES
+
+
+def _describe(exc: BaseException) -> str:
+    """``Type: message (RootCause: message)`` on one line, cut short (provider messages can hold
+    whole JSON bodies). The root cause says what litellm's wrapper hides, e.g. "Connection refused"."""
+    root = exc
+    for _ in range(10):  # the chain is short; the bound guards against cycles
+        nxt = root.__cause__ or root.__context__
+        if nxt is None:
+            break
+        root = nxt
+    text = " ".join(str(exc).split())
+    if root is not exc and str(root) not in text:
+        text += f" ({type(root).__name__}: {' '.join(str(root).split())})"
+    return f"{type(exc).__name__}: {text}"[:_SHOWN_CHARS // 4]
 
 
 @cache
@@ -230,6 +269,9 @@ class LLMPlanner:
     ``failures`` (rejected attempts), ``fallbacks`` and ``cache_hits``, for
     evaluation metrics. ``backoff_s`` is the pause after a provider exception
     (doubling per attempt; not after a bad reply, which is re-asked at once).
+    ``timeout`` bounds one request and ``deadline_s`` a whole :meth:`plan`
+    (attempts, pauses and all). When no attempt got a reply, :meth:`plan` raises
+    :class:`LLMUnavailable`, or with ``fallback_on_error`` falls back and records it.
     """
 
     def __init__(
@@ -244,14 +286,18 @@ class LLMPlanner:
         n_waypoints: int = 4,
         field_size: float = 6.5,
         backoff_s: float = 0.5,
+        deadline_s: float = 30.0,
+        fallback_on_error: bool = False,
     ) -> None:
         if prompt not in PROMPTS:
             raise ValueError(f"prompt must be one of {PROMPTS}, got {prompt!r}")
         if n_waypoints < 1 or max_retries < 0 or field_size <= 0:
             raise ValueError("need n_waypoints >= 1, max_retries >= 0 and field_size > 0")
+        if not timeout > 0 or not deadline_s > 0:
+            raise ValueError(f"llm timeout_s and deadline_s must be > 0, got {timeout!r} and {deadline_s!r}")
         self.model, self.api_base, self.temperature, self.timeout = model, api_base, temperature, timeout
         self.max_retries, self.prompt, self.n_waypoints, self.field_size = max_retries, prompt, n_waypoints, field_size
-        self.backoff_s = backoff_s
+        self.backoff_s, self.deadline_s, self.fallback_on_error = backoff_s, deadline_s, bool(fallback_on_error)
         self.cache = ResponseCache(cache_dir)
         self.stats = {"calls": 0, "backend_calls": 0, "failures": 0, "fallbacks": 0, "cache_hits": 0}
 
@@ -299,40 +345,53 @@ class LLMPlanner:
                 return PlanResult(waypoints.astype(np.float32), ok=True, attempts=0, raw=cached, cached=True)
 
         litellm = _litellm()  # outside the loop: a broken install is an error, not a bad reply
-        conversation, raw, error, attempt, declined = messages, None, "", 0, False
+        start = time.monotonic()
+        deadline = start + self.deadline_s
+        conversation, raw, error, attempts, answered = messages, None, "", 0, False
         for attempt in range(1, self.max_retries + 2):
-            raw = None
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                error += f" (deadline_s={self.deadline_s:g} reached)"
+                break
+            raw, attempts, stop = None, attempt, False
             try:
-                raw = self._complete(litellm, conversation, fmt, _nth(mock_response, attempt - 1))
+                raw = self._complete(litellm, conversation, fmt, _nth(mock_response, attempt - 1), remaining)
+                answered = True
                 waypoints = parse_reply(raw, len(pos), self.n_waypoints, self.field_size)
             except PlannerDeclined as exc:
-                error, declined = str(exc), True
+                error, stop = str(exc), True  # "cannot do this" is an answer, not noise: asking again changes nothing
             except ReplyError as exc:
                 error = str(exc)
                 conversation = messages + self._feedback(raw, error, len(pos))
-            except Exception as exc:  # timeouts, auth, rate limits, provider bugs: all just a failed attempt
-                error = f"{type(exc).__name__}: {exc}"
-                if attempt <= self.max_retries and self.backoff_s > 0:
-                    time.sleep(self.backoff_s * 2 ** (attempt - 1))
+            except Exception as exc:  # timeouts, auth, rate limits, provider bugs: no reply this attempt
+                error, stop = _describe(exc), _is_final(exc)
+                if not stop and attempt <= self.max_retries and self.backoff_s > 0:
+                    time.sleep(min(self.backoff_s * 2 ** (attempt - 1), max(deadline - time.monotonic(), 0.0)))
             else:
                 self.cache.put(key, raw, model=self.model, messages=messages)
                 return PlanResult(waypoints.astype(np.float32), ok=True, attempts=attempt, raw=raw)
             self.stats["failures"] += 1
             logger.warning("LLM %s attempt %d/%d for %r failed: %s; raw reply: %r", self.model, attempt,
                            self.max_retries + 1, instruction, error, _shown(raw))  # fmt: skip
-            if declined:
-                break  # an explicit "cannot do this" is an answer, not noise: asking again changes nothing
-        return self._fallback(instruction, pos, previous, attempt, error, raw)
+            if stop:
+                break
+        if not answered and not self.fallback_on_error:
+            raise LLMUnavailable(
+                f"LLM {self.model} at {self.api_base or 'its default URL'} gave no reply to {instruction!r} "
+                f"({attempts} attempt(s) in {time.monotonic() - start:.1f} s): {error}; check llm.api_base, the API "
+                "key and that the server is up, or set llm.fallback_on_error=true to run on fallback waypoints")
+        return self._fallback(instruction, pos, previous, attempts, error, raw)
 
-    def _complete(self, litellm: Any, messages: list[dict[str, str]], fmt: dict[str, Any], mock: Any) -> str | None:
+    def _complete(self, litellm: Any, messages: list[dict[str, str]], fmt: dict[str, Any], mock: Any,
+                  remaining: float) -> str | None:  # fmt: skip
         extra = {} if mock is None else {"mock_response": mock}
         self.stats["backend_calls"] += 1
         # max_retries=0: plan()'s loop owns the retry budget, not the OpenAI client inside litellm.
         # drop_params: a provider without JSON-schema support gets the prompt alone (we validate anyway).
-        response = litellm.completion(
+        response = _within(remaining, lambda: litellm.completion(
             model=self.model, messages=messages, response_format=fmt, temperature=self.temperature,
-            timeout=self.timeout, api_base=self.api_base, max_retries=0, drop_params=True, **extra,
-        )  # fmt: skip
+            timeout=min(self.timeout, remaining), api_base=self.api_base, max_retries=0, drop_params=True, **extra,
+        ))  # fmt: skip
         return response.choices[0].message.content
 
     def _feedback(self, raw: str | None, error: str, n_agents: int) -> list[dict[str, str]]:
@@ -357,6 +416,31 @@ class LLMPlanner:
         return PlanResult(waypoints, ok=False, attempts=attempts, fallback=fallback, error=error, raw=raw)
 
 
+def _within(seconds: float, call: Any) -> Any:
+    """``call()``, waited for at most ``seconds``.
+
+    The request's own timeout bounds each wait for a byte, not the whole request: a server
+    that trickles its reply could hold it for minutes. So the request runs in a daemon
+    thread, and one still running at the deadline is left to its timeout and ignored.
+    """
+    outcome: dict[str, Any] = {}
+
+    def run() -> None:
+        try:
+            outcome["value"] = call()
+        except BaseException as exc:  # re-raised in the caller's thread
+            outcome["error"] = exc
+
+    worker = threading.Thread(target=run, name="llm-request", daemon=True)
+    worker.start()
+    worker.join(seconds)
+    if worker.is_alive():
+        raise DeadlineExceeded(f"no reply within the plan's deadline ({seconds:.1f} s left of llm.deadline_s)")
+    if "error" in outcome:
+        raise outcome["error"]
+    return outcome["value"]
+
+
 def _nth(mock: Any, index: int) -> Any:
     if isinstance(mock, (list, tuple)):
         return mock[min(index, len(mock) - 1)]
@@ -367,7 +451,8 @@ def _shown(raw: str | None) -> str | None:
     return None if raw is None else raw[:_SHOWN_CHARS]
 
 
-_PLANNER_ARGS = ("model", "api_base", "temperature", "timeout", "max_retries", "cache_dir", "prompt", "backoff_s")
+_PLANNER_ARGS = ("model", "api_base", "temperature", "timeout", "max_retries", "cache_dir", "prompt", "backoff_s",
+                 "deadline_s", "fallback_on_error")
 
 
 def plan_waypoints(
@@ -386,7 +471,9 @@ def plan_waypoints(
     ``previous``, ``mock_response`` and the :class:`LLMPlanner` settings
     (``model`` overrides the backend's default model). With the offline
     backend an instruction it does not understand raises ``ValueError`` naming
-    it; other backends return the planner's (possibly fallback) waypoints.
+    it; other backends return the planner's (possibly fallback) waypoints, and
+    raise :class:`LLMUnavailable` when the provider never replies (unless
+    ``fallback_on_error=True``).
     """
     unknown = set(context) - set(_PLANNER_ARGS) - {"resources", "invader", "previous", "mock_response"}
     if unknown:
