@@ -30,13 +30,36 @@ def _run(command: str) -> None:
 
     @hydra.main(config_path=str(CONF_DIR), config_name="config", version_base=None)
     def main(raw: DictConfig) -> float | None:
+        output_dir = HydraConfig.get().runtime.output_dir
         try:
-            return _dispatch(command, validate(raw), HydraConfig.get().runtime.output_dir)
+            return _dispatch(command, validate(raw), output_dir)
         except (ConfigError, CheckpointError) as err:  # user errors: one clear line, no traceback
             print(f"icco {command}: {err}", file=sys.stderr)
+            _remove_if_only_hydra(output_dir)
             raise SystemExit(2) from None
 
     main()
+
+
+def _remove_if_only_hydra(folder: str) -> None:
+    """A command that failed before any work leaves no run folder behind (Hydra made it)."""
+    import shutil
+    from pathlib import Path
+
+    path = Path(folder)
+    if path.is_dir() and {p.name for p in path.iterdir()} <= {".hydra", "cli.log"}:
+        shutil.rmtree(path, ignore_errors=True)
+
+
+def _resume_folder(args: list[str]) -> list[str]:
+    """``resume=PATH`` continues in the checkpoint's folder: Hydra's run folder is set to it (unless
+    given), so a resume never leaves an empty ``runs/<method>/seed*_<time>/`` behind."""
+    resume = next((a.split("=", 1)[1] for a in args if a.startswith("resume=")), None)
+    if not resume or resume == "null" or any(a.startswith(("hydra.run.dir=", "-m", "--multirun")) for a in args):
+        return args
+    from pathlib import Path
+
+    return [*args, f"hydra.run.dir={Path(resume).resolve().parent}"]
 
 
 def _dispatch(command: str, cfg, run_dir: str) -> float | None:
@@ -69,7 +92,9 @@ def main(argv: list[str] | None = None) -> None:
                   file=sys.stderr)
             raise SystemExit(2)
         _INSTRUCTION, rest = rest[0], rest[1:]
-    if command != "train":  # results go next to the checkpoint; keep Hydra's own files out of runs/
+    if command == "train":
+        rest = _resume_folder(rest)
+    else:  # results go next to the checkpoint; keep Hydra's own files out of runs/
         rest = [f"hydra.run.dir={tempfile.gettempdir()}/icco_{command}/${{now:%Y%m%d-%H%M%S-%f}}", *rest]
     bad = unknown_group_option(rest)
     if bad:

@@ -180,17 +180,74 @@ def test_incompatible_checkpoint_is_refused(tmp_path):
     assert proc.returncode == 2 and "incompatible" in proc.stderr and "method.coordinator" in proc.stderr
 
 
-def test_ctrl_c_saves_a_checkpoint_and_exits_cleanly(tmp_path):
-    cmd = [sys.executable, "-m", "icco_torchrl", "train", "logger.progress=false", "train.total_frames=10000000",
-           "env.num_envs=8", "train.warmup_segments=16", "train.batch_segments=16", f"hydra.run.dir={tmp_path}"]
+LONG_RUN = ("logger.progress=false", "train.total_frames=10000000", "env.num_envs=8", "train.warmup_segments=16",
+            "train.batch_segments=16")
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_ctrl_c_and_sigterm_save_a_checkpoint_and_exit_cleanly(tmp_path, sig):
+    cmd = [sys.executable, "-m", "icco_torchrl", "train", *LONG_RUN, f"hydra.run.dir={tmp_path}"]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline = time.time() + 120
     while time.time() < deadline and not (tmp_path / "train.csv").exists():
         time.sleep(0.5)
     time.sleep(1.0)
-    proc.send_signal(signal.SIGINT)
+    proc.send_signal(sig)
     out, err = proc.communicate(timeout=180)
     assert proc.returncode == 0, err[-2000:]
-    ckpt = torch.load(tmp_path / "checkpoint.pt", weights_only=False)
+    ckpt = load_checkpoint(tmp_path / "checkpoint.pt")
     assert 0 < ckpt["frames"] < 10_000_000
-    assert "interrupted" in (out + err)
+    assert f"interrupted by {signal.Signals(sig).name}" in out and f"icco train resume={tmp_path}" in out
+
+
+def _frames(path):
+    return [int(r["frames"]) for r in read_csv(path)]
+
+
+def test_kill_9_then_resume_logs_every_frame_once(tmp_path):
+    """SIGKILL after a checkpoint (rows already logged past it), resume: the CSVs have the frame
+    column of an uninterrupted same-seed run (values differ: the env state is not checkpointed)."""
+    budget = ("train.total_frames=8192", "train.checkpoint_interval=1024", "train.eval_interval=1024")
+    run = tmp_path / "killed"
+    proc = subprocess.Popen([sys.executable, "-m", "icco_torchrl", "train", *SMOKE, *budget, f"hydra.run.dir={run}"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 150
+    while time.time() < deadline and proc.poll() is None:  # until rows exist past the last checkpoint
+        if (run / "checkpoint.pt").exists() and (run / "train.csv").exists():
+            try:
+                saved = load_checkpoint(run / "checkpoint.pt")["frames"]
+            except CheckpointError:
+                saved = None  # being written
+            if saved and _frames(run / "train.csv")[-1] > saved:
+                break
+        time.sleep(0.2)
+    proc.kill()
+    proc.wait(timeout=30)
+    assert proc.returncode != 0, "the run finished before it could be killed"
+    run_cli("train", *SMOKE, *budget, f"resume={run / 'checkpoint.pt'}")
+    run_cli("train", *SMOKE, *budget, f"hydra.run.dir={tmp_path / 'whole'}")
+    for stream in ("train.csv", "eval.csv", "timing.csv"):
+        assert _frames(run / stream) == _frames(tmp_path / "whole" / stream), stream
+
+
+def test_resume_continues_in_the_checkpoint_folder():
+    from icco_torchrl.cli import _resume_folder
+
+    assert _resume_folder(["resume=/a/b/checkpoint.pt"]) == ["resume=/a/b/checkpoint.pt", "hydra.run.dir=/a/b"]
+    assert _resume_folder(["resume=x.pt", "hydra.run.dir=D"]) == ["resume=x.pt", "hydra.run.dir=D"]
+    assert _resume_folder(["seed=1"]) == ["seed=1"]
+
+
+@pytest.mark.parametrize("override, named", [("seed=5", "seed"), ("env.params.pick_reward=9", "env"),
+                                             ("train.eps_decay_frames=5", "train.eps_decay_frames")])
+def test_resume_refuses_overrides_it_cannot_honour(tmp_path, override, named):
+    run_cli("train", *SMOKE, "train.total_frames=1024", f"hydra.run.dir={tmp_path}")
+    config = (tmp_path / "config.yaml").read_text()
+    proc = run_cli("train", *SMOKE, f"resume={tmp_path / 'checkpoint.pt'}", override, check=False)
+    assert proc.returncode == 2 and f"cannot change {named}" in proc.stderr, proc.stderr
+    assert (tmp_path / "config.yaml").read_text() == config
+
+
+def test_a_config_error_leaves_no_run_folder(tmp_path):
+    proc = run_cli("train", *SMOKE, "train.lr=abc", f"hydra.run.dir={tmp_path / 'run'}", check=False)
+    assert proc.returncode == 2 and not (tmp_path / "run").exists()

@@ -209,6 +209,9 @@ def run_eval(cfg: DictConfig, run_dir: str | Path) -> float:
         if cfg.eval.protocol not in PROTOCOLS:
             raise ValueError(f"eval.protocol must be one of {sorted(PROTOCOLS)}, got {cfg.eval.protocol!r}")
         paths = find_checkpoints(cfg)
+        given = bool(cfg.checkpoint or cfg.eval.checkpoints)
+        print(("evaluating " if given else "no checkpoint= given: evaluating the newest, ")
+              + ", ".join(map(str, paths)), flush=True)
         name = cfg.eval.protocol
         out_dir = Path(cfg.eval.out_dir) if cfg.eval.out_dir else default_out_dir(paths, f"eval_{name}")
         protocol = PROTOCOLS[name]

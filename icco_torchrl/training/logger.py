@@ -16,10 +16,32 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 
+def truncate_after(path: Path, frames: int) -> int:
+    """Drop the rows of a CSV stream whose ``frames`` exceed ``frames`` (atomic rewrite); returns
+    how many were dropped. Files without a ``frames`` column are left alone."""
+    with path.open(newline="") as handle:
+        rows = list(csv.reader(handle))
+    if not rows or "frames" not in rows[0]:
+        return 0
+    col = rows[0].index("frames")
+    keep = [rows[0]] + [r for r in rows[1:] if r and float(r[col]) <= frames]
+    dropped = len(rows) - len(keep)
+    if dropped:
+        tmp = path.with_name(f".{path.name}.tmp")
+        with tmp.open("w", newline="") as handle:
+            csv.writer(handle).writerows(keep)
+        os.replace(tmp, path)
+    return dropped
+
+
 class RunLogger:
-    def __init__(self, run_dir: str | Path, cfg: DictConfig, *, total_frames: int, initial_frames: int = 0):
+    def __init__(self, run_dir: str | Path, cfg: DictConfig, *, total_frames: int, initial_frames: int = 0,
+                 truncate: bool = False):
         self.run_dir = Path(run_dir)
         self.run_dir.mkdir(parents=True, exist_ok=True)
+        if truncate:  # a resumed run: rows logged after its checkpoint are logged again
+            for path in self.run_dir.glob("*.csv"):
+                truncate_after(path, initial_frames)
         self._files: dict[str, tuple[Any, csv.DictWriter, list[str]]] = {}
         self._wandb = None
         wb = cfg.logger.wandb
@@ -35,8 +57,12 @@ class RunLogger:
         if cfg.logger.progress:
             from tqdm import tqdm
 
-            self._bar = tqdm(total=total_frames, initial=initial_frames, unit="frames", dynamic_ncols=True,
-                             desc=cfg.method.name)
+            # One throughput on the bar: the postfix's env-steps/s (collection + training, the SPS
+            # of timing.csv); tqdm's own rate would also count evaluations and checkpoints.
+            self._bar = tqdm(total=total_frames, initial=initial_frames, unit="env steps", dynamic_ncols=True,
+                             desc=f"{cfg.method.name} seed {cfg.seed}",
+                             bar_format="{desc}: {percentage:3.0f}%|{bar}| {n_fmt}/{total_fmt} "
+                                        "[{elapsed}<{remaining}{postfix}]")
 
     def log(self, stream: str, row: dict[str, float]) -> None:
         """Append ``row`` to ``<run_dir>/<stream>.csv`` (and to wandb as ``stream/key``)."""

@@ -6,6 +6,7 @@ the ``method`` config group.
 from __future__ import annotations
 
 import json
+import logging
 import math
 import signal
 import time
@@ -22,8 +23,8 @@ from icco_torchrl.evaluation.rollout import EVENT_KEYS, evaluate
 from icco_torchrl.modules.policy import exploration_module, make_policy
 from icco_torchrl.objectives import make_target_updater, total_loss
 from icco_torchrl.training.build import make_env, make_loss, make_modules
-from icco_torchrl.training.checkpoint import (check_compatible, load_checkpoint, load_replay, load_weights,
-                                              save_checkpoint, save_replay)
+from icco_torchrl.training.checkpoint import (CheckpointError, check_compatible, load_checkpoint, load_replay,
+                                              load_weights, save_checkpoint, save_replay)
 from icco_torchrl.training.config import resolve_device
 from icco_torchrl.training.logger import RunLogger
 from icco_torchrl.training.segments import SegmentCutter
@@ -66,28 +67,34 @@ class EpisodeTracker:
 
 
 class GracefulInterrupt:
-    """The first Ctrl-C (SIGINT) asks the loop to stop after the current batch; a second one raises.
+    """The first Ctrl-C (SIGINT) or SIGTERM (what Slurm, ``timeout``, docker and submitit send
+    before a kill) asks the loop to stop after the current batch and save a checkpoint; a second
+    one raises at once.
 
     Stopping between batches, not inside the collector or an update, keeps every object in a
     state that can be checkpointed.
     """
 
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
     def __init__(self):
-        self.requested = False
+        self.requested, self.signal_name = False, None
+        self._previous = {}
         try:
-            self._previous = signal.signal(signal.SIGINT, self._handle)
+            for sig in self.SIGNALS:
+                self._previous[sig] = signal.signal(sig, self._handle)
         except ValueError:  # not the main thread: keep Python's default behaviour
-            self._previous = None
+            self._previous = {}
 
     def _handle(self, signum, frame):
         if self.requested:
             raise KeyboardInterrupt
-        self.requested = True
+        self.requested, self.signal_name = True, signal.Signals(signum).name
 
     def restore(self) -> None:
-        if self._previous is not None:
-            signal.signal(signal.SIGINT, self._previous)
-            self._previous = None
+        for sig, previous in self._previous.items():
+            signal.signal(sig, previous)
+        self._previous = {}
 
 
 def _rng_state(env) -> dict:
@@ -112,6 +119,7 @@ def train(cfg: DictConfig, run_dir: str | Path) -> dict:
     resume = load_checkpoint(cfg.resume) if cfg.resume else None
     if resume is not None:
         check_compatible(resume["cfg"], OmegaConf.to_container(cfg, resolve=True), cfg.resume)
+        check_resume_overrides(resume["cfg"], OmegaConf.to_container(cfg, resolve=True), cfg.resume)
         run_dir = Path(cfg.resume).resolve().parent  # continue the same run folder
     torch.set_num_threads(t.threads)
     torch.manual_seed(cfg.seed)
@@ -129,6 +137,7 @@ def train(cfg: DictConfig, run_dir: str | Path) -> dict:
                          eps_init=t.eps_init, eps_end=t.eps_end)
     explore = exploration_module(policy)
     loss = make_loss(cfg, mods)
+    logging.getLogger("torchrl").setLevel(logging.WARNING)  # its INFO lines (with colour codes) break the bar
     # foreach: one multi-tensor kernel per step instead of a loop over ~30 parameters (CPU too).
     if t.optimizer == "rmsprop":
         optim = torch.optim.RMSprop(loss.parameters(), lr=t.lr, alpha=0.99, eps=1e-5, foreach=True)
@@ -151,8 +160,13 @@ def train(cfg: DictConfig, run_dir: str | Path) -> dict:
     cutter = SegmentCutter(length=cfg.method.period)
     buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(t.buffer_segments, device=device),
                                     sampler=RandomSampler(), batch_size=t.batch_segments)
-    logger = RunLogger(run_dir, cfg, total_frames=t.total_frames, initial_frames=frames)
-    OmegaConf.save(cfg, run_dir / "config.yaml")
+    explore.eps.fill_(epsilon(frames, t))  # a resumed run continues its schedule, not from eps_init
+    # The bar ends where the collector does (the budget rounded up to whole batches); a resumed
+    # run's CSVs lose the rows written after its checkpoint, so no frame is logged twice.
+    logger = RunLogger(run_dir, cfg, total_frames=frames + remaining, initial_frames=frames,
+                       truncate=resume is not None)
+    if resume is None:  # a resumed run keeps the record of how it was started
+        OmegaConf.save(cfg, run_dir / "config.yaml")
     if resume is not None and resume.get("replay_segments"):
         if load_replay(buffer, run_dir / REPLAY_DIR):
             logger.print(f"replay buffer restored: {len(buffer)} segments")
@@ -241,9 +255,12 @@ def train(cfg: DictConfig, run_dir: str | Path) -> dict:
                 if t.checkpoint_interval and frames - last_ckpt >= t.checkpoint_interval:
                     checkpoint()
                     last_ckpt = frames
-                logger.progress(frames, SPS=sps, eps=float(explore.eps), R=episode_stats["episode_reward"],
-                                pick=episode_stats["episode_pick"], coll=episode_stats["episode_collect"],
-                                dfn=episode_stats["episode_defense"], inv=episode_stats["episode_invasion"])
+                logger.progress(frames, **{"env-steps/s": sps, "epsilon": float(explore.eps),
+                                           "episode reward": episode_stats["episode_reward"],
+                                           "picks": episode_stats["episode_pick"],
+                                           "deliveries": episode_stats["episode_collect"],
+                                           "defenses": episode_stats["episode_defense"],
+                                           "invasions": episode_stats["episode_invasion"]})
                 if stop.requested:
                     break
                 tick = time.perf_counter()
@@ -255,14 +272,48 @@ def train(cfg: DictConfig, run_dir: str | Path) -> dict:
             collector.shutdown()
     interrupted = stop.requested
     if interrupted:
-        logger.print(f"interrupted at {frames} frames: saving a checkpoint")
+        logger.print(f"interrupted by {stop.signal_name or 'a signal'} at {frames} frames: saving a checkpoint")
     path = checkpoint()
     if not interrupted and remaining > 0:  # a resumed run already at its budget has nothing new to evaluate
         final = run_eval() if last_eval != frames or not evaluated else evaluated[-1]
         plot_learning_curve(run_dir)
-    logger.print(f"checkpoint: {path}")
     logger.close()
+    print(finish_message(run_dir, path, frames, interrupted, final), flush=True)
     return final
+
+
+def check_resume_overrides(saved: dict, cfg: dict, path) -> None:
+    """Refuse, by name, overrides that a resumed run cannot honour: its seed (the restored RNG
+    streams belong to the old one), its env (the replay data came from it) and its exploration
+    schedule (epsilon continues exactly). The budget and evaluation settings may change."""
+    fixed = [("seed",), ("env",), ("train", "eps_init"), ("train", "eps_end"), ("train", "eps_decay_frames"),
+             ("train", "steps_per_batch")]
+    diffs = []
+    for keys in fixed:
+        a, b = saved, cfg
+        for k in keys:
+            a, b = (a or {}).get(k), (b or {}).get(k)
+        if a != b:
+            diffs.append(f"{'.'.join(keys)} (checkpoint {a!r}, now {b!r})")
+    if diffs:
+        raise CheckpointError(f"resume={path} cannot change " + "; ".join(diffs)
+                              + ": drop these overrides, or start a new run without resume=")
+
+
+def finish_message(run_dir: Path, checkpoint: Path, frames: int, interrupted: bool, final: dict) -> str:
+    """What a newcomer needs at the end: what happened, where the results are, what to run next."""
+    lines = [f"{'stopped' if interrupted else 'done'}: {frames:,} env steps; run folder {run_dir}"]
+    if final:
+        lines.append(f"  final greedy evaluation: team reward {final['reward']:.1f}, task reward "
+                     f"{final['task_reward']:.1f}, picks {final['pick']:.1f}, defenses {final['defense']:.1f} "
+                     f"(reference policies: {REFERENCES_FILE})")
+    lines += [f"  metrics: train.csv, eval.csv, timing.csv; figure: learning_curve.png",
+              f"  checkpoint: {checkpoint}"]
+    if interrupted:
+        lines.append(f"  continue: icco train resume={checkpoint}")
+    else:
+        lines.append(f"  next: icco eval checkpoint={checkpoint} eval.protocol=quadrants")
+    return "\n".join(lines)
 
 
 def _log_train(logger: RunLogger, frames: int, updates: int, eps: float, row: dict, recent: list, cfg) -> dict | None:
