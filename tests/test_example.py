@@ -113,8 +113,11 @@ def test_loss_without_set_keys_names_the_missing_key(segments):
 
 def test_make_policy_accepts_another_action_name(segments):
     parts = segments[0]
-    make_policy(parts["agent"], parts["env"].full_action_spec_unbatched, parts["coordinator"], group="robots",
-                action_name="move")
+    policy = make_policy(parts["agent"], parts["env"].full_action_spec_unbatched, parts["coordinator"], group="robots",
+                         action_name="move")
+    td = policy(parts["env"].reset())
+    move = td.get(("robots", "move"))  # the action lands under the renamed key, in range
+    assert move.shape[:2] == td.get(("robots", "obs")).shape[:2] and ("robots", "action") not in td.keys(True)
 
 
 def test_main_tiny_budget():

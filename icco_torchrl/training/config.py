@@ -7,6 +7,7 @@ commented in the YAML files.
 """
 from __future__ import annotations
 
+import inspect
 from dataclasses import dataclass, field
 from typing import Any, Optional
 
@@ -161,6 +162,17 @@ def validate(cfg: DictConfig | dict) -> DictConfig:
         raise ConfigError(f"config field 'train.td_lambda' must be in [0, 1], got {t.td_lambda}")
     if not 0 <= t.gamma <= 1:
         raise ConfigError(f"config field 'train.gamma' must be in [0, 1], got {t.gamma}")
+    if t.updates_per_batch < 1:
+        raise ConfigError(f"config field 'train.updates_per_batch' must be >= 1, got {t.updates_per_batch}")
+    if not t.lr > 0:
+        raise ConfigError(f"config field 'train.lr' must be > 0, got {t.lr}")
+    if not 0 < t.tau <= 1:
+        raise ConfigError(f"config field 'train.tau' must be in (0, 1], got {t.tau}")
+    if t.warmup_segments > t.buffer_segments:
+        raise ConfigError(f"config field 'train.warmup_segments' ({t.warmup_segments}) exceeds "
+                          f"'train.buffer_segments' ({t.buffer_segments}): training would never start")
+    _check_env_params(merged.env.params)
+    _check_llm(merged.llm)
     unknown = [name for name in merged.eval.references if name not in REFERENCE_POLICIES]
     if unknown:
         raise ConfigError(f"config field 'eval.references' has unknown policies {unknown}; "
@@ -172,6 +184,44 @@ def validate(cfg: DictConfig | dict) -> DictConfig:
         raise ConfigError(f"config field 'env.params.spawn' must be one of {SPAWN_MODES}, got {spawn!r}")
     resolve_device(merged.device)
     return merged
+
+
+def _check_env_params(params) -> None:
+    """``env.params`` are the env's keyword arguments: unknown names and bad values are named here,
+    before any work (the env's own checks, run on a one-env instance)."""
+    from icco_torchrl.envs import ResourceCollectionEnv
+
+    params = OmegaConf.to_container(params, resolve=True) if not isinstance(params, dict) else params
+    accepted = set(inspect.signature(ResourceCollectionEnv.__init__).parameters) - {"self", "num_envs", "device", "seed"}
+    for key in params:
+        if key not in accepted:
+            raise ConfigError(f"config field 'env.params.{key}' is not a parameter of ResourceCollectionEnv "
+                              f"(known: {', '.join(sorted(accepted))})")
+    try:
+        ResourceCollectionEnv(num_envs=1, **params)
+    except (ValueError, TypeError) as err:
+        name = next((k for k in params if str(err).startswith(k)), None)
+        raise ConfigError(f"config field 'env.params{'.' + name if name else ''}': {err}") from None
+
+
+_LLM_NUMBERS = {"timeout_s": float, "deadline_s": float, "temperature": float, "backoff_s": float,
+                "max_retries": int, "n_waypoints": int}
+
+
+def _check_llm(llm) -> None:
+    """The ``llm`` group is free-form (any litellm backend); its numeric fields are checked here."""
+    if llm is None:
+        return
+    for key, kind in _LLM_NUMBERS.items():
+        value = llm.get(key, None) if hasattr(llm, "get") else None
+        if value is None:
+            continue
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+        if kind is int:
+            ok = ok and float(value).is_integer()
+        if not ok or value < 0:
+            raise ConfigError(f"config field 'llm.{key}' must be a non-negative {'integer' if kind is int else 'number'}"
+                              f", got {value!r}")
 
 
 def resolve_device(name: str) -> torch.device:
