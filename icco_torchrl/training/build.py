@@ -18,7 +18,16 @@ from icco_torchrl.objectives import ICCOLoss
 from icco_torchrl.training.config import resolve_device, validate
 from icco_torchrl.training.segments import SegmentCutter
 
-CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
+def _conf_dir() -> Path:
+    """The Hydra config tree: ``conf/`` of a source checkout, else the copy a wheel installs as
+    ``icco_torchrl/conf`` (pyproject maps the top-level folder into the package)."""
+    checkout = Path(__file__).resolve().parents[2] / "conf"
+    if (checkout / "config.yaml").is_file():
+        return checkout
+    return Path(__file__).resolve().parents[1] / "conf"
+
+
+CONF_DIR = _conf_dir()
 METHODS = ("icco", "icco_wo_ce", "qmix", "qmix_full")
 
 
