@@ -20,8 +20,8 @@ import sys
 from pathlib import Path
 from string import Template
 
-from icco_torchrl.evaluation.metrics import (EPISODE, METHOD_LABELS, learning_curves, markdown_table, results_json,
-                                             segment_table, write_json)
+from icco_torchrl.evaluation.metrics import (EPISODE, METHOD_LABELS, learning_curves, markdown_table, result_name,
+                                             results_json, segment_table, write_json)
 from icco_torchrl.evaluation.plots import plot_curves
 
 HERE = Path(__file__).resolve().parent
@@ -72,7 +72,9 @@ def budget_section(runs: dict[str, list[Path]], info: dict) -> tuple[str, bool]:
 
 def comparison(summary: list[dict], missing: list[str]) -> str:
     """Statements of the paper's findings, each checked against these numbers."""
-    rows = {r["method"]: r for r in summary if r["segment"] == EPISODE}
+    every = {r["method"]: r for r in summary if r["segment"] == EPISODE}
+    refs = {name: r for name, r in every.items() if result_name(name) in ("random", "follower", "heuristic", "blend")}
+    rows = {name: r for name, r in every.items() if name not in refs}
     if "ICCO" not in rows or len(rows) < 2:
         return "Not enough methods were evaluated to compare (ICCO and at least one baseline are needed)."
     ranked = sorted(rows.values(), key=lambda r: r["reward"], reverse=True)
@@ -95,11 +97,37 @@ def comparison(summary: list[dict], missing: list[str]) -> str:
     follow = ", ".join(f"{r['method']} {r['in_quadrant']:.2f}" for r in ranked)
     lines.append(f"- **Paper: all methods follow the quadrant (ICCO approximately).** Fraction of robot-steps "
                  f"inside the instructed quadrant: {follow}.")
+    lines += criteria(rows, refs)
     if missing:
         lines.append(f"- Missing from this comparison (no checkpoint): {', '.join(missing)}.")
     lines.append("- Our environment is a re-implementation (geometry scaled from COPA, see SPEC), so absolute "
                  "rewards differ from the paper's; the ordering is what to compare.")
     return "\n".join(lines)
+
+
+def criteria(rows: dict, refs: dict) -> list[str]:
+    """Issue 7's bar for a team that does the task, checked for ICCO and QMIX (FULL)."""
+    heuristic, rnd = refs.get("heuristic"), refs.get("random")
+    blend = next((r for name, r in refs.items() if name.startswith("blend")), None)
+    if heuristic is None or rnd is None:
+        return ["- Reference policies missing: issue 7's criteria not checked."]
+    lines = ["- **Issue 7's bar** (task reward >= 50 % of the heuristic's, picks and defenses >= 3x random's, "
+             ">= 70 % of robot-steps in the instructed quadrant; ICCO's team reward >= the best blend's):"]
+    for name in ("ICCO", "QMIX (FULL)"):
+        if name not in rows:
+            continue
+        r = rows[name]
+        checks = [(f"task {r['task_reward']:.1f} vs {0.5 * heuristic['task_reward']:.1f}",
+                   r["task_reward"] >= 0.5 * heuristic["task_reward"]),
+                  (f"picks {r['pick']:.1f} vs {3 * rnd['pick']:.1f}", r["pick"] >= 3 * rnd["pick"]),
+                  (f"defenses {r['defense']:.1f} vs {3 * rnd['defense']:.1f}", r["defense"] >= 3 * rnd["defense"]),
+                  (f"in quadrant {r['in_quadrant']:.2f} vs 0.70", r["in_quadrant"] >= 0.70)]
+        if name == "ICCO" and blend is not None:
+            checks.append((f"team reward {r['reward']:.1f} vs {blend['reward']:.1f}", r["reward"] >= blend["reward"]))
+        met = sum(ok for _, ok in checks)
+        lines.append(f"  - {name}: {met} of {len(checks)} met (" + "; ".join(
+            f"{text} {'met' if ok else 'NOT met'}" for text, ok in checks) + ").")
+    return lines
 
 
 def main(argv=None) -> int:

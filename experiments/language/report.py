@@ -20,13 +20,14 @@ from string import Template
 
 import numpy as np
 
-from icco_torchrl.evaluation.metrics import (EPISODE, METRICS, markdown_table, results_json, segment_table,
-                                             summarize, write_json)
+from icco_torchrl.evaluation.metrics import (EPISODE, METRICS, markdown_table, result_name, results_json,
+                                             segment_table, summarize, write_json)
 
 HERE = Path(__file__).resolve().parent
 TABLE2 = ("QMIX-TAP", "QMIX-TAP w/o TR", "ICCO")
 PAPER_TABLE2 = {"QMIX-TAP": (5.1, 3.0, 6.8), "QMIX-TAP w/o TR": (3.0, 1.1, 2.0), "ICCO": (5.6, 3.7, 10.5)}
 COUNTS = ("pick", "collect", "defense")
+REFERENCE_NAMES = ("random", "follower", "heuristic", "blend")
 SMOKE_FRAMES = 100_000
 
 
@@ -50,6 +51,12 @@ def table2(rows: list[dict]) -> tuple[str, dict]:
         means[method] = tuple(values[k].mean() for k in COUNTS)
         cells = " | ".join(f"{values[k].mean():.1f} ± {values[k].std():.1f}" for k in COUNTS)
         lines.append(f"| {method} | {len(segs)} | {cells} | {paper} |")
+    # The scripted reference policies, driven by the same task-aligned plans (extra rows, not in the paper).
+    for method in dict.fromkeys(r["method"] for r in rows if result_name(r["method"]) in REFERENCE_NAMES):
+        segs = [r for r in rows if r["method"] == method and r["segment"] != EPISODE]
+        values = {k: np.array([float(r[k]) for r in segs]) for k in COUNTS}
+        cells = " | ".join(f"{values[k].mean():.1f} ± {values[k].std():.1f}" for k in COUNTS)
+        lines.append(f"| {method} (reference) | {len(segs)} | {cells} | – |")
     return "\n".join(lines), means
 
 
