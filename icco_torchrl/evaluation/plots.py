@@ -61,7 +61,7 @@ def draw_segment(ax, run: ScheduleRun, segment: int, trial: int = 0) -> None:
     if quadrant is not None:
         sx, sy = QUADRANT_SIGNS[quadrant]
         ax.add_patch(Rectangle((min(0, sx * half), min(0, sy * half)), half, half, color=SHADE, alpha=0.6, lw=0))
-    ax.add_patch(Circle((0, 0), run.geometry["home_radius"], color=HOME, ec="0.35", zorder=2))
+    ax.add_patch(Circle((0, 0), run.geometry["home_radius"], color=HOME, ec="0.35", zorder=2, label="home"))
     resources = np.unique(np.round(traj["res_pos"].reshape(-1, 2), 4), axis=0)
     ax.scatter(resources[:, 0], resources[:, 1], s=40, c=RESOURCE, edgecolors="0.3", zorder=3, label="resource")
     wps = run.trajectory["waypoints"][start:stop, trial].reshape(-1, 2)
@@ -72,9 +72,10 @@ def draw_segment(ax, run: ScheduleRun, segment: int, trial: int = 0) -> None:
     events = _events(traj["carry"], traj["defended"])
     pos = traj["pos"]
     for i in range(pos.shape[1]):
-        ax.plot(pos[:, i, 0], pos[:, i, 1], c=_rgb(i), lw=1.3, zorder=4)
-        ax.scatter(*pos[0, i], s=25, facecolors="none", edgecolors=[_rgb(i)], zorder=5)
-        ax.scatter(*pos[-1, i], s=25, c=[_rgb(i)], zorder=5)
+        ax.plot(pos[:, i, 0], pos[:, i, 1], c=_rgb(i), lw=1.3, zorder=4, label=f"robot {i}")
+        ax.scatter(*pos[0, i], s=25, facecolors="none", edgecolors=[_rgb(i)], zorder=5,
+                   label="start (hollow)" if i == 0 else None)
+        ax.scatter(*pos[-1, i], s=25, c=[_rgb(i)], zorder=5, label="end (filled)" if i == 0 else None)
     styles = {"pick": dict(marker="*", s=90, c=RESOURCE), "collect": dict(marker="s", s=40, c=HOME),
               "defense": dict(marker="X", s=60, c=INVADER)}
     for name, mask in events.items():
@@ -103,8 +104,9 @@ def plot_trajectories(runs: Mapping[str, ScheduleRun], stem: str | Path, segment
             if row == 0:
                 axes[row, col].set_title(f"{label}\n" + axes[row, col].get_title(), fontsize=8)
     handles, labels = axes[0, 0].get_legend_handles_labels()
-    fig.legend(handles, labels, loc="lower center", ncol=len(labels), fontsize=7, frameon=False)
-    fig.tight_layout(rect=(0, 0.4 / height, 1, 1))
+    rows = 2 if len(labels) > 6 else 1  # robots, home, start/end and the events: two lines when many
+    fig.legend(handles, labels, loc="lower center", ncol=-(-len(labels) // rows), fontsize=7, frameon=False)
+    fig.tight_layout(rect=(0, 0.4 * rows / height, 1, 1))
     return save(fig, stem)
 
 
