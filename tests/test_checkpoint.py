@@ -14,6 +14,8 @@ from torchrl.data import LazyTensorStorage, RandomSampler, TensorDictReplayBuffe
 from icco_torchrl.training.checkpoint import (FORMAT_VERSION, CheckpointError, load_checkpoint, load_replay,
                                               save_checkpoint, save_replay)
 
+pytestmark = pytest.mark.fault  # the fault suite: crafted, damaged and stale files
+
 torch.set_num_threads(1)
 
 

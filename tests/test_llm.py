@@ -494,6 +494,7 @@ NO_REPLY = {"refused": "Connection refused", "hang": "Timeout", "401": "Authenti
 
 
 @pytest.mark.parametrize("case", NO_REPLY)
+@pytest.mark.fault
 def test_a_model_that_never_replies_fails_fast_in_one_line(litellm: Any, openai_key: None, case: str) -> None:
     with provider(case) as (url, server):
         planner = remote(url)
@@ -511,6 +512,7 @@ def test_a_model_that_never_replies_fails_fast_in_one_line(litellm: Any, openai_
 
 
 @pytest.mark.parametrize("case", NO_REPLY)
+@pytest.mark.fault
 def test_with_fallbacks_a_model_that_never_replies_falls_back_and_records_it(litellm: Any, openai_key: None,
                                                                              case: str) -> None:
     with provider(case) as (url, _):
@@ -523,6 +525,7 @@ def test_with_fallbacks_a_model_that_never_replies_falls_back_and_records_it(lit
     assert np.allclose(result.waypoints, 0.5) and planner.stats["fallbacks"] == 1
 
 
+@pytest.mark.fault
 def test_retries_and_timeouts_never_outlast_the_deadline(litellm: Any, openai_key: None) -> None:
     with FakeOpenAI("hang", lifetime=20.0) as server:
         planner = remote(server.url, timeout=10.0, deadline_s=1.0, max_retries=5, backoff_s=0.0)
@@ -532,6 +535,7 @@ def test_retries_and_timeouts_never_outlast_the_deadline(litellm: Any, openai_ke
         assert time.monotonic() - begin < 2.0 and len(server.requests) == 1
 
 
+@pytest.mark.fault
 def test_a_provider_that_ignores_its_timeout_still_ends_at_the_deadline(scripted: Scripted) -> None:
     release = threading.Event()
     original = scripted.handler.completion

@@ -122,6 +122,7 @@ def test_render():
 
 @pytest.mark.parametrize("bad", [2.9, 2.0, "2", True, None, -1, N_ACTIONS, np.float32(1.0), [1], np.array(2.0),
                                  torch.tensor(2.5)])
+@pytest.mark.fault
 def test_an_action_that_is_not_an_integer_in_range_is_one_clear_line(bad):
     env = parallel_env(seed=0)
     env.reset()
@@ -154,6 +155,7 @@ EXTREME = [  # valid parameters far from the defaults
 
 
 @pytest.mark.parametrize("params", EXTREME)
+@pytest.mark.fault
 def test_observations_and_states_stay_in_the_declared_boxes_at_extreme_parameters(params):
     env = parallel_env(seed=0, max_steps=100, **params)
     rng = np.random.default_rng(0)

@@ -196,6 +196,7 @@ LONG_RUN = ("logger.progress=false", "train.total_frames=10000000", "env.num_env
 
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+@pytest.mark.fault
 def test_ctrl_c_and_sigterm_save_a_checkpoint_and_exit_cleanly(tmp_path, sig):
     cmd = [sys.executable, "-m", "icco_torchrl", "train", *LONG_RUN, f"hydra.run.dir={tmp_path}"]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
@@ -215,6 +216,7 @@ def _frames(path):
     return [int(r["frames"]) for r in read_csv(path)]
 
 
+@pytest.mark.fault
 def test_kill_9_then_resume_logs_every_frame_once(tmp_path):
     """SIGKILL after a checkpoint (rows already logged past it), resume: the CSVs have the frame
     column of an uninterrupted same-seed run (values differ: the env state is not checkpointed)."""
@@ -262,3 +264,33 @@ def test_resume_refuses_overrides_it_cannot_honour(tmp_path, override, named):
 def test_a_config_error_leaves_no_run_folder(tmp_path):
     proc = run_cli("train", *SMOKE, "train.lr=abc", f"hydra.run.dir={tmp_path / 'run'}", check=False)
     assert proc.returncode == 2 and not (tmp_path / "run").exists()
+
+
+@pytest.mark.fault
+def test_repeated_kills_inside_checkpoints_and_dumps_lose_nothing(tmp_path):
+    """Three SIGKILLs while the run checkpoints (and dumps its replay buffer) after every batch,
+    each followed by a resume: the CSVs end with the uninterrupted run's frame column, the
+    checkpoint loads, and no temp file or folder survives."""
+    budget = ("train.total_frames=6144", "train.checkpoint_interval=128", "train.eval_interval=1024")
+    run = tmp_path / "killed"
+    command = [sys.executable, "-m", "icco_torchrl", "train", *SMOKE, *budget]
+    kills = 0
+    for delay in (1.0, 2.0, 3.0):
+        resume = [f"resume={run / 'checkpoint.pt'}"] if (run / "checkpoint.pt").exists() else [f"hydra.run.dir={run}"]
+        proc = subprocess.Popen([*command, *resume], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        deadline = time.time() + 120
+        while time.time() < deadline and proc.poll() is None and not (run / "checkpoint.pt").exists():
+            time.sleep(0.1)
+        time.sleep(delay)
+        if proc.poll() is None:
+            proc.kill()
+            kills += 1
+        proc.wait(timeout=30)
+    assert kills >= 2, "the run finished before it could be killed"
+    proc = run_cli("train", *SMOKE, *budget, f"resume={run / 'checkpoint.pt'}")
+    assert "replay buffer restored" in proc.stdout
+    run_cli("train", *SMOKE, *budget, f"hydra.run.dir={tmp_path / 'whole'}")
+    for stream in ("train.csv", "eval.csv", "timing.csv"):
+        assert _frames(run / stream) == _frames(tmp_path / "whole" / stream), stream
+    assert load_checkpoint(run / "checkpoint.pt")["frames"] == 6144
+    assert not [p.name for p in run.iterdir() if p.name.endswith(".tmp")]

@@ -171,8 +171,6 @@ def validate(cfg: DictConfig | dict) -> DictConfig:
     if t.warmup_segments > t.buffer_segments:
         raise ConfigError(f"config field 'train.warmup_segments' ({t.warmup_segments}) exceeds "
                           f"'train.buffer_segments' ({t.buffer_segments}): training would never start")
-    _check_env_params(merged.env.params)
-    _check_llm(merged.llm)
     unknown = [name for name in merged.eval.references if name not in REFERENCE_POLICIES]
     if unknown:
         raise ConfigError(f"config field 'eval.references' has unknown policies {unknown}; "
@@ -182,6 +180,8 @@ def validate(cfg: DictConfig | dict) -> DictConfig:
     spawn = merged.env.params.get("spawn", "uniform")
     if spawn not in SPAWN_MODES:
         raise ConfigError(f"config field 'env.params.spawn' must be one of {SPAWN_MODES}, got {spawn!r}")
+    _check_env_params(merged.env.params)
+    _check_llm(merged.llm)
     resolve_device(merged.device)
     return merged
 

@@ -249,10 +249,12 @@ def train(cfg: DictConfig, run_dir: str | Path) -> dict:
                     recent = []
                 sps = (frames - start_frames) / (time.perf_counter() - start_wall)
                 logger.log("timing", {"frames": frames, "sps": sps, **{f"time_{k}": v for k, v in timers.items()}})
-                if t.eval_interval and frames - last_eval >= t.eval_interval:
+                # On a fixed grid of frames (every interval crossed), so a resumed run evaluates and
+                # checkpoints at the same frames as an uninterrupted one.
+                if t.eval_interval and frames // t.eval_interval > last_eval // t.eval_interval:
                     run_eval()
                     last_eval = frames
-                if t.checkpoint_interval and frames - last_ckpt >= t.checkpoint_interval:
+                if t.checkpoint_interval and frames // t.checkpoint_interval > last_ckpt // t.checkpoint_interval:
                     checkpoint()
                     last_ckpt = frames
                 logger.progress(frames, **{"env-steps/s": sps, "epsilon": float(explore.eps),
