@@ -1,0 +1,200 @@
+"""The live loop: one team, a trained policy, instructions at any moment (what a live page and a robot bridge drive).
+
+:class:`LiveLoop` holds an env of one team (``num_envs=1``, external waypoints), a greedy
+policy (argmax Q, the coordinator's mean) and a planner (the offline rule planner or any
+litellm model, through :class:`~icco_torchrl.instructions.LLMPlanner` with its cache, retries,
+deadline and fallbacks). :meth:`LiveLoop.tick` steps the team once and returns what a display
+or a robot bridge needs; :meth:`LiveLoop.instruct` starts planning in a background thread and
+returns at once, so the team keeps moving on its previous waypoints until the plan arrives
+(the next tick applies it). :meth:`LiveLoop.run` ticks at a fixed rate (default real time: one
+env step per ``env.dt`` seconds). No web code here: a page or a bridge drives this object.
+"""
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+import torch
+from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
+
+from icco_torchrl.instructions.sources import base_env
+
+EVENTS = ("pick", "collect", "defense", "invasion")
+
+
+def _np(tensor: torch.Tensor) -> np.ndarray:
+    """A numpy copy (CPU tensors would otherwise share memory with the env's state)."""
+    return tensor.detach().cpu().numpy().copy()
+
+
+@dataclass
+class PlannerStatus:
+    """What the planner is doing: ``idle``, ``thinking``, ``used`` (a plan is driving the team) or
+    ``fell back`` (the team keeps its previous waypoints; ``error`` says why)."""
+
+    state: str = "idle"
+    instruction: str | None = None
+    error: str | None = None
+    latency_s: float | None = None
+    requests: int = 0
+
+
+@dataclass
+class TickState:
+    """One tick, as plain numpy/python values (ready for JSON)."""
+
+    tick: int
+    step: int
+    positions: np.ndarray        # [N, 2]
+    waypoints: np.ndarray        # [N, K, 2]
+    resources: np.ndarray        # [R, 2]
+    invader: np.ndarray          # [I, 2]
+    invader_active: np.ndarray   # [I]
+    carry: np.ndarray            # [N]
+    z: np.ndarray | None         # [N, z_dim] (ICCO) or None
+    events: dict = field(default_factory=dict)   # this step's counts and instruction reward
+    totals: dict = field(default_factory=dict)   # running sums since the loop started
+    planner: dict = field(default_factory=dict)
+    latency_ms: float = 0.0      # policy + env step + bookkeeping of this tick
+
+    def to_dict(self) -> dict:
+        out = asdict(self)
+        return {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in out.items()}
+
+
+class LiveLoop:
+    """A trained team driven live (see the module docstring).
+
+    Args:
+        env: a ``ResourceCollectionEnv`` (or a ``TransformedEnv`` over one) with ``num_envs=1`` and
+            ``waypoint_mode="external"``; :meth:`from_checkpoint` builds one.
+        policy: maps the root TensorDict to one with the action (a restored trained policy, or a
+            reference policy); run greedily.
+        planner: an :class:`~icco_torchrl.instructions.LLMPlanner`, or None (instructions refused).
+    """
+
+    def __init__(self, env, policy, planner=None):
+        raw = base_env(env)
+        if raw.num_envs != 1 or raw.waypoint_mode != "external":
+            raise ValueError("LiveLoop drives one team with external waypoints: build the env with num_envs=1 and "
+                             "waypoint_mode='external' (LiveLoop.from_checkpoint does)")
+        self.env, self.raw, self.policy, self.planner = env, raw, policy, planner
+        self.status = PlannerStatus()
+        self.totals = {k: 0.0 for k in (*EVENTS, "inst_reward", "reward")}
+        self.ticks = 0
+        self._lock = threading.Lock()     # one tick or plan hand-over at a time
+        self._pending: np.ndarray | None = None
+        self._thread: threading.Thread | None = None
+        with torch.no_grad():
+            self.td = env.reset()
+
+    @classmethod
+    def from_checkpoint(cls, path, *, planner=None, device: str = "cpu", seed: int | None = None,
+                        episode_steps: int = 10 ** 6) -> "LiveLoop":
+        """The checkpoint's policy on a one-team env; ``episode_steps`` long episodes (a live team
+        does not stop at 145 steps), reset when one ends."""
+        from icco_torchrl.training.restore import restore  # heavy: networks and Hydra config
+
+        restored = restore(path, num_envs=1, device=device, seed=seed, max_steps=episode_steps,
+                           waypoint_mode="external")
+        return cls(restored["env"], restored["policy"], planner)
+
+    # ------------------------------------------------------------------ instructions
+    def instruct(self, instruction: str) -> None:
+        """Plan ``instruction`` in the background from the robots' current positions; returns at once.
+
+        An instruction given while another is being planned replaces it (the older plan is
+        dropped when it arrives). Unknown instructions fall back in the planner: the status says
+        so and the team keeps its previous waypoints.
+        """
+        if not isinstance(instruction, str) or not instruction.strip():
+            raise ValueError(f"an instruction must be a non-empty string, got {instruction!r}")
+        if self.planner is None:
+            raise ValueError("this live loop has no planner: give one (LLMPlanner) to take instructions")
+        instruction = instruction.strip()
+        with self._lock:
+            positions = self.raw.pos[0].cpu().numpy().copy()
+            previous = self.raw.waypoints[0].cpu().numpy().copy()
+            resources = self.raw.res_pos[0].cpu().numpy().copy()
+            invader = self.raw.inv_pos[0][self.raw.inv_active[0]].cpu().numpy().copy()
+            self.status = PlannerStatus("thinking", instruction, requests=self.status.requests + 1)
+        thread = threading.Thread(target=self._plan, args=(instruction, positions, previous, resources, invader),
+                                  daemon=True, name="icco-live-planner")
+        self._thread = thread
+        thread.start()
+
+    def _plan(self, instruction, positions, previous, resources, invader) -> None:
+        start = time.perf_counter()
+        try:
+            result = self.planner.plan(instruction, positions, previous=previous, resources=resources, invader=invader)
+            ok, error, waypoints = result.ok, result.error, result.waypoints
+        except Exception as err:  # an unreachable model must not stop the team: report, keep the plan
+            ok, error, waypoints = False, f"{type(err).__name__}: {err}".splitlines()[0], None
+        with self._lock:
+            if self.status.instruction != instruction or threading.current_thread() is not self._thread:
+                return  # superseded by a newer instruction
+            latency = time.perf_counter() - start
+            if ok:
+                self._pending = np.asarray(waypoints, dtype=np.float32)
+                self.status = PlannerStatus("used", instruction, None, latency, self.status.requests)
+            else:
+                self.status = PlannerStatus("fell back", instruction, error or "no plan", latency, self.status.requests)
+
+    def wait_for_plan(self, timeout: float | None = None) -> PlannerStatus:
+        """Block until the current planning request is answered (tests, scripted demos)."""
+        if self._thread is not None:
+            self._thread.join(timeout)
+        return self.status
+
+    # ------------------------------------------------------------------ stepping
+    def tick(self) -> TickState:
+        """One env step of the team under the current plan; applies a plan that arrived since."""
+        start = time.perf_counter()
+        with self._lock, torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+            if self._pending is not None:
+                self.raw.write_waypoints(self.td, torch.as_tensor(self._pending, device=self.raw.device)[None])
+                self._pending = None
+            td = self.env.step(self.policy(self.td))
+            nxt = td.get("next")
+            events = {k: float(nxt.get(("events", k))[0]) for k in (*EVENTS, "inst_reward")}
+            events["reward"] = float(nxt.get("reward")[0, 0])
+            for k, v in events.items():
+                self.totals[k] += v
+            z = td.get(("agents", "z"), None)
+            self.ticks += 1
+            raw = self.raw
+            state = TickState(
+                tick=self.ticks, step=int(raw.t[0]), positions=_np(raw.pos[0]), waypoints=_np(raw.waypoints[0]),
+                resources=_np(raw.res_pos[0]), invader=_np(raw.inv_pos[0]), invader_active=_np(raw.inv_active[0]),
+                carry=_np(raw.carry[0]), z=None if z is None else _np(z[0]),
+                events=events, totals=dict(self.totals), planner=asdict(self.status))
+            self.td = step_mdp(td)
+            if bool(nxt.get("done").any()):  # a live team never stops: the next tick starts a new episode
+                self.td = self.env.reset()
+        state.latency_ms = (time.perf_counter() - start) * 1e3
+        return state
+
+    def run(self, ticks: int, rate_hz: float | None = None, on_tick=None, stop: threading.Event | None = None) -> list[float]:
+        """``ticks`` ticks at ``rate_hz`` (default: real time, ``1 / env.dt``); ``on_tick(state)`` is
+        called after each. Returns the tick latencies (ms). Late ticks are not made up for."""
+        rate = rate_hz or 1.0 / self.raw.dt
+        if not rate > 0:
+            raise ValueError(f"rate_hz must be > 0, got {rate_hz!r}")
+        period, latencies = 1.0 / rate, []
+        next_time = time.perf_counter()
+        for _ in range(ticks):
+            if stop is not None and stop.is_set():
+                break
+            state = self.tick()
+            latencies.append(state.latency_ms)
+            if on_tick is not None:
+                on_tick(state)
+            next_time += period
+            pause = next_time - time.perf_counter()
+            if pause > 0:
+                time.sleep(pause)
+            else:
+                next_time = time.perf_counter()
+        return latencies
