@@ -19,6 +19,7 @@ import numpy as np
 import torch
 from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
+from icco_torchrl.envs.resource_collection import _ACTION_DIRS
 from icco_torchrl.instructions.sources import base_env
 
 EVENTS = ("pick", "collect", "defense", "invasion")
@@ -175,6 +176,54 @@ class LiveLoop:
                 self.td = self.env.reset()
         state.latency_ms = (time.perf_counter() - start) * 1e3
         return state
+
+    def act_on(self, positions, *, velocities=None, resources=None, invader=None) -> tuple[np.ndarray, np.ndarray]:
+        """The policy's move for robots measured from outside (motion capture), without stepping the env.
+
+        The env's state is overwritten by the measurements: ``positions`` [N, 2], ``velocities``
+        [N, 2] (m/s; zero when not given), ``resources`` [R, 2] and ``invader`` [I', 2] (active ones;
+        kept from the last call when None). The observation is rebuilt, the policy runs greedily,
+        and its recurrent state, previous action and step counter carry over to the next call.
+        Returns ``(actions [N], targets [N, 2])``: each robot's discrete move and the point one move
+        (``max_speed * dt``) away in that direction, which a controller (DWA) then drives to.
+        """
+        raw = self.raw
+        dev = raw.device
+        lim = raw.half - raw.agent_radius
+        with self._lock, torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+            pos = torch.as_tensor(np.asarray(positions, np.float32), device=dev).reshape(1, raw.n_agents, 2)
+            raw.pos = pos.clamp(-lim, lim)
+            vel = torch.zeros_like(pos) if velocities is None else torch.as_tensor(
+                np.asarray(velocities, np.float32), device=dev).reshape(1, raw.n_agents, 2)
+            raw.vel = vel
+            if resources is not None:
+                res = torch.as_tensor(np.asarray(resources, np.float32), device=dev).reshape(1, raw.n_resources, 2)
+                raw.res_pos = res.clamp(-raw.half, raw.half)
+            if invader is not None:
+                inv = np.asarray(invader, np.float32).reshape(-1, 2)[: raw.n_invaders]
+                full = np.zeros((raw.n_invaders, 2), np.float32)
+                full[: len(inv)] = inv
+                raw.inv_pos = torch.as_tensor(full, device=dev)[None]
+                raw.inv_active = (torch.arange(raw.n_invaders, device=dev) < len(inv))[None]
+            waypoints = raw.waypoints
+            if self._pending is not None:
+                waypoints, self._pending = torch.as_tensor(self._pending, device=dev)[None], None
+            raw.write_waypoints(self.td, waypoints)  # rebuilds the observation and the state from the above
+            td = self.policy(self.td)
+            action = td.get(("agents", "action"))[0]
+            nxt = td.get("next", None)
+            carried = td.exclude("next")
+            for key in (("agents", "rnn_hidden"), ("agents", "prev_action")):  # a trained policy's memory
+                if nxt is not None and key in nxt.keys(True):
+                    carried.set(key, nxt.get(key))
+            carried.set("step_count", td.get("step_count") + 1)
+            self.td = carried
+            raw._put(t=raw.t + 1)
+            self.ticks += 1
+            step = raw.max_speed * raw.dt
+            dirs = torch.tensor(_ACTION_DIRS, device=dev)[action.long()]
+            targets = raw.pos[0] + step * dirs
+        return _np(action), _np(targets)
 
     def run(self, ticks: int, rate_hz: float | None = None, on_tick=None, stop: threading.Event | None = None) -> list[float]:
         """``ticks`` ticks at ``rate_hz`` (default: real time, ``1 / env.dt``); ``on_tick(state)`` is

@@ -1,0 +1,115 @@
+"""The robot bridge: DWA commands within limits, the protocol, and bridge + simulated fleet over loopback."""
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from icco_torchrl.envs import ResourceCollectionEnv
+from icco_torchrl.envs.reference_policies import make_reference_policy
+from icco_torchrl.live import LiveLoop
+from icco_torchrl.live.bridge import Bridge, ProtocolError, parse_message
+from icco_torchrl.live.dwa import RobotLimits, dwa_command
+from icco_torchrl.live.fleet import SimulatedFleet
+from icco_torchrl.modules.policy import make_policy
+from icco_torchrl.training.build import build_components, compose_config, make_env
+
+LIMITS = RobotLimits()
+
+
+def test_dwa_drives_toward_the_target_within_its_limits():
+    v, w = dwa_command((0, 0, 0), (0.3, 0.0), (2.0, 0.0), LIMITS, 0.1)
+    assert v > 0.3 and abs(w) < 0.25  # straight ahead: speed up, hardly turn
+    v, w = dwa_command((0, 0, 0), (0.0, 0.0), (-2.0, 0.1), LIMITS, 0.1)
+    assert abs(w) > 0.2 and v <= LIMITS.max_accel * 0.1 + 1e-9  # behind: turn, creep
+    for _ in range(50):
+        pose, vel = np.random.uniform(-3, 3, 3), (np.random.uniform(0, 0.5), np.random.uniform(-2, 2))
+        v, w = dwa_command(pose, vel, np.random.uniform(-3, 3, 2), LIMITS, 0.1)
+        assert 0 <= v <= LIMITS.max_speed and abs(w) <= LIMITS.max_turn
+        assert abs(v - vel[0]) <= LIMITS.max_accel * 0.1 + 1e-9 and abs(w - vel[1]) <= LIMITS.max_turn_accel * 0.1 + 1e-9
+    assert dwa_command((1, 1, 0), (0, 0), (1.0, 1.005), LIMITS, 0.1) == (0.0, 0.0)  # arrived: stay
+
+
+def test_dwa_keeps_clear_of_another_robot():
+    # Another robot right ahead: going straight would hit it within the horizon.
+    v, w = dwa_command((0, 0, 0), (0.5, 0.0), (2.0, 0.0), LIMITS, 0.1, others=[[0.45, 0.0]])
+    assert abs(w) > 0.1 or v < 0.45  # swerves or slows down
+    with pytest.raises(ValueError, match="max_speed"):
+        RobotLimits(max_speed=0)
+
+
+@pytest.mark.parametrize("data, message", [
+    (b"\xff\xfe", "not UTF-8 JSON"), (b"[1, 2]", "JSON object"), (b'{"type": "dance"}', "type"),
+    (b'{"type": "state", "robots": [{"id": 7, "pose": [0, 0, 0]}]}', "integer 'id'"),
+    (b'{"type": "state", "robots": [{"id": 0, "pose": [0, "a", 0]}]}', "pose"),
+    (b'{"type": "state", "robots": [], "resources": [[0]]}', "resources"),
+    (b'{"type": "instruct", "text": ""}', "non-empty"),
+])
+def test_malformed_messages_are_refused_in_one_line(data, message):
+    with pytest.raises(ProtocolError, match=message):
+        parse_message(data, 3)
+
+
+def _heuristic_loop():
+    env = ResourceCollectionEnv(num_envs=1, seed=0, waypoint_mode="external", max_steps=10 ** 6)
+    return LiveLoop(env, make_reference_policy("heuristic", env))
+
+
+def test_act_on_measured_positions_carries_a_trained_policys_memory():
+    cfg = compose_config(["experiment=smoke"])
+    parts = build_components(cfg)
+    env = make_env(cfg, num_envs=1, waypoint_mode="external", max_steps=10 ** 6)
+    loop = LiveLoop(env, make_policy(parts["agent"], env.full_action_spec_unbatched, parts["coordinator"]))
+    for k in range(6):
+        actions, targets = loop.act_on([[0.0, 0.0], [1.0, 1.0], [-1.0, 1.0]])
+        assert actions.shape == (3,) and targets.shape == (3, 2)
+        step = np.linalg.norm(targets - [[0.0, 0.0], [1.0, 1.0], [-1.0, 1.0]], axis=-1)
+        assert np.all((step < 1e-6) | (np.abs(step - 0.19) < 1e-4))  # one move (or no-op) away
+    assert int(loop.td["step_count"]) == 6 and loop.td["agents", "rnn_hidden"].abs().sum() > 0
+
+
+def test_bridge_and_simulated_fleet_over_loopback():
+    loop = _heuristic_loop()
+    bridge = Bridge(loop, rate_hz=10, timeout=0.5, limits=LIMITS)
+    fleet = SimulatedFleet(bridge.address, rate_hz=20, latency=0.05, limits=LIMITS, seed=1)
+    start = fleet.poses[:, :2].copy()
+    stop = threading.Event()
+    threads = [threading.Thread(target=bridge.serve, args=(stop, 6.0), daemon=True),
+               threading.Thread(target=fleet.run, args=(stop, 6.0), daemon=True)]
+    for t in threads:
+        t.start()
+    try:
+        time.sleep(2.5)
+        for junk in (b"not json", b'{"type": "state", "robots": [{"id": 9}]}', b"{}"):
+            fleet.send_raw(junk)
+        fleet.silence(1)
+        time.sleep(1.5)
+    finally:
+        stop.set()
+        for t in threads:
+            t.join(timeout=10)
+        bridge.close()
+        fleet.close()
+    assert bridge.stats["malformed"] == 3 and bridge.stats["commands"] >= 25
+    for msg in fleet.commands:
+        for r in msg["robots"]:
+            assert 0 <= r["v"] <= LIMITS.max_speed and abs(r["w"]) <= LIMITS.max_turn
+    last = fleet.commands[-1]["robots"]
+    assert last[1]["stopped"] and last[1]["reason"] == "stale" and last[1]["v"] == 0 == last[1]["w"]
+    assert not last[0]["stopped"] and bridge.stats["stale_stops"] == 1
+    moved = np.linalg.norm(fleet.poses[:, :2] - start, axis=-1)
+    assert moved[0] > 0.2 and moved[2] > 0.2, moved       # driven by the commands
+    assert fleet.velocity[1].tolist() == [0.0, 0.0]         # the silenced robot was stopped
+    assert np.median(bridge.stats["latency_ms"]) < 100      # state in -> command out
+
+
+def test_a_port_in_use_is_one_clear_line():
+    loop = _heuristic_loop()
+    first = Bridge(loop)
+    try:
+        with pytest.raises(OSError, match=f"cannot listen on udp 127.0.0.1:{first.address[1]}"):
+            Bridge(loop, port=first.address[1])
+    finally:
+        first.close()
