@@ -113,3 +113,25 @@ def test_a_port_in_use_is_one_clear_line():
             Bridge(loop, port=first.address[1])
     finally:
         first.close()
+
+
+def test_icco_bridge_with_the_simulated_fleet_through_the_cli(tmp_path):
+    import socket
+
+    from conftest import run_cli
+
+    run_cli("train", "method=qmix", "experiment=smoke", "logger.progress=false", f"hydra.run.dir={tmp_path}")
+    ckpt = tmp_path / "checkpoint.pt"
+    proc = run_cli("bridge", f"checkpoint={ckpt}", "live.fleet=true", "live.seconds=3", "live.port=0", timeout=120)
+    assert "listening on udp 127.0.0.1:" in proc.stdout and " 0 malformed" in proc.stdout
+    commands = int(proc.stdout.split(" commands,")[0].rsplit(" ", 1)[-1])
+    assert commands >= 20  # ~10 Hz for 3 s
+    busy = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    busy.bind(("127.0.0.1", 0))
+    try:
+        port = busy.getsockname()[1]
+        proc = run_cli("bridge", f"checkpoint={ckpt}", f"live.port={port}", "live.seconds=1", check=False, timeout=120)
+    finally:
+        busy.close()
+    assert proc.returncode == 2 and f"cannot listen on udp 127.0.0.1:{port}" in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1

@@ -103,6 +103,21 @@ class EvalConfig:
 
 
 @dataclass
+class LiveConfig:
+    host: str = "127.0.0.1"
+    port: int = 8765
+    rate_hz: float = 10.0
+    timeout_s: float = 0.5
+    fleet: bool = False
+    seconds: Optional[float] = None
+    max_speed: float = 0.5
+    max_turn: float = 2.0
+    max_accel: float = 1.0
+    max_turn_accel: float = 4.0
+    robot_radius: float = 0.15
+
+
+@dataclass
 class Config:
     seed: int = 0
     device: str = "auto"
@@ -113,6 +128,7 @@ class Config:
     train: TrainConfig = field(default_factory=TrainConfig)
     logger: LoggerConfig = field(default_factory=LoggerConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
+    live: LiveConfig = field(default_factory=LiveConfig)
     llm: Any = None
 
 
@@ -124,7 +140,9 @@ _CHOICES = {
 }
 _POSITIVE = ("env.num_envs", "train.total_frames", "train.steps_per_batch", "train.buffer_segments",
              "train.batch_segments", "train.target_update_interval", "train.eval_envs", "train.threads",
-             "method.hidden", "method.period", "eval.trials", "eval.episodes", "logger.log_interval")
+             "method.hidden", "method.period", "eval.trials", "eval.episodes", "logger.log_interval",
+             "live.rate_hz", "live.timeout_s", "live.max_speed", "live.max_turn", "live.max_accel",
+             "live.max_turn_accel", "live.robot_radius")
 _NON_NEGATIVE = ("train.updates_per_batch", "train.warmup_segments", "train.eval_interval", "train.checkpoint_interval",
                  "train.eps_decay_frames", "method.ce_coef", "method.entropy_coef", "method.z_dim", "train.grad_clip")
 
@@ -171,6 +189,8 @@ def validate(cfg: DictConfig | dict) -> DictConfig:
     if t.warmup_segments > t.buffer_segments:
         raise ConfigError(f"config field 'train.warmup_segments' ({t.warmup_segments}) exceeds "
                           f"'train.buffer_segments' ({t.buffer_segments}): training would never start")
+    if not 0 <= merged.live.port <= 65535:
+        raise ConfigError(f"config field 'live.port' must be in [0, 65535], got {merged.live.port}")
     unknown = [name for name in merged.eval.references if name not in REFERENCE_POLICIES]
     if unknown:
         raise ConfigError(f"config field 'eval.references' has unknown policies {unknown}; "
