@@ -3,7 +3,7 @@
 Counts and rewards are summed over a segment's steps, so a trial's segments add up to its
 episode; distances and fractions are averaged over steps, so the episode value is the
 step-weighted mean of its segments'. Standard deviations are over trials (population std,
-as in :func:`icco_torchrl.evaluation.rollout.evaluate`).
+as in :func:`icco_torchrl.training.rollout.evaluate`).
 """
 from __future__ import annotations
 
@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from icco_torchrl.instructions.sources import QUADRANT_SIGNS
+from icco_torchrl.training.logger import read_column  # noqa: F401  (re-exported: the CSV streams' reader)
 
 # Summed over steps: team reward, its instruction part, its task part, and the event counts.
 ADDITIVE = ("reward", "task_reward", "inst_reward", "pick", "collect", "defense", "invasion")
@@ -203,22 +204,6 @@ class Curve:
     mean: np.ndarray
     std: np.ndarray
     runs: list[str]
-
-
-def read_column(run_dir: str | Path, stream: str, column: str) -> tuple[np.ndarray, np.ndarray] | None:
-    """``(frames, values)`` of a run's ``{stream}.csv`` (rows with an empty or NaN value skipped)."""
-    path = Path(run_dir) / f"{stream}.csv"
-    if not path.is_file():
-        return None
-    with path.open() as handle:
-        reader = csv.DictReader(handle)
-        if column not in (reader.fieldnames or []):
-            raise ValueError(f"{path} has no column {column!r} (columns: {reader.fieldnames})")
-        pairs = [(float(r["frames"]), float(r[column])) for r in reader if r[column] not in ("", "nan")]
-    if not pairs:
-        return None
-    frames, values = map(np.array, zip(*pairs))
-    return frames, values
 
 
 def learning_curves(runs: Mapping[str, Sequence[str | Path]], stream: str = "eval",

@@ -13,6 +13,7 @@ import os
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 
@@ -107,3 +108,19 @@ class RunLogger:
             self._bar.close()
         if self._wandb is not None:
             self._wandb.finish()
+
+
+def read_column(run_dir: str | Path, stream: str, column: str) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(frames, values)`` of a run's ``{stream}.csv`` (rows with an empty or NaN value skipped)."""
+    path = Path(run_dir) / f"{stream}.csv"
+    if not path.is_file():
+        return None
+    with path.open() as handle:
+        reader = csv.DictReader(handle)
+        if column not in (reader.fieldnames or []):
+            raise ValueError(f"{path} has no column {column!r} (columns: {reader.fieldnames})")
+        pairs = [(float(r["frames"]), float(r[column])) for r in reader if r[column] not in ("", "nan")]
+    if not pairs:
+        return None
+    frames, values = map(np.array, zip(*pairs))
+    return frames, values

@@ -19,7 +19,7 @@ from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, RandomSampler, TensorDictReplayBuffer
 
 from icco_torchrl.envs.reference_policies import make_reference_policy, reference_label
-from icco_torchrl.evaluation.rollout import EVENT_KEYS, evaluate
+from icco_torchrl.training.rollout import EVENT_KEYS, evaluate
 from icco_torchrl.modules.policy import exploration_module, make_policy
 from icco_torchrl.objectives import make_target_updater, total_loss
 from icco_torchrl.training.build import make_env, make_loss, make_modules
@@ -340,7 +340,7 @@ def plot_learning_curve(run_dir: Path) -> Path | None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from icco_torchrl.evaluation.metrics import read_column
+    from icco_torchrl.training.logger import read_column
 
     evaluation = read_column(run_dir, "eval", "reward")
     if evaluation is None:
