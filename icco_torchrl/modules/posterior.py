@@ -1,6 +1,6 @@
 """Variational posterior q_xi(z_t | zeta_t, s_t, v_t) of the consistency (CE) term.
 
-It factorises over the segment that follows a broadcast (SPEC section 1):
+It factorises over the segment that follows a broadcast (ICCO, Sec. IV; ``shared/SPEC.md`` section 1):
 ``q ∝ q^(t)(z | s_t, a_t, v_t) · Π_k q^(k)(z | o_k, a_k, v_k)``. Every factor is a diagonal
 Gaussian per robot. ``combine="product"`` multiplies them (precision-weighted Gaussian, the
 exact reading of the formula); ``combine="sum"`` adds the factors' log-likelihoods (COPA's

@@ -13,7 +13,7 @@ QMIX (FULL)        agent(full_state), mixer    (no coordinator)
 =================  ==========================  ==================
 
 Input: segments ``[S, T]`` (TorchRL layout, time last) that start at a broadcast step
-(``step_count % period == 0``), as cut by :class:`icco_torchrl.training.SegmentBuffer`.
+(``step_count % period == 0``), as cut by :class:`icco_torchrl.training.segments.SegmentCutter`.
 
 Recurrent state (R2D2 "stored state"): the agent's GRU starts from the hidden state recorded at
 the segment's first step during collection, and the whole segment (T+1 observations: the T
