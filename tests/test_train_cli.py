@@ -294,3 +294,22 @@ def test_repeated_kills_inside_checkpoints_and_dumps_lose_nothing(tmp_path):
         assert _frames(run / stream) == _frames(tmp_path / "whole" / stream), stream
     assert load_checkpoint(run / "checkpoint.pt")["frames"] == 6144
     assert not [p.name for p in run.iterdir() if p.name.endswith(".tmp")]
+
+
+def test_an_exported_policy_acts_like_its_checkpoint_and_cannot_be_resumed(tmp_path):
+    from icco_torchrl.training.restore import export_policy, restore
+
+    run_cli("train", *SMOKE, "train.total_frames=1024", f"hydra.run.dir={tmp_path}")
+    small = export_policy(tmp_path / "checkpoint.pt", tmp_path / "policy.pt")
+    assert small.stat().st_size < 0.6 * (tmp_path / "checkpoint.pt").stat().st_size
+    full, slim = restore(tmp_path / "checkpoint.pt", num_envs=2), restore(small, num_envs=2)
+    a, b = full["loss"].state_dict(), slim["loss"].state_dict()
+    assert all(torch.equal(a[k], b[k]) for k in a if not k.startswith("target_"))
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+    td = full["env"].reset()
+    with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):  # greedy, coordinator mean
+        assert torch.equal(full["policy"](td.clone())["agents", "action_value"],
+                           slim["policy"](td.clone())["agents", "action_value"])
+    proc = run_cli("train", *SMOKE, f"resume={small}", check=False)
+    assert proc.returncode == 2 and "is an exported policy" in proc.stderr

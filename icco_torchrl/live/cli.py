@@ -11,6 +11,7 @@ import logging
 import signal
 import sys
 import threading
+from pathlib import Path
 
 import numpy as np
 from omegaconf import DictConfig
@@ -21,21 +22,27 @@ from icco_torchrl.live.fleet import SimulatedFleet
 from icco_torchrl.live.loop import LiveLoop
 
 LOOPBACK = ("127.0.0.1", "localhost", "::1")
+# The small policy that ships with a source checkout (assets/README.md says how it was made).
+DEMO_POLICY = Path(__file__).resolve().parents[2] / "assets" / "demo_icco.pt"
 
 
 def run_bridge(cfg: DictConfig) -> float:
     from icco_torchrl.instructions import LLMPlanner
 
     live = cfg.live
-    if not cfg.checkpoint:
-        raise ValueError("icco bridge needs checkpoint=PATH (a trained team)")
+    checkpoint = cfg.checkpoint
+    if not checkpoint:
+        if not DEMO_POLICY.is_file():
+            raise ValueError(f"no checkpoint= given and no demo policy at {DEMO_POLICY}: give checkpoint=PATH")
+        checkpoint = DEMO_POLICY
+        print(f"icco bridge: no checkpoint= given: using the demo policy {DEMO_POLICY} (see assets/README.md)")
     if live.host not in LOOPBACK:
         print(f"warning: live.host={live.host} accepts datagrams from other machines; anyone who can reach "
               f"it can steer the robots", file=sys.stderr)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     limits = RobotLimits(max_speed=live.max_speed, max_turn=live.max_turn, max_accel=live.max_accel,
                          max_turn_accel=live.max_turn_accel, radius=live.robot_radius)
-    loop = LiveLoop.from_checkpoint(cfg.checkpoint, planner=LLMPlanner.from_config(cfg.llm), device=cfg.device)
+    loop = LiveLoop.from_checkpoint(checkpoint, planner=LLMPlanner.from_config(cfg.llm), device=cfg.device)
     bridge = Bridge(loop, host=live.host, port=live.port, rate_hz=live.rate_hz, timeout=live.timeout_s, limits=limits)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):

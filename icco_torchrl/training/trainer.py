@@ -117,6 +117,9 @@ def train(cfg: DictConfig, run_dir: str | Path) -> dict:
     t = cfg.train
     run_dir = Path(run_dir)
     resume = load_checkpoint(cfg.resume) if cfg.resume else None
+    if resume is not None and resume.get("policy_only"):
+        raise CheckpointError(f"{cfg.resume} is an exported policy (no optimiser, targets or RNG state): "
+                              f"resume from the run's own checkpoint.pt")
     if resume is not None:
         check_compatible(resume["cfg"], OmegaConf.to_container(cfg, resolve=True), cfg.resume)
         check_resume_overrides(resume["cfg"], OmegaConf.to_container(cfg, resolve=True), cfg.resume)
