@@ -135,3 +135,11 @@ def test_icco_bridge_with_the_simulated_fleet_through_the_cli(tmp_path):
         busy.close()
     assert proc.returncode == 2 and f"cannot listen on udp 127.0.0.1:{port}" in proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1
+
+
+def test_icco_bridge_without_a_checkpoint_uses_the_demo_policy():
+    """The shipped demo policy loads with today's networks (regenerate it when they change)."""
+    from conftest import run_cli
+
+    proc = run_cli("bridge", "live.fleet=true", "live.seconds=1.5", "live.port=0", timeout=120)
+    assert "using the demo policy" in proc.stdout and " 0 malformed" in proc.stdout
