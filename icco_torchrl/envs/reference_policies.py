@@ -18,8 +18,8 @@ over one) through its public state, batched over envs in pure torch:
 A policy is a callable ``td -> td`` writing ``("agents", "action")``, like a trained policy,
 so it plugs into ``env.rollout``, :func:`~icco_torchrl.evaluation.protocols.run_schedule`
 and the trainer's evaluation. It reads the env's state at call time, so call it on the td the
-env just returned (as rollouts do). Moves are chosen by a one-step lookahead with the env's
-own dynamics constants; the few loops below run over a fixed small count (robots, lookahead
+env just returned (as rollouts do). Moves are chosen by a one-step lookahead through the env's
+own dynamics kernel; the few loops below run over a fixed small count (robots, lookahead
 steps), never over envs.
 """
 from __future__ import annotations
@@ -29,8 +29,8 @@ import math
 import torch
 from tensordict import TensorDictBase
 
-from icco_torchrl.envs._kernels import batch_last, instruction_reward
-from icco_torchrl.envs.resource_collection import _ACTION_DIRS, N_ACTIONS, ResourceCollectionEnv
+from icco_torchrl.envs._kernels import batch_last, motion
+from icco_torchrl.envs.resource_collection import N_ACTIONS, ResourceCollectionEnv
 
 REFERENCE_POLICIES = ("random", "follower", "heuristic", "blend")
 # The blend radius that wins at the calibrated reward (experiments/calibration/README.md).
@@ -83,24 +83,18 @@ class RandomPolicy(ReferencePolicy):
         return torch.randint(0, N_ACTIONS, (e.num_envs, e.n_agents), generator=self.generator, device=e.device)
 
 
-def predicted_positions(env: ResourceCollectionEnv) -> torch.Tensor:
-    """Each robot's position after one step under each action, batch-last ``[A, N, 2, B]``."""
-    force = (env.dt * env.accel) * torch.tensor(_ACTION_DIRS, device=env.device)            # [A, 2]
-    vel = env._vel.unsqueeze(0) * env.damping + force[:, None, :, None]                      # [A, N, 2, B]
-    speed = vel.square().sum(2, keepdim=True).sqrt()
-    vel = vel * (env.max_speed / speed.clamp_min(env.max_speed))
-    wall = env.half - env.agent_radius
-    return (env._pos.unsqueeze(0) + env.dt * vel).clamp(-wall, wall)
-
-
-def follower_scores(env: ResourceCollectionEnv, new_pos: torch.Tensor) -> torch.Tensor:
-    """Predicted ``r_inst`` (unit scale) of each action ``[B, N, A]``, from the env's kernel."""
-    A, N, _, B = new_pos.shape
-    wp = env._waypoints_bl()                                                                 # [N, K, 2, B]
-    fold = lambda x: x.unsqueeze(-1).expand(*x.shape, A).flatten(-2)  # noqa: E731  (actions into the batch)
-    moved = new_pos.permute(1, 2, 3, 0).reshape(N, 2, B * A)
-    r = instruction_reward(fold(wp), fold(env._pos), moved, 1.0, env.inst_dist_coef)         # [N, B*A]
-    return r.view(N, B, A).transpose(0, 1)
+def lookahead(env: ResourceCollectionEnv) -> tuple[torch.Tensor, torch.Tensor]:
+    """Every action of every robot one step ahead, from the env's own :func:`motion` kernel with the
+    actions folded into the batch: positions ``[A, N, 2, B]`` (batch-last) and the unit-scale
+    instruction reward ``[B, N, A]`` of each action."""
+    A, N, B = N_ACTIONS, env.n_agents, env.num_envs
+    fold = lambda x: x.unsqueeze(-1).expand(*x.shape, A).flatten(-2)  # noqa: E731  (env b, action a -> b*A + a)
+    action = torch.arange(A, device=env.device).repeat(B).unsqueeze(-1).expand(B * A, N)
+    params = env._params()._replace(inst_scale=1.0)  # the argmax must not vanish when the env's scale is 0
+    new_pos, _, r_inst, _, _ = motion(fold(env._pos), fold(env._vel), fold(env._inv), fold(env._inv_on),
+                                      fold(env._waypoints_bl()), action, (env.dt * env.accel) * env._action_dirs,
+                                      params)
+    return new_pos.view(N, 2, B, A).permute(3, 0, 1, 2), r_inst.view(N, B, A).transpose(0, 1)
 
 
 def steer(new_pos: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
@@ -113,7 +107,7 @@ class FollowerPolicy(ReferencePolicy):
     name = "follower"
 
     def act(self) -> torch.Tensor:
-        return follower_scores(self.env, predicted_positions(self.env)).argmax(-1)
+        return lookahead(self.env)[1].argmax(-1)
 
 
 class HeuristicPolicy(ReferencePolicy):
@@ -160,7 +154,7 @@ class HeuristicPolicy(ReferencePolicy):
         return target, (target - pos).norm(dim=-1)
 
     def act(self) -> torch.Tensor:
-        return steer(predicted_positions(self.env), self.targets()[0])
+        return steer(lookahead(self.env)[0], self.targets()[0])
 
 
 class BlendPolicy(HeuristicPolicy):
@@ -175,10 +169,10 @@ class BlendPolicy(HeuristicPolicy):
         self.radius = float(radius)
 
     def act(self) -> torch.Tensor:
-        new_pos = predicted_positions(self.env)
+        new_pos, r_inst = lookahead(self.env)
         target, dist = self.targets()
         task = steer(new_pos, target)
-        follow = follower_scores(self.env, new_pos).argmax(-1)
+        follow = r_inst.argmax(-1)
         return torch.where(dist <= self.radius, task, follow)
 
     def __repr__(self) -> str:
