@@ -106,6 +106,8 @@ class EvalConfig:
 class LiveConfig:
     host: str = "127.0.0.1"
     port: int = 8765
+    web_port: int = 8000
+    web: bool = False
     rate_hz: float = 10.0
     timeout_s: float = 0.5
     fleet: bool = False
@@ -189,8 +191,9 @@ def validate(cfg: DictConfig | dict) -> DictConfig:
     if t.warmup_segments > t.buffer_segments:
         raise ConfigError(f"config field 'train.warmup_segments' ({t.warmup_segments}) exceeds "
                           f"'train.buffer_segments' ({t.buffer_segments}): training would never start")
-    if not 0 <= merged.live.port <= 65535:
-        raise ConfigError(f"config field 'live.port' must be in [0, 65535], got {merged.live.port}")
+    for key in ("port", "web_port"):
+        if not 0 <= merged.live[key] <= 65535:
+            raise ConfigError(f"config field 'live.{key}' must be in [0, 65535], got {merged.live[key]}")
     unknown = [name for name in merged.eval.references if name not in REFERENCE_POLICIES]
     if unknown:
         raise ConfigError(f"config field 'eval.references' has unknown policies {unknown}; "
