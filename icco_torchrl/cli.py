@@ -8,7 +8,7 @@ from __future__ import annotations
 import sys
 import tempfile
 
-USAGE = """usage: icco {train,eval,instruct,bridge} [overrides...]
+USAGE = """usage: icco {train,eval,instruct,live,bridge} [overrides...]
 
   icco train                                   ICCO on the default budget (CPU, offline)
   icco train method=qmix experiment=smoke      another method, a seconds-long run
@@ -16,6 +16,7 @@ USAGE = """usage: icco {train,eval,instruct,bridge} [overrides...]
   icco train resume=runs/icco/.../checkpoint.pt
   icco eval checkpoint=runs/icco/.../checkpoint.pt [eval.protocol=quadrants] [eval.gif=true]
   icco instruct "Go right" checkpoint=...      run a trained policy with a language instruction
+  icco live [checkpoint=...]                   a trained team in the browser: type instructions, watch it act
   icco bridge checkpoint=... [live.fleet=true] command robots over UDP (JSON), DWA velocity commands
 """
 
@@ -72,13 +73,13 @@ def _dispatch(command: str, cfg, run_dir: str) -> float | None:
         from icco_torchrl.evaluation.cli import run_eval
 
         return run_eval(cfg, run_dir)
-    if command == "bridge":
-        from icco_torchrl.live.cli import run_bridge
+    if command in ("live", "bridge"):
+        from icco_torchrl.live.cli import run_bridge, run_live
 
         try:
-            return run_bridge(cfg)
+            return (run_live if command == "live" else run_bridge)(cfg)
         except (OSError, ValueError) as err:  # port in use, bad limits, no checkpoint: one line
-            print(f"icco bridge: {err}", file=sys.stderr)
+            print(f"icco {command}: {err}", file=sys.stderr)
             raise SystemExit(2) from None
     from icco_torchrl.instructions.cli import run_instruct
 
@@ -91,7 +92,7 @@ _INSTRUCTION: str = ""
 def main(argv: list[str] | None = None) -> None:
     global _INSTRUCTION
     argv = list(sys.argv[1:] if argv is None else argv)
-    if not argv or argv[0] in ("-h", "--help", "help") or argv[0] not in ("train", "eval", "instruct", "bridge"):
+    if not argv or argv[0] in ("-h", "--help", "help") or argv[0] not in ("train", "eval", "instruct", "live", "bridge"):
         print(USAGE)
         raise SystemExit(0 if argv and argv[0] in ("-h", "--help", "help") else 2)
     command, rest = argv[0], argv[1:]

@@ -96,6 +96,7 @@ class Bridge:
         self.stale_logged = np.zeros(self.n, bool)
         self.stats = {"messages": 0, "malformed": 0, "commands": 0, "stale_stops": 0, "latency_ms": []}
         self._received_at = None
+        self.on_command = None                         # called with each command message (e.g. the live page)
 
     def handle(self, data: bytes, sender) -> None:
         """One datagram: update the measured state, or pass an instruction to the live loop."""
@@ -154,6 +155,8 @@ class Bridge:
         if self._received_at is not None:
             self.stats["latency_ms"].append((time.perf_counter() - self._received_at) * 1e3)
             self._received_at = None
+        if self.on_command is not None:
+            self.on_command(message)
         return message
 
     def serve(self, stop: threading.Event, max_seconds: float | None = None) -> None:

@@ -1,9 +1,12 @@
-"""``icco bridge checkpoint=PATH``: a trained team commanding robots over UDP (``live.*`` settings).
+"""``icco live`` (a trained team on a web page) and ``icco bridge`` (commanding robots over UDP).
 
+    icco live                                                           # the demo policy at http://127.0.0.1:8000/
+    icco live checkpoint=runs/icco/.../checkpoint.pt live.web_port=8080
     icco bridge checkpoint=runs/icco/.../checkpoint.pt                  # wait for a motion-capture stream
-    icco bridge checkpoint=... live.fleet=true live.seconds=30          # with the simulated fleet beside it
+    icco bridge checkpoint=... live.fleet=true live.web=true            # simulated fleet, watched in the page
 
-Prints where it listens, then a summary when stopped (Ctrl-C, SIGTERM or ``live.seconds``).
+Both print where they listen, then a summary when stopped (Ctrl-C, SIGTERM or ``live.seconds``).
+Settings: the ``live`` section of ``conf/config.yaml``.
 """
 from __future__ import annotations
 
@@ -20,33 +23,92 @@ from icco_torchrl.live.bridge import Bridge
 from icco_torchrl.live.dwa import RobotLimits
 from icco_torchrl.live.fleet import SimulatedFleet
 from icco_torchrl.live.loop import LiveLoop
+from icco_torchrl.live.web import LiveServer
 
 LOOPBACK = ("127.0.0.1", "localhost", "::1")
 # The small policy that ships with a source checkout (assets/README.md says how it was made).
 DEMO_POLICY = Path(__file__).resolve().parents[2] / "assets" / "demo_icco.pt"
 
 
+def _checkpoint(cfg: DictConfig, command: str) -> Path:
+    """``checkpoint=``, or the shipped demo policy (said on stdout)."""
+    if cfg.checkpoint:
+        return Path(cfg.checkpoint)
+    if not DEMO_POLICY.is_file():
+        raise ValueError(f"no checkpoint= given and no demo policy at {DEMO_POLICY}: give checkpoint=PATH")
+    print(f"icco {command}: no checkpoint= given: using the demo policy {DEMO_POLICY} (see assets/README.md)")
+    return DEMO_POLICY
+
+
+def _warn_if_exposed(host: str) -> None:
+    if host not in LOOPBACK:
+        print(f"warning: live.host={host} is reachable from other machines; anyone who can reach it can "
+              f"watch and steer the team", file=sys.stderr)
+
+
+def _stop_on_signals() -> threading.Event:
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    return stop
+
+
+def _planner_label(cfg: DictConfig) -> str:
+    return str(cfg.llm.get("model") or cfg.llm.get("backend") or "offline") if cfg.llm else "offline"
+
+
+def run_live(cfg: DictConfig) -> float:
+    """``icco live``: serve the page and drive the team until stopped; returns the ticks run."""
+    from icco_torchrl.instructions import LLMPlanner
+
+    live = cfg.live
+    checkpoint = _checkpoint(cfg, "live")
+    _warn_if_exposed(live.host)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    loop = LiveLoop.from_checkpoint(checkpoint, planner=LLMPlanner.from_config(cfg.llm), device=cfg.device,
+                                    seed=cfg.seed)
+    server = LiveServer(loop, host=live.host, port=live.web_port, rate_hz=live.rate_hz,
+                        policy=checkpoint.name, planner=_planner_label(cfg))
+    stop = _stop_on_signals()
+
+    def started(address):
+        print(f"icco live: open http://{address[0]}:{address[1]}/ ({checkpoint.name} at {live.rate_hz:g} Hz, "
+              f"any number of tabs); Ctrl-C stops", flush=True)
+
+    server.serve(stop, max_seconds=live.seconds, on_start=started)
+    lat = server.stats["latency_ms"]
+    print(f"icco live: {loop.ticks} ticks, {server.stats['connections']} page connections, median tick "
+          f"{np.median(lat) if lat else float('nan'):.1f} ms; totals {_totals(loop)}", flush=True)
+    return float(loop.ticks)
+
+
+def _totals(loop: LiveLoop) -> str:
+    return ", ".join(f"{k} {v:.1f}" if k.endswith("reward") else f"{k} {v:.0f}" for k, v in loop.totals.items())
+
+
 def run_bridge(cfg: DictConfig) -> float:
     from icco_torchrl.instructions import LLMPlanner
 
     live = cfg.live
-    checkpoint = cfg.checkpoint
-    if not checkpoint:
-        if not DEMO_POLICY.is_file():
-            raise ValueError(f"no checkpoint= given and no demo policy at {DEMO_POLICY}: give checkpoint=PATH")
-        checkpoint = DEMO_POLICY
-        print(f"icco bridge: no checkpoint= given: using the demo policy {DEMO_POLICY} (see assets/README.md)")
-    if live.host not in LOOPBACK:
-        print(f"warning: live.host={live.host} accepts datagrams from other machines; anyone who can reach "
-              f"it can steer the robots", file=sys.stderr)
+    checkpoint = _checkpoint(cfg, "bridge")
+    _warn_if_exposed(live.host)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     limits = RobotLimits(max_speed=live.max_speed, max_turn=live.max_turn, max_accel=live.max_accel,
                          max_turn_accel=live.max_turn_accel, radius=live.robot_radius)
     loop = LiveLoop.from_checkpoint(checkpoint, planner=LLMPlanner.from_config(cfg.llm), device=cfg.device)
     bridge = Bridge(loop, host=live.host, port=live.port, rate_hz=live.rate_hz, timeout=live.timeout_s, limits=limits)
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+    page = None
+    if live.web:
+        page = LiveServer(loop, host=live.host, port=live.web_port, rate_hz=live.rate_hz, drive=False,
+                          policy=checkpoint.name, planner=_planner_label(cfg))
+        try:
+            address = page.start_in_thread()
+        except OSError:
+            bridge.close()
+            raise
+        bridge.on_command = lambda _: page.publish(loop.snapshot())
+        print(f"icco bridge: watch it at http://{address[0]}:{address[1]}/", flush=True)
+    stop = _stop_on_signals()
     threads = []
     if live.fleet:
         fleet = SimulatedFleet(bridge.address, n_robots=loop.raw.n_agents, n_resources=loop.raw.n_resources,
@@ -63,6 +125,8 @@ def run_bridge(cfg: DictConfig) -> float:
         for t in threads:
             t.join(timeout=5)
         bridge.close()
+        if page is not None:
+            page.close()
     s = bridge.stats
     latency = np.median(s["latency_ms"]) if s["latency_ms"] else float("nan")
     print(f"icco bridge: {s['messages']} messages, {s['commands']} commands, {s['malformed']} malformed, "

@@ -163,19 +163,38 @@ class LiveLoop:
             events["reward"] = float(nxt.get("reward")[0, 0])
             for k, v in events.items():
                 self.totals[k] += v
-            z = td.get(("agents", "z"), None)
             self.ticks += 1
-            raw = self.raw
-            state = TickState(
-                tick=self.ticks, step=int(raw.t[0]), positions=_np(raw.pos[0]), waypoints=_np(raw.waypoints[0]),
-                resources=_np(raw.res_pos[0]), invader=_np(raw.inv_pos[0]), invader_active=_np(raw.inv_active[0]),
-                carry=_np(raw.carry[0]), z=None if z is None else _np(z[0]),
-                events=events, totals=dict(self.totals), planner=asdict(self.status))
+            state = self._state(td.get(("agents", "z"), None), events)
             self.td = step_mdp(td)
             if bool(nxt.get("done").any()):  # a live team never stops: the next tick starts a new episode
                 self.td = self.env.reset()
         state.latency_ms = (time.perf_counter() - start) * 1e3
         return state
+
+    def _state(self, z, events: dict) -> TickState:
+        """The team as it is now (call under the lock)."""
+        raw = self.raw
+        return TickState(
+            tick=self.ticks, step=int(raw.t[0]), positions=_np(raw.pos[0]), waypoints=_np(raw.waypoints[0]),
+            resources=_np(raw.res_pos[0]), invader=_np(raw.inv_pos[0]), invader_active=_np(raw.inv_active[0]),
+            carry=_np(raw.carry[0]), z=None if z is None else _np(z[0]),
+            events=events, totals=dict(self.totals), planner=asdict(self.status))
+
+    def snapshot(self) -> TickState:
+        """The team's current state without stepping it (what a display shows between ticks, or after
+        :meth:`act_on` when the robots are real); no events."""
+        with self._lock:
+            return self._state(self.td.get(("agents", "z"), None), {})
+
+    def reset(self) -> TickState:
+        """A new episode (new resources, invader and robot positions), the running totals set to zero
+        and any plan still being computed dropped; the planner's request count is kept."""
+        with self._lock, torch.no_grad():
+            self.td = self.env.reset()
+            self._pending, self._thread = None, None
+            self.totals = {k: 0.0 for k in self.totals}
+            self.status = PlannerStatus(requests=self.status.requests)
+            return self._state(None, {})
 
     def act_on(self, positions, *, velocities=None, resources=None, invader=None) -> tuple[np.ndarray, np.ndarray]:
         """The policy's move for robots measured from outside (motion capture), without stepping the env.

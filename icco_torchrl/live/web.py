@@ -1,0 +1,305 @@
+"""The live page: a trained team on a web page, watched by any number of browser tabs.
+
+An aiohttp server serves one static page (``static/live.html``, no build step, no CDN) at ``/``
+and a WebSocket at ``/ws``. It either drives a :class:`~icco_torchrl.live.loop.LiveLoop`
+(``icco live``: one tick every ``1 / (rate_hz * speed)`` seconds, in a worker thread so the
+event loop never waits on the policy) or only shows one that something else drives
+(``icco bridge live.web=true``: the bridge calls :meth:`LiveServer.publish` after each command).
+
+WebSocket protocol (JSON text frames):
+
+* server -> page, once on connect: ``{"type": "hello", "field_size", "home_radius", "vision_radius",
+  "n_agents", "dt", "rate_hz", "speed", "paused", "drive", "policy", "planner"}``;
+* server -> page, every tick: ``{"type": "tick", ...}`` with :class:`~icco_torchrl.live.loop.TickState`'s
+  fields plus ``paused``, ``speed`` and ``clients``; a slow tab gets the latest tick only (older
+  ones are dropped for it, never queued), so it can neither fall behind nor slow the others;
+* server -> page, to the sender only: ``{"type": "error", "message": ...}`` for a bad request;
+* page -> server: ``{"type": "instruct", "text": "Go right"}``, ``{"type": "pause"}``,
+  ``{"type": "resume"}``, ``{"type": "step"}`` (one tick while paused), ``{"type": "reset"}``,
+  ``{"type": "speed", "value": x}`` with x in ``SPEEDS``.
+
+A tab that disconnects or errs is dropped; the loop keeps ticking with no tab at all.
+"""
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+from aiohttp import WSMsgType, web
+
+from icco_torchrl.live.loop import LiveLoop
+
+log = logging.getLogger("icco.live")
+PAGE = Path(__file__).with_name("static") / "live.html"
+SPEEDS = (0.25, 0.5, 1.0, 2.0, 4.0, 8.0)
+CONTROLS = ("pause", "resume", "step", "reset", "speed")
+
+
+class _Client:
+    """One browser tab: the latest frame waiting to be sent (older ones are replaced)."""
+
+    def __init__(self, ws: web.WebSocketResponse):
+        self.ws = ws
+        self.frame: str | None = None
+        self.ready = asyncio.Event()
+        self.sent = self.dropped = 0
+
+    def offer(self, frame: str) -> None:
+        if self.frame is not None:
+            self.dropped += 1
+        self.frame = frame
+        self.ready.set()
+
+
+class LiveServer:
+    """Serve ``loop`` to browser tabs (module docstring). ``drive=False``: show a loop that
+    another owner ticks (pause/step/reset/speed are then refused with a message)."""
+
+    def __init__(self, loop: LiveLoop, *, host: str = "127.0.0.1", port: int = 0, rate_hz: float = 10.0,
+                 drive: bool = True, policy: str = "", planner: str = ""):
+        if not rate_hz > 0:
+            raise ValueError(f"rate_hz must be > 0, got {rate_hz!r}")
+        self.loop, self.host, self.port, self.rate_hz, self.drive = loop, host, int(port), float(rate_hz), drive
+        self.policy, self.planner = policy, planner
+        self.paused, self.speed = False, 1.0
+        self.clients: set[_Client] = set()
+        self.stats = {"broadcasts": 0, "frames": 0, "dropped": 0, "errors": 0, "connections": 0, "latency_ms": []}
+        self.address: tuple[str, int] | None = None
+        self._steps = 0                       # single steps requested while paused
+        self._aio: asyncio.AbstractEventLoop | None = None
+        self._runner: web.AppRunner | None = None
+        self._ticker: ThreadPoolExecutor | None = None
+        self._drive_task: asyncio.Task | None = None
+        self._thread: threading.Thread | None = None
+        self._closed = threading.Event()
+
+    # ------------------------------------------------------------------ lifecycle
+    async def start(self) -> tuple[str, int]:
+        """Bind and start serving (and ticking when ``drive``); raises ``OSError`` naming the port."""
+        app = web.Application()
+        app.router.add_get("/", self._page)
+        app.router.add_get("/ws", self._socket)
+        self._runner = web.AppRunner(app, access_log=None, handle_signals=False)
+        await self._runner.setup()
+        site = web.TCPSite(self._runner, self.host, self.port)
+        try:
+            await site.start()
+        except OSError as err:
+            await self._runner.cleanup()
+            raise OSError(f"cannot listen on http://{self.host}:{self.port}: {err.strerror or err} "
+                          f"(choose another port with live.web_port=...)") from None
+        self._aio = asyncio.get_running_loop()
+        self.address = tuple(self._runner.addresses[0][:2])  # the bound port when port=0
+        if self.drive:
+            self._ticker = ThreadPoolExecutor(1, thread_name_prefix="icco-live-tick")
+            self._drive_task = asyncio.create_task(self._drive())
+        return self.address
+
+    async def stop(self) -> None:
+        if self._drive_task is not None:
+            self._drive_task.cancel()
+            try:
+                await self._drive_task
+            except asyncio.CancelledError:
+                pass
+        for client in list(self.clients):
+            await client.ws.close()
+        if self._runner is not None:
+            await self._runner.cleanup()
+        if self._ticker is not None:
+            self._ticker.shutdown(wait=True)
+
+    def serve(self, stop: threading.Event | None = None, max_seconds: float | None = None, on_start=None) -> None:
+        """Serve in this thread until ``stop`` is set or ``max_seconds`` pass (``icco live``)."""
+
+        async def main():
+            address = await self.start()
+            if on_start is not None:
+                on_start(address)
+            end = None if max_seconds is None else time.monotonic() + max_seconds
+            try:
+                while not (stop is not None and stop.is_set()) and (end is None or time.monotonic() < end):
+                    await asyncio.sleep(0.05)
+            finally:
+                await self.stop()
+
+        asyncio.run(main())
+
+    def start_in_thread(self, timeout: float = 10.0) -> tuple[str, int]:
+        """Serve from a background thread (beside a bridge, in tests); returns the bound address."""
+        started, failure = threading.Event(), []
+
+        def target():
+            async def main():
+                try:
+                    await self.start()
+                except OSError as err:
+                    failure.append(err)
+                    return
+                finally:
+                    started.set()
+                while not self._closed.is_set():
+                    await asyncio.sleep(0.05)
+                await self.stop()
+
+            asyncio.run(main())
+
+        self._thread = threading.Thread(target=target, daemon=True, name="icco-live-web")
+        self._thread.start()
+        if not started.wait(timeout):
+            raise TimeoutError(f"the live page did not start within {timeout} s")
+        if failure:
+            raise failure[0]
+        return self.address
+
+    def close(self, timeout: float = 10.0) -> None:
+        """Stop a server started with :meth:`start_in_thread`."""
+        self._closed.set()
+        if self._thread is not None:
+            self._thread.join(timeout)
+
+    # ------------------------------------------------------------------ ticking and broadcasting
+    async def _drive(self) -> None:
+        aio = asyncio.get_running_loop()
+        next_time = time.perf_counter()
+        while True:
+            if self.paused and not self._steps:
+                await asyncio.sleep(0.02)
+                next_time = time.perf_counter()
+                continue
+            self._steps = max(0, self._steps - 1)
+            try:
+                state = await aio.run_in_executor(self._ticker, self.loop.tick)
+            except Exception as err:  # a bad tick must not end the page: log it and keep serving
+                log.error("live: tick failed: %s", f"{type(err).__name__}: {err}".splitlines()[0])
+                await asyncio.sleep(0.5)
+                continue
+            self.stats["latency_ms"].append(state.latency_ms)
+            self._broadcast(state.to_dict())
+            next_time += 1.0 / (self.rate_hz * self.speed)
+            pause = next_time - time.perf_counter()
+            if pause < 0:            # late ticks are not made up for
+                next_time, pause = time.perf_counter(), 0
+            await asyncio.sleep(pause)
+
+    def publish(self, state) -> None:
+        """Show ``state`` (a ``TickState`` or its dict) to every tab; callable from any thread."""
+        if self._aio is None or self._closed.is_set():
+            return
+        payload = state.to_dict() if hasattr(state, "to_dict") else dict(state)
+        try:
+            self._aio.call_soon_threadsafe(self._broadcast, payload)
+        except RuntimeError:  # the event loop has just closed
+            pass
+
+    def _broadcast(self, payload: dict) -> None:
+        self.stats["broadcasts"] += 1
+        frame = json.dumps({"type": "tick", **payload, "paused": self.paused, "speed": self.speed,
+                            "clients": len(self.clients)})
+        for client in self.clients:
+            client.offer(frame)
+
+    def _hello(self) -> dict:
+        raw = self.loop.raw
+        return {"type": "hello", "field_size": raw.field_size, "home_radius": raw.home_radius,
+                "vision_radius": raw.vision_radius, "n_agents": raw.n_agents, "dt": raw.dt,
+                "agent_radius": raw.agent_radius, "resource_radius": raw.resource_radius,
+                "invader_radius": raw.invader_radius,
+                "rate_hz": self.rate_hz, "speed": self.speed, "paused": self.paused, "drive": self.drive,
+                "speeds": list(SPEEDS), "policy": self.policy, "planner": self.planner}
+
+    # ------------------------------------------------------------------ HTTP and WebSocket handlers
+    async def _page(self, request: web.Request) -> web.StreamResponse:
+        return web.FileResponse(PAGE, headers={"Cache-Control": "no-store"})
+
+    async def _socket(self, request: web.Request) -> web.WebSocketResponse:
+        ws = web.WebSocketResponse(heartbeat=10.0, max_msg_size=64 * 1024)
+        await ws.prepare(request)
+        client = _Client(ws)
+        self.clients.add(client)
+        self.stats["connections"] += 1
+        writer = asyncio.create_task(self._write(client))
+        try:
+            await ws.send_str(json.dumps(self._hello()))
+            if not self.drive or self.paused:  # show the team at once, even before the next tick
+                client.offer(json.dumps({"type": "tick", **self.loop.snapshot().to_dict(), "paused": self.paused,
+                                         "speed": self.speed, "clients": len(self.clients)}))
+            async for msg in ws:
+                if msg.type != WSMsgType.TEXT:
+                    continue
+                error = self.handle(msg.data)
+                if error:
+                    self.stats["errors"] += 1
+                    await ws.send_str(json.dumps({"type": "error", "message": error}))
+        except (ConnectionError, RuntimeError, asyncio.CancelledError):
+            pass  # a tab that went away: the loop goes on
+        finally:
+            self.clients.discard(client)
+            writer.cancel()
+            self.stats["frames"] += client.sent
+            self.stats["dropped"] += client.dropped
+        return ws
+
+    async def _write(self, client: _Client) -> None:
+        try:
+            while not client.ws.closed:
+                await client.ready.wait()
+                client.ready.clear()
+                frame, client.frame = client.frame, None
+                if frame is not None:
+                    await client.ws.send_str(frame)
+                    client.sent += 1
+        except (ConnectionError, RuntimeError):
+            pass
+
+    def handle(self, text: str) -> str | None:
+        """Apply one page request; returns an error message for the sender, or None."""
+        try:
+            msg = json.loads(text)
+        except json.JSONDecodeError:
+            return "a request must be a JSON object"
+        kind = msg.get("type") if isinstance(msg, dict) else None
+        if kind == "instruct":
+            text = msg.get("text")
+            if not isinstance(text, str) or not text.strip():
+                return "empty instruction: type one, e.g. 'Go right' (the team keeps its last plan)"
+            try:
+                self.loop.instruct(text)
+            except ValueError as err:
+                return str(err)
+            return None
+        if kind not in CONTROLS:
+            return f"unknown request type {kind!r}; expected instruct, {', '.join(CONTROLS)}"
+        if not self.drive:
+            return "this page shows robots driven by the bridge: pause, step, reset and speed are not available"
+        if kind == "pause":
+            self.paused = True
+        elif kind == "resume":
+            self.paused = False
+        elif kind == "step":
+            if not self.paused:
+                return "step works while paused"
+            self._steps += 1
+        elif kind == "reset":
+            self._show(self.loop.reset)
+            return None
+        elif kind == "speed":
+            value = msg.get("value")
+            if value not in SPEEDS:
+                return f"speed must be one of {list(SPEEDS)}, got {value!r}"
+            self.speed = float(value)
+        self._show(self.loop.snapshot)  # every tab sees the change at once, even while paused
+        return None
+
+    def _show(self, state_fn) -> None:
+        """Run ``state_fn`` (reset or snapshot) in tick order, never mid-tick, and show its state."""
+        def run_and_show():
+            state = state_fn()
+            self._aio.call_soon_threadsafe(self._broadcast, state.to_dict())
+
+        self._aio.run_in_executor(self._ticker, run_and_show)
