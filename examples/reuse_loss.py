@@ -3,8 +3,8 @@
 The env here, "rendezvous", has nothing to do with resource collection: N robots on a plane
 must meet. Its per-robot group is ``"robots"`` (not ``"agents"``), the observation is
 ``("robots", "obs")``, the action ``("robots", "move")``, the global state ``"world"`` and the
-team reward ``"team_reward"``. ICCO's modules are built with the flat MLP encoders from an
-:class:`~icco_torchrl.envs.resource_collection.ObsLayout` that describes this env, and the loss
+team reward ``"team_reward"``. ICCO's modules are built with the flat MLP encoders from the
+sizes in this env's specs (observation and state width, action count; no layout), and the loss
 is told the key names with ``set_keys``; nothing in the ``icco_torchrl`` package is edited.
 
 Run::
@@ -26,7 +26,6 @@ from torchrl.data import (Bounded, Categorical, Composite, LazyTensorStorage, Ra
 from torchrl.envs import EnvBase, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from icco_torchrl.envs.resource_collection import ObsLayout
 from icco_torchrl.modules import make_agent, make_coordinator, make_mixer, make_posterior
 from icco_torchrl.modules.policy import exploration_module, make_policy, make_primer
 from icco_torchrl.objectives import ICCOLoss, make_target_updater, total_loss
@@ -36,7 +35,8 @@ GROUP = "robots"
 # Where this env keeps what ICCOLoss reads (its defaults are the resource-collection names).
 LOSS_KEYS = dict(observation=(GROUP, "obs"), action=(GROUP, "move"), state="world", reward="team_reward",
                  prev_action=(GROUP, "prev_action"), rnn_hidden=(GROUP, "rnn_hidden"), z=(GROUP, "z"),
-                 z_noise=(GROUP, "z_noise"))
+                 z_noise=(GROUP, "z_noise"), action_value=(GROUP, "action_value"),
+                 local_value=(GROUP, "chosen_action_value"))
 # 0 stay, 1 -x, 2 +x, 3 -y, 4 +y
 MOVES = ((0.0, 0.0), (-1.0, 0.0), (1.0, 0.0), (0.0, -1.0), (0.0, 1.0))
 
@@ -128,7 +128,7 @@ class RendezvousEnv(EnvBase):
 def make_env(num_envs: int, n_agents: int, hidden: int, z_dim: int, seed: int, max_steps: int = 20) -> TransformedEnv:
     """The env plus the primer that carries the policy's GRU state, previous move and z under "robots"."""
     base = RendezvousEnv(num_envs=num_envs, n_agents=n_agents, max_steps=max_steps, seed=seed)
-    return TransformedEnv(base, make_primer(n_agents, hidden, z_dim, group=GROUP))
+    return TransformedEnv(base, make_primer(n_agents, hidden, z_dim, group=GROUP, n_actions=len(MOVES)))
 
 
 def build(*, num_envs: int = 8, n_agents: int = 3, hidden: int = 32, z_dim: int = 8, period: int = 4, seed: int = 0,
@@ -136,21 +136,23 @@ def build(*, num_envs: int = 8, n_agents: int = 3, hidden: int = 32, z_dim: int 
     """Env, ICCO modules, policy and the loss (with this env's key names)."""
     torch.manual_seed(seed)
     env = make_env(num_envs, n_agents, hidden, z_dim, seed)
-    base = env.base_env
-    layout = ObsLayout(n_agents=n_agents, n_waypoints=0, own_dim=base.obs_dim, n_entities=0, entity_dim=0,
-                       state_tokens=1, state_token_dim=base.state_dim)
-    agent = make_agent(layout, hidden=hidden, z_dim=z_dim, encoder="mlp", obs_key=(GROUP, "obs"),
+    # Sizes from the specs: per-robot observation width, state width, action count.
+    obs_dim = env.observation_spec[GROUP, "obs"].shape[-1]
+    state_dim = env.observation_spec["world"].shape[-1]
+    n_actions = env.full_action_spec[GROUP, "move"].space.n
+    agent = make_agent(obs_dim=obs_dim, n_actions=n_actions, hidden=hidden, z_dim=z_dim, obs_key=(GROUP, "obs"),
                        state_key="world", action_key=(GROUP, "move"))
-    coordinator = make_coordinator(layout, z_dim=z_dim, hidden=hidden, period=period, encoder="mlp",
+    coordinator = make_coordinator(n_agents=n_agents, state_dim=state_dim, z_dim=z_dim, hidden=hidden, period=period,
                                    state_key="world", group=GROUP)
-    mixer = make_mixer(layout.state_dim, n_agents, local_value_key=(GROUP, "chosen_action_value"), state_key="world")
+    mixer = make_mixer(state_dim, n_agents, local_value_key=(GROUP, "chosen_action_value"), state_key="world")
     # make_posterior's TensorDictModule lists ("agents", ...) in_keys, but ICCOLoss calls the inner
     # Posterior directly with the tensors it read through its own (renamed) keys.
-    posterior = make_posterior(layout, z_dim=z_dim, hidden=hidden)
+    posterior = make_posterior(n_actions=n_actions, n_agents=n_agents, obs_dim=obs_dim, state_dim=state_dim,
+                               z_dim=z_dim, hidden=hidden)
     policy = make_policy(agent, env.full_action_spec_unbatched, coordinator, group=GROUP, action_name="move")
     loss = ICCOLoss(agent, mixer, coordinator, posterior, gamma=gamma, ce_coef=ce_coef, entropy_coef=entropy_coef)
     loss.set_keys(**LOSS_KEYS)
-    return dict(env=env, layout=layout, agent=agent, coordinator=coordinator, mixer=mixer, posterior=posterior,
+    return dict(env=env, agent=agent, coordinator=coordinator, mixer=mixer, posterior=posterior,
                 policy=policy, loss=loss, cutter=SegmentCutter(length=period))
 
 

@@ -91,7 +91,8 @@ CASES = [
     (True, None, None, ((5 - 3.5) ** 2 + (1 + 1.5) ** 2) / 2),              # 4.25
     (False, None, None, ((5 - 5.5) ** 2 + (1 - 3) ** 2) / 2),               # 2.125
     (True, [[False, True]], None, ((5 - 3.5) ** 2 + (1 + 3) ** 2) / 2),     # y1 = r1 = -3: 9.125
-    (True, [[True, False]], None, ((5 - 1) ** 2 + (1 + 1.5) ** 2) / 2),     # y0 = r0 = 1: 11.125
+    (True, [[True, False]], [[True, True]], ((5 - 1) ** 2 + (1 + 1.5) ** 2) / 2),  # y0 = r0 = 1: 11.125
+    (True, [[True, False]], None, (5 - 1) ** 2),    # no mask: derived from done, step 1 (after the end) dropped
     (True, None, [[True, False]], (5 - 3.5) ** 2),                          # only step 0: 2.25
     (True, None, [[False, True]], (1 + 1.5) ** 2),                          # only step 1: 6.25
     (False, [[False, True]], [[True, True]], ((5 - 5.5) ** 2 + (1 + 3) ** 2) / 2),  # 8.125

@@ -106,7 +106,7 @@ def test_posterior_scores_its_own_factors():
     layout = ObsLayout(n_agents=2, n_waypoints=2, own_dim=4, n_entities=2, entity_dim=3, state_tokens=3,
                        state_token_dim=4)
     torch.manual_seed(0)
-    post = Posterior(layout, z_dim=3, hidden=8, combine="product")
+    post = Posterior(layout, n_actions=5, z_dim=3, hidden=8, combine="product")
     S, T, N = 2, 4, 2
     state, obs = torch.randn(S, T, layout.state_dim), torch.randn(S, T, N, layout.obs_dim)
     action, z = torch.randint(0, 5, (S, T, N)), torch.randn(S, N, 3)
@@ -217,7 +217,7 @@ def _agent_inputs(g, B=2, L=6):
                          [("attention", False, 4), ("mlp", True, 0), ("attention", True, 4)])
 def test_agent_one_step_forward_equals_sequence(encoder, full_state, z_dim):
     torch.manual_seed(0)
-    net = RecurrentQNet(LAYOUT, hidden=16, z_dim=z_dim, full_state=full_state, encoder=encoder)
+    net = RecurrentQNet(LAYOUT, n_actions=5, hidden=16, z_dim=z_dim, full_state=full_state, encoder=encoder)
     obs, prev, z, state, h0 = _agent_inputs(torch.Generator().manual_seed(5))
     z = z if z_dim else None
     B, L = obs.shape[:2]
@@ -237,7 +237,7 @@ def test_agent_one_step_forward_equals_sequence(encoder, full_state, z_dim):
 
 def test_agent_hidden_restarts_at_step_zero():
     torch.manual_seed(0)
-    net = RecurrentQNet(LAYOUT, hidden=16, z_dim=4)
+    net = RecurrentQNet(LAYOUT, n_actions=5, hidden=16, z_dim=4)
     obs, prev, z, _, h = _agent_inputs(torch.Generator().manual_seed(6), B=4, L=1)
     obs, prev, z = obs[:, 0], prev[:, 0], z[:, 0]
     step_count = torch.tensor([[0], [5], [0], [1]])

@@ -39,7 +39,6 @@ under a seed but its stream differs from versions that drew for every env at eve
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import torch
 from tensordict import TensorDict, TensorDictBase
@@ -47,6 +46,7 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from icco_torchrl.envs._kernels import Params, any_, batch_first, batch_last, dynamics, pair_sq_dist
+from icco_torchrl.envs.layout import ObsLayout  # noqa: F401  (re-exported: the layout this env writes)
 
 N_ACTIONS = 5
 # Unit force per action: no-op, -x, +x, -y, +y (COPA's order).
@@ -54,27 +54,6 @@ _ACTION_DIRS = ((0.0, 0.0), (-1.0, 0.0), (1.0, 0.0), (0.0, -1.0), (0.0, 1.0))
 _EVENTS = ("pick", "collect", "defense", "invasion")
 _FAR = 1e9  # where inactive invaders are "seen" from: beyond any vision radius
 SPAWN_MODES = ("uniform", "copa")
-
-
-@dataclass(frozen=True)
-class ObsLayout:
-    """Where things sit in the flat per-robot observation and in the global state."""
-
-    n_agents: int
-    n_waypoints: int
-    own_dim: int          # [x, y, vx, vy, carry] + relative waypoints
-    n_entities: int       # other robots + resources + invaders + home
-    entity_dim: int
-    state_tokens: int     # robots + resources + invaders
-    state_token_dim: int
-
-    @property
-    def obs_dim(self) -> int:
-        return self.own_dim + self.n_entities * self.entity_dim
-
-    @property
-    def state_dim(self) -> int:
-        return self.state_tokens * self.state_token_dim
 
 
 def _positive(name: str, value, integer: bool = False) -> None:

@@ -4,36 +4,88 @@ Input per robot: its observation (own state, own waypoints, visible entities), o
 the global state (QMIX (FULL)), its previous action and its TACI ``z^i``. Core: encoder ->
 GRU -> Q head on ``[GRU output; z]`` (COPA's player). The same ``nn.GRU`` runs one step at
 collection time and a whole segment in one call at training time.
+
+Sizes come from the caller (the env's specs): ``n_actions`` always, and either an
+:class:`~icco_torchrl.envs.layout.ObsLayout` (a structured observation read by entity attention)
+or ``obs_dim`` (any flat per-agent observation, read by an MLP).
 """
 from __future__ import annotations
+
+from typing import TYPE_CHECKING
 
 import torch
 from tensordict.nn import TensorDictModule
 from torch import nn
+from torchrl.modules import recurrent_mode
 
-from icco_torchrl.envs.resource_collection import N_ACTIONS, ObsLayout
-from icco_torchrl.modules.encoders import make_encoder
+from icco_torchrl.modules.encoders import MLPEncoder, make_encoder
 from icco_torchrl.modules.relative import STATE_ENCODERS, RelativeStateEncoder
 from icco_torchrl.modules.tdmodule import TensorModule
 
+if TYPE_CHECKING:
+    from icco_torchrl.envs.layout import ObsLayout
+
+
+def keep_hidden(hidden: torch.Tensor, is_init: torch.Tensor | None, step_count: torch.Tensor | None) -> torch.Tensor:
+    """``hidden [..., N, H]`` zeroed where an episode starts: TorchRL's ``is_init`` (``InitTracker``,
+    ``[..., 1]`` or per agent ``[..., N, 1]``), else ``step_count == 0`` (``[..., 1]``)."""
+    if is_init is not None:
+        keep = ~is_init.bool()
+    elif step_count is not None:
+        keep = step_count != 0
+    else:
+        raise KeyError("the agent needs 'is_init' (TorchRL's InitTracker) or 'step_count' (StepCounter) to know "
+                       "where episodes start")
+    if keep.dim() < hidden.dim():
+        keep = keep.unsqueeze(-1)
+    return hidden * keep.to(hidden.dtype)
+
 
 class RecurrentQNet(nn.Module):
-    """Q-values ``[..., N, n_actions]`` from observations, previous actions, z and a GRU state."""
+    """Q-values ``[..., N, n_actions]`` from observations, previous actions, z and a GRU state.
 
-    def __init__(self, layout: ObsLayout, *, hidden: int = 64, z_dim: int = 0, full_state: bool = False,
-                 encoder: str = "attention", n_actions: int = N_ACTIONS, state_encoder: str = "flat"):
+    Args:
+        layout: the structured observation (entity tokens) of the resource-collection env, or None
+            for a flat observation of ``obs_dim`` features.
+
+    Keyword Args:
+        n_actions: size of the discrete action space (the env's action spec ``.space.n``).
+        obs_dim: per-agent observation width when ``layout`` is None.
+        state_dim: global state width, for ``full_state`` without a layout.
+        hidden: width of the encoder, the GRU and the Q head.
+        z_dim: width of the coordinator's z the Q head reads (0: no coordinator).
+        full_state: the agent also reads the global state (QMIX (FULL)).
+        encoder: ``"attention"`` (needs a layout; the default with one) or ``"mlp"`` (the default without).
+        state_encoder: with ``full_state``: ``"flat"`` (state joins the own features) or ``"relative"``.
+    """
+
+    def __init__(self, layout: ObsLayout | None = None, *, n_actions: int, obs_dim: int | None = None,
+                 state_dim: int | None = None, hidden: int = 64, z_dim: int = 0, full_state: bool = False,
+                 encoder: str | None = None, state_encoder: str = "flat"):
         super().__init__()
         if state_encoder not in STATE_ENCODERS:
             raise ValueError(f"state_encoder must be one of {STATE_ENCODERS}, got {state_encoder!r}")
+        if not isinstance(n_actions, int) or n_actions < 1:
+            raise ValueError(f"n_actions must be a positive integer (the env's action count), got {n_actions!r}")
         self.hidden, self.z_dim, self.full_state, self.n_actions = hidden, z_dim, full_state, n_actions
         self.relative = full_state and state_encoder == "relative"
-        if self.relative:  # QMIX (FULL): every entity relative to the robot (the coordinator's encoder)
+        if layout is None:  # a flat observation (any env): [obs; state] through an MLP
+            if obs_dim is None:
+                raise ValueError("RecurrentQNet needs a layout (structured observation) or obs_dim (flat observation)")
+            if (encoder or "mlp") != "mlp" or self.relative:
+                raise ValueError("a flat observation (no layout) is read by encoder='mlp' with state_encoder='flat'")
+            if full_state and state_dim is None:
+                raise ValueError("full_state without a layout needs state_dim")
+            self.encoder = MLPEncoder(obs_dim + (state_dim if full_state else 0), hidden)
+            self._own_dim = obs_dim  # the state goes after the whole observation
+        elif self.relative:  # QMIX (FULL): every entity relative to the robot (the coordinator's encoder)
             self.encoder = RelativeStateEncoder(layout, hidden)
+            self._own_dim = layout.own_dim
         else:  # flat: the global state joins the own token of the local-observation encoder
             extra = layout.state_dim if full_state else 0
-            self.encoder = make_encoder(encoder, own_dim=layout.own_dim + extra, n_entities=layout.n_entities,
-                                        entity_dim=layout.entity_dim, hidden=hidden)
-        self._own_dim = layout.own_dim
+            self.encoder = make_encoder(encoder or "attention", own_dim=layout.own_dim + extra,
+                                        n_entities=layout.n_entities, entity_dim=layout.entity_dim, hidden=hidden)
+            self._own_dim = layout.own_dim
         # embed([features; one_hot(prev_action)]) written as a linear map plus a per-action row:
         # the same function without building the one-hot and the concatenation.
         self.embed = nn.Linear(hidden, hidden)
@@ -56,10 +108,19 @@ class RecurrentQNet(nn.Module):
     def _q(self, h, z):
         return self.head(torch.cat([h, z], -1) if self.z_dim else h)
 
-    def forward(self, obs, prev_action, hidden, step_count, z=None, state=None):
-        """One step for ``[B, N, ...]`` inputs; the hidden state restarts at zero when step_count == 0."""
-        hidden = hidden * (step_count != 0).unsqueeze(-1).to(hidden.dtype)
-        return self.step(obs, prev_action, hidden, z, state)
+    def forward(self, obs, prev_action, hidden, step_count=None, z=None, state=None, is_init=None):
+        """One step for ``[B, N, ...]`` inputs; the hidden state restarts at zero where an episode starts
+        (``is_init``, else ``step_count == 0``).
+
+        Under TorchRL's ``set_recurrent_mode(True)`` the inputs are sequences ``[S, L, N, ...]``: one
+        GRU call from the hidden state of the first step; returns Q ``[S, L, N, A]`` and the hidden
+        state after every step ``[S, L, N, H]``.
+        """
+        if recurrent_mode():
+            first = (lambda v: None if v is None else v[:, 0])
+            h0 = keep_hidden(hidden[:, 0], first(is_init), first(step_count))
+            return self.sequence(obs, prev_action, h0, z=z, state=state, return_hidden="all")
+        return self.step(obs, prev_action, keep_hidden(hidden, is_init, step_count), z, state)
 
     def step(self, obs, prev_action, hidden, z=None, state=None):
         """One step from ``hidden`` as given (no restart): Q ``[B, N, A]`` and the new hidden state."""
@@ -69,34 +130,42 @@ class RecurrentQNet(nn.Module):
                            g.weight_hh_l0, g.bias_ih_l0, g.bias_hh_l0).reshape(x.shape)
         return self._q(h, z), h
 
-    def sequence(self, obs, prev_action, hidden0, z=None, state=None, return_hidden: bool = False):
+    def sequence(self, obs, prev_action, hidden0, z=None, state=None, return_hidden: bool | str = False):
         """A segment in one GRU call: inputs ``[S, L, N, ...]``, ``hidden0 [S, N, H]`` -> Q ``[S, L, N, A]``
-        (and, with ``return_hidden``, the hidden state after the last step, ``[S, N, H]``)."""
+        (and, with ``return_hidden``, the hidden state after the last step, ``[S, N, H]``, or with
+        ``return_hidden="all"`` after every step, ``[S, L, N, H]``)."""
         x = self._features(obs, prev_action, state)
         S, L, N, H = x.shape
         out, h_last = self.gru(x.permute(0, 2, 1, 3).reshape(S * N, L, H), hidden0.reshape(1, S * N, H).contiguous())
         h = out.reshape(S, N, L, H).permute(0, 2, 1, 3)
         q = self._q(h, z)
+        if return_hidden == "all":
+            return q, h
         return (q, h_last.reshape(S, N, H)) if return_hidden else q
 
 
-def make_agent(layout: ObsLayout, *, hidden: int = 64, z_dim: int = 0, full_state: bool = False,
-               encoder: str = "attention", state_encoder: str = "flat", obs_key=("agents", "observation"),
-               state_key="state", action_key=("agents", "action")) -> TensorDictModule:
-    """The agent as a TensorDictModule for collection (one step).
+def make_agent(layout: ObsLayout | None = None, *, n_actions: int, obs_dim: int | None = None,
+               state_dim: int | None = None, hidden: int = 64, z_dim: int = 0, full_state: bool = False,
+               encoder: str | None = None, state_encoder: str = "flat", obs_key=("agents", "observation"),
+               state_key="state", action_key=("agents", "action"), step_count_key="step_count",
+               is_init_key="is_init") -> TensorDictModule:
+    """The agent as a TensorDictModule (see :class:`RecurrentQNet` for the sizes).
 
-    in:  ``obs_key``, ``("agents", "prev_action")``, ``("agents", "rnn_hidden")``, ``"step_count"``,
-         [``("agents", "z")``], [``state_key`` for full_state]
-    out: ``("agents", "action_value")``, ``("next", "agents", "rnn_hidden")``
+    in:  ``obs_key``, ``(group, "prev_action")``, ``(group, "rnn_hidden")``, ``is_init_key`` (TorchRL's
+         ``InitTracker``) or, where absent, ``step_count_key``; [``(group, "z")``], [``state_key`` for full_state]
+    out: ``(group, "action_value")``, ``("next", group, "rnn_hidden")``
+
+    ``group`` is the action key's prefix. One step per call at collection; a whole sequence under
+    TorchRL's ``set_recurrent_mode(True)`` (what :class:`~icco_torchrl.objectives.ICCOLoss` uses).
     """
     group = action_key[:-1] if isinstance(action_key, tuple) else ()
-    net = RecurrentQNet(layout, hidden=hidden, z_dim=z_dim, full_state=full_state, encoder=encoder,
-                        state_encoder=state_encoder)
+    net = RecurrentQNet(layout, n_actions=n_actions, obs_dim=obs_dim, state_dim=state_dim, hidden=hidden,
+                        z_dim=z_dim, full_state=full_state, encoder=encoder, state_encoder=state_encoder)
     in_keys = {"obs": obs_key, "prev_action": (*group, "prev_action"), "hidden": (*group, "rnn_hidden"),
-               "step_count": "step_count"}  # forward argument -> tensordict key
+               "step_count": step_count_key, "is_init": is_init_key}  # forward argument -> tensordict key
     if z_dim:
         in_keys["z"] = (*group, "z")
     if full_state:
         in_keys["state"] = state_key
     return TensorModule(net, in_keys=in_keys,
-                            out_keys=[(*group, "action_value"), ("next", *group, "rnn_hidden")])
+                        out_keys=[(*group, "action_value"), ("next", *group, "rnn_hidden")])

@@ -9,16 +9,19 @@ loss can rebuild the very z the agents acted on, with gradient (reparameterisati
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import torch
 from tensordict.nn import TensorDictModule
 from torch import nn
 from torchrl.envs.utils import ExplorationType, exploration_type
 
-from icco_torchrl.envs.resource_collection import ObsLayout
 from icco_torchrl.modules.encoders import EntityAttentionEncoder
 from icco_torchrl.modules.relative import STATE_ENCODERS, RelativeStateEncoder
 from icco_torchrl.modules.tdmodule import TensorModule
+
+if TYPE_CHECKING:
+    from icco_torchrl.envs.layout import ObsLayout
 
 LOGVAR_MIN, LOGVAR_MAX = -10.0, 0.0
 
@@ -27,17 +30,23 @@ class StateTokenEncoder(nn.Module):
     """Per-robot features ``[..., N, hidden]`` from the flat global state.
 
     ``attention``: each robot's state token queries all state tokens (single-head entity
-    attention, as in the agents' encoder). ``mlp``: the flat state through an MLP to N outputs.
+    attention, as in the agents' encoder; needs a layout). ``mlp``: the flat state through an MLP
+    to N outputs (a layout, or ``n_agents`` and ``state_dim`` for any env).
     """
 
-    def __init__(self, layout: ObsLayout, hidden: int, kind: str = "attention"):
+    def __init__(self, layout: ObsLayout | None, hidden: int, kind: str = "attention", *,
+                 n_agents: int | None = None, state_dim: int | None = None):
         super().__init__()
-        self.kind, self.n_agents, self.hidden = kind, layout.n_agents, hidden
-        self.n_tokens, self.token_dim = layout.state_tokens, layout.state_token_dim
+        if layout is None and (kind != "mlp" or n_agents is None or state_dim is None):
+            raise ValueError("a state without a layout is read by encoder='mlp' and needs n_agents and state_dim")
+        self.kind, self.hidden = kind, hidden
+        self.n_agents = layout.n_agents if layout is not None else n_agents
         if kind == "attention":
+            self.n_tokens, self.token_dim = layout.state_tokens, layout.state_token_dim
             self.net = EntityAttentionEncoder(self.token_dim, self.n_tokens, self.token_dim, hidden, masked=False)
         elif kind == "mlp":
-            self.net = nn.Sequential(nn.Linear(layout.state_dim, hidden), nn.ReLU(),
+            width = layout.state_dim if layout is not None else state_dim
+            self.net = nn.Sequential(nn.Linear(width, hidden), nn.ReLU(),
                                      nn.Linear(hidden, self.n_agents * hidden), nn.ReLU())
         else:
             raise ValueError(f"encoder must be 'attention' or 'mlp', got {kind!r}")
@@ -51,19 +60,27 @@ class StateTokenEncoder(nn.Module):
 
 
 class Coordinator(nn.Module):
-    """Gaussian TACI per robot; ``forward`` is the rollout step (sample/hold), ``distribution`` the net."""
+    """Gaussian TACI per robot; ``forward`` is the rollout step (sample/hold), ``distribution`` the net.
 
-    def __init__(self, layout: ObsLayout, *, z_dim: int = 32, hidden: int = 64, period: int = 4,
-                 encoder: str = "attention", state_encoder: str = "flat", init_logvar: float = 0.0):
+    Sizes: a ``layout`` (the resource-collection state, any encoder), or ``n_agents`` and
+    ``state_dim`` for any flat global state (``encoder="mlp"``, ``state_encoder="flat"``).
+    """
+
+    def __init__(self, layout: ObsLayout | None = None, *, z_dim: int = 32, hidden: int = 64, period: int = 4,
+                 encoder: str | None = None, state_encoder: str = "flat", init_logvar: float = 0.0,
+                 n_agents: int | None = None, state_dim: int | None = None):
         super().__init__()
         if period < 1:
             raise ValueError(f"period must be >= 1, got {period}")
         if state_encoder not in STATE_ENCODERS:
             raise ValueError(f"state_encoder must be one of {STATE_ENCODERS}, got {state_encoder!r}")
+        if layout is None and state_encoder == "relative":
+            raise ValueError("state_encoder='relative' reads the resource-collection state: it needs a layout")
         self.z_dim, self.period = z_dim, period
+        encoder = encoder or ("attention" if layout is not None else "mlp")
         # relative: entities seen from each robot (modules/relative.py); flat: absolute state tokens
         self.encoder = (RelativeStateEncoder(layout, hidden) if state_encoder == "relative"
-                        else StateTokenEncoder(layout, hidden, encoder))
+                        else StateTokenEncoder(layout, hidden, encoder, n_agents=n_agents, state_dim=state_dim))
         self.loc = nn.Linear(hidden, z_dim)
         self.logvar = nn.Linear(hidden, z_dim)
         # The initial noise level of z: at 0 (std ~1) z starts as mostly noise and the agents learn
@@ -77,7 +94,14 @@ class Coordinator(nn.Module):
         return self.loc(h), (0.5 * logvar).exp()
 
     def forward(self, state, step_count, z_prev, noise_prev):
-        """Redraw z where ``step_count % period == 0`` (mean when exploration is deterministic)."""
+        """Redraw z where ``step_count % period == 0`` (mean when exploration is deterministic).
+
+        ``step_count [B, 1]`` (TorchRL's ``StepCounter``); ``state [B, ...]``, trailing dims flattened.
+        """
+        if step_count is None:
+            raise KeyError("the coordinator needs 'step_count' (add TorchRL's StepCounter transform to the env)")
+        if state.dim() > step_count.dim():
+            state = state.flatten(step_count.dim() - 1)
         fresh = (step_count % self.period == 0).unsqueeze(-1)                     # [B, 1, 1]
         if state.device.type == "cpu" and not torch.compiler.is_compiling() and not fresh.any():
             return z_prev, noise_prev  # every env holds its z: skip the network (on GPU this test would sync)
@@ -96,17 +120,19 @@ def gaussian_entropy(scale: torch.Tensor) -> torch.Tensor:
     return (0.5 * math.log(2 * math.pi * math.e) + scale.log()).sum(-1)
 
 
-def make_coordinator(layout: ObsLayout, *, z_dim: int = 32, hidden: int = 64, period: int = 4,
-                     encoder: str = "attention", state_encoder: str = "flat", init_logvar: float = 0.0,
-                     state_key="state", group="agents") -> TensorDictModule:
-    """The coordinator as a TensorDictModule for rollouts.
+def make_coordinator(layout: ObsLayout | None = None, *, z_dim: int = 32, hidden: int = 64, period: int = 4,
+                     encoder: str | None = None, state_encoder: str = "flat", init_logvar: float = 0.0,
+                     n_agents: int | None = None, state_dim: int | None = None, state_key="state",
+                     group="agents", step_count_key="step_count") -> TensorDictModule:
+    """The coordinator as a TensorDictModule for rollouts (see :class:`Coordinator` for the sizes).
 
-    in:  ``state_key``, ``"step_count"``, ``(group, "z")`` and ``(group, "z_noise")`` (held values)
+    in:  ``state_key`` (any trailing shape, flattened), ``step_count_key`` (TorchRL's ``StepCounter``),
+         ``(group, "z")`` and ``(group, "z_noise")`` (held values)
     out: ``(group, "z")``, ``(group, "z_noise")`` (the distribution itself: ``module.distribution(state)``)
     """
     net = Coordinator(layout, z_dim=z_dim, hidden=hidden, period=period, encoder=encoder,
-                      state_encoder=state_encoder, init_logvar=init_logvar)
+                      state_encoder=state_encoder, init_logvar=init_logvar, n_agents=n_agents, state_dim=state_dim)
     return TensorModule(
-        net, in_keys={"state": state_key, "step_count": "step_count", "z_prev": (group, "z"),
+        net, in_keys={"state": state_key, "step_count": step_count_key, "z_prev": (group, "z"),
                       "noise_prev": (group, "z_noise")},
         out_keys=[(group, "z"), (group, "z_noise")])

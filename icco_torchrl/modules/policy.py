@@ -14,14 +14,15 @@ from torchrl.data import Categorical, Composite, Unbounded
 from torchrl.envs import TensorDictPrimer
 from torchrl.modules import EGreedyModule, QValueModule
 
-from icco_torchrl.envs.resource_collection import N_ACTIONS
 from icco_torchrl.modules.tdmodule import TensorModule
 
 
-def make_primer(n_agents: int, hidden: int, z_dim: int = 0, device="cpu", group: str = "agents") -> TensorDictPrimer:
-    """Zeros at reset for the per-robot GRU state, previous action and (with a coordinator) z, under ``group``."""
+def make_primer(n_agents: int, hidden: int, z_dim: int = 0, device="cpu", group: str = "agents", *,
+                n_actions: int) -> TensorDictPrimer:
+    """Zeros at reset for the per-robot GRU state, previous action (one of the env's ``n_actions``) and
+    (with a coordinator) z, under ``group``."""
     entries = dict(rnn_hidden=Unbounded((n_agents, hidden), device=device),
-                   prev_action=Categorical(N_ACTIONS, (n_agents,), dtype=torch.int64, device=device))
+                   prev_action=Categorical(n_actions, (n_agents,), dtype=torch.int64, device=device))
     if z_dim:
         entries.update(z=Unbounded((n_agents, z_dim), device=device),
                        z_noise=Unbounded((n_agents, z_dim), device=device))

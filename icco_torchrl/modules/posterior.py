@@ -9,13 +9,16 @@ code). Both are tested against hand computations.
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import torch
 from tensordict.nn import TensorDictModule
 from torch import nn
 
-from icco_torchrl.envs.resource_collection import N_ACTIONS, ObsLayout
 from icco_torchrl.modules.coordinator import LOGVAR_MAX, LOGVAR_MIN
+
+if TYPE_CHECKING:
+    from icco_torchrl.envs.layout import ObsLayout
 
 _LOG_2PI = math.log(2 * math.pi)
 
@@ -51,16 +54,25 @@ def combine_log_prob(z, loc, scale, mask, combine: str = "product"):
 
 
 class Posterior(nn.Module):
-    """Factors: global ``(state, joint action, robot id)`` at the broadcast step, local ``(o, a)`` after."""
+    """Factors: global ``(state, joint action, robot id)`` at the broadcast step, local ``(o, a)`` after.
 
-    def __init__(self, layout: ObsLayout, *, z_dim: int = 32, hidden: int = 64, combine: str = "product",
-                 n_actions: int = N_ACTIONS):
+    Sizes: ``n_actions`` (the env's action count) and a ``layout``, or ``n_agents``, ``obs_dim`` and
+    ``state_dim`` (flat observation and state of any env).
+    """
+
+    def __init__(self, layout: ObsLayout | None = None, *, n_actions: int, z_dim: int = 32, hidden: int = 64,
+                 combine: str = "product", n_agents: int | None = None, obs_dim: int | None = None,
+                 state_dim: int | None = None):
         super().__init__()
         if combine not in ("product", "sum"):
             raise ValueError(f"combine must be 'product' or 'sum', got {combine!r}")
-        self.n_agents, self.n_actions, self.combine = layout.n_agents, n_actions, combine
-        self.first = _gaussian_head(layout.state_dim + layout.n_agents * (n_actions + 1), hidden, z_dim)
-        self.later = _gaussian_head(layout.obs_dim + n_actions, hidden, z_dim)
+        if layout is not None:
+            n_agents, obs_dim, state_dim = layout.n_agents, layout.obs_dim, layout.state_dim
+        elif None in (n_agents, obs_dim, state_dim):
+            raise ValueError("Posterior needs a layout, or n_agents, obs_dim and state_dim")
+        self.n_agents, self.n_actions, self.combine = n_agents, n_actions, combine
+        self.first = _gaussian_head(state_dim + n_agents * (n_actions + 1), hidden, z_dim)
+        self.later = _gaussian_head(obs_dim + n_actions, hidden, z_dim)
 
     def factors(self, state, action, obs):
         """Segment ``state [S, T, D]``, ``action [S, T, N]``, ``obs [S, T, N, F]`` -> loc, scale ``[S, T, N, Z]``.
@@ -87,12 +99,15 @@ class Posterior(nn.Module):
         return combine_log_prob(z, loc, scale, mask, self.combine)
 
 
-def make_posterior(layout: ObsLayout, *, z_dim: int = 32, hidden: int = 64, combine: str = "product") -> TensorDictModule:
+def make_posterior(layout: ObsLayout | None = None, *, n_actions: int, z_dim: int = 32, hidden: int = 64,
+                   combine: str = "product", n_agents: int | None = None, obs_dim: int | None = None,
+                   state_dim: int | None = None) -> TensorDictModule:
     """Used inside the loss only (it reads whole segments, see ``ICCOLoss``).
 
     in:  ``("agents", "z")``, ``"state"``, ``("agents", "action")``, ``("agents", "observation")`` and
          ``"posterior_mask"`` (all ``[S, T, ...]``); out: ``("agents", "log_q")``
     """
-    net = Posterior(layout, z_dim=z_dim, hidden=hidden, combine=combine)
+    net = Posterior(layout, n_actions=n_actions, z_dim=z_dim, hidden=hidden, combine=combine, n_agents=n_agents,
+                    obs_dim=obs_dim, state_dim=state_dim)
     return TensorDictModule(net, in_keys=[("agents", "z"), "state", ("agents", "action"), ("agents", "observation"),
                                           "posterior_mask"], out_keys=[("agents", "log_q")])

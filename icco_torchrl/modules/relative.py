@@ -16,11 +16,15 @@ full-information baseline reads the state through the same encoder as ICCO's coo
 """
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import torch
 from torch import nn
 
-from icco_torchrl.envs.resource_collection import ObsLayout
 from icco_torchrl.modules.encoders import EntityAttentionEncoder
+
+if TYPE_CHECKING:
+    from icco_torchrl.envs.layout import ObsLayout
 
 STATE_ENCODERS = ("relative", "flat")
 

@@ -47,15 +47,21 @@ def make_env(cfg: DictConfig, *, num_envs: int | None = None, seed: int | None =
     base = ResourceCollectionEnv(num_envs=num_envs or cfg.env.num_envs, device=device,
                                  seed=cfg.seed if seed is None else seed, **params)
     m = cfg.method
-    return TransformedEnv(base, make_primer(base.n_agents, m.hidden, m.z_dim if m.coordinator else 0, device=device))
+    return TransformedEnv(base, make_primer(base.n_agents, m.hidden, m.z_dim if m.coordinator else 0, device=device,
+                                            n_actions=action_count(base)))
 
 
-def make_modules(cfg: DictConfig, layout, device) -> dict:
+def action_count(env) -> int:
+    """The number of discrete actions, read from the env's action spec."""
+    return int(env.full_action_spec[env.action_key].space.n)
+
+
+def make_modules(cfg: DictConfig, layout, device, *, n_actions: int) -> dict:
     """Agent, mixer and (for ICCO) coordinator and posterior, on ``device``."""
     m = cfg.method
     z_dim = m.z_dim if m.coordinator else 0
-    mods = {"agent": make_agent(layout, hidden=m.hidden, z_dim=z_dim, full_state=m.full_state, encoder=m.encoder,
-                                state_encoder=m.state_encoder),
+    mods = {"agent": make_agent(layout, n_actions=n_actions, hidden=m.hidden, z_dim=z_dim, full_state=m.full_state,
+                                encoder=m.encoder, state_encoder=m.state_encoder),
             "mixer": make_mixer(layout.state_dim, layout.n_agents, device=device),
             "coordinator": None, "posterior": None}
     if m.coordinator:
@@ -63,7 +69,8 @@ def make_modules(cfg: DictConfig, layout, device) -> dict:
                                                encoder=m.encoder, state_encoder=m.state_encoder,
                                                init_logvar=m.z_init_logvar)
         if m.ce_coef > 0:
-            mods["posterior"] = make_posterior(layout, z_dim=m.z_dim, hidden=m.hidden, combine=m.posterior)
+            mods["posterior"] = make_posterior(layout, n_actions=n_actions, z_dim=m.z_dim, hidden=m.hidden,
+                                               combine=m.posterior)
     for mod in mods.values():
         if mod is not None:
             mod.to(device)
@@ -85,7 +92,7 @@ def build_components(cfg: DictConfig | None = None, *, method: str | None = None
     device = resolve_device(cfg.device)
     env = make_env(cfg, num_envs=num_envs, device=device)
     layout = env.base_env.layout
-    mods = make_modules(cfg, layout, device)
+    mods = make_modules(cfg, layout, device, n_actions=action_count(env))
     policy = make_policy(mods["agent"], env.full_action_spec_unbatched, mods["coordinator"],
                          eps_init=cfg.train.eps_init, eps_end=cfg.train.eps_end)
     loss = make_loss(cfg, mods)

@@ -6,7 +6,7 @@ from pathlib import Path
 from omegaconf import OmegaConf
 
 from icco_torchrl.modules.policy import make_policy
-from icco_torchrl.training.build import make_env, make_loss, make_modules
+from icco_torchrl.training.build import action_count, make_env, make_loss, make_modules
 from icco_torchrl.training.checkpoint import CheckpointError, load_checkpoint, load_weights, save_checkpoint
 from icco_torchrl.training.config import resolve_device, validate
 
@@ -29,7 +29,7 @@ def restore(path: str | Path, *, num_envs: int | None = None, device: str = "cpu
     diffs = [f"{k}: checkpoint {saved[k]} vs env {getattr(layout, k)}" for k in saved if saved[k] != getattr(layout, k)]
     if diffs:
         raise CheckpointError(f"checkpoint {path} was trained for another env layout: " + "; ".join(diffs))
-    mods = make_modules(cfg, layout, dev)
+    mods = make_modules(cfg, layout, dev, n_actions=action_count(env))
     loss = make_loss(cfg, mods)
     weights = ckpt["loss"]
     if ckpt.get("policy_only"):  # an exported policy (export_policy): the targets are the online weights

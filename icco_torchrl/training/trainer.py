@@ -22,7 +22,7 @@ from icco_torchrl.envs.reference_policies import make_reference_policy, referenc
 from icco_torchrl.training.rollout import EVENT_KEYS, evaluate
 from icco_torchrl.modules.policy import exploration_module, make_policy
 from icco_torchrl.objectives import make_target_updater, total_loss
-from icco_torchrl.training.build import make_env, make_loss, make_modules
+from icco_torchrl.training.build import action_count, make_env, make_loss, make_modules
 from icco_torchrl.training.checkpoint import (CheckpointError, check_compatible, load_checkpoint, load_replay,
                                               load_weights, save_checkpoint, save_replay)
 from icco_torchrl.training.config import resolve_device
@@ -135,7 +135,7 @@ def train(cfg: DictConfig, run_dir: str | Path) -> dict:
     layout = env.base_env.layout
 
     # Modules, policy (coordinator -> agent -> greedy -> epsilon-greedy), loss, optimiser, targets.
-    mods = make_modules(cfg, layout, device)
+    mods = make_modules(cfg, layout, device, n_actions=action_count(env))
     policy = make_policy(mods["agent"], env.full_action_spec_unbatched, mods["coordinator"],
                          eps_init=t.eps_init, eps_end=t.eps_end)
     explore = exploration_module(policy)
