@@ -145,8 +145,7 @@ def build(*, num_envs: int = 8, n_agents: int = 3, hidden: int = 32, z_dim: int 
     coordinator = make_coordinator(n_agents=n_agents, state_dim=state_dim, z_dim=z_dim, hidden=hidden, period=period,
                                    state_key="world", group=GROUP)
     mixer = make_mixer(state_dim, n_agents, local_value_key=(GROUP, "chosen_action_value"), state_key="world")
-    # make_posterior's TensorDictModule lists ("agents", ...) in_keys, but ICCOLoss calls the inner
-    # Posterior directly with the tensors it read through its own (renamed) keys.
+    # The posterior has no keys of its own: ICCOLoss passes it what it read through its (renamed) keys.
     posterior = make_posterior(n_actions=n_actions, n_agents=n_agents, obs_dim=obs_dim, state_dim=state_dim,
                                z_dim=z_dim, hidden=hidden)
     policy = make_policy(agent, env.full_action_spec_unbatched, coordinator, group=GROUP, action_name="move")

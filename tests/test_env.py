@@ -1,8 +1,8 @@
-"""Behaviour of the batched resource-collection env (SPEC section 2).
+"""Behaviour of the batched resource-collection env (the task section of the README).
 
 Long random rollouts check the invariants the task promises at every step; hand-built
 scenes (internal tensors set after reset) check each event, vision and the instruction
-reward against the numbers in the SPEC.
+reward against the numbers given there.
 """
 import math
 

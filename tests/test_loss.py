@@ -193,8 +193,7 @@ def _rollout_segments(parts, steps=24, seed=0):
     parts["env"].set_seed(seed)
     with torch.no_grad():
         ro = parts["env"].rollout(steps, parts["policy"], break_when_any_done=False)
-    parts["cutter"].reset()
-    return ro, parts["cutter"](ro)
+    return ro, SegmentCutter(length=parts["cutter"].length)(ro)
 
 
 @pytest.fixture(scope="module")
@@ -407,8 +406,9 @@ def test_coordinator_on_two_states_equals_every_state(icco):
     for a, b in zip(full, short):
         torch.testing.assert_close(a, b)
     # a segment that starts mid-period broadcasts inside: the default takes the all-states path
-    cutter = SegmentCutter(length=4, period=2)
-    mixed = loss._read(cutter(_rollout_segments(parts)[0]))
+    ro = _rollout_segments(parts)[0]
+    ro["cut_at"] = ro["step_count"] * 2  # segments of 4 steps at every even step: half start mid-period
+    mixed = loss._read(SegmentCutter(length=4, step_key="cut_at")(ro))
     assert (mixed["next_step_count"][:, :-1] % loss.period == 0).any()
     noise = torch.randn_like(mixed["z_noise"])
     auto = loss._z_sequences(mixed, loss.coordinator_params, mixed["z_noise"][:, 0], noise)

@@ -8,7 +8,7 @@ import torch
 
 from icco_torchrl.envs import ResourceCollectionEnv
 from icco_torchrl.evaluation.metrics import ADDITIVE, EPISODE, markdown_table, summarize
-from icco_torchrl.evaluation.protocols import quadrant_schedule, quadrants_protocol, run_schedule
+from icco_torchrl.evaluation.protocols import quadrant_schedule, run_schedule
 from icco_torchrl.instructions import FixedSource, QuadrantSource, RandomWalkSource
 
 TRIALS, STEPS = 6, 30
@@ -43,7 +43,7 @@ def runs():
     out = {}
     for name, make in (("follower", follower), ("random", random_policy)):
         env = quadrant_env()
-        out[name] = quadrants_protocol(env, make(env), trials=TRIALS, steps=STEPS, method=name)
+        out[name] = run_schedule(env, make(env), quadrant_schedule(STEPS), TRIALS, method=name)
     return out
 
 

@@ -4,8 +4,7 @@ import torch
 from PIL import Image
 
 from icco_torchrl.envs import ResourceCollectionEnv
-from icco_torchrl.envs.render import (INVADER, RESOURCE, record_episode, render_frame, robot_color,
-                                      to_pixel, write_gif)
+from icco_torchrl.envs.render import INVADER, RESOURCE, render_frame, robot_color, to_pixel, write_gif
 
 torch.set_num_threads(1)
 
@@ -67,22 +66,14 @@ def test_carry_marker_resources_and_invader():
     assert pixel(render_frame(env, index=1, size=size), env, env.inv_pos[1, 0], size) == INVADER
 
 
-def test_write_gif_and_record_episode(tmp_path):
+def test_write_gif(tmp_path):
     env = ResourceCollectionEnv(num_envs=2, seed=0, max_steps=6)
-    calls = []
-
-    def go_right(td):
-        calls.append(1)
-        return td.set(("agents", "action"), torch.full((2, env.n_agents), 2))
-
-    frames = record_episode(env, policy=go_right, path=tmp_path / "ep.gif", index=1)
-    assert len(frames) == 7 and len(calls) == 6  # reset frame + one per step, stops when done
-    assert (env.vel[..., 0] >= 0).all() and (env.vel[..., 1] == 0).all()  # the policy drove
-    with Image.open(tmp_path / "ep.gif") as gif:
-        assert gif.is_animated and gif.n_frames == 7 and gif.size == (480, 480)
-
-    frames = record_episode(env, steps=3)
-    assert len(frames) == 4
+    td = env.reset()
+    frames = [render_frame(env, index=1)]
+    for _ in range(3):  # the robots drive +x: the frames differ
+        td = env.step(td.set(("agents", "action"), torch.full((2, env.n_agents), 2)))["next"]
+        frames.append(render_frame(env, index=1))
+    assert not np.array_equal(frames[0], frames[-1])
     write_gif(frames, tmp_path / "sub" / "short.gif", fps=5)
     with Image.open(tmp_path / "sub" / "short.gif") as gif:
-        assert gif.n_frames == 4 and gif.info["duration"] == 200
+        assert gif.is_animated and gif.n_frames == 4 and gif.info["duration"] == 200 and gif.size == (480, 480)

@@ -100,7 +100,7 @@ def comparison(summary: list[dict], missing: list[str]) -> str:
     lines += criteria(rows, refs)
     if missing:
         lines.append(f"- Missing from this comparison (no checkpoint): {', '.join(missing)}.")
-    lines.append("- Our environment is a re-implementation (geometry scaled from COPA, see SPEC), so absolute "
+    lines.append("- Our environment is a re-implementation (geometry scaled from COPA, see the task section of the main README), so absolute "
                  "rewards differ from the paper's; the ordering is what to compare.")
     return "\n".join(lines)
 

@@ -7,14 +7,13 @@ it, and nothing here needs matplotlib or imageio.
 from __future__ import annotations
 
 import os
-from typing import Callable, Sequence
+from typing import Sequence
 
 import numpy as np
 import torch
 from PIL import Image, ImageDraw
-from torchrl.envs.utils import step_mdp
 
-from icco_torchrl.envs.resource_collection import N_ACTIONS, ResourceCollectionEnv
+from icco_torchrl.envs.resource_collection import ResourceCollectionEnv
 
 BACKGROUND = (250, 250, 246)
 FIELD_EDGE = (90, 90, 90)
@@ -97,36 +96,3 @@ def write_gif(frames: Sequence[np.ndarray], path: str | os.PathLike, fps: float 
               for f in frames]
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     images[0].save(path, save_all=True, append_images=images[1:], duration=int(round(1000 / fps)), loop=0)
-
-
-def record_episode(
-    env: ResourceCollectionEnv,
-    policy: Callable | None = None,
-    steps: int | None = None,
-    path: str | os.PathLike | None = None,
-    index: int = 0,
-    size: int = 480,
-) -> list[np.ndarray]:
-    """Reset ``env``, play until env ``index`` is done (or ``steps`` steps), return its frames.
-
-    ``policy`` maps the root TensorDict to one with ``("agents", "action")`` set; without one
-    the robots act uniformly at random. The first frame is the reset state. If ``path`` is
-    given the frames are also written there as a GIF.
-    """
-    td = env.reset()
-    frames = [render_frame(env, index, size)]
-    for _ in range(env.max_steps if steps is None else steps):
-        if policy is None:
-            td.set(("agents", "action"),
-                   torch.randint(0, N_ACTIONS, (env.num_envs, env.n_agents), device=env.device))
-        else:
-            td = policy(td)
-        td = env.step(td)
-        frames.append(render_frame(env, index, size))
-        done = bool(td.get(("next", "done"))[index].any())
-        td = step_mdp(td)
-        if done:
-            break
-    if path is not None:
-        write_gif(frames, path)
-    return frames

@@ -130,12 +130,6 @@ def random_walk_schedule(steps: int = 145, seed: int = 0, **source_kwargs) -> li
 PROTOCOLS: dict[str, Callable[..., list]] = {"random_walk": random_walk_schedule, "quadrants": quadrant_schedule}
 
 
-def quadrants_protocol(env, policy: Callable, trials: int = 20, steps: int = 145, seed: int = 0,
-                       **labels) -> ScheduleRun:
-    """The four-quadrant test on an env built for it (``num_envs=trials``, ``max_steps=4*steps``)."""
-    return run_schedule(env, policy, quadrant_schedule(steps, seed), trials, **labels)
-
-
 def schedule_env(checkpoint: str | Path, total_steps: int, trials: int, *, device: str = "cpu",
                  seed: int | None = None, **env_overrides) -> dict:
     """:func:`~icco_torchrl.training.restore.restore` with an env fit for a schedule:

@@ -1,6 +1,6 @@
 """Variational posterior q_xi(z_t | zeta_t, s_t, v_t) of the consistency (CE) term.
 
-It factorises over the segment that follows a broadcast (ICCO, Sec. IV; ``shared/SPEC.md`` section 1):
+It factorises over the segment that follows a broadcast (ICCO, Sec. IV):
 ``q ∝ q^(t)(z | s_t, a_t, v_t) · Π_k q^(k)(z | o_k, a_k, v_k)``. Every factor is a diagonal
 Gaussian per robot. ``combine="product"`` multiplies them (precision-weighted Gaussian, the
 exact reading of the formula); ``combine="sum"`` adds the factors' log-likelihoods (COPA's
@@ -12,7 +12,6 @@ import math
 from typing import TYPE_CHECKING
 
 import torch
-from tensordict.nn import TensorDictModule
 from torch import nn
 
 from icco_torchrl.modules.coordinator import LOGVAR_MAX, LOGVAR_MIN
@@ -101,13 +100,12 @@ class Posterior(nn.Module):
 
 def make_posterior(layout: ObsLayout | None = None, *, n_actions: int, z_dim: int = 32, hidden: int = 64,
                    combine: str = "product", n_agents: int | None = None, obs_dim: int | None = None,
-                   state_dim: int | None = None) -> TensorDictModule:
-    """Used inside the loss only (it reads whole segments, see ``ICCOLoss``).
+                   state_dim: int | None = None) -> Posterior:
+    """The posterior for :class:`~icco_torchrl.objectives.ICCOLoss` (see :class:`Posterior` for the sizes).
 
-    in:  ``("agents", "z")``, ``"state"``, ``("agents", "action")``, ``("agents", "observation")`` and
-         ``"posterior_mask"`` (all ``[S, T, ...]``); out: ``("agents", "log_q")``
+    A plain module, not a TensorDictModule: it scores whole segments (z of the broadcast step,
+    the segment's states, actions, observations and hold mask), which the loss reads through its
+    own keys (``set_keys``) and passes to it; it writes nothing into a tensordict.
     """
-    net = Posterior(layout, n_actions=n_actions, z_dim=z_dim, hidden=hidden, combine=combine, n_agents=n_agents,
-                    obs_dim=obs_dim, state_dim=state_dim)
-    return TensorDictModule(net, in_keys=[("agents", "z"), "state", ("agents", "action"), ("agents", "observation"),
-                                          "posterior_mask"], out_keys=[("agents", "log_q")])
+    return Posterior(layout, n_actions=n_actions, z_dim=z_dim, hidden=hidden, combine=combine, n_agents=n_agents,
+                     obs_dim=obs_dim, state_dim=state_dim)

@@ -35,6 +35,7 @@ import torch
 from tensordict import TensorDict, TensorDictBase, TensorDictParams
 from tensordict.nn import TensorDictModule
 from tensordict.utils import NestedKey, unravel_key
+from torch import nn
 from torchrl.modules import set_recurrent_mode
 from torchrl.objectives import LossModule
 from torchrl.objectives.utils import ValueEstimators
@@ -68,7 +69,8 @@ class ICCOLoss(LossModule):
             the state, read from the segment and its ``"next"`` entry) into ``global_value [.., 1]``:
             TorchRL's ``QMixer`` or ``VDNMixer``, or :func:`~icco_torchrl.modules.make_mixer`.
         coordinator: TensorDictModule wrapping a :class:`~icco_torchrl.modules.Coordinator`, or None (QMIX).
-        posterior: TensorDictModule wrapping a :class:`~icco_torchrl.modules.Posterior`, or None.
+        posterior: a :class:`~icco_torchrl.modules.Posterior` (``make_posterior``), or None. It scores
+            whole segments with the tensors the loss reads through its own keys.
 
     Keyword Args:
         gamma: discount.
@@ -157,7 +159,10 @@ class ICCOLoss(LossModule):
         if self.has_coordinator:
             self.convert_to_functional(coordinator, "coordinator", create_target_params=True)
             self.period = coordinator.module.period
-        # The posterior has no target copy: it only appears in L_CE.
+        # The posterior has no target copy: it only appears in L_CE. Held as ``posterior.module`` (the
+        # parameter names of checkpoints made when it came wrapped in a TensorDictModule).
+        if posterior is not None and not isinstance(posterior, TensorDictModule):
+            posterior = _Holder(posterior)
         self.posterior = posterior if self.has_coordinator and ce_coef > 0 else None
 
     def _set_discount(self, gamma: float, td_lambda: float) -> None:
@@ -490,6 +495,14 @@ class ICCOLoss(LossModule):
             loss = loss + out["ce_nll"]
         out["loss_ce"] = loss
         return out
+
+
+class _Holder(nn.Module):
+    """Holds a module as ``.module`` (the state-dict names of a TensorDictModule wrapper)."""
+
+    def __init__(self, module: nn.Module):
+        super().__init__()
+        self.module = module
 
 
 def _at(value: torch.Tensor | None, steps) -> torch.Tensor | None:

@@ -164,10 +164,10 @@ def load_weights(loss, state_dict: dict, path: str | Path, method: str) -> None:
 def check_compatible(saved_cfg: dict, cfg: dict, path: str | Path) -> None:
     """Refuse a checkpoint whose method, model sizes or env layout differ from ``cfg``."""
     diffs = []
-    for section in ("method",):
-        for key in sorted(set(saved_cfg[section]) | set(cfg[section])):
-            if key != "name" and saved_cfg[section].get(key) != cfg[section].get(key):
-                diffs.append(f"{section}.{key}: checkpoint {saved_cfg[section].get(key)!r} vs config {cfg[section].get(key)!r}")
+    saved_m, m = saved_cfg["method"], cfg["method"]
+    for key in sorted(set(saved_m) | set(m)):
+        if key != "name" and saved_m.get(key) != m.get(key):
+            diffs.append(f"method.{key}: checkpoint {saved_m.get(key)!r} vs config {m.get(key)!r}")
     for key in ("n_agents", "n_resources", "n_invaders", "n_waypoints"):
         a, b = saved_cfg["env"]["params"].get(key), cfg["env"]["params"].get(key)
         if a != b:

@@ -15,16 +15,12 @@ from tensordict import TensorDictBase
 class SegmentCutter:
     """Stateful cutter: call it on each collector batch (time as the last batch dim)."""
 
-    def __init__(self, length: int, period: int | None = None, step_key="step_count",
-                 done_key=("next", "done"), mask_key="mask"):
+    def __init__(self, length: int, step_key="step_count", done_key=("next", "done"), mask_key="mask"):
         if length < 1:
             raise ValueError(f"segment length must be >= 1, got {length}")
-        self.length, self.period = length, period or length
+        self.length = length
         self.step_key, self.done_key, self.mask_key = step_key, done_key, mask_key
         self._tail: TensorDictBase | None = None
-
-    def reset(self) -> None:
-        self._tail = None
 
     def __call__(self, batch: TensorDictBase) -> TensorDictBase:
         if batch.batch_dims != 2:
@@ -32,7 +28,7 @@ class SegmentCutter:
         data = batch if self._tail is None else torch.cat([self._tail, batch], 1)
         T, span = self.length, data.shape[1]
         keep_from = max(span - T + 1, 0)                                   # windows starting here are incomplete
-        starts = data.get(self.step_key).reshape(data.shape) % self.period == 0
+        starts = data.get(self.step_key).reshape(data.shape) % T == 0
         starts[:, keep_from:] = False                                      # wait for the next batch
         env_idx, t_idx = starts.nonzero(as_tuple=True)
         steps = t_idx.unsqueeze(1) + torch.arange(T, device=t_idx.device)
