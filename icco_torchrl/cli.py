@@ -70,7 +70,7 @@ def _dispatch(command: str, cfg, run_dir: str) -> float | None:
 
         return train(cfg, run_dir).get("reward")
     if command == "eval":
-        from icco_torchrl.evaluation.cli import run_eval
+        from icco_torchrl.commands.evaluate import run_eval
 
         return run_eval(cfg, run_dir)
     if command in ("live", "bridge"):
@@ -81,7 +81,7 @@ def _dispatch(command: str, cfg, run_dir: str) -> float | None:
         except (OSError, ValueError) as err:  # port in use, bad limits, no checkpoint: one line
             print(f"icco {command}: {err}", file=sys.stderr)
             raise SystemExit(2) from None
-    from icco_torchrl.instructions.cli import run_instruct
+    from icco_torchrl.commands.instruct import run_instruct
 
     return run_instruct(cfg, run_dir, _INSTRUCTION)
 

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from icco_torchrl.cli import main
-from icco_torchrl.evaluation.cli import find_checkpoints
+from icco_torchrl.evaluation.runner import find_checkpoints
 from icco_torchrl.evaluation.metrics import learning_curves
 from icco_torchrl.evaluation.plots import plot_curves
 from icco_torchrl.training.build import compose_config

@@ -7,7 +7,8 @@ import torch
 from icco_torchrl.envs import ResourceCollectionEnv
 from icco_torchrl.instructions import LLMPlanner, LLMSource
 from fake_openai import closed_port
-from icco_torchrl.instructions.cli import out_dir_name, split_instructions
+from icco_torchrl.commands.instruct import out_dir_name
+from icco_torchrl.instructions.sources import split_instructions
 from test_eval_cli import icco, smoke_checkpoints
 
 

@@ -22,13 +22,13 @@ from pathlib import Path
 
 import torch
 
-from icco_torchrl.envs import ResourceCollectionEnv
+from icco_torchrl.envs import EVENTS, ResourceCollectionEnv
 from icco_torchrl.envs.reference_policies import make_reference_policy
+from icco_torchrl.training.build import EVAL_SEED_OFFSET
 from icco_torchrl.training.rollout import episode_metrics
 
 RADII = (0.0, 0.25, 0.5, 0.65, 0.8, 1.0, 1.25, 1.5, 1.75, 2.0, 2.5, 3.0, 4.0, math.inf)
 SCALES = (0.1, 0.15, 0.2, 0.25, 0.3, 0.35, 0.4, 0.5, 0.6, 0.8, 1.0, 1.3)
-EVENTS = ("pick", "collect", "defense", "invasion")
 QUAD_RADII = (0.65, 1.0, 1.5, 1.75, 2.0, 2.5)
 QUAD_METRICS = ("reward", "task_reward", "inst_reward", "pick", "collect", "defense", "invasion", "in_quadrant",
                 "waypoint_dist")
@@ -130,7 +130,7 @@ def main() -> None:
     rows = blend_family(args.episodes, args.seed, args.spawn)
     calib = choose_scale(rows)
     print(f"four-quadrant protocol at scale {calib['chosen']['scale']} ({args.quadrant_trials} trials x 580 steps):")
-    quad = quadrant_references(calib["chosen"]["scale"], args.quadrant_trials, args.seed + 20_000, args.spawn)
+    quad = quadrant_references(calib["chosen"]["scale"], args.quadrant_trials, args.seed + EVAL_SEED_OFFSET, args.spawn)
     (out / "calibration.json").write_text(json.dumps(
         {"episodes": args.episodes, "steps": 145, "seed": args.seed, "spawn": args.spawn, "radii": rows, **calib,
          "quadrants": {"trials": args.quadrant_trials, "steps": 580, "policies": quad}},

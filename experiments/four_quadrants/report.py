@@ -23,12 +23,13 @@ from string import Template
 from icco_torchrl.evaluation.metrics import (EPISODE, METHOD_LABELS, learning_curves, markdown_table, result_name,
                                              results_json, segment_table, write_json)
 from icco_torchrl.evaluation.plots import plot_curves
+from icco_torchrl.training.build import METHODS
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 from aggregate import find_runs  # noqa: E402  (experiments/aggregate.py, a sibling script)
 
-EXPECTED = [METHOD_LABELS[m] for m in ("icco", "icco_wo_ce", "qmix", "qmix_full")]
+EXPECTED = [METHOD_LABELS[m] for m in METHODS]
 COLUMNS = ("reward", "task_reward", "inst_reward", "pick", "collect", "defense", "invasion", "waypoint_dist",
            "in_quadrant")
 SMOKE_FRAMES = 100_000  # below this a run has learned nothing worth comparing

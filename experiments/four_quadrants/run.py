@@ -27,13 +27,12 @@ from pathlib import Path
 
 import torch
 
-from icco_torchrl.training.build import compose_config
+from icco_torchrl.training.build import METHODS, compose_config
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from jobs import train_runs  # noqa: E402  (experiments/jobs.py, a sibling script)
 
 HERE = Path(__file__).resolve().parent
-METHODS = ("icco", "icco_wo_ce", "qmix", "qmix_full")
 SEEDS = (0, 1, 2)
 # Seconds per run: proves the pipeline, says nothing about the methods.
 SMOKE_BUDGET = ("experiment=smoke", "train.total_frames=512", "train.eval_interval=256", "train.checkpoint_interval=0",

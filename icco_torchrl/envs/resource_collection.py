@@ -51,7 +51,9 @@ from icco_torchrl.envs.layout import ObsLayout  # noqa: F401  (re-exported: the 
 N_ACTIONS = 5
 # Unit force per action: no-op, -x, +x, -y, +y (COPA's order).
 _ACTION_DIRS = ((0.0, 0.0), (-1.0, 0.0), (1.0, 0.0), (0.0, -1.0), (0.0, 1.0))
-_EVENTS = ("pick", "collect", "defense", "invasion")
+EVENTS = ("pick", "collect", "defense", "invasion")  # the counted events, under ("events", name)
+EVENT_KEYS = (*EVENTS, "inst_reward")                 # every ("events", ...) entry of a step
+_EVENTS = EVENTS
 _FAR = 1e9  # where inactive invaders are "seen" from: beyond any vision radius
 SPAWN_MODES = ("uniform", "copa")
 

@@ -17,17 +17,18 @@ from typing import Iterable, Mapping, Sequence
 import numpy as np
 import torch
 
-from icco_torchrl.instructions.sources import QUADRANT_SIGNS
+from icco_torchrl.envs.resource_collection import EVENTS
+from icco_torchrl.envs.waypoints import QUADRANT_SIGNS
+from icco_torchrl.training.build import METHOD_LABELS  # noqa: F401  (re-exported)
 from icco_torchrl.training.logger import read_column  # noqa: F401  (re-exported: the CSV streams' reader)
 
 # Summed over steps: team reward, its instruction part, its task part, and the event counts.
-ADDITIVE = ("reward", "task_reward", "inst_reward", "pick", "collect", "defense", "invasion")
+ADDITIVE = ("reward", "task_reward", "inst_reward", *EVENTS)
 # Averaged over steps: distance (m) from each robot to its nearest waypoint, and the fraction of
 # robots strictly inside the instructed quadrant (NaN for segments without a quadrant).
 AVERAGED = ("waypoint_dist", "in_quadrant")
 METRICS = ADDITIVE + AVERAGED
 EPISODE = "episode"  # the segment name of a whole-episode row
-METHOD_LABELS = {"icco": "ICCO", "icco_wo_ce": "ICCO w/o CE", "qmix": "QMIX", "qmix_full": "QMIX (FULL)"}
 TASK_REWARDS = ("pick_reward", "collect_reward", "defense_reward", "invasion_penalty")
 
 
@@ -48,7 +49,7 @@ def step_values(env, nxt, waypoints: torch.Tensor, quadrant: int | None) -> dict
     reward = nxt.get("reward").reshape(-1).float()
     inst = nxt.get(("events", "inst_reward")).float()
     out = {"reward": reward, "task_reward": reward - inst, "inst_reward": inst}
-    for key in ("pick", "collect", "defense", "invasion"):
+    for key in EVENTS:
         out[key] = nxt.get(("events", key)).float()
     out["waypoint_dist"] = (waypoints - env.pos.unsqueeze(-2)).norm(dim=-1).min(-1).values.mean(-1)
     if quadrant is None:

@@ -22,7 +22,7 @@ from matplotlib.patches import Circle, Rectangle
 from icco_torchrl.envs.render import robot_color
 from icco_torchrl.evaluation.metrics import EPISODE, Curve
 from icco_torchrl.evaluation.protocols import ScheduleRun
-from icco_torchrl.instructions.sources import QUADRANT_SIGNS
+from icco_torchrl.envs.waypoints import QUADRANT_SIGNS
 
 RESOURCE, INVADER, HOME, SHADE = "#daa520", "#c81e2d", "#c8d6e5", "#f4c7c3"
 METHOD_COLORS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f", "#17becf")

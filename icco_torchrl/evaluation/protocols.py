@@ -18,7 +18,7 @@ import torch
 from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
 from icco_torchrl.evaluation.metrics import step_values, trial_rows
-from icco_torchrl.instructions.sources import InstructionSource, QuadrantSource, RandomWalkSource, base_env
+from icco_torchrl.envs.waypoints import InstructionSource, QuadrantSource, RandomWalkSource, base_env
 
 Schedule = Sequence[tuple[str, InstructionSource, int]]
 # Raw-env state recorded before the first step and after every step: [T + 1, B, ...].

@@ -480,3 +480,17 @@ def register_offline_provider(litellm: Any) -> Any:
     handler = _provider_class()()
     litellm.custom_provider_map = [*litellm.custom_provider_map, {"provider": PROVIDER, "custom_handler": handler}]
     return handler
+
+
+def is_offline(model: str) -> bool:
+    """Whether a litellm model name is this offline rule planner."""
+    return model.startswith(f"{PROVIDER}/")
+
+
+def check_understood(instructions: list[str], half: float) -> None:
+    """``ValueError`` naming the first instruction the offline planner does not understand."""
+    for text in instructions:
+        try:
+            parse(text, half)
+        except UnknownInstruction as err:
+            raise ValueError(f"the offline planner does not understand {text!r}: {err}") from None

@@ -28,7 +28,16 @@ def _conf_dir() -> Path:
 
 
 CONF_DIR = _conf_dir()
+# The methods (conf/method/*.yaml) and the paper's names for them.
 METHODS = ("icco", "icco_wo_ce", "qmix", "qmix_full")
+METHOD_LABELS = {"icco": "ICCO", "icco_wo_ce": "ICCO w/o CE", "qmix": "QMIX", "qmix_full": "QMIX (FULL)"}
+# Env seeds relative to cfg.seed: training uses the seed itself, the evaluations during training
+# seed + VALIDATION_SEED_OFFSET, evaluations of a trained policy (icco eval/instruct, restore) seed +
+# EVAL_SEED_OFFSET, so none replays another's episodes; evaluation episode e draws its reference
+# walks with seed + EPISODE_SEED_STRIDE * e.
+VALIDATION_SEED_OFFSET = 10_000
+EVAL_SEED_OFFSET = 20_000
+EPISODE_SEED_STRIDE = 1_000
 
 
 def compose_config(overrides: list[str] | None = None, config_name: str = "config") -> DictConfig:

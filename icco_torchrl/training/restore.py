@@ -6,7 +6,7 @@ from pathlib import Path
 from omegaconf import OmegaConf
 
 from icco_torchrl.modules.policy import make_policy
-from icco_torchrl.training.build import action_count, make_env, make_loss, make_modules
+from icco_torchrl.training.build import EVAL_SEED_OFFSET, action_count, make_env, make_loss, make_modules
 from icco_torchrl.training.checkpoint import CheckpointError, load_checkpoint, load_weights, save_checkpoint
 from icco_torchrl.training.config import resolve_device, validate
 
@@ -23,7 +23,7 @@ def restore(path: str | Path, *, num_envs: int | None = None, device: str = "cpu
     cfg = validate(OmegaConf.create(ckpt["cfg"]))
     dev = resolve_device(device)
     cfg.device = str(dev)
-    env = make_env(cfg, num_envs=num_envs, seed=cfg.seed + 20_000 if seed is None else seed, device=dev, **env_overrides)
+    env = make_env(cfg, num_envs=num_envs, seed=cfg.seed + EVAL_SEED_OFFSET if seed is None else seed, device=dev, **env_overrides)
     layout = env.base_env.layout
     saved = ckpt.get("layout", {})
     diffs = [f"{k}: checkpoint {saved[k]} vs env {getattr(layout, k)}" for k in saved if saved[k] != getattr(layout, k)]

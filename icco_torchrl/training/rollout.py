@@ -6,7 +6,7 @@ from tensordict import TensorDictBase
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-EVENT_KEYS = ("pick", "collect", "defense", "invasion", "inst_reward")
+from icco_torchrl.envs.resource_collection import EVENT_KEYS  # noqa: F401  (re-exported)
 
 
 def greedy_rollout(env: EnvBase, policy, steps: int, tensordict: TensorDictBase | None = None) -> TensorDictBase:

@@ -22,7 +22,7 @@ from icco_torchrl.envs.reference_policies import make_reference_policy, referenc
 from icco_torchrl.training.rollout import EVENT_KEYS, evaluate
 from icco_torchrl.modules.policy import exploration_module, make_policy
 from icco_torchrl.objectives import make_target_updater, total_loss
-from icco_torchrl.training.build import action_count, make_env, make_loss, make_modules
+from icco_torchrl.training.build import VALIDATION_SEED_OFFSET, action_count, make_env, make_loss, make_modules
 from icco_torchrl.training.checkpoint import (CheckpointError, check_compatible, load_checkpoint, load_replay,
                                               load_weights, save_checkpoint, save_replay)
 from icco_torchrl.training.config import resolve_device
@@ -131,7 +131,7 @@ def train(cfg: DictConfig, run_dir: str | Path) -> dict:
 
     # Env (batched, on the configured device) and a separate evaluation env.
     env = make_env(cfg, device=device)
-    eval_env = make_env(cfg, num_envs=t.eval_envs, seed=cfg.seed + 10_000, device=device)
+    eval_env = make_env(cfg, num_envs=t.eval_envs, seed=cfg.seed + VALIDATION_SEED_OFFSET, device=device)
     layout = env.base_env.layout
 
     # Modules, policy (coordinator -> agent -> greedy -> epsilon-greedy), loss, optimiser, targets.
@@ -185,7 +185,7 @@ def train(cfg: DictConfig, run_dir: str | Path) -> dict:
             "updater": updater.state_dict(), "rng": _rng_state(env), "epsilon": float(explore.eps),
             "replay_segments": len(buffer) if t.checkpoint_buffer else 0})
 
-    eval_seed = cfg.seed + 10_000  # every evaluation faces the same initial configurations
+    eval_seed = cfg.seed + VALIDATION_SEED_OFFSET  # every evaluation faces the same initial configurations
 
     def run_eval() -> dict:
         start = time.perf_counter()

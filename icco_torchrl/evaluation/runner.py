@@ -1,25 +1,23 @@
-"""``icco eval``: evaluate one or several checkpoints with a protocol and write the results.
+"""Evaluate trained checkpoints under an instruction schedule and write the results.
 
-    icco eval checkpoint=PATH [eval.protocol=random_walk|quadrants] [eval.trials=20] [eval.gif=true]
-    icco eval eval.checkpoints='[runs/icco/*/checkpoint.pt,runs/qmix/*/checkpoint.pt]' eval.protocol=quadrants
+The library behind ``icco eval`` and ``icco instruct`` (:mod:`icco_torchrl.commands`):
+:func:`find_checkpoints` resolves ``checkpoint``/``eval.checkpoints``; :func:`evaluate_checkpoints`
+plays a schedule (any :class:`~icco_torchrl.envs.waypoints.InstructionSource` per segment) on every
+checkpoint and on the reference policies; :func:`write_report` writes the tables and figures.
 
 Checkpoints of one method (several seeds) are pooled into one table row. Every checkpoint is
 evaluated in the env the command line composes (by default the paper's task), so all methods
 are scored by the same rewards; parameters that differ from a checkpoint's training env are
 reported, and a different observation layout is refused. All checkpoints face the same initial
-configurations (the env seed is ``seed + 20000``). Outputs go to ``eval.out_dir`` or to
-``eval_<protocol>/`` next to the checkpoint(s): ``<name>_trials.csv`` (one row per
-checkpoint, trial and segment, plus the whole episode), ``<name>_summary.csv``,
-``<name>.json``, ``<name>.md`` and figures (PNG + PDF, GIFs with ``eval.gif=true``).
-:func:`evaluate_checkpoints` and :func:`write_report` are shared with ``icco instruct``.
+configurations (the env seed is ``seed + EVAL_SEED_OFFSET``). Outputs: ``<name>_trials.csv``
+(one row per checkpoint, trial and segment, plus the whole episode), ``<name>_summary.csv``,
+``<name>.json``, ``<name>.md`` and figures (PNG + PDF, GIFs on request).
 """
 from __future__ import annotations
 
 import glob
 import os
 import re
-import sys
-from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Sequence
@@ -32,23 +30,11 @@ from icco_torchrl.envs.reference_policies import make_reference_policy, referenc
 from icco_torchrl.evaluation.metrics import (EPISODE, markdown_table, method_label, segment_table, summarize,
                                              write_csv, write_json)
 from icco_torchrl.evaluation.protocols import PROTOCOLS, Schedule, check_schedule, run_schedule, schedule_env
+from icco_torchrl.training.build import EPISODE_SEED_STRIDE, EVAL_SEED_OFFSET
 from icco_torchrl.training.checkpoint import CheckpointError, load_checkpoint
-from icco_torchrl.training.config import ConfigError
 
-EVAL_SEED_OFFSET = 20_000  # evaluation envs never replay the training envs' episodes
 GIF_MAX_FRAMES = 300       # longer episodes are recorded every few steps
 GIF_SIZE = 320
-
-
-@contextmanager
-def clean_errors(command: str):
-    """Bad input (missing or incompatible checkpoint, bad value) ends the command with a
-    one-line message and exit code 2 instead of a traceback."""
-    try:
-        yield
-    except (CheckpointError, ConfigError, ValueError) as err:
-        print(f"icco {command}: {err}", file=sys.stderr)
-        raise SystemExit(2) from None
 
 
 def find_checkpoints(cfg: DictConfig, root: str | Path = ".") -> list[Path]:
@@ -203,21 +189,14 @@ def write_report(result: Evaluation, cfg: DictConfig, *, name: str, out_dir: Pat
     return float(next(r for r in summary if r["segment"] == EPISODE)["reward"])
 
 
-def run_eval(cfg: DictConfig, run_dir: str | Path) -> float:
-    """``icco eval``: the mean episode team reward of the first method (see the module doc)."""
-    with clean_errors("eval"):
-        if cfg.eval.protocol not in PROTOCOLS:
-            raise ValueError(f"eval.protocol must be one of {sorted(PROTOCOLS)}, got {cfg.eval.protocol!r}")
-        paths = find_checkpoints(cfg)
-        given = bool(cfg.checkpoint or cfg.eval.checkpoints)
-        print(("evaluating " if given else "no checkpoint= given: evaluating the newest, ")
-              + ", ".join(map(str, paths)), flush=True)
-        name = cfg.eval.protocol
-        out_dir = Path(cfg.eval.out_dir) if cfg.eval.out_dir else default_out_dir(paths, f"eval_{name}")
-        protocol = PROTOCOLS[name]
-        title = {"quadrants": "Four-quadrant protocol (paper Sec. V-B, Fig. 4/5a)",
-                 "random_walk": "Random-walk instructions (the training distribution)"}[name]
-        # Each episode draws its own reference walks (the env draws its own initial states).
-        result = evaluate_checkpoints(cfg, paths, lambda ep: protocol(cfg.eval.steps, seed=cfg.seed + 1000 * ep),
-                                      gif_stem=out_dir / name if cfg.eval.gif else None)
-        return write_report(result, cfg, name=name, out_dir=out_dir, title=title, traj_segments=[0])
+PROTOCOL_TITLES = {"quadrants": "Four-quadrant protocol (paper Sec. V-B, Fig. 4/5a)",
+                   "random_walk": "Random-walk instructions (the training distribution)"}
+
+
+def protocol_schedules(cfg: DictConfig) -> Callable[[int], Schedule]:
+    """``episode -> schedule`` of ``eval.protocol``: each episode draws its own reference walks (the env
+    draws its own initial states)."""
+    if cfg.eval.protocol not in PROTOCOLS:
+        raise ValueError(f"eval.protocol must be one of {sorted(PROTOCOLS)}, got {cfg.eval.protocol!r}")
+    protocol = PROTOCOLS[cfg.eval.protocol]
+    return lambda episode: protocol(cfg.eval.steps, seed=cfg.seed + EPISODE_SEED_STRIDE * episode)

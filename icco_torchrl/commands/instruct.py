@@ -22,19 +22,11 @@ from pathlib import Path
 
 from omegaconf import DictConfig
 
-from icco_torchrl.evaluation.cli import (clean_errors, default_out_dir, evaluate_checkpoints, find_checkpoints, slug,
-                                         write_report)
+from icco_torchrl.commands import clean_errors
+from icco_torchrl.evaluation.runner import default_out_dir, evaluate_checkpoints, find_checkpoints, slug, write_report
 from icco_torchrl.instructions.llm import LLMPlanner, LLMUnavailable
-from icco_torchrl.instructions.planner import PROVIDER, UnknownInstruction, parse
-from icco_torchrl.instructions.sources import LLMSource
-
-
-def split_instructions(text: str) -> list[str]:
-    """``"Go right; Move top"`` -> ``["Go right", "Move top"]``; empty parts are an error."""
-    parts = [part.strip() for part in text.split(";")]
-    if not text.strip() or not all(parts):
-        raise ValueError(f"instruction {text!r} has an empty part: give e.g. \"Go right; Move top\"")
-    return parts
+from icco_torchrl.instructions.planner import check_understood, is_offline
+from icco_torchrl.instructions.sources import language_schedule, split_instructions
 
 
 def out_dir_name(instructions: list[str]) -> str:
@@ -61,28 +53,23 @@ def run_instruct(cfg: DictConfig, run_dir: str | Path, instruction: str) -> floa
     """The mean episode team reward of the first method (see the module doc)."""
     with clean_errors("instruct"), _llm_errors():
         instructions = split_instructions(instruction)
-        planner = LLMPlanner.from_config(cfg.llm, field_size=float(cfg.env.params.field_size))
+        field_size = float(cfg.env.params.field_size)
+        planner = LLMPlanner.from_config(cfg.llm, field_size=field_size)
         # The offline rule planner is deterministic: if it declines an instruction it never
         # understands it, so say so now (naming it) rather than run on fallback waypoints.
-        offline = planner.model.startswith(f"{PROVIDER}/")
+        offline = is_offline(planner.model)
         if offline:
-            for text in instructions:
-                try:
-                    parse(text, float(cfg.env.params.field_size) / 2)
-                except UnknownInstruction as err:
-                    raise ValueError(f"the offline planner does not understand {text!r}: {err}") from None
+            check_understood(instructions, field_size / 2)
         paths = find_checkpoints(cfg)
         name = out_dir_name(instructions)
         out_dir = Path(cfg.eval.out_dir) if cfg.eval.out_dir else default_out_dir(paths, name)
-
-        def schedule(episode: int):
-            return [(text, LLMSource(planner, text, replan_every=cfg.eval.replan_every, strict=offline),
-                     cfg.eval.steps) for text in instructions]
-
         title = (f"Language instructions via {planner.model} ({planner.prompt} prompt): "
                  + " -> ".join(f'"{text}"' for text in instructions))
-        result = evaluate_checkpoints(cfg, paths, schedule, gif_stem=out_dir / "instruct" if cfg.eval.gif else None,
-                                      label_suffix="-TAP" if planner.prompt == "tap" else "")
+        result = evaluate_checkpoints(
+            cfg, paths, lambda episode: language_schedule(planner, instructions, cfg.eval.steps,
+                                                          replan_every=cfg.eval.replan_every, strict=offline),
+            gif_stem=out_dir / "instruct" if cfg.eval.gif else None,
+            label_suffix="-TAP" if planner.prompt == "tap" else "")
         return write_report(result, cfg, name="instruct", out_dir=out_dir, title=title,
                             meta=dict(llm_backend=cfg.llm.backend, model=planner.model, prompt=planner.prompt,
                                       instructions=instructions, replan_every=cfg.eval.replan_every))
