@@ -44,6 +44,8 @@ def make_policy(agent: TensorDictModule, action_spec, coordinator: TensorDictMod
                            spec=None, action_space="categorical")
     explore = EGreedyModule(spec=action_spec, eps_init=eps_init, eps_end=eps_end,
                             annealing_num_steps=annealing_num_steps, action_key=action_key)
+    if action_spec.device is not None:  # its eps buffers start on the CPU; it refuses actions elsewhere
+        explore = explore.to(action_spec.device)
     remember = TensorModule(nn.Identity(), in_keys=[action_key], out_keys=[("next", group, "prev_action")])
     modules = ([coordinator] if coordinator is not None else []) + [agent, q_value, explore, remember]
     return TensorDictSequential(*modules)
