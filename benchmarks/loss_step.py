@@ -16,16 +16,15 @@ from pathlib import Path
 import torch
 
 from icco_torchrl.objectives import total_loss
-from icco_torchrl.training.build import METHODS, build_components
+from icco_torchrl.training.build import METHODS, build, compose_config
 
 
 def time_updates(method: str, batch: int, steps: int, runs: int, device: str) -> dict:
-    parts = build_components(method=method, num_envs=64, device=device, seed=0)
-    env, policy, loss = parts["env"], parts["policy"], parts["loss"]
+    run = build(compose_config([f"method={method}", "seed=0", f"device={device}"]), num_envs=64)
+    env, policy, loss = run.env, run.policy, run.loss
     with torch.no_grad():
         data = env.rollout(40, policy, break_when_any_done=False)
-    cutter = parts["cutter"]
-    segs = cutter(data)
+    segs = run.cutter(data)
     idx = torch.randint(0, segs.shape[0], (batch,))
     sample = segs[idx].contiguous()
     optim = torch.optim.RMSprop(loss.parameters(), lr=3e-4, alpha=0.99, eps=1e-5, foreach=True)

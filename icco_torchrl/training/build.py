@@ -1,22 +1,29 @@
-"""Config -> env, modules, policy, loss, segment cutter. Every method goes through here.
+"""The one assembler: ``build(cfg) -> Run`` (env, evaluation env, networks, policy, loss, optimiser,
+target updater, replay buffer, segment cutter). Every method and every user goes through here:
+the trainer, checkpoint restore (``icco eval``, ``icco instruct``, the live loop), the benchmarks.
 
 A method differs only by its ``method`` config group: with or without a coordinator (and its
 posterior), agents reading their local view or the global state, CE weights.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 from omegaconf import DictConfig, OmegaConf
+from torch import nn
+from torchrl.data import LazyTensorStorage, RandomSampler, TensorDictReplayBuffer
 from torchrl.envs import TransformedEnv
 
 from icco_torchrl.envs import ResourceCollectionEnv
+from icco_torchrl.envs.layout import ObsLayout
 from icco_torchrl.modules import make_agent, make_coordinator, make_mixer, make_posterior
 from icco_torchrl.modules.policy import make_policy, make_primer
-from icco_torchrl.objectives import ICCOLoss
+from icco_torchrl.objectives import ICCOLoss, make_target_updater
 from icco_torchrl.training.config import resolve_device, validate
 from icco_torchrl.training.segments import SegmentCutter
+
 
 def _conf_dir() -> Path:
     """The Hydra config tree: ``conf/`` of a source checkout, else the copy a wheel installs as
@@ -93,17 +100,73 @@ def make_loss(cfg: DictConfig, mods: dict) -> ICCOLoss:
                     entropy_coef=m.entropy_coef if m.coordinator else 0.0)
 
 
-def build_components(cfg: DictConfig | None = None, *, method: str | None = None, num_envs: int | None = None,
-                     device: str = "cpu", seed: int = 0) -> dict:
-    """Everything but the collector/buffer, for benchmarks, tests and evaluation."""
-    if cfg is None:
-        cfg = compose_config([f"method={method or 'icco'}", f"seed={seed}", f"device={device}"])
-    device = resolve_device(cfg.device)
-    env = make_env(cfg, num_envs=num_envs, device=device)
+def make_optimizer(cfg: DictConfig, loss: ICCOLoss) -> torch.optim.Optimizer:
+    """``train.optimizer`` over every parameter of the loss (foreach: one multi-tensor kernel per step)."""
+    t = cfg.train
+    if t.optimizer == "rmsprop":
+        return torch.optim.RMSprop(loss.parameters(), lr=t.lr, alpha=0.99, eps=1e-5, foreach=True)
+    return torch.optim.Adam(loss.parameters(), lr=t.lr, foreach=True)
+
+
+@dataclass
+class Run:
+    """What :func:`build` assembles for one config. Training parts (evaluation env, optimiser,
+    target updater, replay buffer) are None unless built ``for_training``; ``checkpoint`` is set
+    by :func:`~icco_torchrl.training.restore.restore`. Indexing by name (``run["policy"]``) works as
+    it did on the dicts ``build_components`` and ``restore`` returned."""
+
+    cfg: DictConfig
+    env: TransformedEnv
+    layout: ObsLayout
+    agent: nn.Module
+    mixer: nn.Module
+    coordinator: nn.Module | None
+    posterior: nn.Module | None
+    policy: nn.Module
+    loss: ICCOLoss
+    cutter: SegmentCutter
+    eval_env: TransformedEnv | None = None
+    optim: torch.optim.Optimizer | None = None
+    updater: object | None = None
+    buffer: TensorDictReplayBuffer | None = None
+    checkpoint: dict | None = None
+
+    def __getitem__(self, name: str):
+        return getattr(self, name)
+
+    def __contains__(self, name: str) -> bool:
+        return name in self.__dataclass_fields__
+
+
+def build(cfg: DictConfig, *, num_envs: int | None = None, seed: int | None = None, device=None,
+          for_training: bool = False, **env_overrides) -> Run:
+    """Assemble ``cfg`` on ``device`` (default ``cfg.device``). ``num_envs``, ``seed`` and
+    ``env_overrides`` change the env (an evaluation env, say); ``for_training`` adds the evaluation
+    env (``train.eval_envs`` envs, seed + VALIDATION_SEED_OFFSET), optimiser, target updater and
+    replay buffer. Objects are made in a fixed order, so a seed gives the same weights every time."""
+    device = resolve_device(cfg.device if device is None else str(device))
+    t = cfg.train
+    env = make_env(cfg, num_envs=num_envs, seed=seed, device=device, **env_overrides)
+    eval_env = (make_env(cfg, num_envs=t.eval_envs, seed=cfg.seed + VALIDATION_SEED_OFFSET, device=device)
+                if for_training else None)
     layout = env.base_env.layout
     mods = make_modules(cfg, layout, device, n_actions=action_count(env))
     policy = make_policy(mods["agent"], env.full_action_spec_unbatched, mods["coordinator"],
-                         eps_init=cfg.train.eps_init, eps_end=cfg.train.eps_end)
+                         eps_init=t.eps_init, eps_end=t.eps_end)
     loss = make_loss(cfg, mods)
-    cutter = SegmentCutter(length=cfg.method.period)
-    return {"cfg": cfg, "env": env, "layout": layout, "policy": policy, "loss": loss, "cutter": cutter, **mods}
+    run = Run(cfg=cfg, env=env, layout=layout, **mods, policy=policy, loss=loss,
+              cutter=SegmentCutter(length=cfg.method.period), eval_env=eval_env)
+    if for_training:
+        run.optim = make_optimizer(cfg, loss)
+        run.updater = make_target_updater(loss, t.target_update, interval=t.target_update_interval, tau=t.tau)
+        run.buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(t.buffer_segments, device=device),
+                                            sampler=RandomSampler(), batch_size=t.batch_segments)
+    return run
+
+
+def build_components(cfg: DictConfig | None = None, *, method: str | None = None, num_envs: int | None = None,
+                     device: str = "cpu", seed: int = 0) -> Run:
+    """:func:`build` for scripts and tests: the composed config of ``method`` when no ``cfg`` is given."""
+    if cfg is None:
+        cfg = compose_config([f"method={method or 'icco'}", f"seed={seed}", f"device={device}"])
+    return build(cfg, num_envs=num_envs)

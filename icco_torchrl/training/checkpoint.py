@@ -161,19 +161,24 @@ def load_weights(loss, state_dict: dict, path: str | Path, method: str) -> None:
         raise CheckpointError(f"checkpoint {path} does not match the {method} networks: {err}") from None
 
 
-def check_compatible(saved_cfg: dict, cfg: dict, path: str | Path) -> None:
-    """Refuse a checkpoint whose method, model sizes or env layout differ from ``cfg``."""
-    diffs = []
-    saved_m, m = saved_cfg["method"], cfg["method"]
-    for key in sorted(set(saved_m) | set(m)):
-        if key != "name" and saved_m.get(key) != m.get(key):
-            diffs.append(f"method.{key}: checkpoint {saved_m.get(key)!r} vs config {m.get(key)!r}")
-    for key in ("n_agents", "n_resources", "n_invaders", "n_waypoints"):
-        a, b = saved_cfg["env"]["params"].get(key), cfg["env"]["params"].get(key)
-        if a != b:
-            diffs.append(f"env.params.{key}: checkpoint {a!r} vs config {b!r}")
-    if diffs:
-        raise CheckpointError(f"checkpoint {path} was trained with an incompatible config: " + "; ".join(diffs))
+def check_compatible(ckpt: dict[str, Any], cfg, layout, path: str | Path) -> None:
+    """The one check that a checkpoint's weights fit what ``cfg`` builds for an env of ``layout``: the
+    method's fields (its name aside: sizes, encoders, coordinator) and the observation layout (robot,
+    resource, invader and waypoint counts) must be the checkpoint's. Used by ``resume=`` and by
+    :func:`~icco_torchrl.training.restore.restore`; raises one ``CheckpointError`` naming every difference."""
+    from omegaconf import OmegaConf
+
+    cfg = cfg if isinstance(cfg, dict) else OmegaConf.to_container(cfg, resolve=True)
+    saved_m, m = ckpt["cfg"]["method"], cfg["method"]
+    method = [f"method.{key}: checkpoint {saved_m.get(key)!r} vs config {m.get(key)!r}"
+              for key in sorted(set(saved_m) | set(m)) if key != "name" and saved_m.get(key) != m.get(key)]
+    saved_layout = ckpt.get("layout") or {}
+    shape = [f"{key}: checkpoint {value} vs env {getattr(layout, key)}"
+             for key, value in saved_layout.items() if value != getattr(layout, key)]
+    problems = ([f"was trained with an incompatible config: {'; '.join(method)}"] if method else []) + \
+               ([f"was trained for another env layout: {'; '.join(shape)}"] if shape else [])
+    if problems:
+        raise CheckpointError(f"checkpoint {path} " + ", and ".join(problems))
 
 
 # ---------------------------------------------------------------- replay buffer dumps

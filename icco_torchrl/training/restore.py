@@ -1,19 +1,19 @@
-"""Rebuild a trained policy from a checkpoint, for evaluation, demos and language protocols."""
+"""Rebuild a trained policy from a checkpoint (through the one assembler), for evaluation, demos and language protocols."""
 from __future__ import annotations
 
 from pathlib import Path
 
 from omegaconf import OmegaConf
 
-from icco_torchrl.modules.policy import make_policy
-from icco_torchrl.training.build import EVAL_SEED_OFFSET, action_count, make_env, make_loss, make_modules
-from icco_torchrl.training.checkpoint import CheckpointError, load_checkpoint, load_weights, save_checkpoint
+from icco_torchrl.training.build import EVAL_SEED_OFFSET, Run, build
+from icco_torchrl.training.checkpoint import check_compatible, load_checkpoint, load_weights, save_checkpoint
 from icco_torchrl.training.config import resolve_device, validate
 
 
 def restore(path: str | Path, *, num_envs: int | None = None, device: str = "cpu", seed: int | None = None,
-            **env_overrides) -> dict:
-    """``{"cfg", "env", "policy", "loss", "layout", "checkpoint"}`` with the trained weights loaded.
+            **env_overrides) -> Run:
+    """The checkpoint's :class:`~icco_torchrl.training.build.Run` with its weights loaded (``run.checkpoint``
+    holds the file's contents; ``run["policy"]`` etc. as before).
 
     ``env_overrides`` change env parameters for evaluation (e.g. ``max_steps=580``,
     ``waypoint_mode="external"``); parameters that change the observation layout (robot,
@@ -21,22 +21,15 @@ def restore(path: str | Path, *, num_envs: int | None = None, device: str = "cpu
     """
     ckpt = load_checkpoint(path)
     cfg = validate(OmegaConf.create(ckpt["cfg"]))
-    dev = resolve_device(device)
-    cfg.device = str(dev)
-    env = make_env(cfg, num_envs=num_envs, seed=cfg.seed + EVAL_SEED_OFFSET if seed is None else seed, device=dev, **env_overrides)
-    layout = env.base_env.layout
-    saved = ckpt.get("layout", {})
-    diffs = [f"{k}: checkpoint {saved[k]} vs env {getattr(layout, k)}" for k in saved if saved[k] != getattr(layout, k)]
-    if diffs:
-        raise CheckpointError(f"checkpoint {path} was trained for another env layout: " + "; ".join(diffs))
-    mods = make_modules(cfg, layout, dev, n_actions=action_count(env))
-    loss = make_loss(cfg, mods)
+    cfg.device = str(resolve_device(device))
+    run = build(cfg, num_envs=num_envs, seed=cfg.seed + EVAL_SEED_OFFSET if seed is None else seed, **env_overrides)
+    check_compatible(ckpt, cfg, run.layout, path)
     weights = ckpt["loss"]
     if ckpt.get("policy_only"):  # an exported policy (export_policy): the targets are the online weights
-        weights = {**weights, **{f"target_{k}": v for k, v in weights.items() if f"target_{k}" in loss.state_dict()}}
-    load_weights(loss, weights, path, cfg.method.name)
-    policy = make_policy(mods["agent"], env.full_action_spec_unbatched, mods["coordinator"])
-    return {"cfg": cfg, "env": env, "policy": policy, "loss": loss, "layout": layout, "checkpoint": ckpt}
+        weights = {**weights, **{f"target_{k}": v for k, v in weights.items() if f"target_{k}" in run.loss.state_dict()}}
+    load_weights(run.loss, weights, path, cfg.method.name)
+    run.checkpoint = ckpt
+    return run
 
 
 POLICY_KEYS = ("format_version", "cfg", "layout", "frames", "updates")

@@ -10,24 +10,22 @@ import logging
 import math
 import signal
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 from torchrl.collectors import Collector
-from torchrl.data import LazyTensorStorage, RandomSampler, TensorDictReplayBuffer
 
 from icco_torchrl.envs.reference_policies import make_reference_policy, reference_label
-from icco_torchrl.training.rollout import EVENT_KEYS, evaluate
-from icco_torchrl.modules.policy import exploration_module, make_policy
-from icco_torchrl.objectives import make_target_updater, total_loss
-from icco_torchrl.training.build import VALIDATION_SEED_OFFSET, action_count, make_env, make_loss, make_modules
+from icco_torchrl.modules.policy import exploration_module
+from icco_torchrl.objectives import total_loss
+from icco_torchrl.training.build import VALIDATION_SEED_OFFSET, Run, build
 from icco_torchrl.training.checkpoint import (CheckpointError, check_compatible, load_checkpoint, load_replay,
                                               load_weights, save_checkpoint, save_replay)
-from icco_torchrl.training.config import resolve_device
 from icco_torchrl.training.logger import RunLogger
-from icco_torchrl.training.segments import SegmentCutter
+from icco_torchrl.training.rollout import EVENT_KEYS, evaluate
 
 REPLAY_DIR = "replay"  # the replay buffer dump beside checkpoint.pt (train.checkpoint_buffer)
 REFERENCES_FILE = "references.json"  # the reference policies' evaluation, beside eval.csv
@@ -37,6 +35,7 @@ REPLAY_KEYS = [("agents", "observation"), "state", ("agents", "action"), ("agent
                ("agents", "rnn_hidden"), ("agents", "z"), ("agents", "z_noise"), "step_count", "mask",
                ("next", "agents", "observation"), ("next", "state"), ("next", "reward"), ("next", "done"),
                ("next", "terminated"), ("next", "step_count")]
+EPISODE_COLUMNS = ["episode_reward"] + [f"episode_{k}" for k in EVENT_KEYS]  # train.csv: per finished episode
 
 
 def epsilon(frames: int, t: DictConfig) -> float:
@@ -112,179 +111,232 @@ def _set_rng_state(state: dict, env) -> None:
         torch.cuda.set_rng_state_all(state["cuda"])
 
 
+@dataclass
+class Progress:
+    """Where a run stands: env steps collected, gradient updates, collector batches."""
+
+    frames: int = 0
+    updates: int = 0
+    batches: int = 0
+
+
 def train(cfg: DictConfig, run_dir: str | Path) -> dict:
     """Train ``cfg.method`` and return the final evaluation metrics. Writes CSVs, checkpoints, a PNG."""
-    t = cfg.train
-    run_dir = Path(run_dir)
-    resume = load_checkpoint(cfg.resume) if cfg.resume else None
-    if resume is not None and resume.get("policy_only"):
-        raise CheckpointError(f"{cfg.resume} is an exported policy (no optimiser, targets or RNG state): "
-                              f"resume from the run's own checkpoint.pt")
-    if resume is not None:
-        check_compatible(resume["cfg"], OmegaConf.to_container(cfg, resolve=True), cfg.resume)
-        check_resume_overrides(resume["cfg"], OmegaConf.to_container(cfg, resolve=True), cfg.resume)
-        run_dir = Path(cfg.resume).resolve().parent  # continue the same run folder
-    torch.set_num_threads(t.threads)
+    # Setup: the checkpoint to resume (if any), seeds, the assembled run, the logger.
+    resume = open_resume(cfg)
+    run_dir = Path(cfg.resume).resolve().parent if resume is not None else Path(run_dir)  # continue its folder
+    torch.set_num_threads(cfg.train.threads)
     torch.manual_seed(cfg.seed)
     np.random.seed(cfg.seed)
-    device = resolve_device(cfg.device)
-
-    # Env (batched, on the configured device) and a separate evaluation env.
-    env = make_env(cfg, device=device)
-    eval_env = make_env(cfg, num_envs=t.eval_envs, seed=cfg.seed + VALIDATION_SEED_OFFSET, device=device)
-    layout = env.base_env.layout
-
-    # Modules, policy (coordinator -> agent -> greedy -> epsilon-greedy), loss, optimiser, targets.
-    mods = make_modules(cfg, layout, device, n_actions=action_count(env))
-    policy = make_policy(mods["agent"], env.full_action_spec_unbatched, mods["coordinator"],
-                         eps_init=t.eps_init, eps_end=t.eps_end)
-    explore = exploration_module(policy)
-    loss = make_loss(cfg, mods)
+    run = build(cfg, for_training=True)
     logging.getLogger("torchrl").setLevel(logging.WARNING)  # its INFO lines (with colour codes) break the bar
-    # foreach: one multi-tensor kernel per step instead of a loop over ~30 parameters (CPU too).
-    if t.optimizer == "rmsprop":
-        optim = torch.optim.RMSprop(loss.parameters(), lr=t.lr, alpha=0.99, eps=1e-5, foreach=True)
-    else:
-        optim = torch.optim.Adam(loss.parameters(), lr=t.lr, foreach=True)
-    updater = make_target_updater(loss, t.target_update, interval=t.target_update_interval, tau=t.tau)
-
-    frames, updates, batches = 0, 0, 0
+    start = resume["frames"] if resume is not None else 0
+    remaining = _remaining_frames(cfg, start)
+    # The bar ends where the collector does; a resumed run's CSVs lose the rows written after its
+    # checkpoint, so no frame is logged twice.
+    logger = RunLogger(run_dir, cfg, total_frames=start + remaining, initial_frames=start, truncate=resume is not None)
+    session = Session(run, cfg, run_dir, logger)
+    # Resume (everything a checkpoint restores, in one place) or start (config and yardsticks).
     if resume is not None:
-        load_weights(loss, resume["loss"], cfg.resume, cfg.method.name)
-        optim.load_state_dict(resume["optimizer"])
-        updater.load_state_dict(resume["updater"])
-        frames, updates, batches = resume["frames"], resume["updates"], resume["batches"]
-        _set_rng_state(resume["rng"], env)
-
-    # Collector and segment replay.
-    frames_per_batch = cfg.env.num_envs * t.steps_per_batch
-    remaining = max(t.total_frames - frames, 0)
-    remaining = math.ceil(remaining / frames_per_batch) * frames_per_batch
-    cutter = SegmentCutter(length=cfg.method.period)
-    buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(t.buffer_segments, device=device),
-                                    sampler=RandomSampler(), batch_size=t.batch_segments)
-    explore.eps.fill_(epsilon(frames, t))  # a resumed run continues its schedule, not from eps_init
-    # The bar ends where the collector does (the budget rounded up to whole batches); a resumed
-    # run's CSVs lose the rows written after its checkpoint, so no frame is logged twice.
-    logger = RunLogger(run_dir, cfg, total_frames=frames + remaining, initial_frames=frames,
-                       truncate=resume is not None)
-    if resume is None:  # a resumed run keeps the record of how it was started
-        OmegaConf.save(cfg, run_dir / "config.yaml")
-    if resume is not None and resume.get("replay_segments"):
-        if load_replay(buffer, run_dir / REPLAY_DIR):
-            logger.print(f"replay buffer restored: {len(buffer)} segments")
-        else:
-            logger.print(f"no replay buffer dump in {run_dir}: resuming with an empty buffer (warm-up again)")
-
-    def checkpoint(name: str = "checkpoint.pt") -> Path:
-        if t.checkpoint_buffer:  # first the data, then the checkpoint that refers to it
-            save_replay(buffer, run_dir / REPLAY_DIR)
-        return save_checkpoint(run_dir / name, {
-            "cfg": OmegaConf.to_container(cfg, resolve=True), "layout": layout.__dict__, "frames": frames,
-            "updates": updates, "batches": batches, "loss": loss.state_dict(), "optimizer": optim.state_dict(),
-            "updater": updater.state_dict(), "rng": _rng_state(env), "epsilon": float(explore.eps),
-            "replay_segments": len(buffer) if t.checkpoint_buffer else 0})
-
-    eval_seed = cfg.seed + VALIDATION_SEED_OFFSET  # every evaluation faces the same initial configurations
-
-    def run_eval() -> dict:
-        start = time.perf_counter()
-        metrics = evaluate(eval_env, policy, seed=eval_seed)
-        timers["eval"] += time.perf_counter() - start
-        logger.log("eval", {"frames": frames, **metrics})
-        evaluated.append(metrics)
-        logger.print(f"[eval] frames={frames} reward={metrics['reward']:.2f}±{metrics['reward_std']:.2f} "
-                     f"task={metrics['task_reward']:.2f} pick={metrics['pick']:.2f} collect={metrics['collect']:.2f} "
-                     f"defense={metrics['defense']:.2f} invasion={metrics['invasion']:.2f}")
-        return metrics
-
-    if resume is None:  # the yardsticks, on the very episodes every evaluation plays
-        references = {}
-        for name in cfg.eval.references:
-            ref = make_reference_policy(name, eval_env, radius=cfg.eval.blend_radius, seed=cfg.seed)
-            references[reference_label(name, cfg.eval.blend_radius)] = evaluate(eval_env, ref, seed=eval_seed)
-        (run_dir / REFERENCES_FILE).write_text(json.dumps(references, indent=2))
-        for label, m in references.items():
-            logger.print(f"[eval] {label}: reward={m['reward']:.2f}±{m['reward_std']:.2f} task={m['task_reward']:.2f} "
-                         f"pick={m['pick']:.2f} defense={m['defense']:.2f}")
-    timers = {"collect": 0.0, "train": 0.0, "eval": 0.0}
-    evaluated: list[dict] = []
-    tracker = EpisodeTracker(cfg.env.num_envs, device)
-    recent = []  # finished episodes since the last log row
-    episode_stats = {k: float("nan") for k in ["episode_reward"] + [f"episode_{k}" for k in EVENT_KEYS]}
-    last_eval = last_ckpt = frames
+        session.resume(resume)
+    else:
+        session.start()
+    # Loop, then finish: a last checkpoint, the final evaluation and the figure.
+    interrupted = session.loop(remaining)
+    path = session.save()
     final = {}
-    collector = None
-    stop = GracefulInterrupt()
-    try:
-        if remaining > 0:
-            # No trajectory ids: segments are cut on step_count, and the ids cost a td update per step.
-            collector = Collector(env, policy, frames_per_batch=frames_per_batch, total_frames=remaining,
-                                  device=device, storing_device=device, auto_register_policy_transforms=False,
-                                  track_traj_ids=False)
-            start_wall, start_frames = time.perf_counter(), frames
+    if not interrupted and remaining > 0:  # a resumed run already at its budget has nothing new to evaluate
+        final = session.final_evaluation()
+        plot_learning_curve(run_dir)
+    logger.close()
+    print(finish_message(run_dir, path, session.progress.frames, interrupted, final), flush=True)
+    return final
+
+
+def open_resume(cfg: DictConfig) -> dict | None:
+    """The checkpoint of ``resume=`` (None without one), refused in one line when it is an exported
+    policy or when the command line changes what a resumed run cannot honour."""
+    if not cfg.resume:
+        return None
+    ckpt = load_checkpoint(cfg.resume)
+    if ckpt.get("policy_only"):
+        raise CheckpointError(f"{cfg.resume} is an exported policy (no optimiser, targets or RNG state): "
+                              f"resume from the run's own checkpoint.pt")
+    check_resume_overrides(ckpt["cfg"], OmegaConf.to_container(cfg, resolve=True), cfg.resume)
+    return ckpt
+
+
+def _remaining_frames(cfg: DictConfig, frames: int) -> int:
+    """The budget left after ``frames``, rounded up to whole collector batches."""
+    per_batch = cfg.env.num_envs * cfg.train.steps_per_batch
+    return math.ceil(max(cfg.train.total_frames - frames, 0) / per_batch) * per_batch
+
+
+class Session:
+    """One training run's moving parts around the assembled :class:`~icco_torchrl.training.build.Run`:
+    progress counters, timers, the evaluations and the checkpoints."""
+
+    def __init__(self, run: Run, cfg: DictConfig, run_dir: Path, logger: RunLogger):
+        self.run, self.cfg, self.run_dir, self.logger = run, cfg, run_dir, logger
+        self.progress = Progress()
+        self.explore = exploration_module(run.policy)
+        self.explore.eps.fill_(epsilon(0, cfg.train))
+        self.eval_seed = cfg.seed + VALIDATION_SEED_OFFSET  # every evaluation faces the same initial configurations
+        self.timers = {"collect": 0.0, "train": 0.0, "eval": 0.0}
+        self.evaluated: list[dict] = []
+
+    # ------------------------------------------------------------------ start / resume
+    def start(self) -> None:
+        """A new run: its config, and the reference policies on the very episodes every evaluation plays."""
+        OmegaConf.save(self.cfg, self.run_dir / "config.yaml")
+        references = {}
+        for name in self.cfg.eval.references:
+            ref = make_reference_policy(name, self.run.eval_env, radius=self.cfg.eval.blend_radius, seed=self.cfg.seed)
+            references[reference_label(name, self.cfg.eval.blend_radius)] = evaluate(self.run.eval_env, ref,
+                                                                                      seed=self.eval_seed)
+        (self.run_dir / REFERENCES_FILE).write_text(json.dumps(references, indent=2))
+        for label, m in references.items():
+            self.logger.print(f"[eval] {label}: reward={m['reward']:.2f}±{m['reward_std']:.2f} "
+                              f"task={m['task_reward']:.2f} pick={m['pick']:.2f} defense={m['defense']:.2f}")
+
+    def resume(self, ckpt: dict) -> None:
+        """Everything a checkpoint restores: weights (after the one compatibility check), optimiser,
+        target updater, counters, exploration rate, RNG streams and the replay buffer. The run keeps
+        its ``config.yaml``."""
+        run, path = self.run, self.cfg.resume
+        check_compatible(ckpt, self.cfg, run.layout, path)
+        load_weights(run.loss, ckpt["loss"], path, self.cfg.method.name)
+        run.optim.load_state_dict(ckpt["optimizer"])
+        run.updater.load_state_dict(ckpt["updater"])
+        self.progress = Progress(ckpt["frames"], ckpt["updates"], ckpt["batches"])
+        self.explore.eps.fill_(epsilon(self.progress.frames, self.cfg.train))  # the schedule continues
+        _set_rng_state(ckpt["rng"], run.env)
+        if ckpt.get("replay_segments"):
+            if load_replay(run.buffer, self.run_dir / REPLAY_DIR):
+                self.logger.print(f"replay buffer restored: {len(run.buffer)} segments")
+            else:
+                self.logger.print(f"no replay buffer dump in {self.run_dir}: resuming with an empty buffer "
+                                  f"(warm-up again)")
+
+    # ------------------------------------------------------------------ loop
+    def loop(self, remaining: int) -> bool:
+        """Collect and learn until ``remaining`` more frames are done; True when a signal stopped it."""
+        if remaining <= 0:
+            return False
+        run, t, p = self.run, self.cfg.train, self.progress
+        # No trajectory ids: segments are cut on step_count, and the ids cost a td update per step.
+        collector = Collector(run.env, run.policy, frames_per_batch=self.cfg.env.num_envs * t.steps_per_batch,
+                              total_frames=remaining, device=run.env.device, storing_device=run.env.device,
+                              auto_register_policy_transforms=False, track_traj_ids=False)
+        tracker = EpisodeTracker(self.cfg.env.num_envs, run.env.device)
+        recent, episode_stats = [], {k: float("nan") for k in EPISODE_COLUMNS}  # episodes since the last row
+        last_eval = last_ckpt = p.frames
+        start_wall, start_frames = time.perf_counter(), p.frames
+        stop = GracefulInterrupt()
+        try:
             tick = time.perf_counter()
             for batch in collector:
-                timers["collect"] += time.perf_counter() - tick
-                frames += batch.numel()
-                batches += 1
-                explore.eps.fill_(epsilon(frames, t))
+                self.timers["collect"] += time.perf_counter() - tick
+                p.frames += batch.numel()
+                p.batches += 1
+                self.explore.eps.fill_(epsilon(p.frames, t))
                 recent.append(tracker.update(batch))
-                buffer.extend(cutter(batch.select(*REPLAY_KEYS, strict=False)))  # cut only what is replayed
-
+                run.buffer.extend(run.cutter(batch.select(*REPLAY_KEYS, strict=False)))  # cut only what is replayed
                 tick = time.perf_counter()
-                row = {}
-                if len(buffer) >= max(t.warmup_segments, t.batch_segments):
-                    for _ in range(t.updates_per_batch):
-                        losses = loss(buffer.sample())
-                        optim.zero_grad(set_to_none=True)
-                        total_loss(losses).backward()
-                        if t.grad_clip > 0:
-                            losses["grad_norm"] = torch.nn.utils.clip_grad_norm_(loss.parameters(), t.grad_clip)
-                        optim.step()
-                        updater.step()
-                        updates += 1
-                    row = {k: v.item() for k, v in losses.items()}  # one host sync per batch, for logging
-                timers["train"] += time.perf_counter() - tick
-
-                if batches % cfg.logger.log_interval == 0:
-                    episode_stats = _log_train(logger, frames, updates, float(explore.eps), row, recent, cfg) or episode_stats
+                row = self.learn()
+                self.timers["train"] += time.perf_counter() - tick
+                if p.batches % self.cfg.logger.log_interval == 0:
+                    episode_stats = self.log_train(row, recent) or episode_stats
                     recent = []
-                sps = (frames - start_frames) / (time.perf_counter() - start_wall)
-                logger.log("timing", {"frames": frames, "sps": sps, **{f"time_{k}": v for k, v in timers.items()}})
+                sps = (p.frames - start_frames) / (time.perf_counter() - start_wall)
+                self.logger.log("timing", {"frames": p.frames, "sps": sps,
+                                           **{f"time_{k}": v for k, v in self.timers.items()}})
                 # On a fixed grid of frames (every interval crossed), so a resumed run evaluates and
                 # checkpoints at the same frames as an uninterrupted one.
-                if t.eval_interval and frames // t.eval_interval > last_eval // t.eval_interval:
-                    run_eval()
-                    last_eval = frames
-                if t.checkpoint_interval and frames // t.checkpoint_interval > last_ckpt // t.checkpoint_interval:
-                    checkpoint()
-                    last_ckpt = frames
-                logger.progress(frames, **{"env-steps/s": sps, "epsilon": float(explore.eps),
-                                           "episode reward": episode_stats["episode_reward"],
-                                           "picks": episode_stats["episode_pick"],
-                                           "deliveries": episode_stats["episode_collect"],
-                                           "defenses": episode_stats["episode_defense"],
-                                           "invasions": episode_stats["episode_invasion"]})
+                if t.eval_interval and p.frames // t.eval_interval > last_eval // t.eval_interval:
+                    self.evaluate()
+                    last_eval = p.frames
+                if t.checkpoint_interval and p.frames // t.checkpoint_interval > last_ckpt // t.checkpoint_interval:
+                    self.save()
+                    last_ckpt = p.frames
+                self.logger.progress(p.frames, **{"env-steps/s": sps, "epsilon": float(self.explore.eps),
+                                                  "episode reward": episode_stats["episode_reward"],
+                                                  "picks": episode_stats["episode_pick"],
+                                                  "deliveries": episode_stats["episode_collect"],
+                                                  "defenses": episode_stats["episode_defense"],
+                                                  "invasions": episode_stats["episode_invasion"]})
                 if stop.requested:
                     break
                 tick = time.perf_counter()
-    except KeyboardInterrupt:  # a second Ctrl-C: stop at once
-        stop.requested = True
-    finally:
-        stop.restore()
-        if collector is not None:
+        except KeyboardInterrupt:  # a second Ctrl-C: stop at once
+            stop.requested = True
+        finally:
+            stop.restore()
             collector.shutdown()
-    interrupted = stop.requested
-    if interrupted:
-        logger.print(f"interrupted by {stop.signal_name or 'a signal'} at {frames} frames: saving a checkpoint")
-    path = checkpoint()
-    if not interrupted and remaining > 0:  # a resumed run already at its budget has nothing new to evaluate
-        final = run_eval() if last_eval != frames or not evaluated else evaluated[-1]
-        plot_learning_curve(run_dir)
-    logger.close()
-    print(finish_message(run_dir, path, frames, interrupted, final), flush=True)
-    return final
+        if stop.requested:
+            self.logger.print(f"interrupted by {stop.signal_name or 'a signal'} at {p.frames} frames: "
+                              f"saving a checkpoint")
+        return stop.requested
+
+    def learn(self) -> dict:
+        """``train.updates_per_batch`` updates once the buffer holds the warm-up; the last update's
+        metrics (one host sync per batch), or ``{}`` before the warm-up ends."""
+        run, t = self.run, self.cfg.train
+        if len(run.buffer) < max(t.warmup_segments, t.batch_segments):
+            return {}
+        for _ in range(t.updates_per_batch):
+            losses = run.loss(run.buffer.sample())
+            run.optim.zero_grad(set_to_none=True)
+            total_loss(losses).backward()
+            if t.grad_clip > 0:
+                losses["grad_norm"] = torch.nn.utils.clip_grad_norm_(run.loss.parameters(), t.grad_clip)
+            run.optim.step()
+            run.updater.step()
+            self.progress.updates += 1
+        return {k: v.item() for k, v in losses.items()}
+
+    def log_train(self, row: dict, recent: list) -> dict | None:
+        """One ``train.csv`` row: the loss's own metrics (``loss.metric_keys``, NaN before the first
+        update) and the episodes that ended since the last row; returns their means."""
+        p = self.progress
+        episodes = torch.cat(recent) if recent else torch.zeros(0, len(EPISODE_COLUMNS))
+        stats = {n: (episodes[:, i].mean().item() if len(episodes) else float("nan"))
+                 for i, n in enumerate(EPISODE_COLUMNS)}
+        metrics = {k: row.get(k, float("nan")) for k in (*self.run.loss.metric_keys, "grad_norm")}
+        self.logger.log("train", {"frames": p.frames, "updates": p.updates, "epsilon": float(self.explore.eps),
+                                  "episodes": len(episodes), **stats, **metrics})
+        return stats if len(episodes) else None
+
+    # ------------------------------------------------------------------ evaluation and checkpoints
+    def evaluate(self) -> dict:
+        """A greedy evaluation on the evaluation env, logged to ``eval.csv``."""
+        start, frames = time.perf_counter(), self.progress.frames
+        metrics = evaluate(self.run.eval_env, self.run.policy, seed=self.eval_seed)
+        self.timers["eval"] += time.perf_counter() - start
+        self.logger.log("eval", {"frames": frames, **metrics})
+        self.evaluated.append((frames, metrics))
+        self.logger.print(f"[eval] frames={frames} reward={metrics['reward']:.2f}±{metrics['reward_std']:.2f} "
+                          f"task={metrics['task_reward']:.2f} pick={metrics['pick']:.2f} "
+                          f"collect={metrics['collect']:.2f} defense={metrics['defense']:.2f} "
+                          f"invasion={metrics['invasion']:.2f}")
+        return metrics
+
+    def final_evaluation(self) -> dict:
+        """The evaluation at the last frame (the loop's own when it ran there)."""
+        if self.evaluated and self.evaluated[-1][0] == self.progress.frames:
+            return self.evaluated[-1][1]
+        return self.evaluate()
+
+    def save(self, name: str = "checkpoint.pt") -> Path:
+        """The checkpoint (and, with ``train.checkpoint_buffer``, the replay dump it refers to, first)."""
+        run, t, p = self.run, self.cfg.train, self.progress
+        if t.checkpoint_buffer:
+            save_replay(run.buffer, self.run_dir / REPLAY_DIR)
+        return save_checkpoint(self.run_dir / name, {
+            "cfg": OmegaConf.to_container(self.cfg, resolve=True), "layout": run.layout.__dict__,
+            "frames": p.frames, "updates": p.updates, "batches": p.batches, "loss": run.loss.state_dict(),
+            "optimizer": run.optim.state_dict(), "updater": run.updater.state_dict(), "rng": _rng_state(run.env),
+            "epsilon": float(self.explore.eps), "replay_segments": len(run.buffer) if t.checkpoint_buffer else 0})
 
 
 def check_resume_overrides(saved: dict, cfg: dict, path) -> None:
@@ -319,20 +371,6 @@ def finish_message(run_dir: Path, checkpoint: Path, frames: int, interrupted: bo
     else:
         lines.append(f"  next: icco eval checkpoint={checkpoint} eval.protocol=quadrants")
     return "\n".join(lines)
-
-
-def _log_train(logger: RunLogger, frames: int, updates: int, eps: float, row: dict, recent: list, cfg) -> dict | None:
-    """One ``train.csv`` row; returns the mean of the episodes that ended since the last row."""
-    episodes = torch.cat(recent) if recent else torch.zeros(0, 1 + len(EVENT_KEYS))
-    names = ["episode_reward"] + [f"episode_{k}" for k in EVENT_KEYS]
-    stats = {n: (episodes[:, i].mean().item() if len(episodes) else float("nan")) for i, n in enumerate(names)}
-    loss_keys = ["loss_td", "q_taken", "q_tot", "td_error", "grad_norm"]
-    if cfg.method.coordinator and (cfg.method.ce_coef > 0 or cfg.method.entropy_coef > 0):
-        loss_keys += ["loss_ce", "ce_neg_entropy", "entropy"] + (["ce_nll", "log_q"] if cfg.method.ce_coef > 0 else [])
-    losses = {k: row.get(k, float("nan")) for k in loss_keys}
-    logger.log("train", {"frames": frames, "updates": updates, "epsilon": eps, "episodes": len(episodes),
-                         **stats, **losses})
-    return stats if len(episodes) else None
 
 
 def plot_learning_curve(run_dir: Path) -> Path | None:
