@@ -11,17 +11,31 @@ learner:
 * ``icco``: ``ICCOLoss`` with a coordinator broadcasting z every ``period`` steps and the CE term.
 
 ICCO needs five lines beyond TorchRL's structure, marked ``# ICCO``: the env transforms that carry
-the recurrent state (``StepCounter``, ``InitTracker`` and the primer, once per env), the coordinator
-and posterior, and the segment cutter in front of the replay buffer. Everything else is a different
+the recurrent state (``StepCounter``, ``InitTracker`` and the primer: one line to make them, one to
+add them to both envs), the z size (0 without a coordinator), the coordinator and posterior, and the
+segment cutter in front of the replay buffer. Everything else is a different
 object in the same place (``make_agent``/``make_policy`` for ``MultiAgentMLP``/``QValueModule``,
 ``ICCOLoss`` for ``QMixerLoss``, segments of ``period`` steps as the buffer's items). The sizes come
 from the specs (18 observations, 9 actions); the loss reads TorchRL's keys, its ``is_init`` and the
 mixer through its keys, and builds the episode mask from ``done``.
 
-Results (greedy return per agent over 100-step episodes, 200 evaluation episodes, mean ± std over
-3 seeds, the same budget for every learner; see ``examples/README.md`` and the main README):
+Results (``--iters 100``: 600k env steps, 2,400 updates of 1,000 transitions (250 segments of 4)
+each, the same for every learner; greedy return per agent over 100-step episodes on 200 evaluation
+episodes, mean ± std over seeds 0, 1, 2; one CPU thread on a shared 2-core machine, 200-520 s per run):
 
-    RESULTS_PLACEHOLDER
+    ==================================  ===================  =====================
+    learner                             greedy return        per seed
+    ==================================  ===================  =====================
+    random actions                      -0.80 ± 0.09
+    TorchRL QMixerLoss (MultiAgentMLP)   2.40 ± 0.05         2.33, 2.44, 2.43
+    ICCOLoss, no coordinator             4.46 ± 1.92         5.76, 5.87, 1.75
+    ICCOLoss with coordinator (z_dim 8)  6.29 ± 1.15         4.85, 6.33, 7.67
+    ==================================  ===================  =====================
+
+Both ICCOLoss learners beat TorchRL's own QMIX recipe on this budget (its settings were made for 30M
+frames); three seeds are too few to rank the two ICCO variants (the coordinator's lead is within the
+spread of the seed-2 run without one). Untrained greedy policies score -4.7 to -12 (one constant
+action drives each robot off), which is why random actions are the yardstick.
 
 Run::
 
@@ -85,7 +99,7 @@ def train(method: str = "icco", **overrides) -> dict:
     env_test = VmasEnv(scenario="navigation", num_envs=cfg["evaluation_episodes"], continuous_actions=False,
                        max_steps=cfg["max_steps"], device=device, seed=cfg["seed"], n_agents=cfg["n_agents"])
     n_actions = env.full_action_spec["agents", "action"].space.n
-    z_dim = cfg["z_dim"] if method == "icco" else 0
+    z_dim = cfg["z_dim"] if method == "icco" else 0  # ICCO
     carry = lambda: Compose(StepCounter(), InitTracker(), make_primer(env.n_agents, cfg["hidden"], z_dim, device=device, n_actions=n_actions))  # noqa: E731, E501  # ICCO
     env, env_test = (env.append_transform(carry()), TransformedEnv(env_test, carry())) if icco else (env, env_test)  # ICCO
 

@@ -106,7 +106,9 @@ def main(argv: list[str] | None = None) -> None:
         rest = _resume_folder(rest)
     else:  # results go next to the checkpoint; keep Hydra's own files out of runs/
         rest = [f"hydra.run.dir={tempfile.gettempdir()}/icco_{command}/${{now:%Y%m%d-%H%M%S-%f}}", *rest]
-    bad = unknown_group_option(rest)
+    from icco_torchrl.training.config import check_command_line
+
+    bad = unknown_group_option(rest) or check_command_line(rest)  # one line naming the field, before Hydra
     if bad:
         print(f"icco {command}: {bad}", file=sys.stderr)
         raise SystemExit(2)

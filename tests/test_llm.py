@@ -18,7 +18,6 @@ from typing import Any
 
 import numpy as np
 import pytest
-import yaml
 
 from fake_openai import FakeOpenAI, closed_port
 from icco_torchrl.instructions.llm import (
@@ -31,6 +30,7 @@ from icco_torchrl.instructions.llm import (
     response_format,
 )
 from icco_torchrl.instructions.planner import DEFAULT_MODEL, register_offline_provider, rule_plan
+from icco_torchrl.training.build import compose_config
 
 HALF = 3.25
 K = 4
@@ -442,7 +442,7 @@ def test_llm_configs_are_commented_and_build_a_planner(name: str) -> None:
     path = CONF / f"{name}.yaml"
     for line in path.read_text().splitlines():
         assert not line.strip() or "#" in line, f"uncommented line in {path.name}: {line!r}"
-    cfg = yaml.safe_load(path.read_text())
+    cfg = compose_config([f"llm={name}"]).llm  # the preset over the schema's defaults
     planner = LLMPlanner.from_config(cfg, field_size=2 * HALF)
     assert planner.model.split("/")[0] in ("offline", "openai", "ollama_chat")
     assert planner.prompt in ("plain", "tap") and planner.n_waypoints == K

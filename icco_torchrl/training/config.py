@@ -1,105 +1,174 @@
-"""Typed schema of the Hydra config: unknown or ill-typed fields fail before any work starts.
+"""Typed configs: every group is a structured config, registered once in Hydra's ConfigStore.
 
-The YAML tree under ``conf/`` is composed by Hydra, then merged into these dataclasses with
-OmegaConf in struct mode, so a typo (``train.totl_frames``) or a wrong type
-(``train.total_frames=lots``) raises a ``ConfigError`` naming the field. Field meanings are
-commented in the YAML files.
+The dataclasses below are the schema *and* the defaults (each field commented); ``conf/`` holds
+only presets, YAML files that override some of these defaults (``method/qmix.yaml``,
+``experiment/smoke.yaml``, ``reward/paper.yaml``, ``llm/openai.yaml``...). Hydra composes the
+presets onto the registered schema, so a typo (``train.totl_frames``) or a wrong type
+(``train.total_frames=lots``) fails while composing; :func:`validate` then checks choices, ranges
+and the rules between fields (warm-up within the buffer, batch within the buffer, ...) and the
+env's own parameter checks. Every failure is a :class:`ConfigError` naming the field, before any
+work starts; :func:`check_command_line` gives the ``icco`` command the same one line for errors
+Hydra would report while composing.
+
+The env parameters (``env.params``) are :class:`ResourceCollectionEnv`'s keyword arguments,
+generated from its signature: their defaults and their documentation are the env's own.
 """
 from __future__ import annotations
 
+import dataclasses
 import inspect
 from dataclasses import dataclass, field
-from typing import Any, Optional
+from typing import Optional
 
 import torch
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from icco_torchrl.envs.reference_policies import REFERENCE_POLICIES
-from icco_torchrl.envs.resource_collection import SPAWN_MODES
+from icco_torchrl.envs.resource_collection import SPAWN_MODES, ResourceCollectionEnv
 
 
 class ConfigError(ValueError):
     """A config value is missing, unknown, ill-typed or out of range."""
 
 
+def _field(default, *, choices: tuple | None = None, gt: float | None = None, ge: float | None = None,
+           le: float | None = None):
+    """A dataclass field with its allowed values (checked by :func:`validate`)."""
+    meta = {k: v for k, v in dict(choices=choices, gt=gt, ge=ge, le=le).items() if v is not None}
+    if isinstance(default, list):
+        return field(default_factory=lambda: list(default), metadata=meta)
+    return field(default=default, metadata=meta)
+
+
 @dataclass
 class MethodConfig:
-    name: str = "icco"
-    coordinator: bool = True
-    full_state: bool = False
-    ce_coef: float = 1e-3
-    entropy_coef: float = 1e-4
-    posterior: str = "product"
-    encoder: str = "attention"
-    state_encoder: str = "relative"
-    z_init_logvar: float = 0.0
-    hidden: int = 64
-    z_dim: int = 32
-    period: int = 4
+    """``method``: which learner (presets ``conf/method/``: icco (these defaults), icco_wo_ce, qmix, qmix_full)."""
+
+    name: str = "icco"                                     # the method's name: run folders, tables
+    coordinator: bool = True                               # a coordinator g_phi(s, v) broadcasts z per robot
+    full_state: bool = False                               # agents also read the global state (QMIX (FULL))
+    ce_coef: float = _field(1e-3, ge=0)                    # weight of -log q_xi(z | future behaviour) (COPA: 1e-3)
+    entropy_coef: float = _field(1e-4, ge=0)               # weight of -H(z | s, v) (COPA: 1e-4)
+    posterior: str = _field("product", choices=("product", "sum"))  # product of Gaussian factors | sum of log-likelihoods (COPA)
+    encoder: str = _field("attention", choices=("attention", "mlp"))  # local observation encoder: entity tokens | flat MLP
+    state_encoder: str = _field("relative", choices=("relative", "flat"))  # global-state encoder (coordinator, QMIX (FULL)): entities seen from each robot | absolute
+    z_init_logvar: float = _field(-5.0, ge=-10, le=0)      # initial log-variance bias of z, in COPA's clamp [-10, 0] (0 measured slower)
+    hidden: int = _field(64, gt=0)                         # width of encoders, GRU and heads
+    z_dim: int = _field(32, ge=0)                          # TACI size per robot (COPA: 128); 0 without a coordinator
+    period: int = _field(4, gt=0)                          # z is redrawn every `period` steps and held in between (T)
+
+
+def _env_params_schema() -> type:
+    """``ResourceCollectionEnv``'s keyword arguments (defaults, types) as a dataclass: ``env.params``."""
+    kinds = {"int": int, "float": float, "str": str, "bool": bool}
+    fields = []
+    for name, p in inspect.signature(ResourceCollectionEnv.__init__).parameters.items():
+        if p.kind is p.KEYWORD_ONLY:
+            fields.append((name, kinds[str(p.annotation)], dataclasses.field(default=p.default)))
+    return dataclasses.make_dataclass("EnvParams", fields)
+
+
+EnvParams = _env_params_schema()
+EnvParams.__doc__ = "``env.params``: ResourceCollectionEnv's keyword arguments (see its docstring for each)."
+EnvParams.__module__ = __name__  # pickled configs (submitit, Ray) refer to it here
 
 
 @dataclass
 class EnvConfig:
-    name: str = "resource_collection"
-    num_envs: int = 32
-    params: dict = field(default_factory=dict)
+    """``env``: the task (``conf/env/resource_collection.yaml``); reward weights come from the ``reward`` presets."""
+
+    name: str = "resource_collection"                      # the task
+    num_envs: int = _field(32, gt=0)                       # envs stepped together by the collector
+    params: EnvParams = field(default_factory=EnvParams)   # ResourceCollectionEnv's keyword arguments (its defaults)
 
 
 @dataclass
 class TrainConfig:
-    total_frames: int = 1_200_000
-    steps_per_batch: int = 16
-    buffer_segments: int = 20_000
-    batch_segments: int = 128
-    updates_per_batch: int = 2
-    warmup_segments: int = 512
-    lr: float = 3e-4
-    optimizer: str = "rmsprop"
-    grad_clip: float = 10.0
-    gamma: float = 0.99
-    td_lambda: float = 0.0
-    double_q: bool = True
-    target_update: str = "hard"
-    target_update_interval: int = 200
-    tau: float = 0.005
-    eps_init: float = 1.0
-    eps_end: float = 0.05
-    eps_decay_frames: int = 800_000
-    eval_interval: int = 100_000
-    eval_envs: int = 16
-    checkpoint_interval: int = 200_000
-    checkpoint_buffer: bool = True
-    threads: int = 1
+    """``train``: budget and optimisation (presets ``conf/experiment/``: default (these), smoke, paper, repro_cpu,
+    inst_only). Each lever of the default recipe was measured against the session-1 recipe
+    (``experiments/recipe/README.md``)."""
+
+    total_frames: int = _field(1_000_000, gt=0)            # env steps (one step of one env) to collect
+    steps_per_batch: int = _field(16, gt=0)                # collector steps per env per batch (frames_per_batch = num_envs * this)
+    buffer_segments: int = _field(20_000, gt=0)            # replay capacity in segments of `method.period` steps
+    batch_segments: int = _field(128, gt=0)                # segments per gradient update (COPA: 512)
+    updates_per_batch: int = _field(8, ge=1)               # gradient updates per collector batch (~8 replayed transitions per new one)
+    warmup_segments: int = _field(512, ge=0)               # no updates until the buffer holds this many segments
+    lr: float = _field(1e-3, gt=0)                         # learning rate (COPA: RMSprop 3e-4; Adam 1e-3 learns the task ~2x faster here)
+    optimizer: str = _field("adam", choices=("adam", "rmsprop"))  # adam | rmsprop (alpha 0.99, eps 1e-5, COPA)
+    grad_clip: float = _field(10.0, ge=0)                  # global grad-norm clip (0 disables)
+    gamma: float = _field(0.99, ge=0, le=1)                # discount
+    td_lambda: float = _field(0.0, ge=0, le=1)             # TD(lambda) inside each replayed segment (0: one-step TD; 0.8 measured worse)
+    double_q: bool = True                                  # bootstrap with the online argmax (pymarl) instead of the target's
+    target_update: str = _field("hard", choices=("hard", "soft"))  # hard (copy every interval updates, COPA) | soft (Polyak, tau)
+    target_update_interval: int = _field(50, gt=0)         # updates between hard copies (COPA: 200)
+    tau: float = _field(0.005, gt=0, le=1)                 # Polyak rate of soft updates
+    eps_init: float = _field(1.0, ge=0, le=1)              # epsilon-greedy start
+    eps_end: float = _field(0.05, ge=0, le=1)              # epsilon-greedy floor
+    eps_decay_frames: int = _field(300_000, ge=0)          # exponential decay from eps_init to eps_end over these frames
+    eval_interval: int = _field(100_000, ge=0)             # frames between greedy evaluations (0: only at the end)
+    eval_envs: int = _field(16, gt=0)                      # evaluation episodes (parallel envs), the same ones every time
+    checkpoint_interval: int = _field(100_000, ge=0)       # frames between checkpoints (0: only at the end)
+    checkpoint_buffer: bool = True                         # also save the replay buffer (replay/, ~22 KB per segment) so resume keeps it
+    threads: int = _field(1, gt=0)                         # torch CPU threads (1 is the stable choice on shared machines)
 
 
 @dataclass
 class WandbConfig:
-    mode: str = "disabled"
-    project: str = "icco-torchrl"
-    entity: Optional[str] = None
-    group: Optional[str] = None
+    """``logger.wandb``: optional; never needs a network or an account for ``offline``."""
+
+    mode: str = _field("disabled", choices=("disabled", "offline", "online"))  # disabled | offline (./wandb, syncable) | online
+    project: str = "icco-torchrl"                          # wandb project name
+    entity: Optional[str] = None                           # wandb entity (team/user); null: the default
+    group: Optional[str] = None                            # wandb group (e.g. a sweep name); null: the method name
 
 
 @dataclass
 class LoggerConfig:
-    progress: bool = True
-    log_interval: int = 1
+    """``logger``: CSV files always, the progress bar and wandb on request."""
+
+    progress: bool = True                                  # tqdm progress bar with SPS, team reward and event counts
+    log_interval: int = _field(1, gt=0)                    # a train.csv row every this many collector batches
     wandb: WandbConfig = field(default_factory=WandbConfig)
 
 
 @dataclass
 class EvalConfig:
-    protocol: str = "random_walk"
-    trials: int = 20
-    episodes: int = 1
-    gif: bool = False
-    out_dir: Optional[str] = None
-    checkpoints: list[str] = field(default_factory=list)
-    steps: int = 145
-    replan_every: Optional[int] = None
-    references: list[str] = field(default_factory=lambda: ["random", "follower", "heuristic", "blend"])
-    blend_radius: float = 1.75
+    """``eval``: ``icco eval`` and ``icco instruct`` (protocols, trials, outputs, reference rows)."""
+
+    protocol: str = _field("random_walk", choices=("random_walk", "quadrants"))  # training distribution | paper Fig. 4/5a
+    trials: int = _field(20, gt=0)                         # evaluation episodes run in parallel (one env each)
+    episodes: int = _field(1, gt=0)                        # repeats of the batch of trials
+    gif: bool = False                                      # write a GIF of trial 0
+    out_dir: Optional[str] = None                          # where results go; null: next to the checkpoint(s)
+    checkpoints: list[str] = _field([])                    # more checkpoints (paths or globs) to compare; one row per method
+    steps: int = _field(145, gt=0)                         # steps per segment (each quadrant, each `;`-separated instruction)
+    replan_every: Optional[int] = None                     # `icco instruct`: re-prompt every this many steps; null: once per instruction
+    references: list[str] = _field(list(REFERENCE_POLICIES))  # scripted reference rows beside the checkpoints ([]: none)
+    blend_radius: float = _field(1.75, ge=0)               # radius (m) of the blend reference: task within r, follow otherwise
+
+
+@dataclass
+class LLMConfig:
+    """``llm``: the language backend of ``icco instruct`` (presets ``conf/llm/``: offline (these), openai, ollama).
+
+    Consumed by :meth:`icco_torchrl.instructions.LLMPlanner.from_config`. API keys come only from
+    environment variables, never from a config.
+    """
+
+    backend: str = "offline"                               # offline | openai | ollama | any litellm model string
+    model: Optional[str] = "offline/rule-planner"          # litellm model string; null: the backend's default model
+    api_base: Optional[str] = None                         # provider URL; null: the provider's default
+    temperature: float = _field(0.0, ge=0)                 # sampling temperature sent with the request
+    timeout_s: float = _field(10.0, ge=0)                  # seconds per request before it counts as a failed attempt
+    deadline_s: float = _field(30.0, ge=0)                 # seconds for a whole plan (every attempt and pause)
+    fallback_on_error: bool = False                        # false: no reply at all stops the run in one line; true: plan with fallbacks
+    max_retries: int = _field(2, ge=0)                     # extra attempts after a bad reply or a provider error
+    backoff_s: float = _field(0.5, ge=0)                   # pause after a provider error, doubled per attempt
+    cache_dir: Optional[str] = None                        # cached replies (one JSON file per request); null disables
+    prompt: str = _field("plain", choices=("plain", "tap"))  # the paper's prompt | task-aligned (QMIX-TAP)
+    n_waypoints: int = _field(4, gt=0)                     # K waypoints per agent; must equal env.params.n_waypoints
 
 
 @dataclass
@@ -121,76 +190,95 @@ class LiveConfig:
 
 @dataclass
 class Config:
-    seed: int = 0
-    device: str = "auto"
-    resume: Optional[str] = None
-    checkpoint: Optional[str] = None
+    """The root: ``icco train|eval|instruct|live|bridge`` compose ``conf/config.yaml``'s presets onto it."""
+
+    seed: int = 0                                          # seeds torch, the env generators and the replay sampler
+    device: str = "auto"                                   # auto (cuda if present) | cpu | cuda | cuda:1 ...
+    resume: Optional[str] = None                           # a checkpoint (.pt) to continue training from
+    checkpoint: Optional[str] = None                       # a checkpoint to evaluate (`icco eval`, `icco instruct`, `icco live`)
     method: MethodConfig = field(default_factory=MethodConfig)
     env: EnvConfig = field(default_factory=EnvConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
     logger: LoggerConfig = field(default_factory=LoggerConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
     live: LiveConfig = field(default_factory=LiveConfig)
-    llm: Any = None
+    llm: LLMConfig = field(default_factory=LLMConfig)
 
 
-_CHOICES = {
-    "method.posterior": ("product", "sum"), "method.encoder": ("attention", "mlp"),
-    "method.state_encoder": ("relative", "flat"),
-    "train.optimizer": ("rmsprop", "adam"), "train.target_update": ("hard", "soft"),
-    "logger.wandb.mode": ("disabled", "offline", "online"),
-}
-_POSITIVE = ("env.num_envs", "train.total_frames", "train.steps_per_batch", "train.buffer_segments",
-             "train.batch_segments", "train.target_update_interval", "train.eval_envs", "train.threads",
-             "method.hidden", "method.period", "eval.trials", "eval.episodes", "logger.log_interval",
-             "live.rate_hz", "live.timeout_s", "live.max_speed", "live.max_turn", "live.max_accel",
-             "live.max_turn_accel", "live.robot_radius")
-_NON_NEGATIVE = ("train.updates_per_batch", "train.warmup_segments", "train.eval_interval", "train.checkpoint_interval",
-                 "train.eps_decay_frames", "method.ce_coef", "method.entropy_coef", "method.z_dim", "train.grad_clip")
+# Schema name -> dataclass in Hydra's ConfigStore; conf/config.yaml starts from "base_config" and each
+# group's presets from "base_<group>" (for a group, the preset's fields are merged over it).
+SCHEMAS = {"base_config": (None, Config), "base_method": ("method", MethodConfig), "base_env": ("env", EnvConfig),
+           "base_llm": ("llm", LLMConfig)}
+
+
+def register_configs() -> None:
+    """Register the schema in Hydra's ConfigStore (idempotent: the store keeps one entry per name)."""
+    from hydra.core.config_store import ConfigStore
+
+    store = ConfigStore.instance()
+    for name, (group, node) in SCHEMAS.items():
+        store.store(name=name, group=group, node=node)
+
+
+register_configs()
+
+_LIVE_POSITIVE = ("live.rate_hz", "live.timeout_s", "live.max_speed", "live.max_turn", "live.max_accel",
+                  "live.max_turn_accel", "live.robot_radius")
+
+
+def _field_error(err: OmegaConfBaseException) -> ConfigError:
+    key = getattr(err, "full_key", None) or "?"
+    message = str(err.msg if hasattr(err, "msg") else err).strip().splitlines()
+    return ConfigError(f"config field '{key}': {message[0] if message else type(err).__name__}")
+
+
+def _check_fields(node, schema, prefix: str = "") -> None:
+    """Choices and ranges declared on the dataclass fields (``_field``), recursively."""
+    for f in dataclasses.fields(schema):
+        value, key = node[f.name], f"{prefix}{f.name}"
+        if f.default_factory is not dataclasses.MISSING and dataclasses.is_dataclass(f.default_factory):
+            _check_fields(value, f.default_factory, f"{key}.")
+            continue
+        meta = f.metadata
+        if "choices" in meta and value not in meta["choices"]:
+            raise ConfigError(f"config field '{key}' must be one of {meta['choices']}, got {value!r}")
+        if value is None or isinstance(value, (str, bool)):
+            continue
+        for rule, ok, word in (("gt", lambda v, b: v > b, ">"), ("ge", lambda v, b: v >= b, ">="),
+                               ("le", lambda v, b: v <= b, "<=")):
+            if rule in meta and not ok(value, meta[rule]):
+                raise ConfigError(f"config field '{key}' must be {word} {meta[rule]}, got {value}")
 
 
 def validate(cfg: DictConfig | dict) -> DictConfig:
-    """Merge ``cfg`` into the schema and check ranges; raises ``ConfigError`` naming the field."""
-    schema = OmegaConf.structured(Config)
+    """Merge ``cfg`` into the schema and check every field and the rules between fields; raises
+    ``ConfigError`` naming the field. A config Hydra composed is already typed; a saved one (a
+    checkpoint's) gets the current defaults for fields it lacks."""
     try:
-        merged = OmegaConf.merge(schema, cfg)
+        merged = OmegaConf.merge(OmegaConf.structured(Config), cfg)
     except OmegaConfBaseException as err:
-        key = getattr(err, "full_key", None) or "?"
-        raise ConfigError(f"config field '{key}': {err.msg if hasattr(err, 'msg') else err}") from None
-    for key, allowed in _CHOICES.items():
-        if OmegaConf.select(merged, key) not in allowed:
-            raise ConfigError(f"config field '{key}' must be one of {allowed}, got {OmegaConf.select(merged, key)!r}")
-    for key in _POSITIVE:
-        if not OmegaConf.select(merged, key) > 0:
-            raise ConfigError(f"config field '{key}' must be > 0, got {OmegaConf.select(merged, key)}")
-    for key in _NON_NEGATIVE:
-        if OmegaConf.select(merged, key) < 0:
-            raise ConfigError(f"config field '{key}' must be >= 0, got {OmegaConf.select(merged, key)}")
+        raise _field_error(err) from None
+    _check_fields(merged, Config)
     m, t = merged.method, merged.train
+    # Rules between fields.
     if m.coordinator and m.z_dim < 1:
         raise ConfigError("config field 'method.z_dim' must be >= 1 when method.coordinator is true")
-    if not -10 <= m.z_init_logvar <= 0:
-        raise ConfigError(f"config field 'method.z_init_logvar' must be in [-10, 0] (the clamp), got {m.z_init_logvar}")
     if m.coordinator and m.full_state:
         raise ConfigError("config fields 'method.coordinator' and 'method.full_state' are exclusive")
     if t.batch_segments > t.buffer_segments:
         raise ConfigError(f"config field 'train.batch_segments' ({t.batch_segments}) exceeds "
                           f"'train.buffer_segments' ({t.buffer_segments})")
-    if not 0 <= t.eps_end <= t.eps_init <= 1:
-        raise ConfigError("config fields 'train.eps_init'/'train.eps_end' need 0 <= eps_end <= eps_init <= 1")
-    if not 0 <= t.td_lambda <= 1:
-        raise ConfigError(f"config field 'train.td_lambda' must be in [0, 1], got {t.td_lambda}")
-    if not 0 <= t.gamma <= 1:
-        raise ConfigError(f"config field 'train.gamma' must be in [0, 1], got {t.gamma}")
-    if t.updates_per_batch < 1:
-        raise ConfigError(f"config field 'train.updates_per_batch' must be >= 1, got {t.updates_per_batch}")
-    if not t.lr > 0:
-        raise ConfigError(f"config field 'train.lr' must be > 0, got {t.lr}")
-    if not 0 < t.tau <= 1:
-        raise ConfigError(f"config field 'train.tau' must be in (0, 1], got {t.tau}")
     if t.warmup_segments > t.buffer_segments:
         raise ConfigError(f"config field 'train.warmup_segments' ({t.warmup_segments}) exceeds "
                           f"'train.buffer_segments' ({t.buffer_segments}): training would never start")
+    if not t.eps_end <= t.eps_init:
+        raise ConfigError("config fields 'train.eps_init'/'train.eps_end' need 0 <= eps_end <= eps_init <= 1")
+    if merged.llm.n_waypoints != merged.env.params.n_waypoints:
+        raise ConfigError(f"config field 'llm.n_waypoints' ({merged.llm.n_waypoints}) must equal "
+                          f"'env.params.n_waypoints' ({merged.env.params.n_waypoints})")
+    for key in _LIVE_POSITIVE:
+        if not OmegaConf.select(merged, key) > 0:
+            raise ConfigError(f"config field '{key}' must be > 0, got {OmegaConf.select(merged, key)}")
     for key in ("port", "web_port"):
         if not 0 <= merged.live[key] <= 65535:
             raise ConfigError(f"config field 'live.{key}' must be in [0, 65535], got {merged.live[key]}")
@@ -198,28 +286,21 @@ def validate(cfg: DictConfig | dict) -> DictConfig:
     if unknown:
         raise ConfigError(f"config field 'eval.references' has unknown policies {unknown}; "
                           f"choose from {list(REFERENCE_POLICIES)}")
-    if not merged.eval.blend_radius >= 0:
-        raise ConfigError(f"config field 'eval.blend_radius' must be >= 0, got {merged.eval.blend_radius}")
-    spawn = merged.env.params.get("spawn", "uniform")
-    if spawn not in SPAWN_MODES:
-        raise ConfigError(f"config field 'env.params.spawn' must be one of {SPAWN_MODES}, got {spawn!r}")
     _check_env_params(merged.env.params)
-    _check_llm(merged.llm)
     resolve_device(merged.device)
     return merged
 
 
 def _check_env_params(params) -> None:
-    """``env.params`` are the env's keyword arguments: unknown names and bad values are named here,
-    before any work (the env's own checks, run on a one-env instance)."""
-    from icco_torchrl.envs import ResourceCollectionEnv
-
+    """``env.params`` values through the env's own checks (on a one-env instance), named by field."""
     params = OmegaConf.to_container(params, resolve=True) if not isinstance(params, dict) else params
-    accepted = set(inspect.signature(ResourceCollectionEnv.__init__).parameters) - {"self", "num_envs", "device", "seed"}
-    for key in params:
-        if key not in accepted:
+    known = {f.name for f in dataclasses.fields(EnvParams)}
+    for key in params:  # a key added with "+env.params.x=..." gets past the schema's struct flag
+        if key not in known:
             raise ConfigError(f"config field 'env.params.{key}' is not a parameter of ResourceCollectionEnv "
-                              f"(known: {', '.join(sorted(accepted))})")
+                              f"(known: {', '.join(sorted(known))})")
+    if params.get("spawn", "uniform") not in SPAWN_MODES:  # before the env's checks, which name another field first
+        raise ConfigError(f"config field 'env.params.spawn' must be one of {SPAWN_MODES}, got {params['spawn']!r}")
     try:
         ResourceCollectionEnv(num_envs=1, **params)
     except (ValueError, TypeError) as err:
@@ -227,24 +308,55 @@ def _check_env_params(params) -> None:
         raise ConfigError(f"config field 'env.params{'.' + name if name else ''}': {err}") from None
 
 
-_LLM_NUMBERS = {"timeout_s": float, "deadline_s": float, "temperature": float, "backoff_s": float,
-                "max_retries": int, "n_waypoints": int}
+def check_command_line(overrides: list[str], config_name: str = "config") -> str | None:
+    """The one-line error of the config an ``icco`` command line composes, or None when it is good.
+
+    Hydra reports a bad override while composing (a wrong type, an unknown field) with a message
+    of several lines and exit code 1; this composes first, the same way, and says it in one line
+    naming the field. Hydra's own arguments are left out; a multirun list (``seed=0,1,2``) is
+    checked value by value.
+    """
+    from hydra import compose, initialize_config_dir
+    from hydra.errors import HydraException
+
+    from icco_torchrl.training.build import CONF_DIR
+
+    plain = [o for o in overrides if ("=" in o or o.startswith("~"))
+             and not o.startswith(("-", "hydra.", "hydra/", "+hydra", "~hydra"))]
+    sweeps = {}
+    if any(o in ("-m", "--multirun") for o in overrides):
+        for i, item in enumerate(plain):
+            value = item.partition("=")[2]
+            if "(" in value:  # range(), choice(), glob(): left to Hydra
+                sweeps[i] = None
+            elif "," in value and not value.startswith(("[", "{", "'", '"')):
+                sweeps[i] = value.split(",")
+
+    def pick(values: dict) -> list[str]:
+        return [item if i not in sweeps else f"{item.partition('=')[0]}={values[i]}"
+                for i, item in enumerate(plain) if not (i in sweeps and sweeps[i] is None)]
+
+    first = {i: options[0] for i, options in sweeps.items() if options}
+    variants = [pick(first)] + [pick({**first, i: v}) for i, options in sweeps.items() if options for v in options[1:]]
+    for variant in variants:
+        try:
+            with initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
+                validate(compose(config_name=config_name, overrides=variant))
+        except ConfigError as err:
+            return str(err)
+        except (HydraException, OmegaConfBaseException) as err:
+            return _compose_error(err)
+    return None
 
 
-def _check_llm(llm) -> None:
-    """The ``llm`` group is free-form (any litellm backend); its numeric fields are checked here."""
-    if llm is None:
-        return
-    for key, kind in _LLM_NUMBERS.items():
-        value = llm.get(key, None) if hasattr(llm, "get") else None
-        if value is None:
-            continue
-        ok = isinstance(value, (int, float)) and not isinstance(value, bool)
-        if kind is int:
-            ok = ok and float(value).is_integer()
-        if not ok or value < 0:
-            raise ConfigError(f"config field 'llm.{key}' must be a non-negative {'integer' if kind is int else 'number'}"
-                              f", got {value!r}")
+def _compose_error(err: BaseException) -> str:
+    """One line from Hydra's composition error: the field and what is wrong with it."""
+    cause = err
+    while cause is not None and not isinstance(cause, OmegaConfBaseException):
+        cause = cause.__cause__ or cause.__context__
+    if cause is not None and getattr(cause, "full_key", None):
+        return str(_field_error(cause))
+    return " ".join(str(err).split())
 
 
 def resolve_device(name: str) -> torch.device:

@@ -24,6 +24,7 @@ from icco_torchrl.objectives import total_loss
 from icco_torchrl.training.build import VALIDATION_SEED_OFFSET, Run, build
 from icco_torchrl.training.checkpoint import (CheckpointError, check_compatible, load_checkpoint, load_replay,
                                               load_weights, save_checkpoint, save_replay)
+from icco_torchrl.training.config import validate
 from icco_torchrl.training.logger import RunLogger
 from icco_torchrl.training.rollout import EVENT_KEYS, evaluate
 
@@ -162,7 +163,9 @@ def open_resume(cfg: DictConfig) -> dict | None:
     if ckpt.get("policy_only"):
         raise CheckpointError(f"{cfg.resume} is an exported policy (no optimiser, targets or RNG state): "
                               f"resume from the run's own checkpoint.pt")
-    check_resume_overrides(ckpt["cfg"], OmegaConf.to_container(cfg, resolve=True), cfg.resume)
+    # The saved config through today's schema, so fields added since it was written compare as defaults.
+    saved = OmegaConf.to_container(validate(OmegaConf.create(ckpt["cfg"])), resolve=True)
+    check_resume_overrides(saved, OmegaConf.to_container(cfg, resolve=True), cfg.resume)
     return ckpt
 
 
