@@ -623,3 +623,50 @@ def test_loss_rejects_bad_coefficients(icco):
         ICCOLoss(parts["agent"], parts["mixer"], parts["coordinator"], parts["posterior"], gamma=1.5)
     with pytest.raises(ValueError, match="ce_coef"):
         ICCOLoss(parts["agent"], parts["mixer"], parts["coordinator"], parts["posterior"], ce_coef=-1.0)
+
+
+# ============================================================================ split instruction head
+def test_split_instruction_head_with_a_silent_instruction_part_is_the_joint_loss():
+    """Instruction head zeroed and no instruction reward: the split loss is the joint loss of an
+    agent whose single head is the task head (same TD loss and trunk gradients; zero inst loss)."""
+    base = ["method=qmix", "env.params.inst_reward_scale=0"]
+    split = build_components(compose_config([*base, "method.instruction_head=true"]), num_envs=6)
+    joint = build_components(compose_config(base), num_envs=6)
+    A = split["agent"].module.n_actions
+    state = split["loss"].state_dict()
+    with torch.no_grad():
+        for name, value in state.items():
+            if "head.2." in name:
+                value[A:] = 0.0                                    # the instruction head says nothing
+        split["loss"].load_state_dict(state)
+        joint["loss"].load_state_dict({n: (v[:A] if "head.2." in n else v) for n, v in state.items()})
+    ro, seg = _rollout_segments(joint, steps=24)
+    assert seg["next", "events", "inst_reward"].abs().max() == 0
+    out_split, out_joint = split["loss"](seg), joint["loss"](seg)
+    assert out_split["loss_td"].item() == pytest.approx(out_joint["loss_td"].item(), rel=1e-5)
+    assert out_split["loss_td_inst"].item() == 0.0 and out_split["q_inst"].item() == 0.0
+    total_loss(out_split).backward()
+    total_loss(out_joint).backward()
+    trunk = [n for n, _ in joint["loss"].named_parameters() if "gru" in n]
+    for (name, p_split), (_, p_joint) in zip(split["loss"].named_parameters(), joint["loss"].named_parameters()):
+        if name in trunk:
+            torch.testing.assert_close(p_split.grad, p_joint.grad, atol=1e-6, rtol=1e-4)
+    assert trunk
+
+
+def test_split_instruction_head_learns_each_reward_on_its_own_head():
+    """The two TD targets: task reward for the mixed task head, the scaled instruction reward for
+    the summed instruction head; acting uses their sum."""
+    parts = build_components(compose_config(["method=qmix", "method.instruction_head=true"]), num_envs=6)
+    net, loss = parts["agent"].module, parts["loss"]
+    assert net.value_heads == 2 and loss.split_instruction
+    ro, seg = _rollout_segments(parts, steps=24)
+    q = ro["agents", "action_value"]
+    assert q.shape[-1] == net.n_actions                            # the policy acts on Q_task + Q_inst
+    assert seg["next", "events", "inst_reward"].abs().sum() > 0
+    out = loss(seg)
+    assert set(loss.metric_keys) <= set(out.keys()) and out["loss_td_inst"].item() > 0
+    with pytest.raises(ValueError, match="two value heads"):
+        from icco_torchrl.objectives import ICCOLoss as Loss
+        joint = build_components(compose_config(["method=qmix"]), num_envs=2)
+        Loss(joint["agent"], joint["mixer"], split_instruction=True)

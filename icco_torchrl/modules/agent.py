@@ -57,17 +57,23 @@ class RecurrentQNet(nn.Module):
         full_state: the agent also reads the global state (QMIX (FULL)).
         encoder: ``"attention"`` (needs a layout; the default with one) or ``"mlp"`` (the default without).
         state_encoder: with ``full_state``: ``"flat"`` (state joins the own features) or ``"relative"``.
+        value_heads: 1, or 2 for a task head and an instruction head (``sequence``/``step`` return
+            ``[..., 2 * n_actions]``, task first; the policy path, ``forward``, returns their sum:
+            Q = Q_task + Q_inst, see :class:`~icco_torchrl.objectives.ICCOLoss`'s ``split_instruction``).
     """
 
     def __init__(self, layout: ObsLayout | None = None, *, n_actions: int, obs_dim: int | None = None,
                  state_dim: int | None = None, hidden: int = 64, z_dim: int = 0, full_state: bool = False,
-                 encoder: str | None = None, state_encoder: str = "flat"):
+                 encoder: str | None = None, state_encoder: str = "flat", value_heads: int = 1):
         super().__init__()
         if state_encoder not in STATE_ENCODERS:
             raise ValueError(f"state_encoder must be one of {STATE_ENCODERS}, got {state_encoder!r}")
         if not isinstance(n_actions, int) or n_actions < 1:
             raise ValueError(f"n_actions must be a positive integer (the env's action count), got {n_actions!r}")
+        if value_heads not in (1, 2):
+            raise ValueError(f"value_heads must be 1 or 2, got {value_heads!r}")
         self.hidden, self.z_dim, self.full_state, self.n_actions = hidden, z_dim, full_state, n_actions
+        self.value_heads = value_heads
         self.relative = full_state and state_encoder == "relative"
         if layout is None:  # a flat observation (any env): [obs; state] through an MLP
             if obs_dim is None:
@@ -95,7 +101,7 @@ class RecurrentQNet(nn.Module):
         nn.init.uniform_(self.embed.bias, -bound, bound)
         nn.init.uniform_(self.prev_action_embed.weight, -bound, bound)
         self.gru = nn.GRU(hidden, hidden, batch_first=True)
-        self.head = nn.Sequential(nn.Linear(hidden + z_dim, hidden), nn.ReLU(), nn.Linear(hidden, n_actions))
+        self.head = nn.Sequential(nn.Linear(hidden + z_dim, hidden), nn.ReLU(), nn.Linear(hidden, value_heads * n_actions))
 
     def _features(self, obs, prev_action, state):
         if self.relative:
@@ -119,8 +125,16 @@ class RecurrentQNet(nn.Module):
         if recurrent_mode():
             first = (lambda v: None if v is None else v[:, 0])
             h0 = keep_hidden(hidden[:, 0], first(is_init), first(step_count))
-            return self.sequence(obs, prev_action, h0, z=z, state=state, return_hidden="all")
-        return self.step(obs, prev_action, keep_hidden(hidden, is_init, step_count), z, state)
+            q, h = self.sequence(obs, prev_action, h0, z=z, state=state, return_hidden="all")
+        else:
+            q, h = self.step(obs, prev_action, keep_hidden(hidden, is_init, step_count), z, state)
+        return self.combine(q), h
+
+    def combine(self, q: torch.Tensor) -> torch.Tensor:
+        """The acting Q ``[..., A]`` from the heads' output (the sum of task and instruction heads)."""
+        if self.value_heads == 1:
+            return q
+        return q[..., : self.n_actions] + q[..., self.n_actions:]
 
     def step(self, obs, prev_action, hidden, z=None, state=None):
         """One step from ``hidden`` as given (no restart): Q ``[B, N, A]`` and the new hidden state."""
@@ -146,7 +160,8 @@ class RecurrentQNet(nn.Module):
 
 def make_agent(layout: ObsLayout | None = None, *, n_actions: int, obs_dim: int | None = None,
                state_dim: int | None = None, hidden: int = 64, z_dim: int = 0, full_state: bool = False,
-               encoder: str | None = None, state_encoder: str = "flat", obs_key=("agents", "observation"),
+               encoder: str | None = None, state_encoder: str = "flat", value_heads: int = 1,
+               obs_key=("agents", "observation"),
                state_key="state", action_key=("agents", "action"), step_count_key="step_count",
                is_init_key="is_init") -> TensorDictModule:
     """The agent as a TensorDictModule (see :class:`RecurrentQNet` for the sizes).
@@ -160,7 +175,8 @@ def make_agent(layout: ObsLayout | None = None, *, n_actions: int, obs_dim: int 
     """
     group = action_key[:-1] if isinstance(action_key, tuple) else ()
     net = RecurrentQNet(layout, n_actions=n_actions, obs_dim=obs_dim, state_dim=state_dim, hidden=hidden,
-                        z_dim=z_dim, full_state=full_state, encoder=encoder, state_encoder=state_encoder)
+                        z_dim=z_dim, full_state=full_state, encoder=encoder, state_encoder=state_encoder,
+                        value_heads=value_heads)
     in_keys = {"obs": obs_key, "prev_action": (*group, "prev_action"), "hidden": (*group, "rnn_hidden"),
                "step_count": step_count_key, "is_init": is_init_key}  # forward argument -> tensordict key
     if z_dim:

@@ -85,6 +85,13 @@ class ICCOLoss(LossModule):
         reward_reduction: how per-agent rewards ``[S, T, N, 1]`` (TorchRL multi-agent envs such as
             VMAS) become the team reward: ``"mean"`` (TorchRL's QMIX example) or ``"sum"``. A team
             reward ``[S, T, 1]`` is used as it is.
+        split_instruction: learn the instruction reward with its own value head (Q = Q_task + Q_inst
+            per agent, the agent built with ``value_heads=2``): Q_task is mixed by ``mixer`` and
+            trained on ``reward - inst_reward``, Q_inst is summed over agents (VDN: the instruction
+            reward is a sum of per-robot terms) and trained on ``inst_reward`` (read under
+            ``"next"``, the team's scaled instruction reward). Both bootstrap at the argmax of the
+            summed Q, so the greedy policy is the one the joint Q would give; the small dense
+            instruction reward no longer has to be learned through the task's noisy values.
         check_finite: raise :class:`NonFiniteLossError` on a NaN/inf loss (one host sync per call).
     """
 
@@ -114,6 +121,7 @@ class ICCOLoss(LossModule):
         done: NestedKey = "done"
         terminated: NestedKey = "terminated"
         mask: NestedKey = "mask"
+        inst_reward: NestedKey = ("events", "inst_reward")
         action_value: NestedKey = ("agents", "action_value")
         local_value: NestedKey = ("agents", "chosen_action_value")
         global_value: NestedKey = "chosen_action_value"
@@ -135,7 +143,7 @@ class ICCOLoss(LossModule):
     def __init__(self, agent: TensorDictModule, mixer: TensorDictModule, coordinator: TensorDictModule | None = None,
                  posterior: TensorDictModule | None = None, *, gamma: float = 0.99, td_lambda: float = 0.0,
                  double_q: bool = True, ce_coef: float = 1e-3, entropy_coef: float = 1e-4,
-                 reward_reduction: str = "mean", check_finite: bool = True):
+                 reward_reduction: str = "mean", split_instruction: bool = False, check_finite: bool = True):
         super().__init__()
         self._set_discount(gamma, td_lambda)
         if ce_coef < 0 or entropy_coef < 0:
@@ -152,6 +160,9 @@ class ICCOLoss(LossModule):
         if ce_coef > 0 and self.has_coordinator and posterior is None:
             raise ValueError("ce_coef > 0 needs a posterior module")
         self.double_q, self.check_finite = double_q, check_finite
+        self.split_instruction = bool(split_instruction)
+        if self.split_instruction and getattr(net, "value_heads", 1) != 2:
+            raise ValueError("split_instruction needs an agent with two value heads (make_agent(..., value_heads=2))")
         self.use_ce = self.has_coordinator and (ce_coef > 0 or entropy_coef > 0)
         self.ce_coef, self.entropy_coef = float(ce_coef), float(entropy_coef)
         self.convert_to_functional(agent, "agent", create_target_params=True)
@@ -203,6 +214,8 @@ class ICCOLoss(LossModule):
         """The entries :meth:`forward` returns with this configuration (``loss_*`` are summed by
         :func:`total_loss`; the others are detached summaries)."""
         keys = ("loss_td", "q_taken", "q_tot", "td_error")
+        if self.split_instruction:
+            keys += ("loss_td_inst", "q_inst")
         if self.use_ce:
             keys += ("loss_ce", "ce_neg_entropy", "entropy")
             if self.posterior is not None:
@@ -263,6 +276,8 @@ class ICCOLoss(LossModule):
             hidden=hidden,
             state=_flat_state(state, S, T), next_state=_flat_state(next_state, S, T),
             reward=self._team(td, _next(k.reward), N, "reward"),
+            inst_reward=(self._get(td, _next(k.inst_reward), "[S, T] or [S, T, 1]").reshape(S, T, 1)
+                         if self.split_instruction else None),
             terminated=self._team(td, _next(k.terminated), N, "flag"),
         )
         step_count = self._get(td, k.step_count, "[S, T, 1]", trailing=(1,), optional=not self.has_coordinator)
@@ -434,25 +449,41 @@ class ICCOLoss(LossModule):
             with torch.no_grad():
                 z_tgt, _, _ = self._z_sequences(x, self.target_coordinator_params, x["z_noise"][:, 0], fresh)
 
-        q_online, q_boot = self._q_online(x, z_on)                                             # [S, T, N, A], [S, N, A]
-        chosen = q_online.gather(-1, x["action"].long().unsqueeze(-1)).squeeze(-1)               # [S, T, N]
-        q_tot = self._mix(self.mixer_params, chosen, tensordict)
+        q_online, q_boot = self._q_online(x, z_on)                                             # [S, T, N, A(*2)]
+        action = x["action"].long().unsqueeze(-1)
         with torch.no_grad():
             q_target = self._q_sequence(self.target_agent_params, x, z_tgt)[:, 1:]
             greedy_source = torch.cat([q_online[:, 1:], q_boot.unsqueeze(1)], 1) if self.double_q else q_target
-            greedy = greedy_source.argmax(-1, keepdim=True)
+            greedy = self._acting(greedy_source).argmax(-1, keepdim=True)
+        alive = (~x["terminated"]).to(q_online.dtype)
+        weight = mask.to(q_online.dtype)
+        n_valid = weight.sum().clamp_min(1.0)
+        if self.split_instruction:
+            A = q_online.shape[-1] // 2
+            q_online, q_inst, q_target, q_target_inst = q_online[..., :A], q_online[..., A:], q_target[..., :A], \
+                q_target[..., A:]
+            inst = q_inst.gather(-1, action).squeeze(-1).sum(-1, keepdim=True)                    # VDN [S, T, 1]
+            with torch.no_grad():
+                inst_next = q_target_inst.gather(-1, greedy).squeeze(-1).sum(-1, keepdim=True)
+                inst_target = self._targets(x["inst_reward"], alive, inst_next, mask)
+            task_reward = x["reward"] - x["inst_reward"]
+        chosen = q_online.gather(-1, action).squeeze(-1)                                         # [S, T, N]
+        q_tot = self._mix(self.mixer_params, chosen, tensordict)
+        with torch.no_grad():
             next_value = q_target.gather(-1, greedy).squeeze(-1)
             q_tot_next = self._mix(self.target_mixer_params, next_value, tensordict.get("next"))
-            target = self._targets(x["reward"], (~x["terminated"]).to(q_tot.dtype), q_tot_next, mask)
+            target = self._targets(task_reward if self.split_instruction else x["reward"], alive, q_tot_next, mask)
 
         td_error = (q_tot - target).squeeze(-1)                                                  # [S, T]
-        weight = mask.to(td_error.dtype)
-        n_valid = weight.sum().clamp_min(1.0)
         loss_td = (weight * td_error.pow(2)).sum() / n_valid
         out = {"loss_td": loss_td,
                "q_taken": (weight.unsqueeze(-1) * chosen.detach()).sum() / (n_valid * chosen.shape[-1]),
                "q_tot": (weight * q_tot.detach().squeeze(-1)).sum() / n_valid,
                "td_error": (weight * td_error.detach().abs()).sum() / n_valid}
+        if self.split_instruction:
+            inst_error = (inst - inst_target).squeeze(-1)
+            out["loss_td_inst"] = (weight * inst_error.pow(2)).sum() / n_valid
+            out["q_inst"] = (weight * inst.detach().squeeze(-1)).sum() / n_valid
         if self.use_ce:
             out.update(self._consistency(x, z_on[:, 0], loc0, scale0, mask))
         if self.check_finite:
@@ -461,6 +492,13 @@ class ICCOLoss(LossModule):
                 raise NonFiniteLossError(f"non-finite loss terms {bad}: "
                                          + ", ".join(f"{n}={v.item():.4g}" for n, v in out.items()))
         return TensorDict(out, [])
+
+    def _acting(self, q: torch.Tensor) -> torch.Tensor:
+        """The Q the policy acts on: the sum of the two heads with ``split_instruction``."""
+        if not self.split_instruction:
+            return q
+        A = q.shape[-1] // 2
+        return q[..., :A] + q[..., A:]
 
     def _targets(self, reward: torch.Tensor, alive: torch.Tensor, q_next: torch.Tensor, mask: torch.Tensor):
         """One-step or lambda-return targets ``[S, T, 1]`` from the target ``Q_tot`` of each next state."""

@@ -77,7 +77,8 @@ def make_modules(cfg: DictConfig, layout, device, *, n_actions: int) -> dict:
     m = cfg.method
     z_dim = m.z_dim if m.coordinator else 0
     mods = {"agent": make_agent(layout, n_actions=n_actions, hidden=m.hidden, z_dim=z_dim, full_state=m.full_state,
-                                encoder=m.encoder, state_encoder=m.state_encoder),
+                                encoder=m.encoder, state_encoder=m.state_encoder,
+                                value_heads=2 if m.instruction_head else 1),
             "mixer": make_mixer(layout.state_dim, layout.n_agents, device=device),
             "coordinator": None, "posterior": None}
     if m.coordinator:
@@ -97,7 +98,7 @@ def make_loss(cfg: DictConfig, mods: dict) -> ICCOLoss:
     m, t = cfg.method, cfg.train
     return ICCOLoss(mods["agent"], mods["mixer"], mods["coordinator"], mods["posterior"], gamma=t.gamma,
                     td_lambda=t.td_lambda, double_q=t.double_q, ce_coef=m.ce_coef if m.coordinator else 0.0,
-                    entropy_coef=m.entropy_coef if m.coordinator else 0.0)
+                    entropy_coef=m.entropy_coef if m.coordinator else 0.0, split_instruction=m.instruction_head)
 
 
 def make_optimizer(cfg: DictConfig, loss: ICCOLoss) -> torch.optim.Optimizer:

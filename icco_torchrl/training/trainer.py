@@ -235,6 +235,7 @@ class Session:
         recent, episode_stats = [], {k: float("nan") for k in EPISODE_COLUMNS}  # episodes since the last row
         last_eval = last_ckpt = p.frames
         start_wall, start_frames = time.perf_counter(), p.frames
+        replay_keys = REPLAY_KEYS + ([("next", "events", "inst_reward")] if run.loss.split_instruction else [])
         stop = GracefulInterrupt()
         try:
             tick = time.perf_counter()
@@ -244,7 +245,7 @@ class Session:
                 p.batches += 1
                 self.explore.eps.fill_(epsilon(p.frames, t))
                 recent.append(tracker.update(batch))
-                run.buffer.extend(run.cutter(batch.select(*REPLAY_KEYS, strict=False)))  # cut only what is replayed
+                run.buffer.extend(run.cutter(batch.select(*replay_keys, strict=False)))  # cut only what is replayed
                 tick = time.perf_counter()
                 row = self.learn()
                 self.timers["train"] += time.perf_counter() - tick
