@@ -54,14 +54,24 @@ def _remove_if_only_hydra(folder: str) -> None:
 
 
 def _resume_folder(args: list[str]) -> list[str]:
-    """``resume=PATH`` continues in the checkpoint's folder: Hydra's run folder is set to it (unless
-    given), so a resume never leaves an empty ``runs/<method>/seed*_<time>/`` behind."""
+    """``resume=PATH`` continues the run as it was last saved, in the checkpoint's folder: the run's own
+    method, seed, env and ``train`` settings come first (``saved_run_overrides``; this command
+    line's overrides win), and Hydra's run folder is set to the checkpoint's (unless given), so a
+    resume never leaves an empty ``runs/<method>/seed*_<time>/`` behind."""
     resume = next((a.split("=", 1)[1] for a in args if a.startswith("resume=")), None)
     if not resume or resume == "null" or any(a.startswith(("hydra.run.dir=", "-m", "--multirun")) for a in args):
         return args
     from pathlib import Path
 
-    return [*args, f"hydra.run.dir={Path(resume).resolve().parent}"]
+    from icco_torchrl.training.checkpoint import CheckpointError, load_checkpoint
+    from icco_torchrl.training.trainer import saved_run_overrides
+
+    try:
+        saved = saved_run_overrides(load_checkpoint(resume)["cfg"], args)
+    except (CheckpointError, KeyError, TypeError):
+        saved = []  # the trainer reports a missing or damaged checkpoint in one line
+    folder = Path(resume).resolve().parent
+    return [*saved, *args, f"hydra.run.dir={folder}"]
 
 
 def _dispatch(command: str, cfg, run_dir: str) -> float | None:

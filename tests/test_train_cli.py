@@ -243,6 +243,20 @@ def test_kill_9_then_resume_logs_every_frame_once(tmp_path):
         assert _frames(run / stream) == _frames(tmp_path / "whole" / stream), stream
 
 
+def test_a_bare_resume_continues_the_run_with_its_own_method_seed_and_budget(tmp_path):
+    run_cli("train", *SMOKE, "method=qmix", "seed=3", "train.total_frames=1024", f"hydra.run.dir={tmp_path}")
+    ckpt = tmp_path / "checkpoint.pt"
+    # Only the new budget is given: method, seed and the smoke settings are the run's own.
+    run_cli("train", "logger.progress=false", f"resume={ckpt}", "train.total_frames=2048")
+    saved = torch.load(ckpt, weights_only=False)
+    assert saved["frames"] == 2048 and saved["cfg"]["method"]["name"] == "qmix" and saved["cfg"]["seed"] == 3
+    assert saved["cfg"]["env"]["num_envs"] == 8  # experiment=smoke's, not the default 32
+    # Nothing given: the budget is the one it was last saved with (reached): nothing more to do.
+    proc = run_cli("train", "logger.progress=false", f"resume={ckpt}")
+    assert "done: 2,048 env steps" in proc.stdout
+    assert torch.load(ckpt, weights_only=False)["updates"] == saved["updates"]
+
+
 def test_resume_continues_in_the_checkpoint_folder():
     from icco_torchrl.cli import _resume_folder
 
