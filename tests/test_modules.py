@@ -408,3 +408,35 @@ def test_relative_encoder_ignores_resource_order():
     shuffled = tok[:, perm].flatten(-2)
     torch.testing.assert_close(enc(state), enc(shuffled), atol=1e-6, rtol=1e-6)
     assert not torch.allclose(enc(state)[:, 0], enc(state)[:, 1])  # robots get their own views
+
+
+def test_guided_exploration_takes_the_guides_actions_with_probability_eps():
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+    from icco_torchrl.envs.reference_policies import make_reference_policy
+    from icco_torchrl.modules.policy import exploration_module, make_policy
+    from icco_torchrl.training.build import build_components
+
+    parts = build_components(method="qmix", num_envs=16)
+    env = parts["env"]
+    guide = make_reference_policy("heuristic", env)
+    policy = make_policy(parts["agent"], env.full_action_spec_unbatched, guide=guide)
+    explore = exploration_module(policy)
+    td = env.reset()
+    with torch.no_grad():
+        wanted = guide(td.clone())["agents", "action"]
+        with set_exploration_type(ExplorationType.DETERMINISTIC):
+            best = policy(td.clone())["agents", "action"]
+        assert (wanted != best).any()  # the test can tell them apart
+        for eps, expected in ((1.0, wanted), (0.0, best)):
+            explore.eps.fill_(eps)
+            with set_exploration_type(ExplorationType.RANDOM):
+                assert torch.equal(policy(td.clone())["agents", "action"], expected)
+        explore.eps.fill_(1.0)
+        with set_exploration_type(ExplorationType.DETERMINISTIC):  # evaluation never asks the guide
+            assert torch.equal(policy(td.clone())["agents", "action"], best)
+        explore.eps.fill_(0.5)
+        with set_exploration_type(ExplorationType.RANDOM):
+            got = torch.stack([policy(td.clone())["agents", "action"] for _ in range(20)])
+        from_guide = (got == wanted).float().mean().item()
+        assert 0.5 <= from_guide < 1.0  # about half the agents follow the guide (and some agree anyway)

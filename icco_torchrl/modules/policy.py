@@ -12,6 +12,7 @@ from tensordict.nn import TensorDictModule, TensorDictSequential
 from torch import nn
 from torchrl.data import Categorical, Composite, Unbounded
 from torchrl.envs import TensorDictPrimer
+from torchrl.envs.utils import ExplorationType
 from torchrl.modules import EGreedyModule, QValueModule
 
 from icco_torchrl.modules.tdmodule import TensorModule
@@ -30,9 +31,32 @@ def make_primer(n_agents: int, hidden: int, z_dim: int = 0, device="cpu", group:
                             expand_specs=True)
 
 
+class GuidedEGreedyModule(EGreedyModule):
+    """Epsilon-greedy whose exploratory actions come from a ``guide`` policy (``td -> td`` writing the
+    same action key, e.g. a scripted reference policy) instead of uniform draws: with probability
+    ``eps`` each agent takes the guide's action. Off-policy Q-learning learns from any behaviour,
+    so the replay then holds the task events a random walk rarely meets. Greedy (DETERMINISTIC)
+    rollouts never call the guide."""
+
+    def __init__(self, guide, **kwargs):
+        super().__init__(**kwargs)
+        self.__dict__["guide"] = guide  # not a submodule: no parameters, not in the state dict
+
+    def forward(self, tensordict):
+        from torchrl.envs.utils import exploration_type  # the context's current type
+
+        if exploration_type() not in (ExplorationType.RANDOM, None):
+            return tensordict
+        action = tensordict.get(self.action_key)
+        guided = self.guide(tensordict.exclude(self.action_key)).get(self.action_key)
+        explore = torch.rand(action.shape, device=action.device) < self.eps
+        tensordict.set(self.action_key, torch.where(explore, guided.to(action.dtype), action))
+        return tensordict
+
+
 def make_policy(agent: TensorDictModule, action_spec, coordinator: TensorDictModule | None = None, *,
                 eps_init: float = 1.0, eps_end: float = 0.05, annealing_num_steps: int = 1,
-                group: str = "agents", action_name: str = "action") -> TensorDictSequential:
+                group: str = "agents", action_name: str = "action", guide=None) -> TensorDictSequential:
     """``action_spec``: the env's unbatched full action spec (``env.full_action_spec_unbatched``).
 
     Keys live under ``group``: ``action_value``, ``action_name``, ``chosen_action_value`` and the
@@ -42,8 +66,9 @@ def make_policy(agent: TensorDictModule, action_spec, coordinator: TensorDictMod
     q_value = QValueModule(action_value_key=(group, "action_value"),
                            out_keys=[action_key, (group, "action_value"), (group, "chosen_action_value")],
                            spec=None, action_space="categorical")
-    explore = EGreedyModule(spec=action_spec, eps_init=eps_init, eps_end=eps_end,
-                            annealing_num_steps=annealing_num_steps, action_key=action_key)
+    kwargs = dict(spec=action_spec, eps_init=eps_init, eps_end=eps_end, annealing_num_steps=annealing_num_steps,
+                  action_key=action_key)
+    explore = EGreedyModule(**kwargs) if guide is None else GuidedEGreedyModule(guide, **kwargs)
     if action_spec.device is not None:  # its eps buffers start on the CPU; it refuses actions elsewhere
         explore = explore.to(action_spec.device)
     remember = TensorModule(nn.Identity(), in_keys=[action_key], out_keys=[("next", group, "prev_action")])

@@ -152,8 +152,13 @@ def build(cfg: DictConfig, *, num_envs: int | None = None, seed: int | None = No
                 if for_training else None)
     layout = env.base_env.layout
     mods = make_modules(cfg, layout, device, n_actions=action_count(env))
+    guide = None
+    if for_training and t.get("explore_guide"):  # exploration from a scripted policy (experiments/recipe)
+        from icco_torchrl.envs.reference_policies import make_reference_policy
+
+        guide = make_reference_policy(t.explore_guide, env, radius=cfg.eval.blend_radius, seed=cfg.seed)
     policy = make_policy(mods["agent"], env.full_action_spec_unbatched, mods["coordinator"],
-                         eps_init=t.eps_init, eps_end=t.eps_end)
+                         eps_init=t.eps_init, eps_end=t.eps_end, guide=guide)
     loss = make_loss(cfg, mods)
     run = Run(cfg=cfg, env=env, layout=layout, **mods, policy=policy, loss=loss,
               cutter=SegmentCutter(length=cfg.method.period), eval_env=eval_env)

@@ -113,6 +113,7 @@ class TrainConfig:
     checkpoint_interval: int = _field(100_000, ge=0)       # frames between checkpoints (0: only at the end)
     checkpoint_buffer: bool = True                         # also save the replay buffer (replay/, ~22 KB per segment) so resume keeps it
     threads: int = _field(1, gt=0)                         # torch CPU threads (1 is the stable choice on shared machines)
+    explore_guide: Optional[str] = _field(None, choices=(None, *REFERENCE_POLICIES))  # exploratory actions from this reference policy instead of uniform draws (experiments/recipe)
 
 
 @dataclass
