@@ -35,6 +35,9 @@ LEVERS = {  # name: (lever, setting, method, overrides)
     "rel_logvar5_adam_icco": ("optimiser", "Adam 1e-3 (+ log-variance -5)", "icco",
                               [*PROBE, "method.z_init_logvar=-5", "train.optimizer=adam", "train.lr=1e-3"]),
     "rel_adam_qmix_full": ("optimiser", "Adam 1e-3", "qmix_full", [*PROBE, "train.optimizer=adam", "train.lr=1e-3"]),
+    # Session 4, at the defaults of conf/experiment/default.yaml (the recipe the rows above chose).
+    "instruction_head_icco": ("value heads", "separate instruction head", "icco", ["method.instruction_head=true"]),
+    "guide_blend_icco": ("exploration", "guided by the blend (r=1.75 m)", "icco", ["train.explore_guide=blend"]),
 }
 METRICS = ("reward", "task_reward", "inst_reward", "pick", "defense", "invasion")
 
