@@ -19,10 +19,9 @@ import numpy as np
 import torch
 from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
+from icco_torchrl.envs import EVENTS  # the env owns the event names
 from icco_torchrl.envs.resource_collection import _ACTION_DIRS
 from icco_torchrl.instructions.sources import base_env
-
-EVENTS = ("pick", "collect", "defense", "invasion")
 
 
 def _np(tensor: torch.Tensor) -> np.ndarray:
