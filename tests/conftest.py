@@ -1,9 +1,11 @@
-"""Shared test helpers: one CPU thread (stable on shared 2-core machines) and a CLI runner."""
+"""Shared test helpers: one CPU thread (stable on shared 2-core machines), a CLI runner, bridge + fleet threads."""
 from __future__ import annotations
 
+import contextlib
 import os
 import subprocess
 import sys
+import threading
 from pathlib import Path
 
 import torch
@@ -20,3 +22,22 @@ def run_cli(*args: str, cwd: Path | None = None, timeout: float = 300, check: bo
     if check and proc.returncode != 0:
         raise AssertionError(f"icco {' '.join(args)} failed ({proc.returncode}):\n{proc.stdout[-3000:]}\n{proc.stderr[-5000:]}")
     return proc
+
+
+@contextlib.contextmanager
+def bridge_with_fleet(bridge, fleet, seconds: float):
+    """``bridge`` and ``fleet`` serving each other in threads for at most ``seconds``; stopped,
+    joined and closed on exit (also when the test fails)."""
+    stop = threading.Event()
+    threads = [threading.Thread(target=bridge.serve, args=(stop, seconds), daemon=True),
+               threading.Thread(target=fleet.run, args=(stop, seconds), daemon=True)]
+    for t in threads:
+        t.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        for t in threads:
+            t.join(timeout=10)
+        bridge.close()
+        fleet.close()

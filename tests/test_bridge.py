@@ -1,11 +1,12 @@
 """The robot bridge: DWA commands within limits, the protocol, and bridge + simulated fleet over loopback."""
 from __future__ import annotations
 
-import threading
 import time
 
 import numpy as np
 import pytest
+
+from conftest import bridge_with_fleet
 
 from icco_torchrl.envs import ResourceCollectionEnv
 from icco_torchrl.envs.reference_policies import make_reference_policy
@@ -75,23 +76,12 @@ def test_bridge_and_simulated_fleet_over_loopback():
     bridge = Bridge(loop, rate_hz=10, timeout=0.5, limits=LIMITS)
     fleet = SimulatedFleet(bridge.address, rate_hz=20, latency=0.05, limits=LIMITS, seed=1)
     start = fleet.poses[:, :2].copy()
-    stop = threading.Event()
-    threads = [threading.Thread(target=bridge.serve, args=(stop, 6.0), daemon=True),
-               threading.Thread(target=fleet.run, args=(stop, 6.0), daemon=True)]
-    for t in threads:
-        t.start()
-    try:
+    with bridge_with_fleet(bridge, fleet, 6.0):
         time.sleep(2.5)
         for junk in (b"not json", b'{"type": "state", "robots": [{"id": 9}]}', b"{}"):
             fleet.send_raw(junk)
         fleet.silence(1)
         time.sleep(1.5)
-    finally:
-        stop.set()
-        for t in threads:
-            t.join(timeout=10)
-        bridge.close()
-        fleet.close()
     assert bridge.stats["malformed"] == 3 and bridge.stats["commands"] >= 25
     for msg in fleet.commands:
         for r in msg["robots"]:

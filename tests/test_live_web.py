@@ -284,7 +284,7 @@ def test_the_page_in_a_real_browser_go_right_moves_waypoints_and_robots(served, 
 
 
 def test_the_page_watches_a_bridge_driven_fleet_and_relays_instructions(served):
-    import threading
+    from conftest import bridge_with_fleet
 
     from icco_torchrl.envs import ResourceCollectionEnv
     from icco_torchrl.envs.reference_policies import make_reference_policy
@@ -297,11 +297,6 @@ def test_the_page_watches_a_bridge_driven_fleet_and_relays_instructions(served):
     bridge = Bridge(loop, rate_hz=20, timeout=0.5)
     bridge.on_command = lambda _: server.publish(loop.snapshot())
     fleet = SimulatedFleet(bridge.address, rate_hz=20, latency=0.02, seed=1)
-    stop = threading.Event()
-    threads = [threading.Thread(target=bridge.serve, args=(stop, 8.0), daemon=True),
-               threading.Thread(target=fleet.run, args=(stop, 8.0), daemon=True)]
-    for t in threads:
-        t.start()
 
     async def scenario():
         async with aiohttp.ClientSession() as session:
@@ -318,14 +313,8 @@ def test_the_page_watches_a_bridge_driven_fleet_and_relays_instructions(served):
                 x0 = np.mean(tab.ticks[-1]["positions"], axis=0)[0]
                 await tab.until(lambda: np.mean(tab.ticks[-1]["positions"], axis=0)[0] > x0 + 0.5, timeout=7)
 
-    try:
+    with bridge_with_fleet(bridge, fleet, 8.0):
         asyncio.run(scenario())
-    finally:
-        stop.set()
-        for t in threads:
-            t.join(timeout=10)
-        bridge.close()
-        fleet.close()
 
 
 def test_icco_live_through_the_cli_serves_the_demo_policy_and_refuses_a_bad_checkpoint(tmp_path):

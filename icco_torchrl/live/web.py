@@ -199,10 +199,13 @@ class LiveServer:
 
     def _broadcast(self, payload: dict) -> None:
         self.stats["broadcasts"] += 1
-        frame = json.dumps({"type": "tick", **payload, "paused": self.paused, "speed": self.speed,
-                            "clients": len(self.clients)})
+        frame = self._tick_frame(payload)
         for client in self.clients:
             client.offer(frame)
+
+    def _tick_frame(self, payload: dict) -> str:
+        return json.dumps({"type": "tick", **payload, "paused": self.paused, "speed": self.speed,
+                           "clients": len(self.clients)})
 
     def _hello(self) -> dict:
         raw = self.loop.raw
@@ -227,8 +230,7 @@ class LiveServer:
         try:
             await ws.send_str(json.dumps(self._hello()))
             if not self.drive or self.paused:  # show the team at once, even before the next tick
-                client.offer(json.dumps({"type": "tick", **self.loop.snapshot().to_dict(), "paused": self.paused,
-                                         "speed": self.speed, "clients": len(self.clients)}))
+                client.offer(self._tick_frame(self.loop.snapshot().to_dict()))
             async for msg in ws:
                 if msg.type != WSMsgType.TEXT:
                     continue

@@ -454,7 +454,9 @@ class ICCOLoss(LossModule):
         with torch.no_grad():
             q_target = self._q_sequence(self.target_agent_params, x, z_tgt)[:, 1:]
             greedy_source = torch.cat([q_online[:, 1:], q_boot.unsqueeze(1)], 1) if self.double_q else q_target
-            greedy = self._acting(greedy_source).argmax(-1, keepdim=True)
+            if self.split_instruction:  # act on Q_task + Q_inst, as the policy does
+                greedy_source = self.agent.module.combine(greedy_source)
+            greedy = greedy_source.argmax(-1, keepdim=True)
         alive = (~x["terminated"]).to(q_online.dtype)
         weight = mask.to(q_online.dtype)
         n_valid = weight.sum().clamp_min(1.0)
@@ -492,13 +494,6 @@ class ICCOLoss(LossModule):
                 raise NonFiniteLossError(f"non-finite loss terms {bad}: "
                                          + ", ".join(f"{n}={v.item():.4g}" for n, v in out.items()))
         return TensorDict(out, [])
-
-    def _acting(self, q: torch.Tensor) -> torch.Tensor:
-        """The Q the policy acts on: the sum of the two heads with ``split_instruction``."""
-        if not self.split_instruction:
-            return q
-        A = q.shape[-1] // 2
-        return q[..., :A] + q[..., A:]
 
     def _targets(self, reward: torch.Tensor, alive: torch.Tensor, q_next: torch.Tensor, mask: torch.Tensor):
         """One-step or lambda-return targets ``[S, T, 1]`` from the target ``Q_tot`` of each next state."""
