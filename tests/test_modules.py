@@ -440,3 +440,56 @@ def test_guided_exploration_takes_the_guides_actions_with_probability_eps():
             got = torch.stack([policy(td.clone())["agents", "action"] for _ in range(20)])
         from_guide = (got == wanted).float().mean().item()
         assert 0.5 <= from_guide < 1.0  # about half the agents follow the guide (and some agree anyway)
+
+
+# ---------------------------------------------------------------------------- waypoint features
+def test_path_features_give_the_direction_the_instruction_reward_scores():
+    from icco_torchrl.envs._kernels import instruction_reward
+    from icco_torchrl.modules.waypoint_features import path_features
+    g = torch.Generator().manual_seed(3)
+    rel = torch.randn(64, 4, 2, generator=g)                       # K = 4 waypoints relative to the robot
+    disp = torch.randn(64, 2, generator=g) * 0.2
+    f = path_features(rel)
+    # hand-picked: the nearest waypoint is the one of least norm
+    nearest = rel[torch.arange(64), rel.norm(dim=-1).argmin(-1)]
+    torch.testing.assert_close(f[:, :2], nearest)
+    torch.testing.assert_close(f[:, 2:].norm(dim=-1), torch.ones(64))
+    # e_cossim of the env's reward (dist_coef 0) is the cosine of the displacement with the feature direction
+    zero = torch.zeros(64, 2)
+    r = instruction_reward(rel.permute(1, 2, 0).unsqueeze(0), zero.t().unsqueeze(0),
+                           disp.t().unsqueeze(0), 1.0, 0.0)      # batch-last layout [N=1, K, 2, B]
+    cos = torch.nn.functional.cosine_similarity(disp, f[:, 2:], dim=-1)
+    torch.testing.assert_close(r.squeeze(0), cos, atol=1e-5, rtol=1e-5)
+
+
+def test_path_features_tie_goes_to_lower_index_and_zero_path_is_zero():
+    from icco_torchrl.modules.waypoint_features import path_features
+    rel = torch.tensor([[[0.0, 1.0], [1.0, 0.0], [1.0, 0.0], [3.0, 3.0]]])
+    f = path_features(rel)
+    torch.testing.assert_close(f, torch.tensor([[0.0, 1.0, 2 ** -0.5, -(2 ** -0.5)]]))
+    same = torch.tensor([[[0.5, 0.0], [0.5, 0.0], [2.0, 2.0]]])
+    torch.testing.assert_close(path_features(same), torch.tensor([[0.5, 0.0, 0.0, 0.0]]))
+    with pytest.raises(ValueError, match="K>=2"):
+        path_features(torch.zeros(3, 1, 2))
+
+
+@pytest.mark.parametrize("full_state,state_encoder", [(False, "flat"), (True, "relative"), (True, "flat")])
+def test_agent_reads_waypoint_features(full_state, state_encoder):
+    from icco_torchrl.envs import ResourceCollectionEnv
+    env = ResourceCollectionEnv(num_envs=2, seed=0)
+    torch.manual_seed(0)
+    net = RecurrentQNet(env.layout, n_actions=5, hidden=16, z_dim=4, full_state=full_state,
+                        state_encoder=state_encoder, waypoint_features=True)
+    td = env.reset()
+    obs, state = td["agents", "observation"].unsqueeze(1), td["state"].unsqueeze(1)   # segments of length 1
+    prev, z, h0 = torch.zeros(2, 1, 3, dtype=torch.long), torch.randn(2, 1, 3, 4), torch.randn(2, 3, 16)
+    s = state if full_state else None
+    seq = net.sequence(obs, prev, h0, z=z, state=s)
+    q, _ = net.step(obs[:, 0], prev[:, 0], h0, z[:, 0], None if s is None else s[:, 0])
+    torch.testing.assert_close(q, seq[:, 0], atol=1e-5, rtol=1e-5)
+    # the features are read: putting waypoint 0 on the robot (now the nearest) changes Q
+    moved = obs.clone()
+    moved[..., 5:7] = 0.0
+    assert not torch.allclose(net.sequence(moved, prev, h0, z=z, state=s), seq)
+    with pytest.raises(ValueError, match="needs a layout"):
+        RecurrentQNet(None, n_actions=5, obs_dim=8, waypoint_features=True)

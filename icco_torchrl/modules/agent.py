@@ -21,6 +21,7 @@ from torchrl.modules import recurrent_mode
 from icco_torchrl.modules.encoders import MLPEncoder, make_encoder
 from icco_torchrl.modules.relative import STATE_ENCODERS, RelativeStateEncoder
 from icco_torchrl.modules.tdmodule import TensorModule
+from icco_torchrl.modules.waypoint_features import PATH_FEATURES, path_features
 
 if TYPE_CHECKING:
     from icco_torchrl.envs.layout import ObsLayout
@@ -60,11 +61,14 @@ class RecurrentQNet(nn.Module):
         value_heads: 1, or 2 for a task head and an instruction head (``sequence``/``step`` return
             ``[..., 2 * n_actions]``, task first; the policy path, ``forward``, returns their sum:
             Q = Q_task + Q_inst, see :class:`~icco_torchrl.objectives.ICCOLoss`'s ``split_instruction``).
+        waypoint_features: append the nearest own waypoint and the unit direction to the next one
+            (:func:`~icco_torchrl.modules.waypoint_features.path_features`) to the own features; needs a layout.
     """
 
     def __init__(self, layout: ObsLayout | None = None, *, n_actions: int, obs_dim: int | None = None,
                  state_dim: int | None = None, hidden: int = 64, z_dim: int = 0, full_state: bool = False,
-                 encoder: str | None = None, state_encoder: str = "flat", value_heads: int = 1):
+                 encoder: str | None = None, state_encoder: str = "flat", value_heads: int = 1,
+                 waypoint_features: bool = False):
         super().__init__()
         if state_encoder not in STATE_ENCODERS:
             raise ValueError(f"state_encoder must be one of {STATE_ENCODERS}, got {state_encoder!r}")
@@ -74,6 +78,10 @@ class RecurrentQNet(nn.Module):
             raise ValueError(f"value_heads must be 1 or 2, got {value_heads!r}")
         self.hidden, self.z_dim, self.full_state, self.n_actions = hidden, z_dim, full_state, n_actions
         self.value_heads = value_heads
+        if waypoint_features and layout is None:
+            raise ValueError("waypoint_features reads the own waypoints of a structured observation: it needs a layout")
+        self.waypoint_features, self.layout = waypoint_features, layout
+        wf = PATH_FEATURES if waypoint_features else 0
         self.relative = full_state and state_encoder == "relative"
         if layout is None:  # a flat observation (any env): [obs; state] through an MLP
             if obs_dim is None:
@@ -85,11 +93,11 @@ class RecurrentQNet(nn.Module):
             self.encoder = MLPEncoder(obs_dim + (state_dim if full_state else 0), hidden)
             self._own_dim = obs_dim  # the state goes after the whole observation
         elif self.relative:  # QMIX (FULL): every entity relative to the robot (the coordinator's encoder)
-            self.encoder = RelativeStateEncoder(layout, hidden)
+            self.encoder = RelativeStateEncoder(layout, hidden, extra_own=wf)
             self._own_dim = layout.own_dim
         else:  # flat: the global state joins the own token of the local-observation encoder
             extra = layout.state_dim if full_state else 0
-            self.encoder = make_encoder(encoder or "attention", own_dim=layout.own_dim + extra,
+            self.encoder = make_encoder(encoder or "attention", own_dim=layout.own_dim + wf + extra,
                                         n_entities=layout.n_entities, entity_dim=layout.entity_dim, hidden=hidden)
             self._own_dim = layout.own_dim
         # embed([features; one_hot(prev_action)]) written as a linear map plus a per-action row:
@@ -103,12 +111,21 @@ class RecurrentQNet(nn.Module):
         self.gru = nn.GRU(hidden, hidden, batch_first=True)
         self.head = nn.Sequential(nn.Linear(hidden + z_dim, hidden), nn.ReLU(), nn.Linear(hidden, value_heads * n_actions))
 
+    def _path(self, obs):
+        # own features are [x, y, vx, vy, carry, K relative waypoints] (ObsLayout)
+        return path_features(obs[..., 5:self._own_dim].unflatten(-1, (-1, 2)))
+
     def _features(self, obs, prev_action, state):
         if self.relative:
-            return torch.relu(self.embed(self.encoder(state)) + self.prev_action_embed(prev_action.long()))
+            extra = self._path(obs) if self.waypoint_features else None
+            return torch.relu(self.embed(self.encoder(state, extra)) + self.prev_action_embed(prev_action.long()))
+        own = [obs[..., : self._own_dim]]
+        if self.waypoint_features:
+            own.append(self._path(obs))
         if self.full_state:
-            state = state.unsqueeze(-2).expand(*obs.shape[:-1], state.shape[-1])
-            obs = torch.cat([obs[..., : self._own_dim], state, obs[..., self._own_dim:]], -1)
+            own.append(state.unsqueeze(-2).expand(*obs.shape[:-1], state.shape[-1]))
+        if len(own) > 1:
+            obs = torch.cat([*own, obs[..., self._own_dim:]], -1)
         return torch.relu(self.embed(self.encoder(obs)) + self.prev_action_embed(prev_action.long()))
 
     def _q(self, h, z):
@@ -161,7 +178,7 @@ class RecurrentQNet(nn.Module):
 def make_agent(layout: ObsLayout | None = None, *, n_actions: int, obs_dim: int | None = None,
                state_dim: int | None = None, hidden: int = 64, z_dim: int = 0, full_state: bool = False,
                encoder: str | None = None, state_encoder: str = "flat", value_heads: int = 1,
-               obs_key=("agents", "observation"),
+               waypoint_features: bool = False, obs_key=("agents", "observation"),
                state_key="state", action_key=("agents", "action"), step_count_key="step_count",
                is_init_key="is_init") -> TensorDictModule:
     """The agent as a TensorDictModule (see :class:`RecurrentQNet` for the sizes).
@@ -176,7 +193,7 @@ def make_agent(layout: ObsLayout | None = None, *, n_actions: int, obs_dim: int 
     group = action_key[:-1] if isinstance(action_key, tuple) else ()
     net = RecurrentQNet(layout, n_actions=n_actions, obs_dim=obs_dim, state_dim=state_dim, hidden=hidden,
                         z_dim=z_dim, full_state=full_state, encoder=encoder, state_encoder=state_encoder,
-                        value_heads=value_heads)
+                        value_heads=value_heads, waypoint_features=waypoint_features)
     in_keys = {"obs": obs_key, "prev_action": (*group, "prev_action"), "hidden": (*group, "rnn_hidden"),
                "step_count": step_count_key, "is_init": is_init_key}  # forward argument -> tensordict key
     if z_dim:

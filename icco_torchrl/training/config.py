@@ -57,6 +57,7 @@ class MethodConfig:
     hidden: int = _field(64, gt=0)                         # width of encoders, GRU and heads
     z_dim: int = _field(32, ge=0)                          # TACI size per robot (COPA: 128); 0 without a coordinator
     period: int = _field(4, gt=0)                          # z is redrawn every `period` steps and held in between (T)
+    waypoint_features: bool = False                        # agents also read the nearest own waypoint and the path direction r_inst scores (modules/waypoint_features.py)
     instruction_head: bool = False                         # a separate value head for the instruction reward, Q = Q_task + Q_inst (experiments/recipe; not kept)
 
 
