@@ -68,7 +68,10 @@ def test_a_checkpoint_round_trips_and_loads_weights_only(tmp_path):
 
     loaded = load_checkpoint(path)
     assert loaded["format_version"] == FORMAT_VERSION
-    assert loaded["cfg"] == payload["cfg"] and loaded["frames"] == 2048 and loaded["epsilon"] == 0.25
+    # method fields added after the checkpoint was written come back with the value it was trained with
+    added = {"instruction_head": False, "waypoint_features": False}
+    assert loaded["cfg"] == {**payload["cfg"], "method": {**payload["cfg"]["method"], **added}}
+    assert loaded["frames"] == 2048 and loaded["epsilon"] == 0.25
     assert loaded["scalars"] == [1.5, 3]
     assert torch.equal(loaded["loss"]["w"], payload["loss"]["w"])
     assert torch.equal(loaded["optimizer"]["state"][0]["exp_avg"], payload["optimizer"]["state"][0]["exp_avg"])
@@ -83,6 +86,12 @@ def test_a_checkpoint_round_trips_and_loads_weights_only(tmp_path):
     assert isinstance(state["numpy"], tuple) and state["numpy"][1].dtype == np.uint32
     np.testing.assert_array_equal(np.random.rand(4), expected[0])
     assert torch.equal(torch.rand(4), expected[1]) and torch.equal(torch.rand(4, generator=gen), expected[2])
+
+
+def test_a_method_field_the_checkpoint_has_is_kept(tmp_path):
+    payload = {"cfg": {"method": {"name": "icco", "waypoint_features": True}}, "loss": {}}
+    loaded = load_checkpoint(save_checkpoint(tmp_path / "checkpoint.pt", payload))
+    assert loaded["cfg"]["method"] == {"name": "icco", "waypoint_features": True, "instruction_head": False}
 
 
 def test_a_checkpoint_written_before_weights_only_loading_still_loads(tmp_path):

@@ -139,7 +139,13 @@ def load_checkpoint(path: str | Path, map_location="cpu") -> dict[str, Any]:
         raise CheckpointError(f"{path} has checkpoint format {payload['format_version']}; this version of icco-torchrl "
                               f"reads format {FORMAT_VERSION} (the networks changed): retrain, or evaluate it with the "
                               "release that wrote it")
-    return _from_plain(payload)
+    payload = _from_plain(payload)
+    from icco_torchrl.training.config import METHOD_FIELDS_ADDED
+    method = payload.get("cfg", {}).get("method")
+    if isinstance(method, dict):  # a field the checkpoint lacks was added later: it had the old behaviour
+        for key, value in METHOD_FIELDS_ADDED.items():
+            method.setdefault(key, value)
+    return payload
 
 
 def load_weights(loss, state_dict: dict, path: str | Path, method: str) -> None:

@@ -61,6 +61,12 @@ class MethodConfig:
     instruction_head: bool = False                         # a separate value head for the instruction reward, Q = Q_task + Q_inst (experiments/recipe; not kept)
 
 
+# Method fields added after checkpoints had been written, with the value those older checkpoints
+# were trained with (not today's default, which may differ): load_checkpoint fills them in, so an
+# older checkpoint (the demo policy, a committed result) restores the networks it was trained with.
+METHOD_FIELDS_ADDED = {"instruction_head": False, "waypoint_features": False}
+
+
 def _env_params_schema() -> type:
     """``ResourceCollectionEnv``'s keyword arguments (defaults, types) as a dataclass: ``env.params``."""
     kinds = {"int": int, "float": float, "str": str, "bool": bool}
