@@ -56,10 +56,11 @@ def _remove_if_only_hydra(folder: str) -> None:
 def _resume_folder(args: list[str]) -> list[str]:
     """``resume=PATH`` continues the run as it was last saved, in the checkpoint's folder: the run's own
     method, seed, env and ``train`` settings come first (``saved_run_overrides``; this command
-    line's overrides win), and Hydra's run folder is set to the checkpoint's (unless given), so a
+    line's overrides win; a ``method=`` given picks that method's own fields), and Hydra's run folder
+    is set to the checkpoint's (unless given), so a
     resume never leaves an empty ``runs/<method>/seed*_<time>/`` behind."""
     resume = next((a.split("=", 1)[1] for a in args if a.startswith("resume=")), None)
-    if not resume or resume == "null" or any(a.startswith(("hydra.run.dir=", "-m", "--multirun")) for a in args):
+    if not resume or resume == "null" or any(a.startswith(("-m", "--multirun")) for a in args):
         return args
     from pathlib import Path
 
@@ -70,8 +71,9 @@ def _resume_folder(args: list[str]) -> list[str]:
         saved = saved_run_overrides(load_checkpoint(resume)["cfg"], args)
     except (CheckpointError, KeyError, TypeError):
         saved = []  # the trainer reports a missing or damaged checkpoint in one line
-    folder = Path(resume).resolve().parent
-    return [*saved, *args, f"hydra.run.dir={folder}"]
+    if any(a.startswith("hydra.run.dir=") for a in args):
+        return [*saved, *args]
+    return [*saved, *args, f"hydra.run.dir={Path(resume).resolve().parent}"]
 
 
 def _dispatch(command: str, cfg, run_dir: str) -> float | None:

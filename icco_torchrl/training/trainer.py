@@ -356,11 +356,11 @@ def saved_run_overrides(saved: dict, given: list[str]) -> list[str]:
         if key not in keys and not isinstance(value, (dict, list)):
             out.append(f"{'++' if force else ''}{key}={_override_value(value)}")
 
-    if "method" not in keys:
+    if "method" not in keys:  # a method given on the command line brings its own fields (checked, not forced)
         out.append(f"method={saved['method']['name']}")  # a group option: unquoted
-    for k, v in saved["method"].items():
-        if k != "name":
-            put(f"method.{k}", v, force=True)
+        for k, v in saved["method"].items():
+            if k != "name":
+                put(f"method.{k}", v, force=True)
     put("seed", saved["seed"])
     if not keys & {"env", "reward"}:
         put("env.num_envs", saved["env"]["num_envs"])
