@@ -443,6 +443,43 @@ def test_random_walk_waypoints_refresh_every_interval_near_each_robot():
     assert 0.8 * sigma * math.sqrt(math.pi / 2) < mean < 1.05 * sigma * math.sqrt(math.pi / 2)
 
 
+def test_path_walks_stay_where_they_were_laid_while_robot_walks_follow_the_robot():
+    # sigma 0: a path is its starting point forever, whatever the robots do; a robot's own walk
+    # restarts on the robot at every refresh.
+    env = ResourceCollectionEnv(num_envs=64, seed=4, waypoint_sigma=0.0, waypoint_path_prob=0.5)
+    td = env.reset()
+    on_path = env._on_path[:, 0].t()                                       # [B, N]
+    assert 0.3 < on_path.float().mean().item() < 0.7                       # about half of the robots
+    laid = env.waypoints.clone()
+    assert (laid[:, :, 0] - env.pos).norm(dim=-1)[on_path].mean() > 1.0    # uniform in the field, not on the robot
+    policy = random_policy(env, 1)
+    for t in range(1, 13):
+        td = step_mdp(env.step(policy(td)))
+        if t % env.waypoint_interval == 0:
+            w = env.waypoints
+            assert torch.equal(w[on_path], laid[on_path])
+            torch.testing.assert_close(w[~on_path], env.pos[~on_path].unsqueeze(1).expand(-1, env.n_waypoints, 2))
+    # with noise, a path's next walk starts one increment from its last waypoint
+    env = ResourceCollectionEnv(num_envs=64, seed=4, waypoint_path_prob=1.0)
+    td = env.reset()
+    last = env.waypoints[:, :, -1].clone()
+    for _ in range(env.waypoint_interval):
+        td = step_mdp(env.step(policy(td)))
+    gap = (env.waypoints[:, :, 0] - last).norm(dim=-1)
+    assert gap.max() < 6 * env.waypoint_sigma
+
+
+def test_paths_are_drawn_after_the_scene_so_first_scenes_are_paired():
+    # the path draws come last in a reset: the same seed gives the same first scene with or without
+    # paths (paired comparisons of training instructions)
+    a, b = ResourceCollectionEnv(num_envs=8, seed=3), ResourceCollectionEnv(num_envs=8, seed=3, waypoint_path_prob=0.5)
+    a.reset(), b.reset()
+    for name in ("pos", "res_pos", "inv_pos", "inv_timer"):
+        assert torch.equal(getattr(a, name), getattr(b, name)), name
+    with pytest.raises(ValueError, match="waypoint_path_prob"):
+        ResourceCollectionEnv(waypoint_path_prob=1.5)
+
+
 def test_waypoints_supplied_through_the_tensordict_drive_that_step():
     env, td = quiet_scene(inst_reward_scale=1.3)
     p = env.pos[0]

@@ -38,6 +38,20 @@ LEVERS = {  # name: (lever, setting, method, overrides)
     # Session 4, at the defaults of conf/experiment/default.yaml (the recipe the rows above chose).
     "instruction_head_icco": ("value heads", "separate instruction head", "icco", ["method.instruction_head=true"]),
     "guide_blend_icco": ("exploration", "guided by the blend (r=1.75 m)", "icco", ["train.explore_guide=blend"]),
+    # Session 5: the agents read the nearest waypoint and the path direction r_inst scores.
+    "waypoint_features_qmix_inst_only": ("waypoint features", "on, instruction reward only", "qmix",
+                                         ["experiment=inst_only", "method.waypoint_features=true"]),
+    "no_waypoint_features_qmix_inst_only": ("waypoint features", "off, instruction reward only", "qmix",
+                                            ["experiment=inst_only"]),
+    "waypoint_features_icco": ("waypoint features", "on", "icco", ["method.waypoint_features=true"]),
+    "waypoint_features_guided_icco": ("waypoint features", "on + guided by the blend", "icco",
+                                      ["method.waypoint_features=true", "train.explore_guide=blend"]),
+    "waypoint_features_gamma09_icco": ("discount", "0.9 (+ waypoint features)", "icco",
+                                       ["method.waypoint_features=true", "train.gamma=0.9"]),
+    "waypoint_features_gamma095_icco": ("discount", "0.95 (+ waypoint features)", "icco",
+                                        ["method.waypoint_features=true", "train.gamma=0.95"]),
+    "waypoint_features_qmix_full": ("waypoint features", "on", "qmix_full", ["method.waypoint_features=true"]),
+    "waypoint_features_icco_wo_ce": ("waypoint features", "on", "icco_wo_ce", ["method.waypoint_features=true"]),
 }
 METRICS = ("reward", "task_reward", "inst_reward", "pick", "defense", "invasion")
 

@@ -96,6 +96,12 @@ class ResourceCollectionEnv(EnvBase):
         n_waypoints: waypoints K per robot (4).
         waypoint_interval: steps between random-walk refreshes of the waypoints (4).
         waypoint_sigma: std (m) of each random-walk increment; about one robot step (0.19).
+        waypoint_path_prob: with ``waypoint_mode="random_walk"``, the probability that a robot's
+            instruction for an episode is a *path*: a walk laid out independently of the robot, which
+            starts at a uniform point of the field and, at each refresh, continues from its own last
+            waypoint instead of restarting at the robot. The paper's walks (0, the default) always
+            start at the robot, so they never ask a robot to come back to an instruction it left (to
+            pick a resource, say), which every evaluation instruction does (a quadrant, "go right").
         waypoint_mode: ``"random_walk"`` (training default: the env regenerates waypoints) or
             ``"external"`` (the env keeps whatever the caller wrote; see :meth:`write_waypoints`).
         pick_reward / collect_reward / defense_reward / invasion_penalty: event rewards
@@ -147,6 +153,7 @@ class ResourceCollectionEnv(EnvBase):
         waypoint_interval: int = 4,
         waypoint_sigma: float = 0.19,
         waypoint_mode: str = "random_walk",
+        waypoint_path_prob: float = 0.0,
         pick_reward: float = 5.0,
         collect_reward: float = 1.0,
         defense_reward: float = 4.0,
@@ -186,6 +193,8 @@ class ResourceCollectionEnv(EnvBase):
             raise ValueError(f"invader_min_radius must be in [0, field_size/2), got {invader_min_radius}")
         if spawn not in SPAWN_MODES:
             raise ValueError(f"spawn must be one of {SPAWN_MODES}, got {spawn!r}")
+        if not 0.0 <= waypoint_path_prob <= 1.0:
+            raise ValueError(f"waypoint_path_prob must be in [0, 1], got {waypoint_path_prob}")
         if waypoint_mode not in ("random_walk", "external"):
             raise ValueError(f"waypoint_mode must be 'random_walk' or 'external', got {waypoint_mode!r}")
         super().__init__(device=device, batch_size=torch.Size([num_envs]))
@@ -195,6 +204,7 @@ class ResourceCollectionEnv(EnvBase):
         self.inst_reward_scale, self.inst_dist_coef = float(inst_reward_scale), float(inst_dist_coef)
         self.n_waypoints, self.waypoint_interval = n_waypoints, waypoint_interval
         self.waypoint_sigma, self.waypoint_mode = float(waypoint_sigma), waypoint_mode
+        self.waypoint_path_prob = float(waypoint_path_prob)
         self.event_rewards = dict(pick=pick_reward, collect=collect_reward, defense=defense_reward,
                                   invasion=-invasion_penalty)
         self.home_radius, self.resource_radius = home_radius, resource_radius
@@ -285,6 +295,7 @@ class ResourceCollectionEnv(EnvBase):
             _inv_vel=torch.zeros(I, 2, B, device=dev), _inv_on=torch.zeros(I, B, dtype=torch.bool, device=dev),
             _inv_timer=torch.zeros(I, B, dtype=torch.int64, device=dev),
             _wp=torch.zeros(B, N, K, 2, device=dev), _wp_cache=(None, None, None), _wp_emitted=(None, None),
+            _on_path=torch.zeros(N, 1, B, dtype=torch.bool, device=dev),  # robots whose walk is a path
             t=torch.zeros(B, dtype=torch.int64, device=dev),
         )
         # Scratch entity table for _write_visible_entities: one-hot types and "visible" are fixed.
@@ -409,7 +420,11 @@ class ResourceCollectionEnv(EnvBase):
             _inv_timer=self._respawn_timer(M * I).view(M, I).t().contiguous(),
         )
         if self.waypoint_mode == "random_walk":
-            wp = self._random_walk(pos_bl)
+            start = pos_bl
+            if self.waypoint_path_prob > 0:  # drawn last and only then: the paper's episodes stay the same
+                fresh["_on_path"] = batch_last(self._rand(M, N, 1) < self.waypoint_path_prob)
+                start = torch.where(fresh["_on_path"], batch_last((self._rand(M, N, 2) * 2 - 1) * self.half), pos_bl)
+            wp = self._random_walk(start)
         else:
             wp = pos.unsqueeze(-2).expand(M, N, self.n_waypoints, 2).clone()
         t = torch.zeros(M, dtype=torch.int64, device=dev)
@@ -493,11 +508,15 @@ class ResourceCollectionEnv(EnvBase):
             collect=w["collect"], defense=w["defense"], invasion_share=w["invasion"] / self.n_agents)
 
     def _refresh_waypoints(self, ids: torch.Tensor) -> None:
-        """New random-walk waypoints from the current positions for the envs ``ids``."""
+        """New random-walk waypoints for the envs ``ids``: from the robots' positions, or for a robot
+        on a path (``waypoint_path_prob``), from its walk's last waypoint."""
+        start = self._pos
+        if self.waypoint_path_prob > 0:
+            start = torch.where(self._on_path, batch_last(self._wp[:, :, -1]), start)
         if ids.numel() == self.num_envs:
-            self._put(_wp=self._random_walk(self._pos))
+            self._put(_wp=self._random_walk(start))
         elif ids.numel():
-            self._put(_wp=self._wp.index_copy(0, ids, self._random_walk(self._pos[..., ids])))
+            self._put(_wp=self._wp.index_copy(0, ids, self._random_walk(start[..., ids])))
 
     def _respawn_picked(self, picked: torch.Tensor) -> torch.Tensor:
         """Resource positions after respawning the ``picked`` [R, B] ones (only envs with a pick)."""
