@@ -213,11 +213,13 @@ def _agent_inputs(g, B=2, L=6):
     return obs, prev, z, state, h0
 
 
-@pytest.mark.parametrize("encoder,full_state,z_dim",
-                         [("attention", False, 4), ("mlp", True, 0), ("attention", True, 4)])
-def test_agent_one_step_forward_equals_sequence(encoder, full_state, z_dim):
+@pytest.mark.parametrize("encoder,full_state,z_dim,z_input",
+                         [("attention", False, 4, "head"), ("mlp", True, 0, "head"), ("attention", True, 4, "head"),
+                          ("attention", False, 4, "gru")])
+def test_agent_one_step_forward_equals_sequence(encoder, full_state, z_dim, z_input):
     torch.manual_seed(0)
-    net = RecurrentQNet(LAYOUT, n_actions=5, hidden=16, z_dim=z_dim, full_state=full_state, encoder=encoder)
+    net = RecurrentQNet(LAYOUT, n_actions=5, hidden=16, z_dim=z_dim, full_state=full_state, encoder=encoder,
+                        z_input=z_input)
     obs, prev, z, state, h0 = _agent_inputs(torch.Generator().manual_seed(5))
     z = z if z_dim else None
     B, L = obs.shape[:2]
@@ -493,3 +495,19 @@ def test_agent_reads_waypoint_features(full_state, state_encoder):
     assert not torch.allclose(net.sequence(moved, prev, h0, z=z, state=s), seq)
     with pytest.raises(ValueError, match="needs a layout"):
         RecurrentQNet(None, n_actions=5, obs_dim=8, waypoint_features=True)
+
+
+def test_z_into_the_gru_reaches_later_steps_through_the_recurrent_state():
+    # z at the GRU input: changing z at step 0 alone changes Q at step 1 (carried by the hidden
+    # state); at the head (COPA) it cannot
+    obs, prev, z, state, h0 = _agent_inputs(torch.Generator().manual_seed(5))
+    other = z.clone()
+    other[:, 0] += 1.0
+    for z_input, carried in (("gru", True), ("head", False)):
+        torch.manual_seed(0)
+        net = RecurrentQNet(LAYOUT, n_actions=5, hidden=16, z_dim=4, z_input=z_input)
+        q, q_other = net.sequence(obs, prev, h0, z=z), net.sequence(obs, prev, h0, z=other)
+        assert not torch.allclose(q[:, 0], q_other[:, 0])
+        assert torch.allclose(q[:, 1], q_other[:, 1]) != carried
+    with pytest.raises(ValueError, match="z_input"):
+        RecurrentQNet(LAYOUT, n_actions=5, hidden=16, z_dim=4, z_input="tail")

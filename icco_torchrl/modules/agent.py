@@ -23,6 +23,8 @@ from icco_torchrl.modules.relative import STATE_ENCODERS, RelativeStateEncoder
 from icco_torchrl.modules.tdmodule import TensorModule
 from icco_torchrl.modules.waypoint_features import PATH_FEATURES, path_features
 
+Z_INPUTS = ("head", "gru")
+
 if TYPE_CHECKING:
     from icco_torchrl.envs.layout import ObsLayout
 
@@ -63,13 +65,17 @@ class RecurrentQNet(nn.Module):
             Q = Q_task + Q_inst, see :class:`~icco_torchrl.objectives.ICCOLoss`'s ``split_instruction``).
         waypoint_features: append the nearest own waypoint and the unit direction to the next one
             (:func:`~icco_torchrl.modules.waypoint_features.path_features`) to the own features; needs a layout.
+        z_input: where ``z`` enters: ``"head"`` (COPA's player: the Q head reads ``[GRU output; z]``) or
+            ``"gru"`` (z joins the GRU's input, so the recurrent core can relate it to the robot's motion).
     """
 
     def __init__(self, layout: ObsLayout | None = None, *, n_actions: int, obs_dim: int | None = None,
                  state_dim: int | None = None, hidden: int = 64, z_dim: int = 0, full_state: bool = False,
                  encoder: str | None = None, state_encoder: str = "flat", value_heads: int = 1,
-                 waypoint_features: bool = False):
+                 waypoint_features: bool = False, z_input: str = "head"):
         super().__init__()
+        if z_input not in Z_INPUTS:
+            raise ValueError(f"z_input must be one of {Z_INPUTS}, got {z_input!r}")
         if state_encoder not in STATE_ENCODERS:
             raise ValueError(f"state_encoder must be one of {STATE_ENCODERS}, got {state_encoder!r}")
         if not isinstance(n_actions, int) or n_actions < 1:
@@ -109,16 +115,25 @@ class RecurrentQNet(nn.Module):
         nn.init.uniform_(self.embed.bias, -bound, bound)
         nn.init.uniform_(self.prev_action_embed.weight, -bound, bound)
         self.gru = nn.GRU(hidden, hidden, batch_first=True)
-        self.head = nn.Sequential(nn.Linear(hidden + z_dim, hidden), nn.ReLU(), nn.Linear(hidden, value_heads * n_actions))
+        self.z_in_gru = z_input == "gru" and z_dim > 0
+        self.z_embed = nn.Linear(z_dim, hidden, bias=False) if self.z_in_gru else None
+        head_in = hidden + (z_dim if not self.z_in_gru else 0)
+        self.head = nn.Sequential(nn.Linear(head_in, hidden), nn.ReLU(), nn.Linear(hidden, value_heads * n_actions))
 
     def _path(self, obs):
         # own features are [x, y, vx, vy, carry, K relative waypoints] (ObsLayout)
         return path_features(obs[..., 5:self._own_dim].unflatten(-1, (-1, 2)))
 
-    def _features(self, obs, prev_action, state):
+    def _features(self, obs, prev_action, state, z=None):
+        x = self._encode(obs, state)
+        x = self.embed(x) + self.prev_action_embed(prev_action.long())
+        if self.z_in_gru:
+            x = x + self.z_embed(z)
+        return torch.relu(x)
+
+    def _encode(self, obs, state):
         if self.relative:
-            extra = self._path(obs) if self.waypoint_features else None
-            return torch.relu(self.embed(self.encoder(state, extra)) + self.prev_action_embed(prev_action.long()))
+            return self.encoder(state, self._path(obs) if self.waypoint_features else None)
         own = [obs[..., : self._own_dim]]
         if self.waypoint_features:
             own.append(self._path(obs))
@@ -126,10 +141,10 @@ class RecurrentQNet(nn.Module):
             own.append(state.unsqueeze(-2).expand(*obs.shape[:-1], state.shape[-1]))
         if len(own) > 1:
             obs = torch.cat([*own, obs[..., self._own_dim:]], -1)
-        return torch.relu(self.embed(self.encoder(obs)) + self.prev_action_embed(prev_action.long()))
+        return self.encoder(obs)
 
     def _q(self, h, z):
-        return self.head(torch.cat([h, z], -1) if self.z_dim else h)
+        return self.head(torch.cat([h, z], -1) if self.z_dim and not self.z_in_gru else h)
 
     def forward(self, obs, prev_action, hidden, step_count=None, z=None, state=None, is_init=None):
         """One step for ``[B, N, ...]`` inputs; the hidden state restarts at zero where an episode starts
@@ -155,7 +170,7 @@ class RecurrentQNet(nn.Module):
 
     def step(self, obs, prev_action, hidden, z=None, state=None):
         """One step from ``hidden`` as given (no restart): Q ``[B, N, A]`` and the new hidden state."""
-        x = self._features(obs, prev_action, state)
+        x = self._features(obs, prev_action, state, z)
         g = self.gru  # one step of the same nn.GRU, without its sequence-call overhead
         h = torch.gru_cell(x.reshape(-1, self.hidden), hidden.reshape(-1, self.hidden), g.weight_ih_l0,
                            g.weight_hh_l0, g.bias_ih_l0, g.bias_hh_l0).reshape(x.shape)
@@ -165,7 +180,7 @@ class RecurrentQNet(nn.Module):
         """A segment in one GRU call: inputs ``[S, L, N, ...]``, ``hidden0 [S, N, H]`` -> Q ``[S, L, N, A]``
         (and, with ``return_hidden``, the hidden state after the last step, ``[S, N, H]``, or with
         ``return_hidden="all"`` after every step, ``[S, L, N, H]``)."""
-        x = self._features(obs, prev_action, state)
+        x = self._features(obs, prev_action, state, z)
         S, L, N, H = x.shape
         out, h_last = self.gru(x.permute(0, 2, 1, 3).reshape(S * N, L, H), hidden0.reshape(1, S * N, H).contiguous())
         h = out.reshape(S, N, L, H).permute(0, 2, 1, 3)
@@ -178,7 +193,7 @@ class RecurrentQNet(nn.Module):
 def make_agent(layout: ObsLayout | None = None, *, n_actions: int, obs_dim: int | None = None,
                state_dim: int | None = None, hidden: int = 64, z_dim: int = 0, full_state: bool = False,
                encoder: str | None = None, state_encoder: str = "flat", value_heads: int = 1,
-               waypoint_features: bool = False, obs_key=("agents", "observation"),
+               waypoint_features: bool = False, z_input: str = "head", obs_key=("agents", "observation"),
                state_key="state", action_key=("agents", "action"), step_count_key="step_count",
                is_init_key="is_init") -> TensorDictModule:
     """The agent as a TensorDictModule (see :class:`RecurrentQNet` for the sizes).
@@ -193,7 +208,7 @@ def make_agent(layout: ObsLayout | None = None, *, n_actions: int, obs_dim: int 
     group = action_key[:-1] if isinstance(action_key, tuple) else ()
     net = RecurrentQNet(layout, n_actions=n_actions, obs_dim=obs_dim, state_dim=state_dim, hidden=hidden,
                         z_dim=z_dim, full_state=full_state, encoder=encoder, state_encoder=state_encoder,
-                        value_heads=value_heads, waypoint_features=waypoint_features)
+                        value_heads=value_heads, waypoint_features=waypoint_features, z_input=z_input)
     in_keys = {"obs": obs_key, "prev_action": (*group, "prev_action"), "hidden": (*group, "rnn_hidden"),
                "step_count": step_count_key, "is_init": is_init_key}  # forward argument -> tensordict key
     if z_dim:

@@ -78,7 +78,8 @@ def make_modules(cfg: DictConfig, layout, device, *, n_actions: int) -> dict:
     z_dim = m.z_dim if m.coordinator else 0
     mods = {"agent": make_agent(layout, n_actions=n_actions, hidden=m.hidden, z_dim=z_dim, full_state=m.full_state,
                                 encoder=m.encoder, state_encoder=m.state_encoder,
-                                value_heads=2 if m.instruction_head else 1, waypoint_features=m.waypoint_features),
+                                value_heads=2 if m.instruction_head else 1, waypoint_features=m.waypoint_features,
+                                z_input=m.z_input),
             "mixer": make_mixer(layout.state_dim, layout.n_agents, device=device),
             "coordinator": None, "posterior": None}
     if m.coordinator:

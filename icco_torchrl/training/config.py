@@ -57,6 +57,7 @@ class MethodConfig:
     hidden: int = _field(64, gt=0)                         # width of encoders, GRU and heads
     z_dim: int = _field(32, ge=0)                          # TACI size per robot (COPA: 128); 0 without a coordinator
     period: int = _field(4, gt=0)                          # z is redrawn every `period` steps and held in between (T)
+    z_input: str = _field("head", choices=("head", "gru"))  # z joins the Q head's input (COPA) | the GRU's input
     waypoint_features: bool = False                        # agents also read the nearest own waypoint and the path direction r_inst scores (modules/waypoint_features.py)
     instruction_head: bool = False                         # a separate value head for the instruction reward, Q = Q_task + Q_inst (experiments/recipe; not kept)
 
@@ -64,7 +65,7 @@ class MethodConfig:
 # Method fields added after checkpoints had been written, with the value those older checkpoints
 # were trained with (not today's default, which may differ): load_checkpoint fills them in, so an
 # older checkpoint (the demo policy, a committed result) restores the networks it was trained with.
-METHOD_FIELDS_ADDED = {"instruction_head": False, "waypoint_features": False}
+METHOD_FIELDS_ADDED = {"instruction_head": False, "waypoint_features": False, "z_input": "head"}
 
 
 def _env_params_schema() -> type:
