@@ -25,6 +25,7 @@ from jobs import train_runs  # noqa: E402  (experiments/jobs.py)
 # The session-1 budget with the first three levers of issue 7's probe (replay ratio 8 updates per
 # batch, a hard target copy every 50 updates, epsilon at its floor after 300k frames).
 PROBE = ["train.updates_per_batch=8", "train.target_update_interval=50", "train.eps_decay_frames=300000"]
+WF_PATHS = ["method.waypoint_features=true", "env.params.waypoint_path_prob=0.5"]  # session 5's candidate levers
 LEVERS = {  # name: (lever, setting, method, overrides)
     "flat_icco": ("global-state encoder", "flat (absolute tokens)", "icco", [*PROBE, "method.state_encoder=flat"]),
     "flat_qmix_full": ("global-state encoder", "flat (one vector)", "qmix_full", [*PROBE, "method.state_encoder=flat"]),
@@ -52,6 +53,16 @@ LEVERS = {  # name: (lever, setting, method, overrides)
                                         ["method.waypoint_features=true", "train.gamma=0.95"]),
     "waypoint_features_qmix_full": ("waypoint features", "on", "qmix_full", ["method.waypoint_features=true"]),
     "waypoint_features_icco_wo_ce": ("waypoint features", "on", "icco_wo_ce", ["method.waypoint_features=true"]),
+    "paths_icco": ("training instructions", "paths p=0.5 (+ features)", "icco", [*WF_PATHS]),
+    "paths_qmix_full": ("training instructions", "paths p=0.5 (+ features)", "qmix_full", [*WF_PATHS]),
+    "paths_icco_wo_ce": ("training instructions", "paths p=0.5 (+ features)", "icco_wo_ce", [*WF_PATHS]),
+    "paths_qmix": ("training instructions", "paths p=0.5 (+ features)", "qmix", [*WF_PATHS]),
+    "paths_guided_ce1e4_icco": ("consistency weight", "1e-4, guided (+ features, paths)", "icco",
+                                [*WF_PATHS, "train.explore_guide=blend", "method.ce_coef=0.0001"]),
+    "paths_period1_icco": ("broadcast period", "1 (+ features, paths)", "icco",
+                           [*WF_PATHS, "method.period=1", "train.batch_segments=512", "train.buffer_segments=80000",
+                            "train.warmup_segments=2048"]),
+    "paths_z_gru_icco": ("where z enters", "GRU input (+ features, paths)", "icco", [*WF_PATHS, "method.z_input=gru"]),
 }
 METRICS = ("reward", "task_reward", "inst_reward", "pick", "defense", "invasion")
 
