@@ -69,8 +69,9 @@ def test_a_checkpoint_round_trips_and_loads_weights_only(tmp_path):
     loaded = load_checkpoint(path)
     assert loaded["format_version"] == FORMAT_VERSION
     # method fields added after the checkpoint was written come back with the value it was trained with
-    added = {"instruction_head": False, "waypoint_features": False}
-    assert loaded["cfg"] == {**payload["cfg"], "method": {**payload["cfg"]["method"], **added}}
+    from icco_torchrl.training.config import METHOD_FIELDS_ADDED
+    assert loaded["cfg"] == {**payload["cfg"], "method": {**payload["cfg"]["method"], **METHOD_FIELDS_ADDED}}
+    assert loaded["cfg"]["method"]["waypoint_features"] is False and loaded["cfg"]["method"]["z_input"] == "head"
     assert loaded["frames"] == 2048 and loaded["epsilon"] == 0.25
     assert loaded["scalars"] == [1.5, 3]
     assert torch.equal(loaded["loss"]["w"], payload["loss"]["w"])
@@ -91,7 +92,8 @@ def test_a_checkpoint_round_trips_and_loads_weights_only(tmp_path):
 def test_a_method_field_the_checkpoint_has_is_kept(tmp_path):
     payload = {"cfg": {"method": {"name": "icco", "waypoint_features": True}}, "loss": {}}
     loaded = load_checkpoint(save_checkpoint(tmp_path / "checkpoint.pt", payload))
-    assert loaded["cfg"]["method"] == {"name": "icco", "waypoint_features": True, "instruction_head": False}
+    assert loaded["cfg"]["method"] == {"name": "icco", "waypoint_features": True, "instruction_head": False,
+                                       "z_input": "head"}
 
 
 def test_a_checkpoint_written_before_weights_only_loading_still_loads(tmp_path):
