@@ -86,7 +86,7 @@ class RecurrentQNet(nn.Module):
         self.value_heads = value_heads
         if waypoint_features and layout is None:
             raise ValueError("waypoint_features reads the own waypoints of a structured observation: it needs a layout")
-        self.waypoint_features, self.layout = waypoint_features, layout
+        self.waypoint_features = waypoint_features
         wf = PATH_FEATURES if waypoint_features else 0
         self.relative = full_state and state_encoder == "relative"
         if layout is None:  # a flat observation (any env): [obs; state] through an MLP

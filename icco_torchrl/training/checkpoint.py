@@ -174,13 +174,9 @@ def check_compatible(ckpt: dict[str, Any], cfg, layout, path: str | Path) -> Non
     :func:`~icco_torchrl.training.restore.restore`; raises one ``CheckpointError`` naming every difference."""
     from omegaconf import OmegaConf
 
-    from dataclasses import asdict
-
-    from icco_torchrl.training.config import MethodConfig
-
     cfg = cfg if isinstance(cfg, dict) else OmegaConf.to_container(cfg, resolve=True)
-    # A field the checkpoint lacks was added later: the run had that field's default behaviour.
-    saved_m, m = {**asdict(MethodConfig()), **ckpt["cfg"]["method"]}, cfg["method"]
+    # ``ckpt`` comes from load_checkpoint, which filled in the method fields added since it was written.
+    saved_m, m = ckpt["cfg"]["method"], cfg["method"]
     method = [f"method.{key}: checkpoint {saved_m.get(key)!r} vs config {m.get(key)!r}"
               for key in sorted(set(saved_m) | set(m)) if key != "name" and saved_m.get(key) != m.get(key)]
     saved_layout = ckpt.get("layout") or {}
