@@ -259,11 +259,11 @@ def test_a_bare_resume_continues_the_run_with_its_own_method_seed_and_budget(tmp
 
 def test_a_resume_into_a_given_folder_keeps_the_runs_method_fields(tmp_path):
     # a non-default method field (and the smoke budget) must survive a resume that names its run folder
-    run_cli("train", *SMOKE, "method.waypoint_features=true", "train.total_frames=512", f"hydra.run.dir={tmp_path}")
+    run_cli("train", *SMOKE, "method.waypoint_features=false", "train.total_frames=512", f"hydra.run.dir={tmp_path}")
     run_cli("train", "logger.progress=false", f"resume={tmp_path / 'checkpoint.pt'}", "train.total_frames=1024",
             f"hydra.run.dir={tmp_path}")
     saved = torch.load(tmp_path / "checkpoint.pt", weights_only=False)
-    assert saved["frames"] == 1024 and saved["cfg"]["method"]["waypoint_features"] is True
+    assert saved["frames"] == 1024 and saved["cfg"]["method"]["waypoint_features"] is False
 
 
 def test_resume_continues_in_the_checkpoint_folder():

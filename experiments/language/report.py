@@ -127,6 +127,17 @@ def language_results(fig5b: dict, fig5b_rows: list[dict], tap: dict, tap_rows: l
     return out
 
 
+def run_arguments(out: Path, llm: str | None) -> str:
+    """``run.py``'s arguments for this folder: its budget and seeds (``run.json``, when run.py wrote one)."""
+    saved = json.loads((out / "run.json").read_text()) if (out / "run.json").is_file() else {}
+    words = ["--budget", *saved["budget"]] if saved.get("budget") else []
+    if saved.get("seeds") and list(saved["seeds"]) != [0, 1, 2]:
+        words += ["--seeds", *map(str, saved["seeds"])]
+    if llm:
+        words += ["--llm", llm]
+    return " ".join(shlex.quote(w) for w in words)
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("out", type=Path, help="the results folder written by run.py")
@@ -160,7 +171,7 @@ def main(argv=None) -> int:
                       "the task by a fixed rule (the robot nearest the invader's path intercepts it; a robot within "
                       "1.5 m of a resource passes through it on the way to its slot). A language model decides this "
                       "itself: run with `--llm openai` (or any litellm model) for the paper's setting." if offline else ""),
-        run_args="--smoke" if smoke else ("" if offline else f"--llm {shlex.quote(fig5b['llm_backend'])}"),
+        run_args="--smoke" if smoke else run_arguments(args.out, None if offline else fig5b["llm_backend"]),
         out=shlex.quote(os.path.relpath(args.out)),
         fig5b_table=segment_table(fig5b["summary"], "reward") + "\n\nWhole episode:\n\n"
         + markdown_table(fig5b["summary"], ("reward", "pick", "collect", "defense", "invasion", "waypoint_dist"),

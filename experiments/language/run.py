@@ -20,6 +20,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -83,6 +84,8 @@ def main(argv=None) -> None:
              replan)
     instruct(out / "table2_tap", checkpoints(sweep, "qmix") + checkpoints(wo_tr, "qmix"), trials, steps, args.llm,
              ["llm.prompt=tap", *replan])
+    # What the report cannot read from the checkpoints: the command line that reproduces this folder.
+    (out / "run.json").write_text(json.dumps({"budget": args.budget or [], "seeds": args.seeds, "llm": args.llm}))
     run(sys.executable, str(HERE / "report.py"), str(out), "--readme", str(args.readme))
 
 
