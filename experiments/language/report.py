@@ -131,8 +131,7 @@ def run_arguments(out: Path, llm: str | None) -> str:
     """``run.py``'s arguments for this folder: its budget and seeds (``run.json``, when run.py wrote one)."""
     saved = json.loads((out / "run.json").read_text()) if (out / "run.json").is_file() else {}
     words = ["--budget", *saved["budget"]] if saved.get("budget") else []
-    if saved.get("seeds") and list(saved["seeds"]) != [0, 1, 2]:
-        words += ["--seeds", *map(str, saved["seeds"])]
+    words += ["--seeds", *map(str, saved["seeds"])] if saved.get("seeds") else []
     if llm:
         words += ["--llm", llm]
     return " ".join(shlex.quote(w) for w in words)

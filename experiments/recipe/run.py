@@ -26,7 +26,9 @@ from jobs import train_runs  # noqa: E402  (experiments/jobs.py)
 # batch, a hard target copy every 50 updates, epsilon at its floor after 300k frames).
 PROBE = ["train.updates_per_batch=8", "train.target_update_interval=50", "train.eps_decay_frames=300000"]
 WF_PATHS = ["method.waypoint_features=true", "env.params.waypoint_path_prob=0.5"]  # session 5's candidate levers
-LEVERS = {  # name: (lever, setting, method, overrides)
+# Levers measured before session 6 made waypoint features, paths and a consistency weight of 1e-4 the
+# defaults: they pin the defaults of their time (below), so each still trains what it measured.
+BEFORE_SESSION6 = {  # name: (lever, setting, method, overrides)
     "flat_icco": ("global-state encoder", "flat (absolute tokens)", "icco", [*PROBE, "method.state_encoder=flat"]),
     "flat_qmix_full": ("global-state encoder", "flat (one vector)", "qmix_full", [*PROBE, "method.state_encoder=flat"]),
     "rel_icco": ("global-state encoder", "relative tokens", "icco", [*PROBE, "method.state_encoder=relative"]),
@@ -64,6 +66,24 @@ LEVERS = {  # name: (lever, setting, method, overrides)
                             "train.warmup_segments=2048"]),
     "paths_z_gru_icco": ("where z enters", "GRU input (+ features, paths)", "icco", [*WF_PATHS, "method.z_input=gru"]),
 }
+
+
+def before_session6(method: str, overrides: list[str]) -> list[str]:
+    """``overrides`` on top of the defaults before session 6 (COPA's consistency weight for ICCO)."""
+    return ["method.waypoint_features=false", "env.params.waypoint_path_prob=0",
+            *(["method.ce_coef=0.001"] if method == "icco" else []), *overrides]
+
+
+LEVERS = {name: (lever, setting, method, before_session6(method, overrides))
+          for name, (lever, setting, method, overrides) in BEFORE_SESSION6.items()}
+LEVERS.update({  # Session 6, at today's defaults; scored by the four-quadrant protocol at the calibrated reward.
+    "ce1e5_icco": ("consistency weight", "1e-5", "icco", ["method.ce_coef=0.00001"]),
+    "entropy0_icco": ("entropy term", "off", "icco", ["method.entropy_coef=0"]),
+    "guide_blend_qmix_full": ("exploration", "guided by the blend (r=1.75 m)", "qmix_full", ["train.explore_guide=blend"]),
+    **{f"collect{c:g}_{m}".replace(".", ""): ("delivery reward in training", f"{c:g}", m, [f"env.params.collect_reward={c:g}"])
+       for m in ("icco", "qmix_full") for c in (2.5, 3.5, 5.0)},
+    "collect5_qmix": ("delivery reward in training", "5", "qmix", ["env.params.collect_reward=5"]),
+})
 METRICS = ("reward", "task_reward", "inst_reward", "pick", "defense", "invasion")
 
 
