@@ -125,6 +125,9 @@ def test_replay_dump_can_be_turned_off(tmp_path):
     ("train.warmup_segments=30000", "train.warmup_segments"),
     ("train.lr=0", "train.lr"),
     ("train.tau=0", "train.tau"),
+    ("train.env_params.max_steps=0", "train.env_params.max_steps"),
+    ("train.env_params.spawn=edge", "train.env_params.spawn"),
+    ("train.env_params.collect_reward=much", "train.env_params.collect_reward"),
 ])
 def test_bad_config_fails_naming_the_field(override, field):
     with pytest.raises(Exception) as info:
@@ -264,6 +267,31 @@ def test_a_resume_into_a_given_folder_keeps_the_runs_method_fields(tmp_path):
             f"hydra.run.dir={tmp_path}")
     saved = torch.load(tmp_path / "checkpoint.pt", weights_only=False)
     assert saved["frames"] == 1024 and saved["cfg"]["method"]["waypoint_features"] is False
+
+
+def test_training_env_params_shape_the_training_env_only():
+    from icco_torchrl.training.build import build
+
+    cfg = compose_config(["experiment=smoke", "train.env_params.collect_reward=3.5"])
+    run = build(cfg, for_training=True)
+    assert run.env.base_env.event_rewards["collect"] == 3.5
+    assert run.eval_env.base_env.event_rewards["collect"] == 1.0  # the evaluations during training
+    assert build(cfg).env.base_env.event_rewards["collect"] == 1.0  # restore, icco eval/instruct
+    assert run.env.base_env.event_rewards["pick"] == run.eval_env.base_env.event_rewards["pick"] == 5.0
+
+
+def test_training_env_params_survive_a_resume_and_may_change_there(tmp_path):
+    run_cli("train", *SMOKE, "train.env_params.collect_reward=3.5", "train.total_frames=512",
+            f"hydra.run.dir={tmp_path}")
+    ckpt = tmp_path / "checkpoint.pt"
+    run_cli("train", "logger.progress=false", f"resume={ckpt}", "train.total_frames=1024")
+    assert torch.load(ckpt, weights_only=False)["cfg"]["train"]["env_params"]["collect_reward"] == 3.5
+    # A curriculum: the shaping changes at resume (the seed and env.params may not), and says so.
+    proc = run_cli("train", "logger.progress=false", f"resume={ckpt}", "train.total_frames=1536",
+                   "train.env_params.collect_reward=null")
+    assert "instead of {'collect_reward': 3.5}" in proc.stdout
+    saved = torch.load(ckpt, weights_only=False)
+    assert saved["frames"] == 1536 and saved["cfg"]["train"]["env_params"]["collect_reward"] is None
 
 
 def test_resume_continues_in_the_checkpoint_folder():

@@ -21,7 +21,7 @@ from icco_torchrl.envs.layout import ObsLayout
 from icco_torchrl.modules import make_agent, make_coordinator, make_mixer, make_posterior
 from icco_torchrl.modules.policy import make_policy, make_primer
 from icco_torchrl.objectives import ICCOLoss, make_target_updater
-from icco_torchrl.training.config import resolve_device, validate
+from icco_torchrl.training.config import resolve_device, set_env_params, validate
 from icco_torchrl.training.segments import SegmentCutter
 
 
@@ -143,11 +143,14 @@ class Run:
 def build(cfg: DictConfig, *, num_envs: int | None = None, seed: int | None = None, device=None,
           for_training: bool = False, **env_overrides) -> Run:
     """Assemble ``cfg`` on ``device`` (default ``cfg.device``). ``num_envs``, ``seed`` and
-    ``env_overrides`` change the env (an evaluation env, say); ``for_training`` adds the evaluation
-    env (``train.eval_envs`` envs, seed + VALIDATION_SEED_OFFSET), optimiser, target updater and
+    ``env_overrides`` change the env (an evaluation env, say); ``for_training`` applies
+    ``train.env_params`` to the training env and adds the evaluation env (``train.eval_envs`` envs,
+    seed + VALIDATION_SEED_OFFSET, ``env.params`` without them), optimiser, target updater and
     replay buffer. Objects are made in a fixed order, so a seed gives the same weights every time."""
     device = resolve_device(cfg.device if device is None else str(device))
     t = cfg.train
+    if for_training:  # training-only env parameters (reward shaping); evaluations keep env.params
+        env_overrides = {**set_env_params(t.env_params), **env_overrides}
     env = make_env(cfg, num_envs=num_envs, seed=seed, device=device, **env_overrides)
     eval_env = (make_env(cfg, num_envs=t.eval_envs, seed=cfg.seed + VALIDATION_SEED_OFFSET, device=device)
                 if for_training else None)

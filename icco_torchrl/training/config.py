@@ -68,19 +68,31 @@ class MethodConfig:
 METHOD_FIELDS_ADDED = {"instruction_head": False, "waypoint_features": False, "z_input": "head"}
 
 
-def _env_params_schema() -> type:
-    """``ResourceCollectionEnv``'s keyword arguments (defaults, types) as a dataclass: ``env.params``."""
+def _env_params_schema(name: str = "EnvParams", unset: bool = False) -> type:
+    """``ResourceCollectionEnv``'s keyword arguments (defaults, types) as a dataclass: ``env.params``;
+    with ``unset`` every field is optional and None (``train.env_params``: None = as env.params)."""
     kinds = {"int": int, "float": float, "str": str, "bool": bool}
     fields = []
-    for name, p in inspect.signature(ResourceCollectionEnv.__init__).parameters.items():
+    for arg, p in inspect.signature(ResourceCollectionEnv.__init__).parameters.items():
         if p.kind is p.KEYWORD_ONLY:
-            fields.append((name, kinds[str(p.annotation)], dataclasses.field(default=p.default)))
-    return dataclasses.make_dataclass("EnvParams", fields)
+            kind = kinds[str(p.annotation)]
+            fields.append((arg, Optional[kind], dataclasses.field(default=None)) if unset
+                          else (arg, kind, dataclasses.field(default=p.default)))
+    schema = dataclasses.make_dataclass(name, fields)
+    schema.__module__ = __name__  # pickled configs (submitit, Ray) refer to it here
+    return schema
 
 
 EnvParams = _env_params_schema()
 EnvParams.__doc__ = "``env.params``: ResourceCollectionEnv's keyword arguments (see its docstring for each)."
-EnvParams.__module__ = __name__  # pickled configs (submitit, Ray) refer to it here
+TrainEnvParams = _env_params_schema("TrainEnvParams", unset=True)
+TrainEnvParams.__doc__ = "``train.env_params``: env.params overrides for the training env only (None: as env.params)."
+
+
+def set_env_params(params) -> dict:
+    """The fields of a ``train.env_params`` node that are set (not None), as a plain dict."""
+    params = OmegaConf.to_container(params, resolve=True) if not isinstance(params, dict) else params
+    return {k: v for k, v in params.items() if v is not None}
 
 
 @dataclass
@@ -122,6 +134,10 @@ class TrainConfig:
     checkpoint_buffer: bool = True                         # also save the replay buffer (replay/, ~22 KB per segment) so resume keeps it
     threads: int = _field(1, gt=0)                         # torch CPU threads (1 is the stable choice on shared machines)
     explore_guide: Optional[str] = _field(None, choices=(None, *REFERENCE_POLICIES))  # exploratory actions from this reference policy instead of uniform draws (experiments/recipe)
+    # env.params overrides for the training env only (reward shaping, e.g. train.env_params.collect_reward=3.5):
+    # the evaluations during training, `icco eval` and every restore use env.params, so shaping never
+    # changes what is scored. May change at resume (a curriculum); replayed data keeps its old rewards.
+    env_params: TrainEnvParams = field(default_factory=TrainEnvParams)
 
 
 @dataclass
@@ -297,25 +313,32 @@ def validate(cfg: DictConfig | dict) -> DictConfig:
         raise ConfigError(f"config field 'eval.references' has unknown policies {unknown}; "
                           f"choose from {list(REFERENCE_POLICIES)}")
     _check_env_params(merged.env.params)
+    shaping = set_env_params(t.env_params)
+    if shaping:
+        _check_env_params({**OmegaConf.to_container(merged.env.params, resolve=True), **shaping}, "train.env_params",
+                          only=list(shaping))
     resolve_device(merged.device)
     return merged
 
 
-def _check_env_params(params) -> None:
-    """``env.params`` values through the env's own checks (on a one-env instance), named by field."""
+def _check_env_params(params, prefix: str = "env.params", only=None) -> None:
+    """Env parameters through the env's own checks (on a one-env instance), named by field as
+    ``prefix.key``; ``only`` limits the names an error may blame (``train.env_params``' own keys,
+    checked merged over ``env.params``)."""
     params = OmegaConf.to_container(params, resolve=True) if not isinstance(params, dict) else params
+    blame = list(params if only is None else only)
     known = {f.name for f in dataclasses.fields(EnvParams)}
-    for key in params:  # a key added with "+env.params.x=..." gets past the schema's struct flag
+    for key in blame:  # a key added with "+env.params.x=..." gets past the schema's struct flag
         if key not in known:
-            raise ConfigError(f"config field 'env.params.{key}' is not a parameter of ResourceCollectionEnv "
+            raise ConfigError(f"config field '{prefix}.{key}' is not a parameter of ResourceCollectionEnv "
                               f"(known: {', '.join(sorted(known))})")
     if params.get("spawn", "uniform") not in SPAWN_MODES:  # before the env's checks, which name another field first
-        raise ConfigError(f"config field 'env.params.spawn' must be one of {SPAWN_MODES}, got {params['spawn']!r}")
+        raise ConfigError(f"config field '{prefix}.spawn' must be one of {SPAWN_MODES}, got {params['spawn']!r}")
     try:
         ResourceCollectionEnv(num_envs=1, **params)
     except (ValueError, TypeError) as err:
-        name = next((k for k in params if str(err).startswith(k)), None)
-        raise ConfigError(f"config field 'env.params{'.' + name if name else ''}': {err}") from None
+        name = next((k for k in blame if str(err).startswith(k)), None)
+        raise ConfigError(f"config field '{prefix}{'.' + name if name else ''}': {err}") from None
 
 
 def check_command_line(overrides: list[str], config_name: str = "config") -> str | None:

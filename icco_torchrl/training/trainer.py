@@ -24,7 +24,7 @@ from icco_torchrl.objectives import total_loss
 from icco_torchrl.training.build import VALIDATION_SEED_OFFSET, Run, build
 from icco_torchrl.training.checkpoint import (CheckpointError, check_compatible, load_checkpoint, load_replay,
                                               load_weights, save_checkpoint, save_replay)
-from icco_torchrl.training.config import validate
+from icco_torchrl.training.config import set_env_params, validate
 from icco_torchrl.training.logger import RunLogger
 from icco_torchrl.training.rollout import EVENT_KEYS, evaluate
 
@@ -166,6 +166,10 @@ def open_resume(cfg: DictConfig) -> dict | None:
     # The saved config through today's schema, so fields added since it was written compare as defaults.
     saved = OmegaConf.to_container(validate(OmegaConf.create(ckpt["cfg"])), resolve=True)
     check_resume_overrides(saved, OmegaConf.to_container(cfg, resolve=True), cfg.resume)
+    before, now = set_env_params(saved["train"]["env_params"]), set_env_params(cfg.train.env_params)
+    if before != now:  # allowed (a shaping curriculum), and said: the replayed data has the old rewards
+        print(f"note: resume={cfg.resume} trains on train.env_params {now} instead of {before}; "
+              f"replayed transitions keep the rewards they were collected with", flush=True)
     return ckpt
 
 
@@ -368,7 +372,12 @@ def saved_run_overrides(saved: dict, given: list[str]) -> list[str]:
             put(f"env.params.{k}", v, force=True)
     if "experiment" not in keys:
         for k, v in saved["train"].items():
-            put(f"train.{k}", v, force=True)
+            if k == "env_params":  # one override per field, so the command line may change one of them
+                for name, value in (v.items() if "train.env_params" not in keys else ()):
+                    if value is not None:
+                        put(f"train.env_params.{name}", value, force=True)
+            else:
+                put(f"train.{k}", v, force=True)
     return out
 
 
@@ -386,7 +395,8 @@ def _override_value(value) -> str:
 def check_resume_overrides(saved: dict, cfg: dict, path) -> None:
     """Refuse, by name, overrides that a resumed run cannot honour: its seed (the restored RNG
     streams belong to the old one), its env (the replay data came from it) and its exploration
-    schedule (epsilon continues exactly). The budget and evaluation settings may change."""
+    schedule (epsilon continues exactly). The budget, evaluation settings and the training-only
+    ``train.env_params`` (a shaping curriculum) may change."""
     fixed = [("seed",), ("env",), ("train", "eps_init"), ("train", "eps_end"), ("train", "eps_decay_frames"),
              ("train", "steps_per_batch")]
     diffs = []
