@@ -80,9 +80,15 @@ LEVERS.update({  # Session 6, at today's defaults; scored by the four-quadrant p
     "ce1e5_icco": ("consistency weight", "1e-5", "icco", ["method.ce_coef=0.00001"]),
     "entropy0_icco": ("entropy term", "off", "icco", ["method.entropy_coef=0"]),
     "guide_blend_qmix_full": ("exploration", "guided by the blend (r=1.75 m)", "qmix_full", ["train.explore_guide=blend"]),
-    **{f"collect{c:g}_{m}".replace(".", ""): ("delivery reward in training", f"{c:g}", m, [f"env.params.collect_reward={c:g}"])
+    # Delivery reward in the training env only (train.env_params; session 6 set env.params.collect_reward,
+    # which trains identically but also shapes the evaluations during training).
+    **{f"collect{c:g}_{m}".replace(".", ""): ("delivery reward in training", f"{c:g}", m,
+                                              [f"train.env_params.collect_reward={c:g}"])
        for m in ("icco", "qmix_full") for c in (2.5, 3.5, 5.0)},
-    "collect5_qmix": ("delivery reward in training", "5", "qmix", ["env.params.collect_reward=5"]),
+    "collect5_qmix": ("delivery reward in training", "5", "qmix", ["train.env_params.collect_reward=5"]),
+    # Session 7: the other two methods at 3.5.
+    **{f"collect35_{m}": ("delivery reward in training", "3.5", m, ["train.env_params.collect_reward=3.5"])
+       for m in ("qmix", "icco_wo_ce")},
 })
 METRICS = ("reward", "task_reward", "inst_reward", "pick", "defense", "invasion")
 
