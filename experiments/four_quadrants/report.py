@@ -98,6 +98,13 @@ def comparison(summary: list[dict], missing: list[str]) -> str:
     follow = ", ".join(f"{r['method']} {r['in_quadrant']:.2f}" for r in ranked)
     lines.append(f"- **Paper: all methods follow the quadrant (ICCO approximately).** Fraction of robot-steps "
                  f"inside the instructed quadrant: {follow}.")
+    flat = rows.get(METHOD_LABELS["qmix_full_flat"])
+    if flat is not None:
+        gap, spread = icco["reward"] - flat["reward"], math.hypot(icco["reward_std"], flat["reward_std"])
+        lines.append(f"- **Against the paper's QMIX (FULL)** (the global state as one flat vector; `qmix_full` reads "
+                     f"it as relative entity tokens): ICCO {icco['reward']:.1f} vs {flat['reward']:.1f}, "
+                     f"{'ahead' if gap > 0 else 'behind'} by {abs(gap):.1f}, "
+                     f"{'more' if abs(gap) > spread else 'less'} than the trial-to-trial spread ({spread:.1f}).")
     lines += criteria(rows, refs)
     if missing:
         lines.append(f"- Missing from this comparison (no checkpoint): {', '.join(missing)}.")

@@ -1,6 +1,6 @@
 """Four-quadrant experiment (paper Sec. V-B, Fig. 4 and 5a): train, evaluate, report.
 
-    python experiments/four_quadrants/run.py                       # default budget, 4 methods x 3 seeds
+    python experiments/four_quadrants/run.py                       # default budget, 4 methods (+ the flat QMIX (FULL)) x 3 seeds
     python experiments/four_quadrants/run.py --budget experiment=paper device=cuda
     python experiments/four_quadrants/run.py --smoke               # seconds-long end-to-end check
 
@@ -27,7 +27,7 @@ from pathlib import Path
 
 import torch
 
-from icco_torchrl.training.build import METHODS, compose_config
+from icco_torchrl.training.build import METHOD_LABELS, METHODS, compose_config
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from jobs import train_runs  # noqa: E402  (experiments/jobs.py, a sibling script)
@@ -74,7 +74,8 @@ def main(argv=None) -> None:
     parser.add_argument("--sweep", type=Path, help="sweep folder (default multirun/four_quadrants[_smoke])")
     parser.add_argument("--budget", nargs="*", help="training overrides (default experiment=default), "
                         "e.g. experiment=paper device=cuda; with --smoke, added to the smoke budget")
-    parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
+    parser.add_argument("--methods", nargs="+", default=[*METHODS, "qmix_full_flat"], choices=list(METHOD_LABELS),
+                        help="default: the paper's four and its flat QMIX (FULL)")
     parser.add_argument("--seeds", nargs="+", type=int, default=list(SEEDS))
     parser.add_argument("--trials", type=int, default=20, help="evaluation trials per checkpoint (paper: 20)")
     parser.add_argument("--steps", type=int, default=145, help="steps per quadrant (paper: 145)")

@@ -75,6 +75,13 @@ def comparison(fig5b: list[dict], means: dict) -> str:
                          f"the waypoints {icco['waypoint_dist']:.2f} vs {full['waypoint_dist']:.2f} m, deliveries "
                          f"{icco['collect']:.1f} vs {full['collect']:.1f}, defenses {icco['defense']:.1f} vs "
                          f"{full['defense']:.1f} (ICCO vs QMIX (FULL)).")
+        flat = "QMIX (FULL, flat)"
+        if (flat, EPISODE) in cell:  # the paper's own QMIX (FULL): the global state as one flat vector
+            wins = [s for s in segments if cell["ICCO", s]["reward"] > cell[flat, s]["reward"]]
+            lines.append(f"- **Against the paper's QMIX (FULL)** (one flat state vector; `qmix_full` reads relative "
+                         f"entity tokens): ICCO is ahead on {len(wins)} of {len(segments)} instructions "
+                         f"({', '.join(wins) or 'none'}); whole episode {cell['ICCO', EPISODE]['reward']:.1f} vs "
+                         f"{cell[flat, EPISODE]['reward']:.1f}.")
     else:
         lines.append("- Fig. 5b: ICCO or QMIX (FULL) is missing; no comparison.")
     if len(means) == len(TABLE2):

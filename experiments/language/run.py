@@ -9,8 +9,8 @@
    every task reward zeroed, as ``experiment=inst_only`` does for the default budget) in
    ``--wo-tr-sweep``.
 2. Fig. 5b/6: "Go right" -> "Move top" -> "Gather center" -> "Spread out", 145 steps each, the
-   planner prompted once per instruction with the paper's prompt, ICCO vs QMIX (FULL), 20
-   trials per checkpoint: ``icco instruct`` into ``<out>/fig5b``.
+   planner prompted once per instruction with the paper's prompt, ICCO vs QMIX (FULL) (and the
+   paper's flat QMIX (FULL)), 20 trials per checkpoint: ``icco instruct`` into ``<out>/fig5b``.
 3. Table II: the same instructions with the task-aligned prompt driving QMIX (QMIX-TAP) and the
    instruction-reward-only QMIX (QMIX-TAP w/o TR) into ``<out>/table2_tap``; ICCO's row is its
    Fig. 5b run (ICCO gets the paper's plain prompt: its coordinator does the task alignment).
@@ -76,12 +76,12 @@ def main(argv=None) -> None:
     out = (args.out or Path(f"multirun/language{tag}")).resolve()
     trials, steps = (4, 20) if args.smoke else (args.trials, args.steps)
 
-    train(sweep, ["icco", "qmix", "qmix_full"], args.seeds, args.budget, args.smoke)
+    train(sweep, ["icco", "qmix", "qmix_full", "qmix_full_flat"], args.seeds, args.budget, args.smoke)
     train(wo_tr, ["qmix"], args.seeds, [*(args.budget or ([] if args.smoke else ["experiment=default"])),
                                         *NO_TASK_REWARD], args.smoke)
     replan = [f"eval.replan_every={args.replan_every}"] if args.replan_every else []
-    instruct(out / "fig5b", checkpoints(sweep, "icco") + checkpoints(sweep, "qmix_full"), trials, steps, args.llm,
-             replan)
+    instruct(out / "fig5b", checkpoints(sweep, "icco") + checkpoints(sweep, "qmix_full")
+             + checkpoints(sweep, "qmix_full_flat"), trials, steps, args.llm, replan)
     instruct(out / "table2_tap", checkpoints(sweep, "qmix") + checkpoints(wo_tr, "qmix"), trials, steps, args.llm,
              ["llm.prompt=tap", *replan])
     # What the report cannot read from the checkpoints: the command line that reproduces this folder.

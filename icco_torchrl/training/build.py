@@ -36,8 +36,9 @@ def _conf_dir() -> Path:
 
 CONF_DIR = _conf_dir()
 # The methods (conf/method/*.yaml) and the paper's names for them.
-METHODS = ("icco", "icco_wo_ce", "qmix", "qmix_full")
-METHOD_LABELS = {"icco": "ICCO", "icco_wo_ce": "ICCO w/o CE", "qmix": "QMIX", "qmix_full": "QMIX (FULL)"}
+METHODS = ("icco", "icco_wo_ce", "qmix", "qmix_full")  # the paper's methods
+METHOD_LABELS = {"icco": "ICCO", "icco_wo_ce": "ICCO w/o CE", "qmix": "QMIX", "qmix_full": "QMIX (FULL)",
+                 "qmix_full_flat": "QMIX (FULL, flat)"}  # + the paper's own QMIX (FULL), a flat state vector
 # Env seeds relative to cfg.seed: training uses the seed itself, the evaluations during training
 # seed + VALIDATION_SEED_OFFSET, evaluations of a trained policy (icco eval/instruct, restore) seed +
 # EVAL_SEED_OFFSET, so none replays another's episodes; evaluation episode e draws its reference
