@@ -86,9 +86,12 @@ LEVERS.update({  # Session 6, at today's defaults; scored by the four-quadrant p
                                               [f"train.env_params.collect_reward={c:g}"])
        for m in ("icco", "qmix_full") for c in (2.5, 3.5, 5.0)},
     "collect5_qmix": ("delivery reward in training", "5", "qmix", ["train.env_params.collect_reward=5"]),
-    # Session 7: the other two methods at 3.5.
+    # Session 7: the other two methods at 3.5; the paper's flat QMIX (FULL); network and z width.
     **{f"collect35_{m}": ("delivery reward in training", "3.5", m, ["train.env_params.collect_reward=3.5"])
        for m in ("qmix", "icco_wo_ce")},
+    "flat_qmix_full_flat": ("global-state encoder", "flat (the paper's QMIX (FULL))", "qmix_full_flat", []),
+    "hidden128_icco": ("network width", "128", "icco", ["method.hidden=128"]),
+    "zdim128_icco": ("z size", "128 (COPA's)", "icco", ["method.z_dim=128"]),
 })
 METRICS = ("reward", "task_reward", "inst_reward", "pick", "defense", "invasion")
 

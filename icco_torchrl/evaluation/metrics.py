@@ -165,8 +165,8 @@ def write_json(payload, path: str | Path) -> Path:
 
 # results.json names of the methods and reference policies (labels as the tables print them).
 RESULT_NAMES = {"ICCO": "icco", "ICCO w/o CE": "icco_wo_ce", "QMIX": "qmix", "QMIX (FULL)": "qmix_full",
-                "QMIX (FULL, flat)": "qmix_full_flat", "QMIX-TAP": "qmix_tap", "QMIX-TAP w/o TR": "qmix_tap_wo_tr", "random": "random",
-                "follower": "follower", "heuristic": "heuristic"}
+                "QMIX (FULL, flat)": "qmix_full_flat", "QMIX-TAP": "qmix_tap", "QMIX-TAP w/o TR": "qmix_tap_wo_tr",
+                "random": "random", "follower": "follower", "heuristic": "heuristic"}
 RESULT_METRICS = ("reward", "task_reward", "inst_reward", "pick", "collect", "defense", "invasion", "in_quadrant")
 
 
