@@ -24,7 +24,7 @@ def read_csv(path):
         return list(csv.DictReader(handle))
 
 
-@pytest.mark.parametrize("method", ["icco", "icco_wo_ce", "qmix", "qmix_full"])
+@pytest.mark.parametrize("method", ["icco", "icco_wo_ce", "qmix", "qmix_full", "qmix_full_flat"])
 def test_every_method_trains_end_to_end(tmp_path, method):
     run_cli("train", f"method={method}", *SMOKE, f"hydra.run.dir={tmp_path}")
     rows = read_csv(tmp_path / "train.csv")
@@ -37,6 +37,9 @@ def test_every_method_trains_end_to_end(tmp_path, method):
     ckpt = torch.load(tmp_path / "checkpoint.pt", weights_only=False)
     assert ckpt["frames"] == 2048 and ckpt["cfg"]["method"]["name"] == method
     assert (tmp_path / "learning_curve.png").stat().st_size > 0
+    if method.startswith("qmix_full"):  # the paper's QMIX (FULL) reads the state as one flat vector
+        assert ckpt["cfg"]["method"]["full_state"] and (ckpt["cfg"]["method"]["state_encoder"] == "flat") == (
+            method == "qmix_full_flat")
 
 
 def test_training_reports_the_reference_policies(tmp_path):
