@@ -25,7 +25,8 @@ from icco_torchrl.evaluation.protocols import ScheduleRun
 from icco_torchrl.envs.waypoints import QUADRANT_SIGNS
 
 RESOURCE, INVADER, HOME, SHADE = "#daa520", "#c81e2d", "#c8d6e5", "#f4c7c3"
-METHOD_COLORS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f", "#17becf")
+METHOD_COLORS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f", "#17becf", "#bcbd22",
+                 "#d62728")  # tab10, red last; distinct for up to 10 rows (5 methods + 4 references + 1)
 
 
 def save(fig: Figure, stem: str | Path) -> list[Path]:
