@@ -18,18 +18,19 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 import torch
 from omegaconf import OmegaConf
 
-from icco_torchrl.envs import ResourceCollectionEnv
 from icco_torchrl.envs.reference_policies import BlendPolicy, lookahead, make_reference_policy, steer
-from icco_torchrl.evaluation.protocols import quadrant_schedule, run_schedule
-from icco_torchrl.training.build import EVAL_SEED_OFFSET, compose_config
+from icco_torchrl.training.build import EVAL_SEED_OFFSET, METHOD_LABELS, compose_config
 
 HERE = Path(__file__).resolve().parent
-METRICS = ("reward", "task_reward", "inst_reward", "pick", "defense", "invasion", "in_quadrant")
+sys.path.insert(0, str(HERE))
+from run import quadrant_means  # noqa: E402  (experiments/calibration/run.py, the sibling script)
+
 BLEND_RADII = (0.65, 1.0, 1.5, 1.75, 2.0, 2.5, 3.0)
 ANCHORED = [(r, 0.0) for r in (0.5, 1.0, 1.5, 2.0, 2.5, 3.0)] + [(r, 0.65) for r in (1.0, 1.5, 2.0)]
 
@@ -49,14 +50,6 @@ class AnchoredBlend(BlendPolicy):
         near_instruction = (target - e.waypoints.mean(-2)).norm(dim=-1) <= self.radius
         work = near_instruction | e.carry | (dist <= self.robot_radius)
         return torch.where(work, steer(new_pos, target), r_inst.argmax(-1))
-
-
-def measure(make_policy, params: dict, trials: int, seed: int) -> dict:
-    """Team means over ``trials`` four-quadrant episodes (580 steps) in the eval env."""
-    env = ResourceCollectionEnv(num_envs=trials, seed=seed, **{**params, "max_steps": 580, "waypoint_mode": "external"})
-    run = run_schedule(env, make_policy(env), quadrant_schedule(145, seed=seed - EVAL_SEED_OFFSET), trials)
-    rows = [x for x in run.rows if x["segment"] == "episode"]
-    return {k: sum(x[k] for x in rows) / len(rows) for k in METRICS}
 
 
 def plot(rows: list[dict], trained: dict, bars: dict, out: Path) -> None:
@@ -103,11 +96,11 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(1)
     params = OmegaConf.to_container(compose_config([]).env.params, resolve=True)  # the calibrated eval env
-    seed = EVAL_SEED_OFFSET
     rows = []
 
-    def add(family: str, radius, make):
-        rows.append({"family": family, "radius": radius, **measure(make, params, args.trials, seed)})
+    def add(family: str, radius, make):  # the episodes of `icco eval` at seed 0 (env seed 20000, walks seed 0)
+        means = quadrant_means(make, args.trials, env_seed=EVAL_SEED_OFFSET, schedule_seed=0, **params)
+        rows.append({"family": family, "radius": radius, **means})
         print(" ".join(f"{k}={v:.2f}" if isinstance(v, float) else f"{k}={v}" for k, v in rows[-1].items()), flush=True)
 
     add("follower", None, lambda env: make_reference_policy("follower", env))
@@ -123,7 +116,7 @@ def main() -> None:
     print(f"bars: task >= {bars['task']:.1f} and in quadrant >= 0.70; met by {len(both)} of {len(rows)} policies")
     trained_path = HERE.parent / "four_quadrants" / "results.json"
     trained = {k: v for k, v in json.loads(trained_path.read_text())["methods"].items()
-               if k in ("icco", "icco_wo_ce", "qmix", "qmix_full")}
+               if k in METHOD_LABELS}  # the methods, not the reference rows
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "frontier.json").write_text(json.dumps({"trials": args.trials, "steps": 580, "bars": bars,
                                                         "policies": rows, "both_bars": both}, indent=1))

@@ -63,17 +63,23 @@ def choose_scale(rows: list[dict]) -> dict:
     return {"per_scale": table, "chosen": max(table, key=lambda t: t["margin"])}
 
 
-def quadrant_references(scale: float, trials: int, seed: int, spawn: str) -> list[dict]:
-    """The reference policies in the four-quadrant protocol (580 steps) at the chosen scale."""
+def quadrant_means(make_policy, trials: int, *, env_seed: int, schedule_seed: int, **env_params) -> dict:
+    """Means over ``trials`` four-quadrant episodes (4 x 145 steps) of ``make_policy(env)``."""
     from icco_torchrl.evaluation.protocols import quadrant_schedule, run_schedule
 
+    env = ResourceCollectionEnv(num_envs=trials, seed=env_seed,
+                                **{**env_params, "max_steps": 4 * 145, "waypoint_mode": "external"})
+    run = run_schedule(env, make_policy(env), quadrant_schedule(145, seed=schedule_seed), trials)
+    rows = [x for x in run.rows if x["segment"] == "episode"]
+    return {k: sum(x[k] for x in rows) / len(rows) for k in QUAD_METRICS}
+
+
+def quadrant_references(scale: float, trials: int, seed: int, spawn: str) -> list[dict]:
+    """The reference policies in the four-quadrant protocol (580 steps) at the chosen scale."""
     out = []
     for name, r in [("random", None), ("follower", None), ("heuristic", None)] + [("blend", r) for r in QUAD_RADII]:
-        env = ResourceCollectionEnv(num_envs=trials, seed=seed, spawn=spawn, max_steps=4 * 145,
-                                    waypoint_mode="external", inst_reward_scale=scale)
-        run = run_schedule(env, make_reference_policy(name, env, radius=r), quadrant_schedule(145, seed=seed), trials)
-        rows = [x for x in run.rows if x["segment"] == "episode"]
-        mean = {k: sum(x[k] for x in rows) / len(rows) for k in QUAD_METRICS}
+        mean = quadrant_means(lambda env: make_reference_policy(name, env, radius=r), trials, env_seed=seed,
+                              schedule_seed=seed, spawn=spawn, inst_reward_scale=scale)
         out.append({"policy": name if r is None else f"blend r={r}", **mean})
         print(f"{out[-1]['policy']:>14} " + " ".join(f"{k}={v:.2f}" for k, v in mean.items()), flush=True)
     return out

@@ -20,7 +20,7 @@ from string import Template
 
 import numpy as np
 
-from icco_torchrl.evaluation.metrics import (EPISODE, METRICS, markdown_table, result_name, results_json,
+from icco_torchrl.evaluation.metrics import (EPISODE, METHOD_LABELS, METRICS, markdown_table, result_name, results_json,
                                              segment_table, summarize, write_json)
 
 HERE = Path(__file__).resolve().parent
@@ -75,7 +75,7 @@ def comparison(fig5b: list[dict], means: dict) -> str:
                          f"the waypoints {icco['waypoint_dist']:.2f} vs {full['waypoint_dist']:.2f} m, deliveries "
                          f"{icco['collect']:.1f} vs {full['collect']:.1f}, defenses {icco['defense']:.1f} vs "
                          f"{full['defense']:.1f} (ICCO vs QMIX (FULL)).")
-        flat = "QMIX (FULL, flat)"
+        flat = METHOD_LABELS["qmix_full_flat"]
         if (flat, EPISODE) in cell:  # the paper's own QMIX (FULL): the global state as one flat vector
             wins = [s for s in segments if cell["ICCO", s]["reward"] > cell[flat, s]["reward"]]
             lines.append(f"- **Against the paper's QMIX (FULL)** (one flat state vector; `qmix_full` reads relative "

@@ -372,10 +372,9 @@ def saved_run_overrides(saved: dict, given: list[str]) -> list[str]:
             put(f"env.params.{k}", v, force=True)
     if "experiment" not in keys:
         for k, v in saved["train"].items():
-            if k == "env_params":  # one override per field, so the command line may change one of them
-                for name, value in (v.items() if "train.env_params" not in keys else ()):
-                    if value is not None:
-                        put(f"train.env_params.{name}", value, force=True)
+            if k == "env_params":  # one override per set field, so the command line may change one of them
+                for name, value in set_env_params(v if "train.env_params" not in keys else {}).items():
+                    put(f"train.env_params.{name}", value, force=True)
             else:
                 put(f"train.{k}", v, force=True)
     return out
