@@ -15,6 +15,7 @@ The machine may be shared and noisy, so variants are timed in alternating rounds
 process; each line gives the median round (wall clock and this thread's CPU time) and the
 fastest round's CPU time, the closest to an idle machine.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -75,8 +76,10 @@ def bench(variants: dict, sizes, steps: int, rounds: int) -> None:
             ms = statistics.median(t for t, _ in ts) * 1e3
             cpu = statistics.median(c for _, c in ts) * 1e3
             best = min(c for _, c in ts) * 1e3
-            line.append(f"{name}: {ms:7.3f} ms/step (cpu {cpu:7.3f}, best {best:7.3f}) "
-                        f"{num_envs / ms * 1e3 / 1e6:6.3f} M env-steps/s (best {num_envs / best * 1e3 / 1e6:5.3f})")
+            line.append(
+                f"{name}: {ms:7.3f} ms/step (cpu {cpu:7.3f}, best {best:7.3f}) "
+                f"{num_envs / ms * 1e3 / 1e6:6.3f} M env-steps/s (best {num_envs / best * 1e3 / 1e6:5.3f})"
+            )
         print(" | ".join(line) + f"  (setup {setup:.1f}s)", flush=True)
 
 
@@ -92,12 +95,18 @@ def profile(env_cls, num_envs: int, steps: int, rows: int) -> None:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--sizes", type=int, nargs="+", default=[1024, 4096, 16384])
     parser.add_argument("--steps", type=int, default=20, help="steps per timed round")
     parser.add_argument("--rounds", type=int, default=15)
-    parser.add_argument("--baseline", default=None, help="path of another resource_collection.py to compare")
-    parser.add_argument("--profile", action="store_true", help="print torch.profiler's top ops instead")
+    parser.add_argument(
+        "--baseline", default=None, help="path of another resource_collection.py to compare"
+    )
+    parser.add_argument(
+        "--profile", action="store_true", help="print torch.profiler's top ops instead"
+    )
     parser.add_argument("--rows", type=int, default=30)
     parser.add_argument("--threads", type=int, default=1)
     args = parser.parse_args()

@@ -9,6 +9,7 @@ is the baseline of the speedup column, as a user of that API would step it.
 
     python benchmarks/env_throughput.py --sizes 1 64 1024 --threads 1
 """
+
 from __future__ import annotations
 
 import argparse
@@ -83,12 +84,22 @@ def bench_pettingzoo(runs: int, run_seconds: float) -> float:
 
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--sizes", type=int, nargs="+", default=list(DEFAULT_SIZES), help="num_envs values")
+    parser.add_argument(
+        "--sizes", type=int, nargs="+", default=list(DEFAULT_SIZES), help="num_envs values"
+    )
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
-    parser.add_argument("--runs", type=int, default=5, help="timed runs per configuration (median reported)")
-    parser.add_argument("--run-seconds", type=float, default=0.5, help="target duration of one timed run")
-    parser.add_argument("--device", nargs="+", default=None,
-                        help="devices to time (default: cpu, plus cuda when available)")
+    parser.add_argument(
+        "--runs", type=int, default=5, help="timed runs per configuration (median reported)"
+    )
+    parser.add_argument(
+        "--run-seconds", type=float, default=0.5, help="target duration of one timed run"
+    )
+    parser.add_argument(
+        "--device",
+        nargs="+",
+        default=None,
+        help="devices to time (default: cpu, plus cuda when available)",
+    )
     parser.add_argument("--out", default=DEFAULT_OUT, help="JSON results path")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
@@ -97,25 +108,52 @@ def main(argv=None) -> dict:
 
     pz_rate = bench_pettingzoo(args.runs, args.run_seconds)
     n_agents = ResourceCollectionEnv().n_agents
-    rows = [dict(api="pettingzoo", num_envs=1, device="cpu", env_steps_per_s=pz_rate,
-                 agent_steps_per_s=pz_rate * n_agents, speedup_vs_pettingzoo=1.0)]
+    rows = [
+        dict(
+            api="pettingzoo",
+            num_envs=1,
+            device="cpu",
+            env_steps_per_s=pz_rate,
+            agent_steps_per_s=pz_rate * n_agents,
+            speedup_vs_pettingzoo=1.0,
+        )
+    ]
     for device in devices:
         for size in args.sizes:
             rate = bench_batched(size, device, args.runs, args.run_seconds)
-            rows.append(dict(api="torchrl", num_envs=size, device=device, env_steps_per_s=rate,
-                             agent_steps_per_s=rate * n_agents, speedup_vs_pettingzoo=rate / pz_rate))
+            rows.append(
+                dict(
+                    api="torchrl",
+                    num_envs=size,
+                    device=device,
+                    env_steps_per_s=rate,
+                    agent_steps_per_s=rate * n_agents,
+                    speedup_vs_pettingzoo=rate / pz_rate,
+                )
+            )
 
-    print(f"{'api':<11}{'num_envs':>9} {'device':<7}{'env-steps/s':>14}{'agent-steps/s':>15}{'speedup':>10}")
+    print(
+        f"{'api':<11}{'num_envs':>9} {'device':<7}{'env-steps/s':>14}{'agent-steps/s':>15}{'speedup':>10}"
+    )
     for r in rows:
-        print(f"{r['api']:<11}{r['num_envs']:>9} {r['device']:<7}{r['env_steps_per_s']:>14,.0f}"
-              f"{r['agent_steps_per_s']:>15,.0f}{r['speedup_vs_pettingzoo']:>9.1f}x")
+        print(
+            f"{r['api']:<11}{r['num_envs']:>9} {r['device']:<7}{r['env_steps_per_s']:>14,.0f}"
+            f"{r['agent_steps_per_s']:>15,.0f}{r['speedup_vs_pettingzoo']:>9.1f}x"
+        )
 
     result = dict(
-        benchmark="env_throughput", threads=args.threads, runs=args.runs, run_seconds=args.run_seconds,
-        torch=torch.__version__, python=platform.python_version(), machine=platform.machine(),
-        processor=platform.processor() or None, cpu_count=os.cpu_count(),
+        benchmark="env_throughput",
+        threads=args.threads,
+        runs=args.runs,
+        run_seconds=args.run_seconds,
+        torch=torch.__version__,
+        python=platform.python_version(),
+        machine=platform.machine(),
+        processor=platform.processor() or None,
+        cpu_count=os.cpu_count(),
         cuda_device=torch.cuda.get_device_name() if on_cuda else None,
-        time=time.strftime("%Y-%m-%dT%H:%M:%S%z"), rows=rows,
+        time=time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+        rows=rows,
     )
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     with open(args.out, "w") as f:

@@ -10,6 +10,7 @@ rate, tick latency (median, p99) and every client's received frame rate. N tabs 
 the loop keeps >= 95 % of its rate and the slowest client receives >= 95 % of the ticks. A real
 tab also draws each frame; that cost is the browser's, not the loop's.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -60,10 +61,15 @@ def measure(url: str, server: LiveServer, n: int, seconds: float) -> dict:
     lat = np.asarray(server.stats["latency_ms"][lat_before:])
     loop_rate = (server.stats["broadcasts"] - broadcasts_before) / elapsed
     slowest = float(min(rates))
-    return {"clients": n, "loop_hz": round(loop_rate, 2), "tick_median_ms": round(float(np.median(lat)), 2),
-            "tick_p99_ms": round(float(np.percentile(lat, 99)), 2), "client_hz_min": round(slowest, 2),
-            "client_hz_median": round(float(np.median(rates)), 2),
-            "served": bool(loop_rate >= 0.95 * RATE and slowest >= 0.95 * RATE)}
+    return {
+        "clients": n,
+        "loop_hz": round(loop_rate, 2),
+        "tick_median_ms": round(float(np.median(lat)), 2),
+        "tick_p99_ms": round(float(np.percentile(lat, 99)), 2),
+        "client_hz_min": round(slowest, 2),
+        "client_hz_median": round(float(np.median(rates)), 2),
+        "served": bool(loop_rate >= 0.95 * RATE and slowest >= 0.95 * RATE),
+    }
 
 
 def main() -> None:
@@ -85,10 +91,17 @@ def main() -> None:
     finally:
         server.close()
     served = [r["clients"] for r in rows if r["served"]]
-    result = {"rate_hz": RATE, "seconds": args.seconds, "rows": rows, "max_served": max(served) if served else 0}
+    result = {
+        "rate_hz": RATE,
+        "seconds": args.seconds,
+        "rows": rows,
+        "max_served": max(served) if served else 0,
+    }
     path = Path(__file__).with_name("results") / "live_clients.json"
     path.write_text(json.dumps(result, indent=2) + "\n")
-    print(f"one live loop at {RATE:g} Hz served up to {result['max_served']} WebSocket clients; wrote {path}")
+    print(
+        f"one live loop at {RATE:g} Hz served up to {result['max_served']} WebSocket clients; wrote {path}"
+    )
 
 
 if __name__ == "__main__":

@@ -8,6 +8,7 @@ planner through LLMPlanner (cache off); bridge round trip = a state datagram sen
 until the command datagram comes back (the bridge ticks at 50 Hz, so up to 20 ms of it is the
 wait for the next control tick).
 """
+
 from __future__ import annotations
 
 import json
@@ -29,13 +30,21 @@ from icco_torchrl.training.build import build_components, compose_config, make_e
 def make_loop(planner=None) -> LiveLoop:
     cfg = compose_config(["method=icco"])
     parts = build_components(cfg)
-    env = make_env(cfg, num_envs=1, waypoint_mode="external", max_steps=10 ** 6)
-    return LiveLoop(env, make_policy(parts["agent"], env.full_action_spec_unbatched, parts["coordinator"]), planner)
+    env = make_env(cfg, num_envs=1, waypoint_mode="external", max_steps=10**6)
+    return LiveLoop(
+        env,
+        make_policy(parts["agent"], env.full_action_spec_unbatched, parts["coordinator"]),
+        planner,
+    )
 
 
 def stats(ms) -> dict:
     ms = np.asarray(ms)
-    return {"median_ms": float(np.median(ms)), "p99_ms": float(np.percentile(ms, 99)), "n": int(len(ms))}
+    return {
+        "median_ms": float(np.median(ms)),
+        "p99_ms": float(np.percentile(ms, 99)),
+        "n": int(len(ms)),
+    }
 
 
 def main() -> None:
@@ -58,7 +67,12 @@ def main() -> None:
     client.settimeout(2.0)
     rtt = []
     for k in range(100):
-        msg = {"type": "state", "robots": [{"id": i, "pose": [float(p[0]), float(p[1]), 0.0]} for i, p in enumerate(pos)]}
+        msg = {
+            "type": "state",
+            "robots": [
+                {"id": i, "pose": [float(p[0]), float(p[1]), 0.0]} for i, p in enumerate(pos)
+            ],
+        }
         start = time.perf_counter()
         client.sendto(json.dumps(msg).encode(), bridge.address)
         client.recvfrom(65_507)
@@ -66,8 +80,13 @@ def main() -> None:
     stop.set()
     server.join(timeout=5)
     bridge.close()
-    result = {"tick_at_10hz": stats(ticks), "offline_planner": stats(plan_ms), "bridge_round_trip_50hz": stats(rtt[5:]),
-              "bridge_state_to_command": stats(bridge.stats["latency_ms"][5:]), "threads": 1}
+    result = {
+        "tick_at_10hz": stats(ticks),
+        "offline_planner": stats(plan_ms),
+        "bridge_round_trip_50hz": stats(rtt[5:]),
+        "bridge_state_to_command": stats(bridge.stats["latency_ms"][5:]),
+        "threads": 1,
+    }
     out = Path(__file__).parent / "results" / "live_latency.json"
     out.write_text(json.dumps(result, indent=2))
     print(json.dumps(result, indent=2))

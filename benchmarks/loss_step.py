@@ -5,6 +5,7 @@ by side in one process with an explicit thread count. Writes ``benchmarks/result
 
     python benchmarks/loss_step.py --threads 1 --batch 512
 """
+
 from __future__ import annotations
 
 import argparse
@@ -48,8 +49,14 @@ def time_updates(method: str, batch: int, steps: int, runs: int, device: str) ->
         if device.startswith("cuda"):
             torch.cuda.synchronize()
         times.append(1000 * (time.perf_counter() - t0) / steps)
-    return {"method": method, "device": device, "batch_segments": batch, "segment_len": int(sample.shape[1]),
-            "ms_per_update": statistics.median(times), "runs_ms": times}
+    return {
+        "method": method,
+        "device": device,
+        "batch_segments": batch,
+        "segment_len": int(sample.shape[1]),
+        "ms_per_update": statistics.median(times),
+        "runs_ms": times,
+    }
 
 
 def main() -> None:
@@ -67,10 +74,14 @@ def main() -> None:
     rows = [time_updates(m, args.batch, args.steps, args.runs, args.device) for m in args.methods]
     print(f"{'method':<12} {'device':<6} {'batch':>6} {'ms/update':>10}")
     for r in rows:
-        print(f"{r['method']:<12} {r['device']:<6} {r['batch_segments']:>6} {r['ms_per_update']:>10.1f}")
+        print(
+            f"{r['method']:<12} {r['device']:<6} {r['batch_segments']:>6} {r['ms_per_update']:>10.1f}"
+        )
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({"threads": args.threads, "torch": torch.__version__, "results": rows}, indent=2))
+    out.write_text(
+        json.dumps({"threads": args.threads, "torch": torch.__version__, "results": rows}, indent=2)
+    )
 
 
 if __name__ == "__main__":

@@ -17,12 +17,13 @@ round-robin (the machines are shared and noisy) and reports the median SPS. Writ
 
     python benchmarks/train_throughput.py --frames 30000 --threads 1 --repeats 5
 """
+
 from __future__ import annotations
 
 import argparse
 import json
-import statistics
 import resource
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -31,7 +32,6 @@ from pathlib import Path
 
 import torch
 
-
 SUPERVISOR_ARGS = ("config", "configs", "out", "repeats")
 
 
@@ -39,28 +39,44 @@ def run_ours(method: str, args) -> dict:
     from icco_torchrl.training.build import compose_config
     from icco_torchrl.training.trainer import train
 
-    cfg = compose_config([f"method={method}", f"device={args.device}", f"env.num_envs={args.num_envs}",
-                          f"train.total_frames={args.frames}", f"train.steps_per_batch={args.steps_per_batch}",
-                          f"train.updates_per_batch={args.updates}", f"train.batch_segments={args.batch_segments}",
-                          "train.warmup_segments=0", "train.eval_interval=0", "train.checkpoint_interval=0",
-                          f"train.threads={args.threads}", "logger.progress=false", "train.eval_envs=2",
-                          "train.checkpoint_buffer=false"])
+    cfg = compose_config(
+        [
+            f"method={method}",
+            f"device={args.device}",
+            f"env.num_envs={args.num_envs}",
+            f"train.total_frames={args.frames}",
+            f"train.steps_per_batch={args.steps_per_batch}",
+            f"train.updates_per_batch={args.updates}",
+            f"train.batch_segments={args.batch_segments}",
+            "train.warmup_segments=0",
+            "train.eval_interval=0",
+            "train.checkpoint_interval=0",
+            f"train.threads={args.threads}",
+            "logger.progress=false",
+            "train.eval_envs=2",
+            "train.checkpoint_buffer=false",
+        ]
+    )
     with tempfile.TemporaryDirectory() as run_dir:
         train(cfg, run_dir)
         header, *rows = (Path(run_dir) / "timing.csv").read_text().strip().splitlines()
         last = dict(zip(header.split(","), rows[-1].split(",")))
     wall = int(last["frames"]) / float(last["sps"])
-    return {"sps": float(last["sps"]), "frames": int(last["frames"]), "train_share": float(last["time_train"]) / wall}
+    return {
+        "sps": float(last["sps"]),
+        "frames": int(last["frames"]),
+        "train_share": float(last["time_train"]) / wall,
+    }
 
 
 def run_reference(args, num_cells: int) -> dict:
     """TorchRL's multi-agent QMIX example (model, loss, target update, optimiser) on our env, our budget."""
+    from tensordict.nn import TensorDictModule
     from torchrl.collectors import Collector
     from torchrl.data import LazyTensorStorage, RandomSampler, TensorDictReplayBuffer
     from torchrl.envs import RewardSum, TransformedEnv
     from torchrl.modules import EGreedyModule, MultiAgentMLP, QMixer, QValueModule, SafeSequential
     from torchrl.objectives import QMixerLoss, SoftUpdate, ValueEstimators
-    from tensordict.nn import TensorDictModule
 
     from icco_torchrl.envs import ResourceCollectionEnv
 
@@ -68,30 +84,71 @@ def run_reference(args, num_cells: int) -> dict:
     torch.manual_seed(0)
     device = torch.device(args.device)
     # As in the example: the env wrapped with RewardSum (episode reward per robot, for logging).
-    env = TransformedEnv(ResourceCollectionEnv(num_envs=args.num_envs, device=device, seed=0),
-                         RewardSum(in_keys=[("agents", "reward")], out_keys=[("agents", "episode_reward")]))
+    env = TransformedEnv(
+        ResourceCollectionEnv(num_envs=args.num_envs, device=device, seed=0),
+        RewardSum(in_keys=[("agents", "reward")], out_keys=[("agents", "episode_reward")]),
+    )
     L = env.base_env.layout
-    net = TensorDictModule(MultiAgentMLP(L.obs_dim, 5, L.n_agents, centralized=False, share_params=True, depth=2,
-                                         num_cells=num_cells, activation_class=torch.nn.Tanh, device=device),
-                           in_keys=[("agents", "observation")], out_keys=[("agents", "action_value")])
-    qnet = SafeSequential(net, QValueModule(action_value_key=("agents", "action_value"),
-                                            out_keys=[("agents", "action"), ("agents", "action_value"),
-                                                      ("agents", "chosen_action_value")],
-                                            spec=env.full_action_spec_unbatched, action_space=None))
-    explore = EGreedyModule(spec=env.full_action_spec_unbatched, eps_init=1.0, eps_end=0.05,
-                            annealing_num_steps=args.frames, action_key=("agents", "action"))
+    net = TensorDictModule(
+        MultiAgentMLP(
+            L.obs_dim,
+            5,
+            L.n_agents,
+            centralized=False,
+            share_params=True,
+            depth=2,
+            num_cells=num_cells,
+            activation_class=torch.nn.Tanh,
+            device=device,
+        ),
+        in_keys=[("agents", "observation")],
+        out_keys=[("agents", "action_value")],
+    )
+    qnet = SafeSequential(
+        net,
+        QValueModule(
+            action_value_key=("agents", "action_value"),
+            out_keys=[
+                ("agents", "action"),
+                ("agents", "action_value"),
+                ("agents", "chosen_action_value"),
+            ],
+            spec=env.full_action_spec_unbatched,
+            action_space=None,
+        ),
+    )
+    explore = EGreedyModule(
+        spec=env.full_action_spec_unbatched,
+        eps_init=1.0,
+        eps_end=0.05,
+        annealing_num_steps=args.frames,
+        action_key=("agents", "action"),
+    )
     policy = SafeSequential(qnet, explore)
-    mixer = TensorDictModule(QMixer(state_shape=(L.state_dim,), mixing_embed_dim=32, n_agents=L.n_agents, device=device),
-                             in_keys=[("agents", "chosen_action_value"), "state"], out_keys=["chosen_action_value"])
+    mixer = TensorDictModule(
+        QMixer(state_shape=(L.state_dim,), mixing_embed_dim=32, n_agents=L.n_agents, device=device),
+        in_keys=[("agents", "chosen_action_value"), "state"],
+        out_keys=["chosen_action_value"],
+    )
     loss = QMixerLoss(qnet, mixer, delay_value=True, action_space="categorical")
     loss.make_value_estimator(ValueEstimators.TD0, gamma=0.99)
     updater = SoftUpdate(loss, eps=1 - 0.005)
     optim = torch.optim.Adam(loss.parameters(), lr=5e-5)
     frames_per_batch = args.num_envs * args.steps_per_batch
-    buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(args.frames, device=device), sampler=RandomSampler(),
-                                    batch_size=args.batch_segments * 4)
-    collector = Collector(env, policy, frames_per_batch=frames_per_batch, total_frames=args.frames, device=device,
-                          storing_device=device, auto_register_policy_transforms=False)
+    buffer = TensorDictReplayBuffer(
+        storage=LazyTensorStorage(args.frames, device=device),
+        sampler=RandomSampler(),
+        batch_size=args.batch_segments * 4,
+    )
+    collector = Collector(
+        env,
+        policy,
+        frames_per_batch=frames_per_batch,
+        total_frames=args.frames,
+        device=device,
+        storing_device=device,
+        auto_register_policy_transforms=False,
+    )
     start, frames, train_time = time.perf_counter(), 0, 0.0
     for batch in collector:
         tick = time.perf_counter()
@@ -126,12 +183,20 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=60_000)
     parser.add_argument("--num-envs", type=int, default=32)
     parser.add_argument("--steps-per-batch", type=int, default=16)
-    parser.add_argument("--updates", type=int, default=2, help="gradient updates per collector batch")
-    parser.add_argument("--batch-segments", type=int, default=128, help="segments of 4 steps per update")
+    parser.add_argument(
+        "--updates", type=int, default=2, help="gradient updates per collector batch"
+    )
+    parser.add_argument(
+        "--batch-segments", type=int, default=128, help="segments of 4 steps per update"
+    )
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
-    parser.add_argument("--configs", nargs="+", default=["qmix", "torchrl_qmix", "torchrl_qmix_w64", "icco"])
-    parser.add_argument("--repeats", type=int, default=3, help="round-robin runs per config (median reported)")
+    parser.add_argument(
+        "--configs", nargs="+", default=["qmix", "torchrl_qmix", "torchrl_qmix_w64", "icco"]
+    )
+    parser.add_argument(
+        "--repeats", type=int, default=3, help="round-robin runs per config (median reported)"
+    )
     parser.add_argument("--out", default="benchmarks/results/train_throughput.json")
     parser.add_argument("--config", help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -141,28 +206,54 @@ def main() -> None:
     for repeat in range(args.repeats):
         for config in args.configs:
             cmd = [sys.executable, __file__, "--config", config] + [
-                f"--{k.replace('_', '-')}={v}" for k, v in vars(args).items() if k not in SUPERVISOR_ARGS]
+                f"--{k.replace('_', '-')}={v}"
+                for k, v in vars(args).items()
+                if k not in SUPERVISOR_ARGS
+            ]
             proc = subprocess.run(cmd, capture_output=True, text=True)
             line = next((x for x in proc.stdout.splitlines() if x.startswith("RESULT ")), None)
             if line is None:
                 raise RuntimeError(f"{config} failed:\n{proc.stderr[-3000:]}")
             runs[config].append(json.loads(line[7:]))
-            print(f"[{repeat + 1}/{args.repeats}] {config}: {runs[config][-1]['sps']:.0f} SPS", flush=True)
-    rows = [{"config": config, "sps": statistics.median(r["sps"] for r in results),
-             "sps_runs": [round(r["sps"]) for r in results], "frames": results[0]["frames"],
-             "train_share": statistics.median(r["train_share"] for r in results),
-             "peak_rss_mb": max(r["peak_rss_mb"] for r in results)} for config, results in runs.items()]
+            print(
+                f"[{repeat + 1}/{args.repeats}] {config}: {runs[config][-1]['sps']:.0f} SPS",
+                flush=True,
+            )
+    rows = [
+        {
+            "config": config,
+            "sps": statistics.median(r["sps"] for r in results),
+            "sps_runs": [round(r["sps"]) for r in results],
+            "frames": results[0]["frames"],
+            "train_share": statistics.median(r["train_share"] for r in results),
+            "peak_rss_mb": max(r["peak_rss_mb"] for r in results),
+        }
+        for config, results in runs.items()
+    ]
     ref = next((r["sps"] for r in rows if r["config"] == "torchrl_qmix"), None)
-    print(f"{'config':<18} {'median SPS':>10} {'vs torchrl_qmix':>16} {'training share':>15} {'peak RSS MB':>12}  runs")
+    print(
+        f"{'config':<18} {'median SPS':>10} {'vs torchrl_qmix':>16} {'training share':>15} {'peak RSS MB':>12}  runs"
+    )
     for r in rows:
         r["ratio_vs_reference"] = r["sps"] / ref if ref else None
         ratio = f"{r['ratio_vs_reference']:.2f}x" if ref else "-"
-        print(f"{r['config']:<18} {r['sps']:>10.0f} {ratio:>16} {r['train_share']:>15.0%} {r['peak_rss_mb']:>12.0f}  "
-              f"{r['sps_runs']}")
+        print(
+            f"{r['config']:<18} {r['sps']:>10.0f} {ratio:>16} {r['train_share']:>15.0%} {r['peak_rss_mb']:>12.0f}  "
+            f"{r['sps_runs']}"
+        )
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({"device": args.device, "threads": args.threads, "settings": {
-        k: v for k, v in vars(args).items() if k not in ("config", "out")}, "results": rows}, indent=2))
+    out.write_text(
+        json.dumps(
+            {
+                "device": args.device,
+                "threads": args.threads,
+                "settings": {k: v for k, v in vars(args).items() if k not in ("config", "out")},
+                "results": rows,
+            },
+            indent=2,
+        )
+    )
 
 
 if __name__ == "__main__":

@@ -11,6 +11,7 @@ Run::
 
     python examples/reuse_loss.py --total-frames 40000 --seed 0
 """
+
 from __future__ import annotations
 
 import argparse
@@ -21,8 +22,15 @@ import time
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.collectors import Collector
-from torchrl.data import (Bounded, Categorical, Composite, LazyTensorStorage, RandomSampler, TensorDictReplayBuffer,
-                          Unbounded)
+from torchrl.data import (
+    Bounded,
+    Categorical,
+    Composite,
+    LazyTensorStorage,
+    RandomSampler,
+    TensorDictReplayBuffer,
+    Unbounded,
+)
 from torchrl.envs import EnvBase, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
@@ -33,10 +41,18 @@ from icco_torchrl.training.segments import SegmentCutter
 
 GROUP = "robots"
 # Where this env keeps what ICCOLoss reads (its defaults are the resource-collection names).
-LOSS_KEYS = dict(observation=(GROUP, "obs"), action=(GROUP, "move"), state="world", reward="team_reward",
-                 prev_action=(GROUP, "prev_action"), rnn_hidden=(GROUP, "rnn_hidden"), z=(GROUP, "z"),
-                 z_noise=(GROUP, "z_noise"), action_value=(GROUP, "action_value"),
-                 local_value=(GROUP, "chosen_action_value"))
+LOSS_KEYS = dict(
+    observation=(GROUP, "obs"),
+    action=(GROUP, "move"),
+    state="world",
+    reward="team_reward",
+    prev_action=(GROUP, "prev_action"),
+    rnn_hidden=(GROUP, "rnn_hidden"),
+    z=(GROUP, "z"),
+    z_noise=(GROUP, "z_noise"),
+    action_value=(GROUP, "action_value"),
+    local_value=(GROUP, "chosen_action_value"),
+)
 # 0 stay, 1 -x, 2 +x, 3 -y, 4 +y
 MOVES = ((0.0, 0.0), (-1.0, 0.0), (1.0, 0.0), (0.0, -1.0), (0.0, 1.0))
 
@@ -56,27 +72,56 @@ class RendezvousEnv(EnvBase):
 
     batch_locked = True
 
-    def __init__(self, num_envs: int = 8, n_agents: int = 3, max_steps: int = 20, step_size: float = 0.1,
-                 device: str | torch.device = "cpu", seed: int | None = None):
+    def __init__(
+        self,
+        num_envs: int = 8,
+        n_agents: int = 3,
+        max_steps: int = 20,
+        step_size: float = 0.1,
+        device: str | torch.device = "cpu",
+        seed: int | None = None,
+    ):
         if n_agents < 2 or num_envs < 1 or max_steps < 1 or not step_size > 0:
             raise ValueError("need n_agents >= 2, num_envs >= 1, max_steps >= 1 and step_size > 0")
         super().__init__(device=device, batch_size=torch.Size([num_envs]))
         B, N = num_envs, n_agents
-        self.num_envs, self.n_agents, self.max_steps, self.step_size = B, N, max_steps, float(step_size)
+        self.num_envs, self.n_agents, self.max_steps, self.step_size = (
+            B,
+            N,
+            max_steps,
+            float(step_size),
+        )
         self.obs_dim = self.state_dim = 2 * N
         dev = self.device
         self.observation_spec = Composite(
-            {GROUP: Composite(obs=Unbounded((B, N, self.obs_dim), device=dev), shape=(B, N), device=dev)},
+            {
+                GROUP: Composite(
+                    obs=Unbounded((B, N, self.obs_dim), device=dev), shape=(B, N), device=dev
+                )
+            },
             world=Unbounded((B, self.state_dim), device=dev),
             step_count=Bounded(0, max_steps, (B, 1), dtype=torch.int64, device=dev),
-            shape=(B,), device=dev)
+            shape=(B,),
+            device=dev,
+        )
         self.action_spec = Composite(
-            {GROUP: Composite(move=Categorical(len(MOVES), (B, N), dtype=torch.int64, device=dev), shape=(B, N),
-                              device=dev)},
-            shape=(B,), device=dev)
-        self.reward_spec = Composite(team_reward=Unbounded((B, 1), device=dev), shape=(B,), device=dev)
+            {
+                GROUP: Composite(
+                    move=Categorical(len(MOVES), (B, N), dtype=torch.int64, device=dev),
+                    shape=(B, N),
+                    device=dev,
+                )
+            },
+            shape=(B,),
+            device=dev,
+        )
+        self.reward_spec = Composite(
+            team_reward=Unbounded((B, 1), device=dev), shape=(B,), device=dev
+        )
         flag = lambda: Categorical(2, (B, 1), dtype=torch.bool, device=dev)  # noqa: E731
-        self.done_spec = Composite(done=flag(), terminated=flag(), truncated=flag(), shape=(B,), device=dev)
+        self.done_spec = Composite(
+            done=flag(), terminated=flag(), truncated=flag(), shape=(B,), device=dev
+        )
         self._moves = torch.tensor(MOVES, device=dev) * self.step_size
         others = torch.arange(N).expand(N, N)
         self._others = others[others != torch.arange(N)[:, None]].view(N, N - 1).to(dev)
@@ -91,10 +136,17 @@ class RendezvousEnv(EnvBase):
 
     def _observe(self) -> TensorDictBase:
         B, N = self.num_envs, self.n_agents
-        rel = self.pos[:, self._others] - self.pos.unsqueeze(2)                      # [B, N, N-1, 2]
+        rel = self.pos[:, self._others] - self.pos.unsqueeze(2)  # [B, N, N-1, 2]
         obs = torch.cat([self.pos, rel.flatten(2)], -1)
-        return TensorDict({GROUP: TensorDict({"obs": obs}, [B, N]), "world": self.pos.flatten(1),
-                           "step_count": self.t.unsqueeze(-1)}, [B], device=self.device)
+        return TensorDict(
+            {
+                GROUP: TensorDict({"obs": obs}, [B, N]),
+                "world": self.pos.flatten(1),
+                "step_count": self.t.unsqueeze(-1),
+            },
+            [B],
+            device=self.device,
+        )
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
         B, N = self.num_envs, self.n_agents
@@ -112,7 +164,7 @@ class RendezvousEnv(EnvBase):
 
     def mean_pairwise_distance(self) -> torch.Tensor:
         i, j = self._pairs
-        return (self.pos[:, i] - self.pos[:, j]).norm(dim=-1).mean(-1)                 # [B]
+        return (self.pos[:, i] - self.pos[:, j]).norm(dim=-1).mean(-1)  # [B]
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         move = tensordict.get((GROUP, "move")).reshape(self.num_envs, self.n_agents).long()
@@ -120,19 +172,39 @@ class RendezvousEnv(EnvBase):
         self.t = self.t + 1
         out = self._observe()
         truncated = (self.t >= self.max_steps).unsqueeze(-1)
-        out.update({"team_reward": -self.mean_pairwise_distance().unsqueeze(-1), "done": truncated,
-                    "terminated": torch.zeros_like(truncated), "truncated": truncated})
+        out.update(
+            {
+                "team_reward": -self.mean_pairwise_distance().unsqueeze(-1),
+                "done": truncated,
+                "terminated": torch.zeros_like(truncated),
+                "truncated": truncated,
+            }
+        )
         return out
 
 
-def make_env(num_envs: int, n_agents: int, hidden: int, z_dim: int, seed: int, max_steps: int = 20) -> TransformedEnv:
+def make_env(
+    num_envs: int, n_agents: int, hidden: int, z_dim: int, seed: int, max_steps: int = 20
+) -> TransformedEnv:
     """The env plus the primer that carries the policy's GRU state, previous move and z under "robots"."""
     base = RendezvousEnv(num_envs=num_envs, n_agents=n_agents, max_steps=max_steps, seed=seed)
-    return TransformedEnv(base, make_primer(n_agents, hidden, z_dim, group=GROUP, n_actions=len(MOVES)))
+    return TransformedEnv(
+        base, make_primer(n_agents, hidden, z_dim, group=GROUP, n_actions=len(MOVES))
+    )
 
 
-def build(*, num_envs: int = 8, n_agents: int = 3, hidden: int = 32, z_dim: int = 8, period: int = 4, seed: int = 0,
-          gamma: float = 0.95, ce_coef: float = 1e-3, entropy_coef: float = 1e-4) -> dict:
+def build(
+    *,
+    num_envs: int = 8,
+    n_agents: int = 3,
+    hidden: int = 32,
+    z_dim: int = 8,
+    period: int = 4,
+    seed: int = 0,
+    gamma: float = 0.95,
+    ce_coef: float = 1e-3,
+    entropy_coef: float = 1e-4,
+) -> dict:
     """Env, ICCO modules, policy and the loss (with this env's key names)."""
     torch.manual_seed(seed)
     env = make_env(num_envs, n_agents, hidden, z_dim, seed)
@@ -140,23 +212,65 @@ def build(*, num_envs: int = 8, n_agents: int = 3, hidden: int = 32, z_dim: int 
     obs_dim = env.observation_spec[GROUP, "obs"].shape[-1]
     state_dim = env.observation_spec["world"].shape[-1]
     n_actions = env.full_action_spec[GROUP, "move"].space.n
-    agent = make_agent(obs_dim=obs_dim, n_actions=n_actions, hidden=hidden, z_dim=z_dim, obs_key=(GROUP, "obs"),
-                       state_key="world", action_key=(GROUP, "move"))
-    coordinator = make_coordinator(n_agents=n_agents, state_dim=state_dim, z_dim=z_dim, hidden=hidden, period=period,
-                                   state_key="world", group=GROUP)
-    mixer = make_mixer(state_dim, n_agents, local_value_key=(GROUP, "chosen_action_value"), state_key="world")
+    agent = make_agent(
+        obs_dim=obs_dim,
+        n_actions=n_actions,
+        hidden=hidden,
+        z_dim=z_dim,
+        obs_key=(GROUP, "obs"),
+        state_key="world",
+        action_key=(GROUP, "move"),
+    )
+    coordinator = make_coordinator(
+        n_agents=n_agents,
+        state_dim=state_dim,
+        z_dim=z_dim,
+        hidden=hidden,
+        period=period,
+        state_key="world",
+        group=GROUP,
+    )
+    mixer = make_mixer(
+        state_dim, n_agents, local_value_key=(GROUP, "chosen_action_value"), state_key="world"
+    )
     # The posterior has no keys of its own: ICCOLoss passes it what it read through its (renamed) keys.
-    posterior = make_posterior(n_actions=n_actions, n_agents=n_agents, obs_dim=obs_dim, state_dim=state_dim,
-                               z_dim=z_dim, hidden=hidden)
-    policy = make_policy(agent, env.full_action_spec_unbatched, coordinator, group=GROUP, action_name="move")
-    loss = ICCOLoss(agent, mixer, coordinator, posterior, gamma=gamma, ce_coef=ce_coef, entropy_coef=entropy_coef)
+    posterior = make_posterior(
+        n_actions=n_actions,
+        n_agents=n_agents,
+        obs_dim=obs_dim,
+        state_dim=state_dim,
+        z_dim=z_dim,
+        hidden=hidden,
+    )
+    policy = make_policy(
+        agent, env.full_action_spec_unbatched, coordinator, group=GROUP, action_name="move"
+    )
+    loss = ICCOLoss(
+        agent,
+        mixer,
+        coordinator,
+        posterior,
+        gamma=gamma,
+        ce_coef=ce_coef,
+        entropy_coef=entropy_coef,
+    )
     loss.set_keys(**LOSS_KEYS)
-    return dict(env=env, agent=agent, coordinator=coordinator, mixer=mixer, posterior=posterior,
-                policy=policy, loss=loss, cutter=SegmentCutter(length=period))
+    return dict(
+        env=env,
+        agent=agent,
+        coordinator=coordinator,
+        mixer=mixer,
+        posterior=posterior,
+        policy=policy,
+        loss=loss,
+        cutter=SegmentCutter(length=period),
+    )
 
 
 @torch.no_grad()
-def evaluate(policy, *, n_agents: int, hidden: int, z_dim: int, seed: int, episodes: int = 16) -> float:
+def evaluate(
+    policy, *, n_agents: int, hidden: int, z_dim: int, seed: int, episodes: int = 16
+) -> float:
     """Mean episode return of the greedy policy (coordinator mean, no epsilon) on fixed start positions."""
     env = make_env(episodes, n_agents, hidden, z_dim, seed=10_000 + seed)
     with set_exploration_type(ExplorationType.DETERMINISTIC):
@@ -164,10 +278,23 @@ def evaluate(policy, *, n_agents: int, hidden: int, z_dim: int, seed: int, episo
     return float(ro["next", "team_reward"].sum(1).mean())
 
 
-def main(total_frames: int = 40_000, seed: int = 0, *, num_envs: int = 8, steps_per_batch: int = 20,
-         updates_per_batch: int = 4, batch_segments: int = 32, buffer_segments: int = 5_000, lr: float = 1e-3,
-         target_interval: int = 50, hidden: int = 32, z_dim: int = 8, n_agents: int = 3, eval_episodes: int = 16,
-         verbose: bool = False) -> dict:
+def main(
+    total_frames: int = 40_000,
+    seed: int = 0,
+    *,
+    num_envs: int = 8,
+    steps_per_batch: int = 20,
+    updates_per_batch: int = 4,
+    batch_segments: int = 32,
+    buffer_segments: int = 5_000,
+    lr: float = 1e-3,
+    target_interval: int = 50,
+    hidden: int = 32,
+    z_dim: int = 8,
+    n_agents: int = 3,
+    eval_episodes: int = 16,
+    verbose: bool = False,
+) -> dict:
     """Train ICCO on rendezvous; returns losses, greedy returns before/after and what the loss read."""
     start = time.perf_counter()
     parts = build(num_envs=num_envs, n_agents=n_agents, hidden=hidden, z_dim=z_dim, seed=seed)
@@ -175,18 +302,26 @@ def main(total_frames: int = 40_000, seed: int = 0, *, num_envs: int = 8, steps_
     explore = exploration_module(policy)
     optim = torch.optim.Adam(loss.parameters(), lr=lr)
     updater = make_target_updater(loss, "hard", interval=target_interval)
-    buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(buffer_segments), sampler=RandomSampler(),
-                                    batch_size=batch_segments)
+    buffer = TensorDictReplayBuffer(
+        storage=LazyTensorStorage(buffer_segments),
+        sampler=RandomSampler(),
+        batch_size=batch_segments,
+    )
     ev = dict(n_agents=n_agents, hidden=hidden, z_dim=z_dim, seed=seed, episodes=eval_episodes)
     eval_before = evaluate(policy, **ev)
 
     frames_per_batch = num_envs * steps_per_batch
-    collector = Collector(env, policy, frames_per_batch=frames_per_batch, total_frames=total_frames,
-                          auto_register_policy_transforms=False)
+    collector = Collector(
+        env,
+        policy,
+        frames_per_batch=frames_per_batch,
+        total_frames=total_frames,
+        auto_register_policy_transforms=False,
+    )
     history, frames, updates, sample_keys = [], 0, 0, None
     for batch in collector:
         frames += batch.numel()
-        explore.eps.fill_(max(0.05, 1.0 - 0.95 * frames / (0.6 * total_frames)))     # linear 1 -> 0.05
+        explore.eps.fill_(max(0.05, 1.0 - 0.95 * frames / (0.6 * total_frames)))  # linear 1 -> 0.05
         buffer.extend(cutter(batch))
         if len(buffer) < batch_segments:
             continue
@@ -202,30 +337,49 @@ def main(total_frames: int = 40_000, seed: int = 0, *, num_envs: int = 8, steps_
             updates += 1
         history.append({k: v.item() for k, v in losses.items()})
         if verbose and len(history) % 25 == 0:
-            print(f"frames {frames:>7d}  loss_td {history[-1]['loss_td']:.4f}  eps {float(explore.eps):.2f}")
+            print(
+                f"frames {frames:>7d}  loss_td {history[-1]['loss_td']:.4f}  eps {float(explore.eps):.2f}"
+            )
     collector.shutdown()
 
     eval_after = evaluate(policy, **ev)
-    return {"frames": frames, "updates": updates, "first_loss_td": history[0]["loss_td"] if history else math.nan,
-            "last_loss_td": history[-1]["loss_td"] if history else math.nan,
-            "first_loss_ce": history[0]["loss_ce"] if history else math.nan,
-            "last_loss_ce": history[-1]["loss_ce"] if history else math.nan,
-            "history": history, "eval_return_before": eval_before, "eval_return_after": eval_after,
-            "sample_keys": sample_keys or [], "seconds": time.perf_counter() - start}
+    return {
+        "frames": frames,
+        "updates": updates,
+        "first_loss_td": history[0]["loss_td"] if history else math.nan,
+        "last_loss_td": history[-1]["loss_td"] if history else math.nan,
+        "first_loss_ce": history[0]["loss_ce"] if history else math.nan,
+        "last_loss_ce": history[-1]["loss_ce"] if history else math.nan,
+        "history": history,
+        "eval_return_before": eval_before,
+        "eval_return_after": eval_after,
+        "sample_keys": sample_keys or [],
+        "seconds": time.perf_counter() - start,
+    }
 
 
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--total-frames", type=int, default=40_000, help="env transitions to collect")
+    parser.add_argument(
+        "--total-frames", type=int, default=40_000, help="env transitions to collect"
+    )
     parser.add_argument("--seed", type=int, default=0, help="torch and env seed")
     parser.add_argument("--num-envs", type=int, default=8, help="envs stepped together")
-    parser.add_argument("--updates-per-batch", type=int, default=4, help="gradient steps per collector batch")
+    parser.add_argument(
+        "--updates-per-batch", type=int, default=4, help="gradient steps per collector batch"
+    )
     parser.add_argument("--lr", type=float, default=1e-3, help="Adam learning rate")
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    result = main(args.total_frames, args.seed, num_envs=args.num_envs, updates_per_batch=args.updates_per_batch,
-                  lr=args.lr, verbose=True)
+    result = main(
+        args.total_frames,
+        args.seed,
+        num_envs=args.num_envs,
+        updates_per_batch=args.updates_per_batch,
+        lr=args.lr,
+        verbose=True,
+    )
     result.pop("history")
     result.pop("sample_keys")
     print(json.dumps(result, indent=2))

@@ -41,6 +41,7 @@ Run::
 
     python examples/vmas_qmix.py --method icco --iters 40 --seed 0
 """
+
 from __future__ import annotations
 
 import argparse
@@ -69,9 +70,23 @@ from icco_torchrl.training.segments import SegmentCutter
 
 METHODS = ("qmix", "icco_qmix", "icco")
 # qmix_vdn.yaml's values, with a CPU-sized budget (its own: 60k frames x 500 iterations, 45 epochs of 4096).
-DEFAULTS = dict(seed=0, max_steps=100, n_agents=3, frames_per_batch=6_000, n_iters=40, num_epochs=4,
-                minibatch_size=1_000, lr=5e-4, max_grad_norm=40.0, gamma=0.9, tau=0.005, evaluation_episodes=200,
-                hidden=64, z_dim=8, period=4)
+DEFAULTS = dict(
+    seed=0,
+    max_steps=100,
+    n_agents=3,
+    frames_per_batch=6_000,
+    n_iters=40,
+    num_epochs=4,
+    minibatch_size=1_000,
+    lr=5e-4,
+    max_grad_norm=40.0,
+    gamma=0.9,
+    tau=0.005,
+    evaluation_episodes=200,
+    hidden=64,
+    z_dim=8,
+    period=4,
+)
 
 
 def train(method: str = "icco", **overrides) -> dict:
@@ -90,57 +105,153 @@ def train(method: str = "icco", **overrides) -> dict:
     # Sampling
     vmas_envs = cfg["frames_per_batch"] // cfg["max_steps"]
     total_frames = cfg["frames_per_batch"] * cfg["n_iters"]
-    memory_size = cfg["frames_per_batch"] // (cfg["period"] if icco else 1)  # the latest batch, as items
+    memory_size = cfg["frames_per_batch"] // (
+        cfg["period"] if icco else 1
+    )  # the latest batch, as items
 
     # Create env and env_test
-    env = VmasEnv(scenario="navigation", num_envs=vmas_envs, continuous_actions=False, max_steps=cfg["max_steps"],
-                  device=device, seed=cfg["seed"], n_agents=cfg["n_agents"])
-    env = TransformedEnv(env, RewardSum(in_keys=[env.reward_key], out_keys=[("agents", "episode_reward")]))
-    env_test = VmasEnv(scenario="navigation", num_envs=cfg["evaluation_episodes"], continuous_actions=False,
-                       max_steps=cfg["max_steps"], device=device, seed=cfg["seed"], n_agents=cfg["n_agents"])
+    env = VmasEnv(
+        scenario="navigation",
+        num_envs=vmas_envs,
+        continuous_actions=False,
+        max_steps=cfg["max_steps"],
+        device=device,
+        seed=cfg["seed"],
+        n_agents=cfg["n_agents"],
+    )
+    env = TransformedEnv(
+        env, RewardSum(in_keys=[env.reward_key], out_keys=[("agents", "episode_reward")])
+    )
+    env_test = VmasEnv(
+        scenario="navigation",
+        num_envs=cfg["evaluation_episodes"],
+        continuous_actions=False,
+        max_steps=cfg["max_steps"],
+        device=device,
+        seed=cfg["seed"],
+        n_agents=cfg["n_agents"],
+    )
     n_actions = env.full_action_spec["agents", "action"].space.n
     z_dim = cfg["z_dim"] if method == "icco" else 0  # ICCO
-    carry = lambda: Compose(StepCounter(), InitTracker(), make_primer(env.n_agents, cfg["hidden"], z_dim, device=device, n_actions=n_actions))  # noqa: E731, E501  # ICCO
-    env, env_test = (env.append_transform(carry()), TransformedEnv(env_test, carry())) if icco else (env, env_test)  # ICCO
+    carry = lambda: Compose(
+        StepCounter(),
+        InitTracker(),
+        make_primer(env.n_agents, cfg["hidden"], z_dim, device=device, n_actions=n_actions),
+    )  # noqa: E731, E501  # ICCO
+    env, env_test = (
+        (env.append_transform(carry()), TransformedEnv(env_test, carry()))
+        if icco
+        else (env, env_test)
+    )  # ICCO
 
     # Policy
     obs_dim = env.observation_spec["agents", "observation"].shape[-1]
     if not icco:
-        net = MultiAgentMLP(n_agent_inputs=obs_dim, n_agent_outputs=n_actions, n_agents=env.n_agents,
-                            centralised=False, share_params=True, device=device, depth=2, num_cells=256,
-                            activation_class=nn.Tanh)
-        module = TensorDictModule(net, in_keys=[("agents", "observation")], out_keys=[("agents", "action_value")])
-        value_module = QValueModule(action_value_key=("agents", "action_value"),
-                                    out_keys=[env.action_key, ("agents", "action_value"),
-                                              ("agents", "chosen_action_value")],
-                                    spec=env.full_action_spec_unbatched, action_space=None)
+        net = MultiAgentMLP(
+            n_agent_inputs=obs_dim,
+            n_agent_outputs=n_actions,
+            n_agents=env.n_agents,
+            centralised=False,
+            share_params=True,
+            device=device,
+            depth=2,
+            num_cells=256,
+            activation_class=nn.Tanh,
+        )
+        module = TensorDictModule(
+            net, in_keys=[("agents", "observation")], out_keys=[("agents", "action_value")]
+        )
+        value_module = QValueModule(
+            action_value_key=("agents", "action_value"),
+            out_keys=[
+                env.action_key,
+                ("agents", "action_value"),
+                ("agents", "chosen_action_value"),
+            ],
+            spec=env.full_action_spec_unbatched,
+            action_space=None,
+        )
         qnet = SafeSequential(module, value_module)
-        qnet_explore = TensorDictSequential(qnet, EGreedyModule(
-            eps_init=0.3, eps_end=0, annealing_num_steps=int(total_frames * (1 / 2)), action_key=env.action_key,
-            spec=env.full_action_spec_unbatched))
+        qnet_explore = TensorDictSequential(
+            qnet,
+            EGreedyModule(
+                eps_init=0.3,
+                eps_end=0,
+                annealing_num_steps=int(total_frames * (1 / 2)),
+                action_key=env.action_key,
+                spec=env.full_action_spec_unbatched,
+            ),
+        )
     else:
-        module = make_agent(obs_dim=obs_dim, n_actions=n_actions, hidden=cfg["hidden"], z_dim=z_dim).to(device)
-        coordinator, posterior = (make_coordinator(n_agents=env.n_agents, state_dim=env.n_agents * obs_dim, z_dim=z_dim, hidden=cfg["hidden"], period=cfg["period"], state_key=("agents", "observation")).to(device), make_posterior(n_actions=n_actions, n_agents=env.n_agents, obs_dim=obs_dim, state_dim=env.n_agents * obs_dim, z_dim=z_dim, hidden=cfg["hidden"]).to(device)) if z_dim else (None, None)  # noqa: E501  # ICCO
-        qnet = qnet_explore = make_policy(module, env.full_action_spec_unbatched, coordinator, eps_init=0.3, eps_end=0,
-                                          annealing_num_steps=int(total_frames * (1 / 2)))
+        module = make_agent(
+            obs_dim=obs_dim, n_actions=n_actions, hidden=cfg["hidden"], z_dim=z_dim
+        ).to(device)
+        coordinator, posterior = (
+            (
+                make_coordinator(
+                    n_agents=env.n_agents,
+                    state_dim=env.n_agents * obs_dim,
+                    z_dim=z_dim,
+                    hidden=cfg["hidden"],
+                    period=cfg["period"],
+                    state_key=("agents", "observation"),
+                ).to(device),
+                make_posterior(
+                    n_actions=n_actions,
+                    n_agents=env.n_agents,
+                    obs_dim=obs_dim,
+                    state_dim=env.n_agents * obs_dim,
+                    z_dim=z_dim,
+                    hidden=cfg["hidden"],
+                ).to(device),
+            )
+            if z_dim
+            else (None, None)
+        )  # noqa: E501  # ICCO
+        qnet = qnet_explore = make_policy(
+            module,
+            env.full_action_spec_unbatched,
+            coordinator,
+            eps_init=0.3,
+            eps_end=0,
+            annealing_num_steps=int(total_frames * (1 / 2)),
+        )
 
     mixer = TensorDictModule(
-        module=QMixer(state_shape=env.observation_spec_unbatched["agents", "observation"].shape,
-                      mixing_embed_dim=32, n_agents=env.n_agents, device=device),
-        in_keys=[("agents", "chosen_action_value"), ("agents", "observation")], out_keys=["chosen_action_value"])
+        module=QMixer(
+            state_shape=env.observation_spec_unbatched["agents", "observation"].shape,
+            mixing_embed_dim=32,
+            n_agents=env.n_agents,
+            device=device,
+        ),
+        in_keys=[("agents", "chosen_action_value"), ("agents", "observation")],
+        out_keys=["chosen_action_value"],
+    )
 
-    collector = Collector(env, qnet_explore, device=device, storing_device=device,
-                          frames_per_batch=cfg["frames_per_batch"], total_frames=total_frames)
+    collector = Collector(
+        env,
+        qnet_explore,
+        device=device,
+        storing_device=device,
+        frames_per_batch=cfg["frames_per_batch"],
+        total_frames=total_frames,
+    )
 
-    replay_buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(memory_size, device=device),
-                                           sampler=SamplerWithoutReplacement(),
-                                           batch_size=cfg["minibatch_size"] // (cfg["period"] if icco else 1))
+    replay_buffer = TensorDictReplayBuffer(
+        storage=LazyTensorStorage(memory_size, device=device),
+        sampler=SamplerWithoutReplacement(),
+        batch_size=cfg["minibatch_size"] // (cfg["period"] if icco else 1),
+    )
     cutter = SegmentCutter(length=cfg["period"]) if icco else (lambda td: td.reshape(-1))  # ICCO
 
     if not icco:
         loss_module = QMixerLoss(qnet, mixer, delay_value=True)
-        loss_module.set_keys(action_value=("agents", "action_value"), local_value=("agents", "chosen_action_value"),
-                             global_value="chosen_action_value", action=env.action_key)
+        loss_module.set_keys(
+            action_value=("agents", "action_value"),
+            local_value=("agents", "chosen_action_value"),
+            global_value="chosen_action_value",
+            action=env.action_key,
+        )
     else:
         loss_module = ICCOLoss(module, mixer, coordinator, posterior)
         loss_module.set_keys(state=("agents", "observation"))
@@ -151,17 +262,31 @@ def train(method: str = "icco", **overrides) -> dict:
 
     def evaluate(policy) -> float:
         """Greedy return per agent over one episode of every test env (``policy=None``: random actions)."""
-        env_test.set_seed(cfg["seed"] + 1)  # the same start positions for every evaluation and learner
+        env_test.set_seed(
+            cfg["seed"] + 1
+        )  # the same start positions for every evaluation and learner
         with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
-            rollouts = env_test.rollout(max_steps=cfg["max_steps"], policy=policy, auto_cast_to_device=True,
-                                        break_when_any_done=False)
+            rollouts = env_test.rollout(
+                max_steps=cfg["max_steps"],
+                policy=policy,
+                auto_cast_to_device=True,
+                break_when_any_done=False,
+            )
         return rollouts.get(("next", "agents", "reward")).sum(1).mean().item()
 
-    result = {"method": method, "seed": cfg["seed"], "frames": 0, "random": evaluate(None), "before": evaluate(qnet)}
+    result = {
+        "method": method,
+        "seed": cfg["seed"],
+        "frames": 0,
+        "random": evaluate(None),
+        "before": evaluate(qnet),
+    }
     losses = []
     for i, tensordict_data in enumerate(collector):
         # Remove agent dimension from reward (since it is shared in QMIX/VDN)
-        tensordict_data.set(("next", "reward"), tensordict_data.get(("next", env.reward_key)).mean(-2))
+        tensordict_data.set(
+            ("next", "reward"), tensordict_data.get(("next", env.reward_key)).mean(-2)
+        )
         del tensordict_data["next", env.reward_key]
 
         current_frames = tensordict_data.numel()
@@ -180,11 +305,18 @@ def train(method: str = "icco", **overrides) -> dict:
                 target_net_updater.step()
                 losses.append(loss_value.item())
 
-        next(m for m in qnet_explore.modules() if isinstance(m, EGreedyModule)).step(frames=current_frames)
+        next(m for m in qnet_explore.modules() if isinstance(m, EGreedyModule)).step(
+            frames=current_frames
+        )
         collector.update_policy_weights_()
     collector.shutdown()
-    result.update(after=evaluate(qnet), updates=len(losses), first_loss=losses[0] if losses else float("nan"),
-                  last_loss=losses[-1] if losses else float("nan"), seconds=time.perf_counter() - start)
+    result.update(
+        after=evaluate(qnet),
+        updates=len(losses),
+        first_loss=losses[0] if losses else float("nan"),
+        last_loss=losses[-1] if losses else float("nan"),
+        seconds=time.perf_counter() - start,
+    )
     return result
 
 
@@ -197,4 +329,13 @@ if __name__ == "__main__":
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    print(json.dumps(train(args.method, n_iters=args.iters, frames_per_batch=args.frames_per_batch, seed=args.seed)))
+    print(
+        json.dumps(
+            train(
+                args.method,
+                n_iters=args.iters,
+                frames_per_batch=args.frames_per_batch,
+                seed=args.seed,
+            )
+        )
+    )

@@ -8,6 +8,7 @@ folders are searched recursively and grouped by method (its paper name, " w/o TR
 trained on the instruction reward alone). Writes ``<out>.png``, ``<out>.pdf`` and ``<out>.csv``
 (frames, then mean/std/seeds per method) and prints each method's final value.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -34,11 +35,16 @@ def find_runs(roots, stream: str = "eval") -> dict[str, list[Path]]:
 
 def write_curves(curves: dict[str, Curve], path: Path) -> Path:
     """One row per frame of the first method's grid; other methods' values where they have one."""
-    grids = {label: dict(zip(c.frames.tolist(), zip(c.mean.tolist(), c.std.tolist()))) for label, c in curves.items()}
+    grids = {
+        label: dict(zip(c.frames.tolist(), zip(c.mean.tolist(), c.std.tolist())))
+        for label, c in curves.items()
+    }
     frames = sorted({f for grid in grids.values() for f in grid})
     with path.open("w", newline="") as handle:
         writer = csv.writer(handle)
-        writer.writerow(["frames"] + [f"{label} {k}" for label in curves for k in ("mean", "std", "seeds")])
+        writer.writerow(
+            ["frames"] + [f"{label} {k}" for label in curves for k in ("mean", "std", "seeds")]
+        )
         for f in frames:
             row = [f]
             for label, curve in curves.items():
@@ -49,23 +55,37 @@ def write_curves(curves: dict[str, Curve], path: Path) -> Path:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("roots", nargs="+", help="folders to search for runs")
-    parser.add_argument("--stream", default="eval", help="eval (greedy evaluations) or train (training episodes)")
-    parser.add_argument("--column", default="reward", help="column to average, e.g. reward, episode_reward, pick")
-    parser.add_argument("--out", type=Path, default=Path("learning_curves"), help="output path without suffix")
+    parser.add_argument(
+        "--stream", default="eval", help="eval (greedy evaluations) or train (training episodes)"
+    )
+    parser.add_argument(
+        "--column", default="reward", help="column to average, e.g. reward, episode_reward, pick"
+    )
+    parser.add_argument(
+        "--out", type=Path, default=Path("learning_curves"), help="output path without suffix"
+    )
     args = parser.parse_args(argv)
     runs = find_runs(args.roots, args.stream)
     curves = learning_curves(runs, args.stream, args.column)
     if not curves:
-        print(f"no run under {args.roots} has values in column {args.column!r} of {args.stream}.csv", file=sys.stderr)
+        print(
+            f"no run under {args.roots} has values in column {args.column!r} of {args.stream}.csv",
+            file=sys.stderr,
+        )
         return 2
     args.out.parent.mkdir(parents=True, exist_ok=True)
     paths = plot_curves(curves, args.out, ylabel=f"{args.stream} {args.column}") + [
-        write_curves(curves, args.out.with_suffix(".csv"))]
+        write_curves(curves, args.out.with_suffix(".csv"))
+    ]
     for label, curve in curves.items():
-        print(f"{label}: {curve.mean[-1]:.2f} ± {curve.std[-1]:.2f} at {int(curve.frames[-1])} frames "
-              f"({len(curve.runs)} seeds)")
+        print(
+            f"{label}: {curve.mean[-1]:.2f} ± {curve.std[-1]:.2f} at {int(curve.frames[-1])} frames "
+            f"({len(curve.runs)} seeds)"
+        )
     print("wrote " + ", ".join(map(str, paths)))
     return 0
 

@@ -5,6 +5,7 @@ checkpoint reached the budget; :func:`train_runs` starts missing runs, resumes p
 their checkpoint (``resume=``) and keeps ``jobs`` processes busy (one torch thread each: two
 side by side use a 2-core machine fully). Each run logs to ``<folder>.log``.
 """
+
 from __future__ import annotations
 
 import shutil
@@ -40,8 +41,21 @@ def train_runs(runs: dict[Path, tuple[list[str], int]], jobs: int = 2) -> None:
             # Died before its first checkpoint: its CSVs would be appended to, so start clean.
             shutil.move(str(run), str(run.with_name(f"{run.name}.failed-{int(time.time())}")))
         resume = [f"resume={run / 'checkpoint.pt'}"] if state == "partial" else []
-        queue.append((run, [sys.executable, "-m", "icco_torchrl", "train", *runs[run][0], *resume,
-                            "logger.progress=false", f"hydra.run.dir={run}"]))
+        queue.append(
+            (
+                run,
+                [
+                    sys.executable,
+                    "-m",
+                    "icco_torchrl",
+                    "train",
+                    *runs[run][0],
+                    *resume,
+                    "logger.progress=false",
+                    f"hydra.run.dir={run}",
+                ],
+            )
+        )
     running: list[tuple[Path, subprocess.Popen]] = []
     failed = []
     while queue or running:
@@ -50,12 +64,17 @@ def train_runs(runs: dict[Path, tuple[list[str], int]], jobs: int = 2) -> None:
             run.parent.mkdir(parents=True, exist_ok=True)
             print(f"$ icco {' '.join(command[3:])}  > {run}.log", flush=True)
             with open(f"{run}.log", "a") as log:
-                running.append((run, subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT)))
+                running.append(
+                    (run, subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT))
+                )
         time.sleep(2)
         for item in [r for r in running if r[1].poll() is not None]:
             running.remove(item)
             run, proc = item
-            print(f"{run.name}: {'done' if proc.returncode == 0 else f'FAILED (exit {proc.returncode})'}", flush=True)
+            print(
+                f"{run.name}: {'done' if proc.returncode == 0 else f'FAILED (exit {proc.returncode})'}",
+                flush=True,
+            )
             if proc.returncode:
                 failed.append(run.name)
     if failed:

@@ -3,6 +3,7 @@
 Hydra composes ``conf/`` (``--help``, ``-m`` multirun and launcher overrides all work); the
 result is validated against the typed schema before any work starts.
 """
+
 from __future__ import annotations
 
 import sys
@@ -104,23 +105,34 @@ _INSTRUCTION: str = ""
 def main(argv: list[str] | None = None) -> None:
     global _INSTRUCTION
     argv = list(sys.argv[1:] if argv is None else argv)
-    if not argv or argv[0] in ("-h", "--help", "help") or argv[0] not in ("train", "eval", "instruct", "live", "bridge"):
+    if (
+        not argv
+        or argv[0] in ("-h", "--help", "help")
+        or argv[0] not in ("train", "eval", "instruct", "live", "bridge")
+    ):
         print(USAGE)
         raise SystemExit(0 if argv and argv[0] in ("-h", "--help", "help") else 2)
     command, rest = argv[0], argv[1:]
     if command == "instruct":
         if not rest or "=" in rest[0] or rest[0].startswith("-"):
-            print('icco instruct: give the instruction first, e.g. icco instruct "Go right" checkpoint=PATH',
-                  file=sys.stderr)
+            print(
+                'icco instruct: give the instruction first, e.g. icco instruct "Go right" checkpoint=PATH',
+                file=sys.stderr,
+            )
             raise SystemExit(2)
         _INSTRUCTION, rest = rest[0], rest[1:]
     if command == "train":
         rest = _resume_folder(rest)
     else:  # results go next to the checkpoint; keep Hydra's own files out of runs/
-        rest = [f"hydra.run.dir={tempfile.gettempdir()}/icco_{command}/${{now:%Y%m%d-%H%M%S-%f}}", *rest]
+        rest = [
+            f"hydra.run.dir={tempfile.gettempdir()}/icco_{command}/${{now:%Y%m%d-%H%M%S-%f}}",
+            *rest,
+        ]
     from icco_torchrl.training.config import check_command_line
 
-    bad = unknown_group_option(rest) or check_command_line(rest)  # one line naming the field, before Hydra
+    bad = unknown_group_option(rest) or check_command_line(
+        rest
+    )  # one line naming the field, before Hydra
     if bad:
         print(f"icco {command}: {bad}", file=sys.stderr)
         raise SystemExit(2)
@@ -140,7 +152,13 @@ def unknown_group_option(overrides: list[str]) -> str | None:
     for item in overrides:
         key, sep, value = item.partition("=")
         group = key.lstrip("+~")
-        if not sep or "." in group or "/" in group or not (CONF_DIR / group).is_dir() or group == "hydra":
+        if (
+            not sep
+            or "." in group
+            or "/" in group
+            or not (CONF_DIR / group).is_dir()
+            or group == "hydra"
+        ):
             continue
         known = sorted(f.stem for f in (CONF_DIR / group).glob("*.yaml"))
         for option in value.split(","):

@@ -4,6 +4,7 @@ Modes: ``"ok"`` answers ``reply``; ``"401"`` refuses the key; ``"hang"`` accepts
 never answers (until the server stops). :func:`closed_port` gives a port nobody listens on.
 Every server stops by itself after ``lifetime`` seconds, even if a test forgets it.
 """
+
 from __future__ import annotations
 
 import json
@@ -34,14 +35,35 @@ class FakeOpenAI:
                     server.stopped.wait(lifetime)  # bounded: the server's own end releases it
                     return
                 if server.mode == "401":
-                    self._send(401, {"error": {"message": "Incorrect API key provided: sk-test.",
-                                               "type": "invalid_request_error", "param": None,
-                                               "code": "invalid_api_key"}})
+                    self._send(
+                        401,
+                        {
+                            "error": {
+                                "message": "Incorrect API key provided: sk-test.",
+                                "type": "invalid_request_error",
+                                "param": None,
+                                "code": "invalid_api_key",
+                            }
+                        },
+                    )
                     return
-                self._send(200, {"id": "chatcmpl-1", "object": "chat.completion", "created": 0, "model": "gpt-4o",
-                                 "choices": [{"index": 0, "finish_reason": "stop",
-                                              "message": {"role": "assistant", "content": server.reply}}],
-                                 "usage": {"prompt_tokens": 1, "completion_tokens": 1, "total_tokens": 2}})
+                self._send(
+                    200,
+                    {
+                        "id": "chatcmpl-1",
+                        "object": "chat.completion",
+                        "created": 0,
+                        "model": "gpt-4o",
+                        "choices": [
+                            {
+                                "index": 0,
+                                "finish_reason": "stop",
+                                "message": {"role": "assistant", "content": server.reply},
+                            }
+                        ],
+                        "usage": {"prompt_tokens": 1, "completion_tokens": 1, "total_tokens": 2},
+                    },
+                )
 
             def _send(self, status: int, body: dict) -> None:
                 data = json.dumps(body).encode()
@@ -58,7 +80,9 @@ class FakeOpenAI:
         self.httpd.daemon_threads = True
         self.port = self.httpd.server_address[1]
         self.url = f"http://127.0.0.1:{self.port}/v1"
-        self._thread = threading.Thread(target=self.httpd.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True)
+        self._thread = threading.Thread(
+            target=self.httpd.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True
+        )
         self._timer = threading.Timer(lifetime, self.stop)
         self._timer.daemon = True
 

@@ -1,11 +1,11 @@
 """The robot bridge: DWA commands within limits, the protocol, and bridge + simulated fleet over loopback."""
+
 from __future__ import annotations
 
 import time
 
 import numpy as np
 import pytest
-
 from conftest import bridge_with_fleet
 
 from icco_torchrl.envs import ResourceCollectionEnv
@@ -26,10 +26,16 @@ def test_dwa_drives_toward_the_target_within_its_limits():
     v, w = dwa_command((0, 0, 0), (0.0, 0.0), (-2.0, 0.1), LIMITS, 0.1)
     assert abs(w) > 0.2 and v <= LIMITS.max_accel * 0.1 + 1e-9  # behind: turn, creep
     for _ in range(50):
-        pose, vel = np.random.uniform(-3, 3, 3), (np.random.uniform(0, 0.5), np.random.uniform(-2, 2))
+        pose, vel = (
+            np.random.uniform(-3, 3, 3),
+            (np.random.uniform(0, 0.5), np.random.uniform(-2, 2)),
+        )
         v, w = dwa_command(pose, vel, np.random.uniform(-3, 3, 2), LIMITS, 0.1)
         assert 0 <= v <= LIMITS.max_speed and abs(w) <= LIMITS.max_turn
-        assert abs(v - vel[0]) <= LIMITS.max_accel * 0.1 + 1e-9 and abs(w - vel[1]) <= LIMITS.max_turn_accel * 0.1 + 1e-9
+        assert (
+            abs(v - vel[0]) <= LIMITS.max_accel * 0.1 + 1e-9
+            and abs(w - vel[1]) <= LIMITS.max_turn_accel * 0.1 + 1e-9
+        )
     assert dwa_command((1, 1, 0), (0, 0), (1.0, 1.005), LIMITS, 0.1) == (0.0, 0.0)  # arrived: stay
 
 
@@ -41,28 +47,35 @@ def test_dwa_keeps_clear_of_another_robot():
         RobotLimits(max_speed=0)
 
 
-@pytest.mark.parametrize("data, message", [
-    (b"\xff\xfe", "not UTF-8 JSON"), (b"[1, 2]", "JSON object"), (b'{"type": "dance"}', "type"),
-    (b'{"type": "state", "robots": [{"id": 7, "pose": [0, 0, 0]}]}', "integer 'id'"),
-    (b'{"type": "state", "robots": [{"id": 0, "pose": [0, "a", 0]}]}', "pose"),
-    (b'{"type": "state", "robots": [], "resources": [[0]]}', "resources"),
-    (b'{"type": "instruct", "text": ""}', "non-empty"),
-])
+@pytest.mark.parametrize(
+    "data, message",
+    [
+        (b"\xff\xfe", "not UTF-8 JSON"),
+        (b"[1, 2]", "JSON object"),
+        (b'{"type": "dance"}', "type"),
+        (b'{"type": "state", "robots": [{"id": 7, "pose": [0, 0, 0]}]}', "integer 'id'"),
+        (b'{"type": "state", "robots": [{"id": 0, "pose": [0, "a", 0]}]}', "pose"),
+        (b'{"type": "state", "robots": [], "resources": [[0]]}', "resources"),
+        (b'{"type": "instruct", "text": ""}', "non-empty"),
+    ],
+)
 def test_malformed_messages_are_refused_in_one_line(data, message):
     with pytest.raises(ProtocolError, match=message):
         parse_message(data, 3)
 
 
 def _heuristic_loop():
-    env = ResourceCollectionEnv(num_envs=1, seed=0, waypoint_mode="external", max_steps=10 ** 6)
+    env = ResourceCollectionEnv(num_envs=1, seed=0, waypoint_mode="external", max_steps=10**6)
     return LiveLoop(env, make_reference_policy("heuristic", env))
 
 
 def test_act_on_measured_positions_carries_a_trained_policys_memory():
     cfg = compose_config(["experiment=smoke"])
     parts = build_components(cfg)
-    env = make_env(cfg, num_envs=1, waypoint_mode="external", max_steps=10 ** 6)
-    loop = LiveLoop(env, make_policy(parts["agent"], env.full_action_spec_unbatched, parts["coordinator"]))
+    env = make_env(cfg, num_envs=1, waypoint_mode="external", max_steps=10**6)
+    loop = LiveLoop(
+        env, make_policy(parts["agent"], env.full_action_spec_unbatched, parts["coordinator"])
+    )
     for k in range(6):
         actions, targets = loop.act_on([[0.0, 0.0], [1.0, 1.0], [-1.0, 1.0]])
         assert actions.shape == (3,) and targets.shape == (3, 2)
@@ -90,9 +103,9 @@ def test_bridge_and_simulated_fleet_over_loopback():
     assert last[1]["stopped"] and last[1]["reason"] == "stale" and last[1]["v"] == 0 == last[1]["w"]
     assert not last[0]["stopped"] and bridge.stats["stale_stops"] == 1
     moved = np.linalg.norm(fleet.poses[:, :2] - start, axis=-1)
-    assert moved[0] > 0.2 and moved[2] > 0.2, moved       # driven by the commands
-    assert fleet.velocity[1].tolist() == [0.0, 0.0]         # the silenced robot was stopped
-    assert np.median(bridge.stats["latency_ms"]) < 100      # state in -> command out
+    assert moved[0] > 0.2 and moved[2] > 0.2, moved  # driven by the commands
+    assert fleet.velocity[1].tolist() == [0.0, 0.0]  # the silenced robot was stopped
+    assert np.median(bridge.stats["latency_ms"]) < 100  # state in -> command out
 
 
 def test_a_port_in_use_is_one_clear_line():
@@ -110,9 +123,22 @@ def test_icco_bridge_with_the_simulated_fleet_through_the_cli(tmp_path):
 
     from conftest import run_cli
 
-    run_cli("train", "method=qmix", "experiment=smoke", "logger.progress=false", f"hydra.run.dir={tmp_path}")
+    run_cli(
+        "train",
+        "method=qmix",
+        "experiment=smoke",
+        "logger.progress=false",
+        f"hydra.run.dir={tmp_path}",
+    )
     ckpt = tmp_path / "checkpoint.pt"
-    proc = run_cli("bridge", f"checkpoint={ckpt}", "live.fleet=true", "live.seconds=3", "live.port=0", timeout=120)
+    proc = run_cli(
+        "bridge",
+        f"checkpoint={ckpt}",
+        "live.fleet=true",
+        "live.seconds=3",
+        "live.port=0",
+        timeout=120,
+    )
     assert "listening on udp 127.0.0.1:" in proc.stdout and " 0 malformed" in proc.stdout
     commands = int(proc.stdout.split(" commands,")[0].rsplit(" ", 1)[-1])
     assert commands >= 20  # ~10 Hz for 3 s
@@ -120,7 +146,14 @@ def test_icco_bridge_with_the_simulated_fleet_through_the_cli(tmp_path):
     busy.bind(("127.0.0.1", 0))
     try:
         port = busy.getsockname()[1]
-        proc = run_cli("bridge", f"checkpoint={ckpt}", f"live.port={port}", "live.seconds=1", check=False, timeout=120)
+        proc = run_cli(
+            "bridge",
+            f"checkpoint={ckpt}",
+            f"live.port={port}",
+            "live.seconds=1",
+            check=False,
+            timeout=120,
+        )
     finally:
         busy.close()
     assert proc.returncode == 2 and f"cannot listen on udp 127.0.0.1:{port}" in proc.stderr

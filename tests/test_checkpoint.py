@@ -1,4 +1,5 @@
 """Checkpoints and replay dumps that lose nothing: weights-only loading, checked dumps, no temp leftovers."""
+
 from __future__ import annotations
 
 import json
@@ -11,8 +12,14 @@ import torch
 from tensordict import TensorDict
 from torchrl.data import LazyTensorStorage, RandomSampler, TensorDictReplayBuffer
 
-from icco_torchrl.training.checkpoint import (FORMAT_VERSION, CheckpointError, load_checkpoint, load_replay,
-                                              save_checkpoint, save_replay)
+from icco_torchrl.training.checkpoint import (
+    FORMAT_VERSION,
+    CheckpointError,
+    load_checkpoint,
+    load_replay,
+    save_checkpoint,
+    save_replay,
+)
 
 pytestmark = pytest.mark.fault  # the fault suite: crafted, damaged and stale files
 
@@ -59,10 +66,23 @@ def test_a_checkpoint_round_trips_and_loads_weights_only(tmp_path):
     torch.manual_seed(5)
     gen = torch.Generator().manual_seed(11)
     rng = {"torch": torch.get_rng_state(), "env": gen.get_state(), "numpy": np.random.get_state()}
-    expected = (np.random.rand(4), torch.rand(4), torch.rand(4, generator=gen))  # what the states produce
-    payload = {"cfg": {"method": {"name": "icco", "hidden": 64}, "eval": {"references": ["random"], "x": None}},
-               "frames": 2048, "epsilon": 0.25, "optimizer": _optimizer_state(), "rng": rng,
-               "scalars": [np.float64(1.5), np.int64(3)], "loss": {"w": torch.arange(6.0).view(2, 3)}}
+    expected = (
+        np.random.rand(4),
+        torch.rand(4),
+        torch.rand(4, generator=gen),
+    )  # what the states produce
+    payload = {
+        "cfg": {
+            "method": {"name": "icco", "hidden": 64},
+            "eval": {"references": ["random"], "x": None},
+        },
+        "frames": 2048,
+        "epsilon": 0.25,
+        "optimizer": _optimizer_state(),
+        "rng": rng,
+        "scalars": [np.float64(1.5), np.int64(3)],
+        "loss": {"w": torch.arange(6.0).view(2, 3)},
+    }
     path = save_checkpoint(tmp_path / "checkpoint.pt", payload)
     torch.load(path, weights_only=True)  # no numpy object left in the file
 
@@ -70,12 +90,21 @@ def test_a_checkpoint_round_trips_and_loads_weights_only(tmp_path):
     assert loaded["format_version"] == FORMAT_VERSION
     # method fields added after the checkpoint was written come back with the value it was trained with
     from icco_torchrl.training.config import METHOD_FIELDS_ADDED
-    assert loaded["cfg"] == {**payload["cfg"], "method": {**payload["cfg"]["method"], **METHOD_FIELDS_ADDED}}
-    assert loaded["cfg"]["method"]["waypoint_features"] is False and loaded["cfg"]["method"]["z_input"] == "head"
+
+    assert loaded["cfg"] == {
+        **payload["cfg"],
+        "method": {**payload["cfg"]["method"], **METHOD_FIELDS_ADDED},
+    }
+    assert (
+        loaded["cfg"]["method"]["waypoint_features"] is False
+        and loaded["cfg"]["method"]["z_input"] == "head"
+    )
     assert loaded["frames"] == 2048 and loaded["epsilon"] == 0.25
     assert loaded["scalars"] == [1.5, 3]
     assert torch.equal(loaded["loss"]["w"], payload["loss"]["w"])
-    assert torch.equal(loaded["optimizer"]["state"][0]["exp_avg"], payload["optimizer"]["state"][0]["exp_avg"])
+    assert torch.equal(
+        loaded["optimizer"]["state"][0]["exp_avg"], payload["optimizer"]["state"][0]["exp_avg"]
+    )
     assert loaded["optimizer"]["param_groups"] == payload["optimizer"]["param_groups"]
     # The RNG states restore the very same streams (after the generators moved on).
     np.random.seed(0)
@@ -86,20 +115,28 @@ def test_a_checkpoint_round_trips_and_loads_weights_only(tmp_path):
     gen.set_state(state["env"])
     assert isinstance(state["numpy"], tuple) and state["numpy"][1].dtype == np.uint32
     np.testing.assert_array_equal(np.random.rand(4), expected[0])
-    assert torch.equal(torch.rand(4), expected[1]) and torch.equal(torch.rand(4, generator=gen), expected[2])
+    assert torch.equal(torch.rand(4), expected[1]) and torch.equal(
+        torch.rand(4, generator=gen), expected[2]
+    )
 
 
 def test_a_method_field_the_checkpoint_has_is_kept(tmp_path):
     payload = {"cfg": {"method": {"name": "icco", "waypoint_features": True}}, "loss": {}}
     loaded = load_checkpoint(save_checkpoint(tmp_path / "checkpoint.pt", payload))
-    assert loaded["cfg"]["method"] == {"name": "icco", "waypoint_features": True, "instruction_head": False,
-                                       "z_input": "head"}
+    assert loaded["cfg"]["method"] == {
+        "name": "icco",
+        "waypoint_features": True,
+        "instruction_head": False,
+        "z_input": "head",
+    }
 
 
 def test_a_checkpoint_written_before_weights_only_loading_still_loads(tmp_path):
     path = tmp_path / "old.pt"
     state = np.random.get_state()
-    torch.save({"format_version": FORMAT_VERSION, "rng": {"numpy": state}}, path)  # the previous writer
+    torch.save(
+        {"format_version": FORMAT_VERSION, "rng": {"numpy": state}}, path
+    )  # the previous writer
     loaded = load_checkpoint(path)
     np.testing.assert_array_equal(loaded["rng"]["numpy"][1], state[1])
 
@@ -119,15 +156,22 @@ T, OBS = 4, 30  # segment length, observation features
 
 
 def make_buffer(capacity: int) -> TensorDictReplayBuffer:
-    return TensorDictReplayBuffer(storage=LazyTensorStorage(capacity), sampler=RandomSampler(), batch_size=4)
+    return TensorDictReplayBuffer(
+        storage=LazyTensorStorage(capacity), sampler=RandomSampler(), batch_size=4
+    )
 
 
 def segments(n: int, start: int = 0) -> TensorDict:
     """``n`` distinguishable segments: every entry of segment ``i`` encodes ``start + i``."""
     ids = torch.arange(start, start + n, dtype=torch.float32).view(n, 1, 1, 1)
-    return TensorDict({("agents", "observation"): ids.expand(n, T, 3, OBS).clone(),
-                       ("agents", "z"): ids.expand(n, T, 3, 8).clone(),
-                       "step_count": ids.view(n, 1, 1).expand(n, T, 1).long().clone()}, [n, T])
+    return TensorDict(
+        {
+            ("agents", "observation"): ids.expand(n, T, 3, OBS).clone(),
+            ("agents", "z"): ids.expand(n, T, 3, 8).clone(),
+            "step_count": ids.view(n, 1, 1).expand(n, T, 1).long().clone(),
+        },
+        [n, T],
+    )
 
 
 def dump_bytes(path) -> int:
@@ -155,13 +199,18 @@ def test_a_replay_dump_restores_items_length_and_next_write_position(tmp_path, w
     restored = make_buffer(8)
     assert load_replay(restored, tmp_path / "replay")
     assert len(restored) == len(buffer) == min(written, 8)
-    assert (restored.writer._cursor, restored.writer._write_count) == (buffer.writer._cursor, written)
+    assert (restored.writer._cursor, restored.writer._write_count) == (
+        buffer.writer._cursor,
+        written,
+    )
     n = len(buffer)
     assert (restored.storage._storage[:n] == buffer.storage._storage[:n]).all()
     # Further writes land in the same slots, and sampling draws the same segments.
     buffer.extend(segments(2, 100))
     restored.extend(segments(2, 100))
-    assert (restored.storage._storage[: len(buffer)] == buffer.storage._storage[: len(buffer)]).all()
+    assert (
+        restored.storage._storage[: len(buffer)] == buffer.storage._storage[: len(buffer)]
+    ).all()
     torch.manual_seed(0)
     a = buffer.sample()
     torch.manual_seed(0)
@@ -172,7 +221,9 @@ def test_a_replay_dump_restores_items_length_and_next_write_position(tmp_path, w
 def test_a_smaller_buffer_keeps_the_newest_segments_in_order(tmp_path):
     buffer = make_buffer(8)
     for start in range(0, 13, 3):
-        buffer.extend(segments(min(3, 13 - start), start))  # holds segments 5..12, oldest at the cursor
+        buffer.extend(
+            segments(min(3, 13 - start), start)
+        )  # holds segments 5..12, oldest at the cursor
     save_replay(buffer, tmp_path / "replay")
     smaller = make_buffer(5)
     load_replay(smaller, tmp_path / "replay")

@@ -1,20 +1,27 @@
 """Typed configs (issue 11, part 3): the schema holds every default with its comment, the YAML files
 only presets that differ from it, and a bad value on the command line is one line naming the field."""
+
 import ast
 import dataclasses
 from pathlib import Path
 
 import pytest
 import yaml
+from conftest import run_cli
 from omegaconf import OmegaConf
 
-from conftest import run_cli
 from icco_torchrl.envs import ResourceCollectionEnv
 from icco_torchrl.training import config as config_module
 from icco_torchrl.training.build import CONF_DIR, compose_config
 from icco_torchrl.training.config import Config, EnvParams, check_command_line
 
-PACKAGES = {"method": "method", "env": "env", "llm": "llm", "reward": "env.params", "experiment": ""}
+PACKAGES = {
+    "method": "method",
+    "env": "env",
+    "llm": "llm",
+    "reward": "env.params",
+    "experiment": "",
+}
 
 
 def _leaves(node, prefix=""):
@@ -31,16 +38,23 @@ def _presets():
             yield group, package, path
 
 
-@pytest.mark.parametrize("group, package, path", list(_presets()), ids=lambda v: getattr(v, "stem", None) or "")
+@pytest.mark.parametrize(
+    "group, package, path", list(_presets()), ids=lambda v: getattr(v, "stem", None) or ""
+)
 def test_presets_hold_only_what_differs_from_their_parent(group, package, path):
     data = yaml.safe_load(path.read_text()) or {}
     defaults = data.pop("defaults", [])
-    parent = next((d for d in defaults if isinstance(d, str) and d != "_self_" and not d.startswith("base_")), None)
+    parent = next(
+        (d for d in defaults if isinstance(d, str) and d != "_self_" and not d.startswith("base_")),
+        None,
+    )
     # what the preset starts from: its parent preset, else the schema's defaults
-    base = (compose_config([f"{group}={parent}"]) if parent else OmegaConf.structured(Config))
+    base = compose_config([f"{group}={parent}"]) if parent else OmegaConf.structured(Config)
     for key, value in _leaves(data):
         full = f"{package}.{key}" if package else key
-        assert OmegaConf.select(base, full) != value, f"{path.name}: {full}={value!r} repeats the default"
+        assert OmegaConf.select(base, full) != value, (
+            f"{path.name}: {full}={value!r} repeats the default"
+        )
 
 
 def test_every_schema_field_is_commented():
@@ -49,11 +63,20 @@ def test_every_schema_field_is_commented():
     lines = source.splitlines()
     checked = 0
     for node in tree.body:
-        if isinstance(node, ast.ClassDef) and node.name.endswith("Config") and node.name != "LiveConfig":
+        if (
+            isinstance(node, ast.ClassDef)
+            and node.name.endswith("Config")
+            and node.name != "LiveConfig"
+        ):
             for item in node.body:
-                if isinstance(item, ast.AnnAssign) and not isinstance(item.annotation, ast.Constant):
+                if isinstance(item, ast.AnnAssign) and not isinstance(
+                    item.annotation, ast.Constant
+                ):
                     text = lines[item.lineno - 1]
-                    nested = isinstance(item.value, ast.Call) and getattr(item.value.func, "id", "") == "field"
+                    nested = (
+                        isinstance(item.value, ast.Call)
+                        and getattr(item.value.func, "id", "") == "field"
+                    )
                     assert "#" in text or nested, f"{node.name}.{item.target.id} has no comment"
                     checked += 1
     assert checked > 50
@@ -79,14 +102,17 @@ def test_schema_is_registered_once_in_the_config_store():
     assert sorted(ConfigStore.instance().repo["method"]) == sorted(repo["method"])
 
 
-@pytest.mark.parametrize("override, field", [
-    ("train.total_frames=lots", "train.total_frames"),
-    ("+env.params.bogus=1", "env.params.bogus"),
-    ("llm.timeout_s=abc", "llm.timeout_s"),
-    ("env.params.n_agents=0", "env.params.n_agents"),
-    ("train.updates_per_batch=0", "train.updates_per_batch"),
-    ("method.posterior=average", "method.posterior"),
-])
+@pytest.mark.parametrize(
+    "override, field",
+    [
+        ("train.total_frames=lots", "train.total_frames"),
+        ("+env.params.bogus=1", "env.params.bogus"),
+        ("llm.timeout_s=abc", "llm.timeout_s"),
+        ("env.params.n_agents=0", "env.params.n_agents"),
+        ("train.updates_per_batch=0", "train.updates_per_batch"),
+        ("method.posterior=average", "method.posterior"),
+    ],
+)
 def test_command_line_check_names_the_field_in_one_line(override, field):
     message = check_command_line(["experiment=smoke", override])
     assert message is not None and f"'{field}'" in message and "\n" not in message
@@ -95,8 +121,13 @@ def test_command_line_check_names_the_field_in_one_line(override, field):
     assert bad_sweep is not None and "train.lr" in bad_sweep
 
 
-@pytest.mark.parametrize("override, field", [("train.total_frames=lots", "train.total_frames"),
-                                             ("+env.params.bogus=1", "env.params.bogus")])
+@pytest.mark.parametrize(
+    "override, field",
+    [
+        ("train.total_frames=lots", "train.total_frames"),
+        ("+env.params.bogus=1", "env.params.bogus"),
+    ],
+)
 def test_a_bad_value_ends_the_command_in_one_line_with_exit_2(tmp_path, override, field):
     proc = run_cli("train", "experiment=smoke", override, f"hydra.run.dir={tmp_path}", check=False)
     assert proc.returncode == 2 and field in proc.stderr, proc.stderr

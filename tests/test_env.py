@@ -4,6 +4,7 @@ Long random rollouts check the invariants the task promises at every step; hand-
 scenes (internal tensors set after reset) check each event, vision and the instruction
 reward against the numbers given there.
 """
+
 import math
 
 import pytest
@@ -15,14 +16,27 @@ from icco_torchrl.envs import N_ACTIONS, ResourceCollectionEnv
 torch.set_num_threads(1)
 
 NOOP, LEFT, RIGHT, DOWN, UP = range(N_ACTIONS)
-STATE_TENSORS = ("pos", "vel", "carry", "defended", "res_pos", "inv_pos", "inv_vel", "inv_active",
-                 "inv_timer", "waypoints", "t")
+STATE_TENSORS = (
+    "pos",
+    "vel",
+    "carry",
+    "defended",
+    "res_pos",
+    "inv_pos",
+    "inv_vel",
+    "inv_active",
+    "inv_timer",
+    "waypoints",
+    "t",
+)
 
 
 def random_policy(env, seed=0):
     gen = torch.Generator().manual_seed(seed)
     shape = (env.num_envs, env.n_agents)
-    return lambda td: td.set(("agents", "action"), torch.randint(0, N_ACTIONS, shape, generator=gen))
+    return lambda td: td.set(
+        ("agents", "action"), torch.randint(0, N_ACTIONS, shape, generator=gen)
+    )
 
 
 def split_state(env, state):
@@ -30,7 +44,7 @@ def split_state(env, state):
     L = env.layout
     tok = state.unflatten(-1, (L.state_tokens, L.state_token_dim))
     N, R = env.n_agents, env.n_resources
-    return tok[..., :N, :], tok[..., N:N + R, :], tok[..., N + R:, :]
+    return tok[..., :N, :], tok[..., N : N + R, :], tok[..., N + R :, :]
 
 
 @pytest.fixture(scope="module")
@@ -64,12 +78,17 @@ def test_copa_spawn_keeps_resources_on_the_ring_and_invaders_on_the_edge():
     ro = env.rollout(300, policy=random_policy(env), break_when_any_done=False)
     _, res, inv = split_state(env, ro["next", "state"])
     assert res[..., 0:2].norm(dim=-1).min() >= env.resource_min_radius - 1e-5
-    assert not ro["state"][:, 0].unflatten(-1, (env.layout.state_tokens, -1))[:, -1, 7].any()  # starts inactive
+    assert (
+        not ro["state"][:, 0].unflatten(-1, (env.layout.state_tokens, -1))[:, -1, 7].any()
+    )  # starts inactive
     # An invader is first seen (active) on the edge: the step after it appears.
     active = inv[..., 7] > 0
     appeared = active[:, 1:] & ~active[:, :-1]
     first_xy = inv[:, 1:][appeared][..., 0:2]
-    assert first_xy.numel() > 0 and first_xy.abs().amax(-1).min() >= env.half - env.invader_speed - 1e-4
+    assert (
+        first_xy.numel() > 0
+        and first_xy.abs().amax(-1).min() >= env.half - env.invader_speed - 1e-4
+    )
 
 
 def test_uniform_spawn_fills_the_field():
@@ -77,8 +96,11 @@ def test_uniform_spawn_fills_the_field():
     env = ResourceCollectionEnv(num_envs=4096, seed=3)
     env.reset()
     h = env.half
-    for name, xy, clear in (("robots", env.pos, 0.0), ("resources", env.res_pos, env.home_radius),
-                            ("invader", env.inv_pos, env.invader_min_radius)):
+    for name, xy, clear in (
+        ("robots", env.pos, 0.0),
+        ("resources", env.res_pos, env.home_radius),
+        ("invader", env.inv_pos, env.invader_min_radius),
+    ):
         xy = xy.reshape(-1, 2)
         assert xy.abs().max() <= h + 1e-5, name
         assert xy.norm(dim=-1).min() >= clear - 1e-5, name
@@ -133,7 +155,9 @@ def test_random_play_has_picks_and_invasions(long_rollout):
 
 
 def event_reward(events):
-    return (5 * events["pick"] + events["collect"] + 4 * events["defense"] - 4 * events["invasion"]).float()
+    return (
+        5 * events["pick"] + events["collect"] + 4 * events["defense"] - 4 * events["invasion"]
+    ).float()
 
 
 def test_team_reward_is_events_plus_instruction_reward(long_rollout):
@@ -150,7 +174,9 @@ def test_team_reward_without_instruction_reward_is_the_task_reward():
     env = ResourceCollectionEnv(num_envs=32, seed=1, inst_reward_scale=0.0)
     ro = env.rollout(300, policy=random_policy(env, 1), break_when_any_done=False)
     nxt = ro["next"]
-    torch.testing.assert_close(nxt["reward"].squeeze(-1), event_reward(nxt["events"]), atol=1e-4, rtol=0)
+    torch.testing.assert_close(
+        nxt["reward"].squeeze(-1), event_reward(nxt["events"]), atol=1e-4, rtol=0
+    )
     assert (nxt["events", "inst_reward"] == 0).all()
 
 
@@ -167,8 +193,11 @@ def test_truncation_exactly_at_max_steps(long_rollout):
 
 def test_check_env_specs():
     check_env_specs(ResourceCollectionEnv(num_envs=4, seed=0))
-    check_env_specs(ResourceCollectionEnv(num_envs=2, seed=0, n_agents=5, n_resources=3,
-                                          waypoint_mode="external"))
+    check_env_specs(
+        ResourceCollectionEnv(
+            num_envs=2, seed=0, n_agents=5, n_resources=3, waypoint_mode="external"
+        )
+    )
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
@@ -236,7 +265,7 @@ def quiet_scene(num_envs=1, **kwargs):
     angle = torch.arange(env.n_resources) * (2 * math.pi / env.n_resources)
     env.res_pos[:] = 2.8 * torch.stack([angle.cos(), angle.sin()], -1)
     env.inv_active.zero_()
-    env.inv_timer.fill_(10 ** 6)
+    env.inv_timer.fill_(10**6)
     # Without this key the env keeps its own waypoints (tests may set env.waypoints).
     return env, td.exclude(("agents", "waypoints"))
 
@@ -364,12 +393,12 @@ def test_vision_is_a_radius_around_the_robot():
     L, r = env.layout, env.vision_radius
     diag = torch.tensor([1.0, 1.0]) / math.sqrt(2)
     robot = env.pos[0, 0].clone()
-    env.res_pos[0, 0] = robot + (r - 1e-3) * diag                        # inside, on the diagonal
+    env.res_pos[0, 0] = robot + (r - 1e-3) * diag  # inside, on the diagonal
     env.res_pos[0, 1] = robot + (r + 1e-3) * torch.tensor([-1.0, 0.0])  # just outside
-    env.pos[0, 2] = robot + torch.tensor([-0.4, 0.3])                   # another robot, inside
+    env.pos[0, 2] = robot + torch.tensor([-0.4, 0.3])  # another robot, inside
     obs = step(env, td)[0]["agents", "observation"][0, 0]
-    tokens = obs[L.own_dim:].view(L.n_entities, L.entity_dim)
-    other_robot_2 = 1                      # order: other robots (1, 2), resources, invaders, home
+    tokens = obs[L.own_dim :].view(L.n_entities, L.entity_dim)
+    other_robot_2 = 1  # order: other robots (1, 2), resources, invaders, home
     res0, res1 = env.n_agents - 1, env.n_agents
     invader, home = L.n_entities - 2, L.n_entities - 1
 
@@ -379,9 +408,9 @@ def test_vision_is_a_radius_around_the_robot():
     assert (tokens[res1] == 0).all()
     assert tokens[other_robot_2, -1] == 1
     torch.testing.assert_close(tokens[other_robot_2, 0:2], torch.tensor([-0.4, 0.3]))
-    assert (tokens[0] == 0).all()          # robot 1 is far
-    assert (tokens[invader] == 0).all()    # inactive
-    assert (tokens[home] == 0).all()       # home is 1 m away
+    assert (tokens[0] == 0).all()  # robot 1 is far
+    assert (tokens[invader] == 0).all()  # inactive
+    assert (tokens[home] == 0).all()  # home is 1 m away
 
 
 def test_inactive_invader_is_invisible_even_when_close():
@@ -389,7 +418,7 @@ def test_inactive_invader_is_invisible_even_when_close():
     env.inv_pos[0, 0] = env.pos[0, 0] + torch.tensor([0.5, 0.0])
     L = env.layout
     obs = step(env, td)[0]["agents", "observation"][0, 0]
-    assert (obs[L.own_dim:].view(L.n_entities, L.entity_dim)[L.n_entities - 2] == 0).all()
+    assert (obs[L.own_dim :].view(L.n_entities, L.entity_dim)[L.n_entities - 2] == 0).all()
 
 
 def test_instruction_reward_follows_nearest_to_second_nearest_waypoint():
@@ -397,7 +426,9 @@ def test_instruction_reward_follows_nearest_to_second_nearest_waypoint():
     env, td = quiet_scene(num_envs=N_ACTIONS, inst_reward_scale=1.3, inst_dist_coef=0.1)
     x0, y0 = ROBOTS[0]
     # Nearest (x0+.2), then x0+.5: the path points +x although the list starts at x0+.8.
-    env.waypoints[:, 0] = torch.tensor([[x0 + 0.8, y0], [x0 + 0.2, y0], [x0 + 1.1, y0], [x0 + 0.5, y0]])
+    env.waypoints[:, 0] = torch.tensor(
+        [[x0 + 0.8, y0], [x0 + 0.2, y0], [x0 + 1.1, y0], [x0 + 0.5, y0]]
+    )
     actions = torch.zeros(N_ACTIONS, env.n_agents, dtype=torch.int64)
     actions[:, 0] = torch.arange(N_ACTIONS)
     r0 = step(env, td, actions)[0]["agents", "reward"][:, 0, 0]
@@ -436,7 +467,7 @@ def test_random_walk_waypoints_refresh_every_interval_near_each_robot():
         else:
             assert torch.equal(env.waypoints, previous)
         assert torch.equal(td["agents", "waypoints"], env.waypoints)
-        own = td["agents", "observation"][..., 5:5 + 2 * K]
+        own = td["agents", "observation"][..., 5 : 5 + 2 * K]
         torch.testing.assert_close(own, (env.waypoints - env.pos.unsqueeze(2)).flatten(2))
     # Gaussian increments: mean norm sigma*sqrt(pi/2) (a bit less where clipped at the edge).
     mean = torch.cat(increments).mean().item()
@@ -448,17 +479,21 @@ def test_path_walks_stay_where_they_were_laid_while_robot_walks_follow_the_robot
     # restarts on the robot at every refresh.
     env = ResourceCollectionEnv(num_envs=64, seed=4, waypoint_sigma=0.0, waypoint_path_prob=0.5)
     td = env.reset()
-    on_path = env._on_path[:, 0].t()                                       # [B, N]
-    assert 0.3 < on_path.float().mean().item() < 0.7                       # about half of the robots
+    on_path = env._on_path[:, 0].t()  # [B, N]
+    assert 0.3 < on_path.float().mean().item() < 0.7  # about half of the robots
     laid = env.waypoints.clone()
-    assert (laid[:, :, 0] - env.pos).norm(dim=-1)[on_path].mean() > 1.0    # uniform in the field, not on the robot
+    assert (laid[:, :, 0] - env.pos).norm(dim=-1)[
+        on_path
+    ].mean() > 1.0  # uniform in the field, not on the robot
     policy = random_policy(env, 1)
     for t in range(1, 13):
         td = step_mdp(env.step(policy(td)))
         if t % env.waypoint_interval == 0:
             w = env.waypoints
             assert torch.equal(w[on_path], laid[on_path])
-            torch.testing.assert_close(w[~on_path], env.pos[~on_path].unsqueeze(1).expand(-1, env.n_waypoints, 2))
+            torch.testing.assert_close(
+                w[~on_path], env.pos[~on_path].unsqueeze(1).expand(-1, env.n_waypoints, 2)
+            )
     # with noise, a path's next walk starts one increment from its last waypoint
     env = ResourceCollectionEnv(num_envs=64, seed=4, waypoint_path_prob=1.0)
     td = env.reset()
@@ -472,7 +507,10 @@ def test_path_walks_stay_where_they_were_laid_while_robot_walks_follow_the_robot
 def test_paths_are_drawn_after_the_scene_so_first_scenes_are_paired():
     # the path draws come last in a reset: the same seed gives the same first scene with or without
     # paths (paired comparisons of training instructions)
-    a, b = ResourceCollectionEnv(num_envs=8, seed=3), ResourceCollectionEnv(num_envs=8, seed=3, waypoint_path_prob=0.5)
+    a, b = (
+        ResourceCollectionEnv(num_envs=8, seed=3),
+        ResourceCollectionEnv(num_envs=8, seed=3, waypoint_path_prob=0.5),
+    )
     a.reset(), b.reset()
     for name in ("pos", "res_pos", "inv_pos", "inv_timer"):
         assert torch.equal(getattr(a, name), getattr(b, name)), name
@@ -483,7 +521,9 @@ def test_paths_are_drawn_after_the_scene_so_first_scenes_are_paired():
 def test_waypoints_supplied_through_the_tensordict_drive_that_step():
     env, td = quiet_scene(inst_reward_scale=1.3)
     p = env.pos[0]
-    offsets = torch.tensor([[0.0, 0.3], [0.0, 0.6], [0.0, 0.9], [0.0, 9.0]])  # path +y; last one off-field
+    offsets = torch.tensor(
+        [[0.0, 0.3], [0.0, 0.6], [0.0, 0.9], [0.0, 9.0]]
+    )  # path +y; last one off-field
     supplied = (p[:, None, :] + offsets).unsqueeze(0)
     td.set(("agents", "waypoints"), supplied)
     nxt, _ = step(env, td, [UP] * 3)
@@ -506,17 +546,27 @@ def test_external_waypoints_are_kept_clipped_and_observed():
     policy = random_policy(env)
     for _ in range(2 * env.waypoint_interval + 1):
         torch.testing.assert_close(td["agents", "waypoints"], clipped)
-        own = td["agents", "observation"][..., 5:5 + 2 * K]
+        own = td["agents", "observation"][..., 5 : 5 + 2 * K]
         torch.testing.assert_close(own, (clipped - env.pos.unsqueeze(2)).flatten(2))
         td = step_mdp(env.step(policy(td)))
     torch.testing.assert_close(env.waypoints, clipped)
 
 
 # ---------------------------------------------------------------- bad input
-@pytest.mark.parametrize("name,value", [
-    ("n_agents", 0), ("n_resources", -1), ("num_envs", 0), ("field_size", -1.0), ("field_size", 0),
-    ("vision_radius", 0.0), ("vision_radius", -0.5), ("max_steps", 0), ("n_waypoints", 1),
-])
+@pytest.mark.parametrize(
+    "name,value",
+    [
+        ("n_agents", 0),
+        ("n_resources", -1),
+        ("num_envs", 0),
+        ("field_size", -1.0),
+        ("field_size", 0),
+        ("vision_radius", 0.0),
+        ("vision_radius", -0.5),
+        ("max_steps", 0),
+        ("n_waypoints", 1),
+    ],
+)
 def test_bad_parameters_raise_naming_the_parameter(name, value):
     with pytest.raises(ValueError, match=name):
         ResourceCollectionEnv(**{name: value})

@@ -1,4 +1,5 @@
 """``icco eval`` end to end on smoke checkpoints: tables, figures, clean refusals."""
+
 import csv
 import json
 import os
@@ -9,14 +10,20 @@ from pathlib import Path
 import pytest
 
 from icco_torchrl.cli import main
-from icco_torchrl.evaluation.runner import find_checkpoints
 from icco_torchrl.evaluation.metrics import learning_curves
 from icco_torchrl.evaluation.plots import plot_curves
+from icco_torchrl.evaluation.runner import find_checkpoints
 from icco_torchrl.training.build import compose_config
 
 # A seconds-long training run: a checkpoint with real weights, nothing learned.
-SMOKE = ["experiment=smoke", "train.total_frames=256", "train.eval_interval=0", "train.checkpoint_interval=0",
-         "train.eval_envs=2", "logger.progress=false"]
+SMOKE = [
+    "experiment=smoke",
+    "train.total_frames=256",
+    "train.eval_interval=0",
+    "train.checkpoint_interval=0",
+    "train.eval_envs=2",
+    "logger.progress=false",
+]
 
 
 def icco(*args: str) -> int:
@@ -37,10 +44,26 @@ def smoke_checkpoints(tmp_path_factory, methods) -> dict[str, Path]:
     root = tmp_path_factory.getbasetemp() / "smoke_checkpoints"
     root.mkdir(exist_ok=True)
     env = {**os.environ, "OMP_NUM_THREADS": "1", "WANDB_MODE": "disabled"}
-    jobs = {m: subprocess.Popen([sys.executable, "-m", "icco_torchrl", "train", f"method={m}", *SMOKE,
-                                 f"hydra.run.dir={root / m}"], cwd=root, env=env, text=True,
-                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
-            for m in methods if not (root / m / "checkpoint.pt").exists()}
+    jobs = {
+        m: subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "icco_torchrl",
+                "train",
+                f"method={m}",
+                *SMOKE,
+                f"hydra.run.dir={root / m}",
+            ],
+            cwd=root,
+            env=env,
+            text=True,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+        )
+        for m in methods
+        if not (root / m / "checkpoint.pt").exists()
+    }
     for method, job in jobs.items():
         out, _ = job.communicate(timeout=300)
         assert job.returncode == 0, f"smoke training of {method} failed:\n{out}"
@@ -54,29 +77,60 @@ def checkpoints(tmp_path_factory):
 
 def test_eval_compares_two_methods_and_writes_tables_and_figures(checkpoints, tmp_path, capsys):
     out = tmp_path / "eval"
-    code = icco("eval", f"eval.checkpoints=[{checkpoints['icco']},{checkpoints['qmix']}]",
-                "eval.protocol=quadrants", "eval.trials=2", "eval.steps=6", "eval.gif=true",
-                f"eval.out_dir={out}", f"hydra.run.dir={tmp_path / 'hydra'}")
+    code = icco(
+        "eval",
+        f"eval.checkpoints=[{checkpoints['icco']},{checkpoints['qmix']}]",
+        "eval.protocol=quadrants",
+        "eval.trials=2",
+        "eval.steps=6",
+        "eval.gif=true",
+        f"eval.out_dir={out}",
+        f"hydra.run.dir={tmp_path / 'hydra'}",
+    )
     printed = capsys.readouterr()
     assert code == 0, printed.err
-    table = [line for line in (out / "quadrants.md").read_text().splitlines() if line.startswith("| ")]
-    whole = table[:table.index("| method | quadrant 1 | quadrant 2 | quadrant 3 | quadrant 4 | episode |")]
-    refs = ["random", "follower", "heuristic", "blend (r=1.75 m)"]  # eval.references, on the same episodes
-    assert [row.split(" | ")[0] for row in whole[1:]] == ["| ICCO", "| QMIX"] + [f"| {r}" for r in refs]
+    table = [
+        line for line in (out / "quadrants.md").read_text().splitlines() if line.startswith("| ")
+    ]
+    whole = table[
+        : table.index("| method | quadrant 1 | quadrant 2 | quadrant 3 | quadrant 4 | episode |")
+    ]
+    refs = [
+        "random",
+        "follower",
+        "heuristic",
+        "blend (r=1.75 m)",
+    ]  # eval.references, on the same episodes
+    assert [row.split(" | ")[0] for row in whole[1:]] == ["| ICCO", "| QMIX"] + [
+        f"| {r}" for r in refs
+    ]
     assert "| ICCO | 2 (1 seed) |" in printed.out  # the table is printed too
     rows = list(csv.DictReader((out / "quadrants_trials.csv").open()))
     assert len(rows) == 6 * 2 * 5  # (methods + references) x trials x (4 quadrants + episode)
     assert {r["method"] for r in rows} == {"ICCO", "QMIX", *refs}
     summary = json.loads((out / "quadrants.json").read_text())
     assert [c["method"] for c in summary["checkpoints"]] == ["ICCO", "QMIX"]
-    for name in ("quadrants_summary.csv", "quadrants_reward.png", "quadrants_reward.pdf",
-                 "quadrants_trajectories.png", "quadrants_trajectories.pdf", "quadrants_icco.gif", "quadrants_qmix.gif"):
+    for name in (
+        "quadrants_summary.csv",
+        "quadrants_reward.png",
+        "quadrants_reward.pdf",
+        "quadrants_trajectories.png",
+        "quadrants_trajectories.pdf",
+        "quadrants_icco.gif",
+        "quadrants_qmix.gif",
+    ):
         assert (out / name).stat().st_size > 0, name
 
 
 def test_a_checkpoint_for_another_env_layout_is_refused_cleanly(checkpoints, tmp_path, capsys):
-    code = icco("eval", f"checkpoint={checkpoints['icco']}", "env.params.n_resources=4", "eval.trials=2",
-                "eval.steps=4", f"hydra.run.dir={tmp_path}")
+    code = icco(
+        "eval",
+        f"checkpoint={checkpoints['icco']}",
+        "env.params.n_resources=4",
+        "eval.trials=2",
+        "eval.steps=4",
+        f"hydra.run.dir={tmp_path}",
+    )
     assert code == 2
     err = capsys.readouterr().err
     assert err.startswith("icco eval: ") and len(err.strip().splitlines()) == 1
@@ -92,7 +146,9 @@ def test_without_a_checkpoint_the_newest_run_is_used_or_the_user_is_told_to_trai
         path.parent.mkdir(parents=True)
         path.touch()
         os.utime(path, (mtime, mtime))
-    assert find_checkpoints(cfg, root=tmp_path) == [tmp_path / "runs" / "icco" / "new" / "checkpoint.pt"]
+    assert find_checkpoints(cfg, root=tmp_path) == [
+        tmp_path / "runs" / "icco" / "new" / "checkpoint.pt"
+    ]
     with pytest.raises(ValueError, match="'nowhere/\\*.pt' matched no file"):
         find_checkpoints(compose_config(["eval.checkpoints=[nowhere/*.pt]"]))
 
@@ -102,10 +158,16 @@ def test_learning_curves_average_seeds(tmp_path):
     for seed, rewards in enumerate(([0.0, 2.0, 4.0], [2.0, 4.0, 6.0])):
         run = tmp_path / f"seed{seed}"
         run.mkdir()
-        lines = ["frames,reward,reward_std"] + [f"{f},{r},0" for f, r in zip((0, 100, 200), rewards)]
+        lines = ["frames,reward,reward_std"] + [
+            f"{f},{r},0" for f, r in zip((0, 100, 200), rewards)
+        ]
         (run / "eval.csv").write_text("\n".join(lines) + "\n")
         runs.append(run)
     curves = learning_curves({"ICCO": runs + [tmp_path / "no_csv_yet"]})
-    assert curves["ICCO"].mean.tolist() == [1.0, 3.0, 5.0] and curves["ICCO"].std.tolist() == [1.0, 1.0, 1.0]
+    assert curves["ICCO"].mean.tolist() == [1.0, 3.0, 5.0] and curves["ICCO"].std.tolist() == [
+        1.0,
+        1.0,
+        1.0,
+    ]
     assert len(curves["ICCO"].runs) == 2
     assert all(p.stat().st_size > 0 for p in plot_curves(curves, tmp_path / "curves"))

@@ -1,4 +1,5 @@
 """ICCOLoss reused on another env with renamed keys (``examples/reuse_loss.py``)."""
+
 import importlib.util
 import json
 import math
@@ -54,7 +55,9 @@ def test_rendezvous_env_specs_and_dynamics():
     # new positions (0.1,0), (0.3,0), (0,0.3): distances 0.2, sqrt(0.01+0.09), sqrt(0.09+0.09)
     expected = -(0.2 + math.sqrt(0.1) + math.sqrt(0.18)) / 3
     torch.testing.assert_close(out["team_reward"], torch.full((3, 1), expected))
-    torch.testing.assert_close(out["robots", "obs"][0, 1], torch.tensor([0.3, 0.0, -0.2, 0.0, -0.3, 0.3]))
+    torch.testing.assert_close(
+        out["robots", "obs"][0, 1], torch.tensor([0.3, 0.0, -0.2, 0.0, -0.3, 0.3])
+    )
     torch.testing.assert_close(out["world"][0], torch.tensor([0.1, 0.0, 0.3, 0.0, 0.0, 0.3]))
     ro = env.rollout(25, break_when_any_done=False)
     done = ro["next", "done"].squeeze(-1)
@@ -65,8 +68,16 @@ def test_rendezvous_env_specs_and_dynamics():
 def test_data_uses_renamed_keys_only(segments):
     _, ro, seg = segments
     assert not _has_agents_key(ro) and not _has_agents_key(seg)
-    for key in [("robots", "obs"), ("robots", "move"), "world", ("next", "team_reward"), ("robots", "z_noise"),
-                ("robots", "rnn_hidden"), ("robots", "prev_action"), "mask"]:
+    for key in [
+        ("robots", "obs"),
+        ("robots", "move"),
+        "world",
+        ("next", "team_reward"),
+        ("robots", "z_noise"),
+        ("robots", "rnn_hidden"),
+        ("robots", "prev_action"),
+        "mask",
+    ]:
         assert key in seg.keys(True, True), key
     assert "reward" not in seg["next"].keys() and "state" not in seg.keys()
 
@@ -93,8 +104,13 @@ def test_loss_reads_renamed_keys(segments):
 
 def test_loss_without_set_keys_names_the_missing_key(segments):
     parts, _, seg = segments
-    plain = ICCOLoss(parts["agent"], parts["mixer"], parts["coordinator"], parts["posterior"],
-                     gamma=parts["loss"].gamma)
+    plain = ICCOLoss(
+        parts["agent"],
+        parts["mixer"],
+        parts["coordinator"],
+        parts["posterior"],
+        gamma=parts["loss"].gamma,
+    )
     with pytest.raises(KeyError) as err:
         plain(seg)
     msg = err.value.args[0]
@@ -105,7 +121,7 @@ def test_loss_without_set_keys_names_the_missing_key(segments):
         plain(seg)
     assert "('agents', 'observation')" in err.value.args[0]
     plain.set_keys(**ex.LOSS_KEYS)
-    torch.manual_seed(0)                       # the bootstrap z at the next broadcast uses fresh noise
+    torch.manual_seed(0)  # the bootstrap z at the next broadcast uses fresh noise
     mine = plain(seg)["loss_td"]
     torch.manual_seed(0)
     torch.testing.assert_close(mine, parts["loss"](seg)["loss_td"], atol=0.0, rtol=0.0)
@@ -113,18 +129,32 @@ def test_loss_without_set_keys_names_the_missing_key(segments):
 
 def test_make_policy_accepts_another_action_name(segments):
     parts = segments[0]
-    policy = make_policy(parts["agent"], parts["env"].full_action_spec_unbatched, parts["coordinator"], group="robots",
-                         action_name="move")
+    policy = make_policy(
+        parts["agent"],
+        parts["env"].full_action_spec_unbatched,
+        parts["coordinator"],
+        group="robots",
+        action_name="move",
+    )
     td = policy(parts["env"].reset())
     move = td.get(("robots", "move"))  # the action lands under the renamed key, in range
-    assert move.shape[:2] == td.get(("robots", "obs")).shape[:2] and ("robots", "action") not in td.keys(True)
+    assert move.shape[:2] == td.get(("robots", "obs")).shape[:2] and (
+        "robots",
+        "action",
+    ) not in td.keys(True)
 
 
 def test_main_tiny_budget():
     result = ex.main(total_frames=640, seed=0)
     assert result["frames"] == 640 and result["updates"] > 0 and len(result["history"]) > 0
-    for name in ("first_loss_td", "last_loss_td", "first_loss_ce", "last_loss_ce", "eval_return_before",
-                 "eval_return_after"):
+    for name in (
+        "first_loss_td",
+        "last_loss_td",
+        "first_loss_ce",
+        "last_loss_ce",
+        "eval_return_before",
+        "eval_return_after",
+    ):
         assert math.isfinite(result[name]), name
     for row in result["history"]:
         assert all(math.isfinite(v) for v in row.values())
@@ -140,8 +170,13 @@ def test_main_tiny_budget():
 
 
 def test_example_runs_as_a_script():
-    proc = subprocess.run([sys.executable, str(EXAMPLE), "--total-frames", "320", "--seed", "1"],
-                          capture_output=True, text=True, timeout=120, cwd=EXAMPLE.parent)
+    proc = subprocess.run(
+        [sys.executable, str(EXAMPLE), "--total-frames", "320", "--seed", "1"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=EXAMPLE.parent,
+    )
     assert proc.returncode == 0, proc.stderr[-2000:]
-    result = json.loads(proc.stdout[proc.stdout.index("{"):])
+    result = json.loads(proc.stdout[proc.stdout.index("{") :])
     assert result["frames"] == 320 and math.isfinite(result["last_loss_td"])

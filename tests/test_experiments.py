@@ -1,4 +1,5 @@
 """The experiment scripts' run lists compose into valid configs (a typo there would only show after hours)."""
+
 from __future__ import annotations
 
 import importlib.util

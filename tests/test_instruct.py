@@ -1,15 +1,16 @@
 """``icco instruct`` and the LLM instruction source, on the offline rule planner (no network)."""
+
 import json
 
 import pytest
 import torch
+from fake_openai import closed_port
+from test_eval_cli import icco, smoke_checkpoints
 
+from icco_torchrl.commands.instruct import out_dir_name
 from icco_torchrl.envs import ResourceCollectionEnv
 from icco_torchrl.instructions import LLMPlanner, LLMSource
-from fake_openai import closed_port
-from icco_torchrl.commands.instruct import out_dir_name
 from icco_torchrl.instructions.sources import split_instructions
-from test_eval_cli import icco, smoke_checkpoints
 
 
 @pytest.fixture(scope="module")
@@ -22,20 +23,47 @@ def scene(num_envs=4, seed=0):
     return env, env.reset()
 
 
-def test_instruct_runs_a_schedule_of_instructions_and_writes_its_outputs(checkpoint, tmp_path, capsys):
+def test_instruct_runs_a_schedule_of_instructions_and_writes_its_outputs(
+    checkpoint, tmp_path, capsys
+):
     out = tmp_path / "instruct"
-    code = icco("instruct", "Go right; Move top", f"checkpoint={checkpoint}", "eval.trials=2", "eval.steps=8",
-                "eval.episodes=2", "eval.gif=true", f"eval.out_dir={out}", f"hydra.run.dir={tmp_path / 'hydra'}")
+    code = icco(
+        "instruct",
+        "Go right; Move top",
+        f"checkpoint={checkpoint}",
+        "eval.trials=2",
+        "eval.steps=8",
+        "eval.episodes=2",
+        "eval.gif=true",
+        f"eval.out_dir={out}",
+        f"hydra.run.dir={tmp_path / 'hydra'}",
+    )
     assert code == 0, capsys.readouterr().err
     report = (out / "instruct.md").read_text()
-    assert '"Go right" -> "Move top"' in report and "| ICCO | 4 (1 seed) |" in report  # 2 trials x 2 episodes
+    assert (
+        '"Go right" -> "Move top"' in report and "| ICCO | 4 (1 seed) |" in report
+    )  # 2 trials x 2 episodes
     summary = json.loads((out / "instruct.json").read_text())
-    assert summary["segments"] == ["Go right", "Move top"] and summary["model"] == "offline/rule-planner"
+    assert (
+        summary["segments"] == ["Go right", "Move top"]
+        and summary["model"] == "offline/rule-planner"
+    )
     # one plan per trial and instruction, counted once per episode
-    assert [(s["episode"], s["segment"], s["plans"], s["fallbacks"]) for s in summary["sources"]] == [
-        (0, "Go right", 2, 0), (0, "Move top", 2, 0), (1, "Go right", 2, 0), (1, "Move top", 2, 0)]
-    for name in ("instruct_trials.csv", "instruct_summary.csv", "instruct_trajectories.png", "instruct_reward.png",
-                 "instruct_icco.gif"):
+    assert [
+        (s["episode"], s["segment"], s["plans"], s["fallbacks"]) for s in summary["sources"]
+    ] == [
+        (0, "Go right", 2, 0),
+        (0, "Move top", 2, 0),
+        (1, "Go right", 2, 0),
+        (1, "Move top", 2, 0),
+    ]
+    for name in (
+        "instruct_trials.csv",
+        "instruct_summary.csv",
+        "instruct_trajectories.png",
+        "instruct_reward.png",
+        "instruct_icco.gif",
+    ):
         assert (out / name).stat().st_size > 0, name
 
 
@@ -46,10 +74,14 @@ def test_offline_go_right_is_a_line_on_the_right_side():
     waypoints = source(env, td, 0)
     assert waypoints.shape == (4, 3, 4, 2)
     final = waypoints[:, :, -1]
-    assert torch.allclose(final[..., 0], torch.full((4, 3), 0.7 * env.half), atol=1e-2)  # x on the right
+    assert torch.allclose(
+        final[..., 0], torch.full((4, 3), 0.7 * env.half), atol=1e-2
+    )  # x on the right
     gaps = final[..., 1].sort(-1).values.diff(dim=-1)
-    assert (gaps > 0.5).all()                                                            # spread along y
-    assert ((waypoints[:, :, 0] - env.pos).norm(dim=-1) < (final - env.pos).norm(dim=-1) + 1e-6).all()
+    assert (gaps > 0.5).all()  # spread along y
+    assert (
+        (waypoints[:, :, 0] - env.pos).norm(dim=-1) < (final - env.pos).norm(dim=-1) + 1e-6
+    ).all()
     assert source.stats == {"plans": 4, "failures": 0, "fallbacks": 0, "cache_hits": 0}
     assert source(env, td, 1) is None  # planned once per instruction
 
@@ -78,7 +110,12 @@ def test_replanning_and_fallbacks_are_counted():
 
 
 def test_unknown_instruction_is_a_clear_error_naming_it(checkpoint, tmp_path, capsys):
-    code = icco("instruct", "Go right; Dance please", f"checkpoint={checkpoint}", f"hydra.run.dir={tmp_path}")
+    code = icco(
+        "instruct",
+        "Go right; Dance please",
+        f"checkpoint={checkpoint}",
+        f"hydra.run.dir={tmp_path}",
+    )
     assert code == 2
     err = capsys.readouterr().err
     assert err.startswith("icco instruct: ") and "'Dance please'" in err
@@ -95,37 +132,83 @@ def test_instruction_schedules_are_split_on_semicolons():
 
 
 def test_output_folders_of_different_schedules_are_different():
-    long_a, long_b = "Go right " + "and keep going " * 5 + "then stop", "Go right " + "and keep going " * 5 + "then turn"
+    long_a, long_b = (
+        "Go right " + "and keep going " * 5 + "then stop",
+        "Go right " + "and keep going " * 5 + "then turn",
+    )
     assert long_a[:60] == long_b[:60]
-    schedules = [["Go right"], ["Go right 🚀"], ["Go right!"], ["go right"], [long_a], [long_b],
-                 ["Go right", "Move top"], ["Go right; Move top"], ["🚀"]]
+    schedules = [
+        ["Go right"],
+        ["Go right 🚀"],
+        ["Go right!"],
+        ["go right"],
+        [long_a],
+        [long_b],
+        ["Go right", "Move top"],
+        ["Go right; Move top"],
+        ["🚀"],
+    ]
     names = [out_dir_name(s) for s in schedules]
     assert len(set(names)) == len(names), names
     assert names[0].startswith("instruct_go_right_") and names[-1].startswith("instruct_")
-    assert out_dir_name(split_instructions("Go right ;Move top")) == out_dir_name(["Go right", "Move top"])
-    assert all(name == name.encode("ascii", "ignore").decode() and "/" not in name for name in names)
+    assert out_dir_name(split_instructions("Go right ;Move top")) == out_dir_name(
+        ["Go right", "Move top"]
+    )
+    assert all(
+        name == name.encode("ascii", "ignore").decode() and "/" not in name for name in names
+    )
 
 
-UNREACHABLE = ("llm=openai", "llm.cache_dir=null", "llm.timeout_s=1", "llm.deadline_s=3", "llm.max_retries=1",
-               "llm.backoff_s=0", "eval.trials=1", "eval.episodes=1", "eval.steps=4")
+UNREACHABLE = (
+    "llm=openai",
+    "llm.cache_dir=null",
+    "llm.timeout_s=1",
+    "llm.deadline_s=3",
+    "llm.max_retries=1",
+    "llm.backoff_s=0",
+    "eval.trials=1",
+    "eval.episodes=1",
+    "eval.steps=4",
+)
 
 
-def test_an_unreachable_model_stops_instruct_with_one_line(checkpoint, tmp_path, capsys, monkeypatch):
+def test_an_unreachable_model_stops_instruct_with_one_line(
+    checkpoint, tmp_path, capsys, monkeypatch
+):
     monkeypatch.setenv("OPENAI_API_KEY", "sk-test")
-    code = icco("instruct", "Go right", f"checkpoint={checkpoint}", *UNREACHABLE,
-                f"llm.api_base=http://127.0.0.1:{closed_port()}/v1", f"eval.out_dir={tmp_path / 'out'}",
-                f"hydra.run.dir={tmp_path / 'hydra'}")
+    code = icco(
+        "instruct",
+        "Go right",
+        f"checkpoint={checkpoint}",
+        *UNREACHABLE,
+        f"llm.api_base=http://127.0.0.1:{closed_port()}/v1",
+        f"eval.out_dir={tmp_path / 'out'}",
+        f"hydra.run.dir={tmp_path / 'hydra'}",
+    )
     err = capsys.readouterr().err.strip()
-    assert code == 2 and err.startswith("icco instruct: LLM openai/gpt-4o") and len(err.splitlines()) == 1, err
+    assert (
+        code == 2
+        and err.startswith("icco instruct: LLM openai/gpt-4o")
+        and len(err.splitlines()) == 1
+    ), err
     assert "Connection refused" in err and "llm.fallback_on_error=true" in err
     assert not (tmp_path / "out").exists()
 
 
 def test_with_fallbacks_instruct_runs_on_and_counts_them(checkpoint, tmp_path, capsys, monkeypatch):
     monkeypatch.setenv("OPENAI_API_KEY", "sk-test")
-    code = icco("instruct", "Go right 🚀", f"checkpoint={checkpoint}", *UNREACHABLE, "llm.fallback_on_error=true",
-                f"llm.api_base=http://127.0.0.1:{closed_port()}/v1", f"hydra.run.dir={tmp_path / 'hydra'}")
+    code = icco(
+        "instruct",
+        "Go right 🚀",
+        f"checkpoint={checkpoint}",
+        *UNREACHABLE,
+        "llm.fallback_on_error=true",
+        f"llm.api_base=http://127.0.0.1:{closed_port()}/v1",
+        f"hydra.run.dir={tmp_path / 'hydra'}",
+    )
     assert code == 0, capsys.readouterr().err
-    out = checkpoint.parent / out_dir_name(["Go right 🚀"])  # the default folder, beside the checkpoint
+    out = checkpoint.parent / out_dir_name(
+        ["Go right 🚀"]
+    )  # the default folder, beside the checkpoint
     summary = json.loads((out / "instruct.json").read_text())
     assert summary["sources"] and all(s["fallbacks"] == s["plans"] > 0 for s in summary["sources"])

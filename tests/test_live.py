@@ -1,4 +1,5 @@
 """The live loop: it ticks in real time, takes instructions without blocking, reports what it does."""
+
 from __future__ import annotations
 
 import time
@@ -33,13 +34,20 @@ class SlowPlanner:
         self.calls += 1
         time.sleep(self.delay)
         wp = np.full(previous.shape, 1.5, dtype=np.float32)
-        return PlanResult(wp if self.ok else previous, self.ok, 1, None if self.ok else "previous",
-                          None if self.ok else "not understood")
+        return PlanResult(
+            wp if self.ok else previous,
+            self.ok,
+            1,
+            None if self.ok else "previous",
+            None if self.ok else "not understood",
+        )
 
 
 def test_ticks_step_the_team_and_report_it():
     loop = team()
-    states = [loop.tick() for _ in range(45)]  # past max_steps: a new episode starts, the loop goes on
+    states = [
+        loop.tick() for _ in range(45)
+    ]  # past max_steps: a new episode starts, the loop goes on
     assert [s.tick for s in states] == list(range(1, 46))
     assert states[39].step == 40 and states[40].step == 1  # a new episode after the env's last step
     s = states[-1]
@@ -55,7 +63,7 @@ def test_an_instruction_is_planned_beside_the_loop_and_applied_on_the_next_tick(
     start = time.perf_counter()
     loop.instruct("Go right")
     assert time.perf_counter() - start < 0.1  # returns at once
-    during = [loop.tick() for _ in range(3)]   # the team keeps moving on its old plan meanwhile
+    during = [loop.tick() for _ in range(3)]  # the team keeps moving on its old plan meanwhile
     assert time.perf_counter() - start < 0.45
     assert all(s.planner["state"] == "thinking" for s in during)
     assert np.allclose(during[-1].waypoints, before)

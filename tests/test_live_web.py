@@ -1,10 +1,10 @@
 """The live page: its WebSocket protocol with several tabs, its bad input, and the page itself in a
 real headless browser (Chromium through the DevTools protocol)."""
+
 from __future__ import annotations
 
 import asyncio
 import json
-import os
 import shutil
 import socket
 import subprocess
@@ -98,9 +98,13 @@ def test_two_tabs_watch_one_loop_and_either_can_instruct(served):
                 for tab in (a, b):  # both tabs see the plan arrive, and the waypoints move right
                     await tab.until(lambda t=tab: t.ticks[-1]["planner"]["state"] == "used")
                 wp = np.asarray(a.ticks[-1]["waypoints"])
-                assert (wp[:, -1, 0] > 1).all() and a.ticks[-1]["planner"]["instruction"] == "Go right"  # paths end right
+                assert (wp[:, -1, 0] > 1).all() and a.ticks[-1]["planner"][
+                    "instruction"
+                ] == "Go right"  # paths end right
                 ticks = [t["tick"] for t in a.ticks]
-                assert ticks == sorted(ticks) and len(set(ticks)) == len(ticks)  # newest only, in order
+                assert ticks == sorted(ticks) and len(set(ticks)) == len(
+                    ticks
+                )  # newest only, in order
             assert a.errors == [] and b.errors == []
 
     asyncio.run(scenario())
@@ -121,9 +125,16 @@ def test_bad_requests_get_one_line_errors_and_the_team_keeps_its_plan(served):
                 await a.send(type="speed", value=3)
                 await a.until(lambda: len(a.errors) == 4)
                 assert "empty instruction" in a.errors[0] and "JSON" in a.errors[1]
-                assert "unknown request type 'dance'" in a.errors[2] and "speed must be one of" in a.errors[3]
-                assert all("\n" not in e for e in a.errors) and b.errors == []  # only the sender hears of it
-                await a.send(type="instruct", text="make me a sandwich")  # not understood by the planner
+                assert (
+                    "unknown request type 'dance'" in a.errors[2]
+                    and "speed must be one of" in a.errors[3]
+                )
+                assert (
+                    all("\n" not in e for e in a.errors) and b.errors == []
+                )  # only the sender hears of it
+                await a.send(
+                    type="instruct", text="make me a sandwich"
+                )  # not understood by the planner
                 await a.until(lambda: a.ticks[-1]["planner"]["state"] == "fell back")
                 assert a.ticks[-1]["planner"]["error"]
                 assert np.allclose(a.ticks[-1]["waypoints"], planned)
@@ -137,7 +148,7 @@ def test_pause_step_speed_reset_and_a_vanished_tab_never_stop_the_loop(served):
 
     async def scenario():
         async with aiohttp.ClientSession() as session:
-            gone = await session.ws_connect(url + "/ws")   # a tab that will vanish without closing
+            gone = await session.ws_connect(url + "/ws")  # a tab that will vanish without closing
             async with Tab(session, url + "/ws") as a:
                 await a.until(lambda: len(a.ticks) > 5)
                 await a.send(type="pause")
@@ -145,14 +156,16 @@ def test_pause_step_speed_reset_and_a_vanished_tab_never_stop_the_loop(served):
                 await asyncio.sleep(0.2)
                 frozen = loop.ticks
                 await asyncio.sleep(0.3)
-                assert loop.ticks == frozen                      # paused: no ticks
+                assert loop.ticks == frozen  # paused: no ticks
                 await a.send(type="step")
                 await a.until(lambda: loop.ticks == frozen + 1)  # exactly one
                 await a.send(type="reset")
-                await a.until(lambda: a.ticks[-1]["totals"]["reward"] == 0.0 and a.ticks[-1]["step"] == 0)
+                await a.until(
+                    lambda: a.ticks[-1]["totals"]["reward"] == 0.0 and a.ticks[-1]["step"] == 0
+                )
                 await a.send(type="speed", value=2.0)
                 await a.send(type="resume")
-                gone._response.connection.transport.abort()     # the other tab drops off the network
+                gone._response.connection.transport.abort()  # the other tab drops off the network
                 start = loop.ticks
                 await a.until(lambda: not a.ticks[-1]["paused"] and loop.ticks > start + 20)
                 assert a.ticks[-1]["speed"] == 2.0 and a.ticks[-1]["clients"] == 1
@@ -171,9 +184,18 @@ def test_a_busy_port_is_one_line_naming_it():
     busy.listen()
     port = busy.getsockname()[1]
     try:
-        with pytest.raises(OSError, match=f"cannot listen on http://127.0.0.1:{port}.*live.web_port"):
+        with pytest.raises(
+            OSError, match=f"cannot listen on http://127.0.0.1:{port}.*live.web_port"
+        ):
             LiveServer(smoke_team(), port=port).start_in_thread()
-        cli = [sys.executable, "-m", "icco_torchrl", "live", f"live.web_port={port}", "live.seconds=5"]
+        cli = [
+            sys.executable,
+            "-m",
+            "icco_torchrl",
+            "live",
+            f"live.web_port={port}",
+            "live.seconds=5",
+        ]
         out = subprocess.run(cli, capture_output=True, text=True, timeout=120)
     finally:
         busy.close()
@@ -183,7 +205,14 @@ def test_a_busy_port_is_one_line_naming_it():
 
 # ---------------------------------------------------------------------------------- real browser
 def _chromium() -> str | None:
-    return next((shutil.which(n) for n in ("chromium", "chromium-browser", "google-chrome") if shutil.which(n)), None)
+    return next(
+        (
+            shutil.which(n)
+            for n in ("chromium", "chromium-browser", "google-chrome")
+            if shutil.which(n)
+        ),
+        None,
+    )
 
 
 class DevTools:
@@ -222,9 +251,21 @@ def browser():
     if exe is None:
         pytest.skip("no Chromium installed (apt-get install chromium; .ci/run installs it)")
     profile = tempfile.mkdtemp(prefix="icco-chromium-")
-    proc = subprocess.Popen([exe, "--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
-                             "--no-first-run", "--remote-debugging-port=0", f"--user-data-dir={profile}",
-                             "about:blank"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    proc = subprocess.Popen(
+        [
+            exe,
+            "--headless=new",
+            "--no-sandbox",
+            "--disable-gpu",
+            "--disable-dev-shm-usage",
+            "--no-first-run",
+            "--remote-debugging-port=0",
+            f"--user-data-dir={profile}",
+            "about:blank",
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     port_file = Path(profile) / "DevToolsActivePort"
     end = time.monotonic() + 60
     while not port_file.is_file() or not port_file.read_text().strip():
@@ -253,17 +294,27 @@ def test_the_page_in_a_real_browser_go_right_moves_waypoints_and_robots(served, 
                 tools = DevTools(ws)
                 await tools.call("Page.navigate", url=url + "/")
                 await tools.until("window.icco && icco.connected && icco.ticks > 5")
-                assert await tools.js("document.getElementById('policy').textContent.includes('demo_icco.pt')")
-                before = await tools.js("icco.state.waypoints.flat().reduce((s, w) => s + w[0], 0) / 12")
+                assert await tools.js(
+                    "document.getElementById('policy').textContent.includes('demo_icco.pt')"
+                )
+                before = await tools.js(
+                    "icco.state.waypoints.flat().reduce((s, w) => s + w[0], 0) / 12"
+                )
                 # A person clicks the box, types and presses Send.
                 await tools.js("document.getElementById('instruction').focus()")
                 await tools.call("Input.insertText", text="Go right")
                 await tools.js("document.getElementById('send').click()")
                 await tools.until("icco.state.planner.state === 'used'")
-                assert "Go right" in await tools.js("document.getElementById('planner').textContent")
-                after = await tools.js("icco.state.waypoints.flat().reduce((s, w) => s + w[0], 0) / 12")
+                assert "Go right" in await tools.js(
+                    "document.getElementById('planner').textContent"
+                )
+                after = await tools.js(
+                    "icco.state.waypoints.flat().reduce((s, w) => s + w[0], 0) / 12"
+                )
                 assert after > before + 0.3  # the waypoints moved right
-                assert await tools.js("icco.state.waypoints.every(path => path[path.length - 1][0] > 1)")
+                assert await tools.js(
+                    "icco.state.waypoints.every(path => path[path.length - 1][0] > 1)"
+                )
                 start = await tools.js("icco.state.tick")
                 # Within 60 ticks every robot is in the right half of the field.
                 await tools.until("icco.state.positions.every(p => p[0] > 0)", timeout=10)
@@ -272,12 +323,16 @@ def test_the_page_in_a_real_browser_go_right_moves_waypoints_and_robots(served, 
                 assert await tools.js("document.getElementById('tick').textContent.length > 0")
                 await tools.js("document.getElementById('instruction').value = '   '")
                 await tools.js("document.getElementById('send').click()")
-                assert "type an instruction" in await tools.js("document.getElementById('message').textContent")
+                assert "type an instruction" in await tools.js(
+                    "document.getElementById('message').textContent"
+                )
                 # The field is drawn: some pixels are neither white nor transparent.
-                drawn = await tools.js("(() => { const c = document.getElementById('field'); const d = "
-                                       "c.getContext('2d').getImageData(0, 0, c.width, c.height).data; let n = 0; "
-                                       "for (let i = 0; i < d.length; i += 4) if (d[i+3] && (d[i] < 200)) n++; "
-                                       "return n; })()")
+                drawn = await tools.js(
+                    "(() => { const c = document.getElementById('field'); const d = "
+                    "c.getContext('2d').getImageData(0, 0, c.width, c.height).data; let n = 0; "
+                    "for (let i = 0; i < d.length; i += 4) if (d[i+3] && (d[i] < 200)) n++; "
+                    "return n; })()"
+                )
                 assert drawn > 500
 
     asyncio.run(scenario())
@@ -291,7 +346,7 @@ def test_the_page_watches_a_bridge_driven_fleet_and_relays_instructions(served):
     from icco_torchrl.live.bridge import Bridge
     from icco_torchrl.live.fleet import SimulatedFleet
 
-    env = ResourceCollectionEnv(num_envs=1, seed=0, waypoint_mode="external", max_steps=10 ** 6)
+    env = ResourceCollectionEnv(num_envs=1, seed=0, waypoint_mode="external", max_steps=10**6)
     loop = LiveLoop(env, make_reference_policy("follower", env), LLMPlanner())
     server, url = served(loop, drive=False)
     bridge = Bridge(loop, rate_hz=20, timeout=0.5)
@@ -311,7 +366,9 @@ def test_the_page_watches_a_bridge_driven_fleet_and_relays_instructions(served):
                 await tab.send(type="instruct", text="Go right")
                 await tab.until(lambda: tab.ticks[-1]["planner"]["state"] == "used")
                 x0 = np.mean(tab.ticks[-1]["positions"], axis=0)[0]
-                await tab.until(lambda: np.mean(tab.ticks[-1]["positions"], axis=0)[0] > x0 + 0.5, timeout=7)
+                await tab.until(
+                    lambda: np.mean(tab.ticks[-1]["positions"], axis=0)[0] > x0 + 0.5, timeout=7
+                )
 
     with bridge_with_fleet(bridge, fleet, 8.0):
         asyncio.run(scenario())
@@ -327,4 +384,8 @@ def test_icco_live_through_the_cli_serves_the_demo_policy_and_refuses_a_bad_chec
     bad = tmp_path / "bad.pt"
     bad.write_bytes(b"not a checkpoint")
     proc = run_cli("live", f"checkpoint={bad}", "live.seconds=1", check=False, timeout=120)
-    assert proc.returncode == 2 and proc.stderr.strip().count("\n") == 0 and "not a checkpoint" in proc.stderr
+    assert (
+        proc.returncode == 2
+        and proc.stderr.strip().count("\n") == 0
+        and "not a checkpoint" in proc.stderr
+    )

@@ -18,8 +18,8 @@ from typing import Any
 
 import numpy as np
 import pytest
-
 from fake_openai import FakeOpenAI, closed_port
+
 from icco_torchrl.instructions.llm import (
     LLMPlanner,
     LLMUnavailable,
@@ -49,7 +49,9 @@ def litellm() -> Any:
 
 @pytest.fixture
 def offline_handler(litellm: Any) -> Any:
-    return next(e["custom_handler"] for e in litellm.custom_provider_map if e["provider"] == "offline")
+    return next(
+        e["custom_handler"] for e in litellm.custom_provider_map if e["provider"] == "offline"
+    )
 
 
 class Scripted:
@@ -64,7 +66,9 @@ class Scripted:
             def completion(self, *args: Any, **kwargs: Any) -> Any:
                 script.requests.append(kwargs)
                 message = {"role": "assistant", "content": script.replies.pop(0)}
-                return litellm.ModelResponse(choices=[{"index": 0, "finish_reason": "stop", "message": message}])
+                return litellm.ModelResponse(
+                    choices=[{"index": 0, "finish_reason": "stop", "message": message}]
+                )
 
         self.handler, self.replies, self.requests = Handler(), [], []
 
@@ -80,7 +84,9 @@ def scripted(litellm: Any, monkeypatch: pytest.MonkeyPatch) -> Scripted:
 def mocked(**settings: Any) -> LLMPlanner:
     """A planner for mock replies; its api_base is a closed local port, so a mock that
     litellm ignored would fail at once instead of reaching a real provider."""
-    return LLMPlanner(model="openai/gpt-4o", api_base="http://127.0.0.1:9", backoff_s=0.0, **settings)
+    return LLMPlanner(
+        model="openai/gpt-4o", api_base="http://127.0.0.1:9", backoff_s=0.0, **settings
+    )
 
 
 def starts(seed: int, n: int = 3, extent: float = 3.0) -> np.ndarray:
@@ -152,16 +158,28 @@ def test_waypoints_go_smoothly_from_the_agent_to_its_target() -> None:
 # --- paraphrases, places, formations ------------------------------------------------------
 
 PARAPHRASES = {
-    "Go right": ["head to the right side", "Move right!", "everyone go east", "line up on the right"],
+    "Go right": [
+        "head to the right side",
+        "Move right!",
+        "everyone go east",
+        "line up on the right",
+    ],
     "Move top": ["everyone go up", "go to the top", "move up", "head north"],
-    "Gather center": ["come together in the middle", "regroup at home", "converge on the centre", "go home"],
+    "Gather center": [
+        "come together in the middle",
+        "regroup at home",
+        "converge on the centre",
+        "go home",
+    ],
     "Spread out": ["fan out", "disperse", "scatter", "spread apart from the center"],
     "go left": ["move to the left side", "head west"],
     "move down": ["go to the bottom", "everyone move downwards"],
 }
 
 
-@pytest.mark.parametrize(("canonical", "paraphrase"), [(c, p) for c, ps in PARAPHRASES.items() for p in ps])
+@pytest.mark.parametrize(
+    ("canonical", "paraphrase"), [(c, p) for c, ps in PARAPHRASES.items() for p in ps]
+)
 def test_paraphrases_give_the_canonical_formation(canonical: str, paraphrase: str) -> None:
     pos = starts(11)
     assert np.allclose(final(paraphrase, pos), final(canonical, pos), atol=1e-3)
@@ -200,7 +218,9 @@ def test_task_orders_use_the_task_aligned_prompt() -> None:
     pos = np.array([[-2.0, -2.0], [2.0, 2.0], [2.5, -2.5]])
     resources = np.array([[-1.5, -1.5], [1.5, 1.8], [0.0, 3.0]])
     invader = np.array([[3.0, -3.0]])
-    collect = final("collect the resources", pos, prompt="tap", resources=resources, invader=invader)
+    collect = final(
+        "collect the resources", pos, prompt="tap", resources=resources, invader=invader
+    )
     assert np.allclose(collect, resources, atol=1e-3)
     task = final("do the task", pos, prompt="tap", resources=resources, invader=invader)
     path = np.linspace(invader[0], [0.0, 0.0], 50)
@@ -227,7 +247,9 @@ def test_offline_planner_is_fast(litellm: Any) -> None:
     begin = time.perf_counter()
     for _ in range(50):
         planner.plan("Spread out", pos)
-    assert (time.perf_counter() - begin) / 50 < 0.010  # whole litellm round trip: ~4 ms on a 2-core CPU
+    assert (
+        time.perf_counter() - begin
+    ) / 50 < 0.010  # whole litellm round trip: ~4 ms on a 2-core CPU
 
 
 def test_offline_results_are_clipped_to_the_field() -> None:
@@ -246,7 +268,9 @@ def test_prompts_follow_the_paper() -> None:
                  "Trajectory Generation", "POSITIONS_JSON", '"Go right"', "[-3.25, 3.25]"):  # fmt: skip
         assert text in plain
     assert "+5" not in plain and "invader" not in plain
-    tap = build_messages("Go right", pos, prompt="tap", resources=[[1.0, 2.0]], invader=[[3.0, 0.0]])[-1]["content"]
+    tap = build_messages(
+        "Go right", pos, prompt="tap", resources=[[1.0, 2.0]], invader=[[3.0, 0.0]]
+    )[-1]["content"]
     for text in ("collect resources", "defend home", "+5", "+1", "+4", "-4", "RESOURCES_JSON: [[1.0, 2.0]]",
                  "INVADER_JSON: [[3.0, 0.0]]", "STRICTLY COMPLY"):  # fmt: skip
         assert text in tap
@@ -262,7 +286,11 @@ def test_response_format_is_a_strict_schema_with_fixed_agent_keys(scripted: Scri
     schema = params["response_format"]["json_schema"]["schema"]
     assert schema == response_format(3, K)["json_schema"]["schema"]
     assert schema["required"] == ["movement_strategy", "agent_0", "agent_1", "agent_2"]
-    assert schema["properties"]["agent_0"]["minItems"] == schema["properties"]["agent_0"]["maxItems"] == K
+    assert (
+        schema["properties"]["agent_0"]["minItems"]
+        == schema["properties"]["agent_0"]["maxItems"]
+        == K
+    )
 
 
 def test_last_json_object_skips_prose_and_takes_the_last_object() -> None:
@@ -284,7 +312,9 @@ def test_custom_provider_round_trip(litellm: Any) -> None:
     assert (np.linalg.norm(waypoints[:, -1], axis=1) < 0.5).all()
 
 
-def test_registration_is_idempotent_and_keeps_other_providers(litellm: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_registration_is_idempotent_and_keeps_other_providers(
+    litellm: Any, monkeypatch: pytest.MonkeyPatch
+) -> None:
     other = {"provider": "someone-else", "custom_handler": object()}
     monkeypatch.setattr(litellm, "custom_provider_map", [other])
     first = register_offline_provider(litellm)
@@ -294,7 +324,9 @@ def test_registration_is_idempotent_and_keeps_other_providers(litellm: Any, monk
 
 def test_mock_string_with_prose_is_parsed(litellm: Any) -> None:
     planner = mocked()
-    reply = valid_reply(value=1.5, prose="Movement Strategy: everyone to (1.5, -1.5).\nTrajectory Generation:\n")
+    reply = valid_reply(
+        value=1.5, prose="Movement Strategy: everyone to (1.5, -1.5).\nTrajectory Generation:\n"
+    )
     result = planner.plan("Go right", starts(0), mock_response=reply)
     assert result.ok and result.attempts == 1 and result.raw == reply and result.fallback is None
     assert np.allclose(result.waypoints, [1.5, -1.5])
@@ -306,7 +338,7 @@ def test_out_of_field_coordinates_are_clipped(litellm: Any) -> None:
 
 
 def _with(replace: str) -> str:
-    return valid_reply().replace('[[1.0, -1.0], [1.0, -1.0], [1.0, -1.0], [1.0, -1.0]]', replace, 1)
+    return valid_reply().replace("[[1.0, -1.0], [1.0, -1.0], [1.0, -1.0], [1.0, -1.0]]", replace, 1)
 
 
 BAD_REPLIES = {
@@ -325,9 +357,15 @@ BAD_REPLIES = {
 
 def _errors(litellm: Any) -> dict[str, BaseException]:
     return {
-        "timeout": litellm.Timeout(message="request timed out", model="gpt-4o", llm_provider="openai"),
-        "provider error": litellm.APIConnectionError(message="refused", llm_provider="openai", model="gpt-4o"),
-        "server error": litellm.ServiceUnavailableError(message="overloaded", llm_provider="openai", model="gpt-4o"),
+        "timeout": litellm.Timeout(
+            message="request timed out", model="gpt-4o", llm_provider="openai"
+        ),
+        "provider error": litellm.APIConnectionError(
+            message="refused", llm_provider="openai", model="gpt-4o"
+        ),
+        "server error": litellm.ServiceUnavailableError(
+            message="overloaded", llm_provider="openai", model="gpt-4o"
+        ),
     }
 
 
@@ -339,19 +377,31 @@ def test_bad_output_is_retried_then_falls_back(
     mock = BAD_REPLIES.get(case) if case in BAD_REPLIES else _errors(litellm)[case]
     pos = starts(0)
     previous = np.full((3, K, 2), 0.5) if with_previous else None
-    planner = mocked(max_retries=2, fallback_on_error=case not in BAD_REPLIES)  # no reply at all: opt in
+    planner = mocked(
+        max_retries=2, fallback_on_error=case not in BAD_REPLIES
+    )  # no reply at all: opt in
     with caplog.at_level(logging.WARNING, logger="icco_torchrl.instructions.llm"):
         result = planner.plan("Go right", pos, previous, mock_response=mock)
     assert not result.ok and result.attempts == 3 and result.error
-    assert planner.stats == {"calls": 1, "backend_calls": 3, "failures": 3, "fallbacks": 1, "cache_hits": 0}
+    assert planner.stats == {
+        "calls": 1,
+        "backend_calls": 3,
+        "failures": 3,
+        "fallbacks": 1,
+        "cache_hits": 0,
+    }
     assert result.waypoints.shape == (3, K, 2) and result.waypoints.dtype == np.float32
     if with_previous:
         assert result.fallback == "previous" and np.allclose(result.waypoints, 0.5)
     else:
-        assert result.fallback == "positions" and np.allclose(result.waypoints, pos[:, None].repeat(K, 1))
+        assert result.fallback == "positions" and np.allclose(
+            result.waypoints, pos[:, None].repeat(K, 1)
+        )
     if isinstance(mock, str):
         assert result.raw == mock
-        assert caplog.text.count("raw reply: " + repr(mock)[:40]) == 3  # each attempt logs the raw reply
+        assert (
+            caplog.text.count("raw reply: " + repr(mock)[:40]) == 3
+        )  # each attempt logs the raw reply
     else:
         assert result.raw is None and type(mock).__name__ in result.error
     assert "falling back to " + result.fallback in caplog.text
@@ -369,7 +419,9 @@ def test_mismatched_previous_falls_back_to_positions(litellm: Any) -> None:
     planner = mocked(max_retries=0)
     pos = starts(0)
     result = planner.plan("Go right", pos, previous=np.zeros((2, K, 2)), mock_response="nope")
-    assert result.fallback == "positions" and np.allclose(result.waypoints, pos[:, None].repeat(K, 1))
+    assert result.fallback == "positions" and np.allclose(
+        result.waypoints, pos[:, None].repeat(K, 1)
+    )
 
 
 def test_empty_replies_fall_back(scripted: Scripted) -> None:
@@ -392,7 +444,12 @@ def test_retry_shows_the_model_its_mistake(scripted: Scripted) -> None:
 def test_other_backends_never_raise_on_bad_output(litellm: Any) -> None:
     pos = starts(0)
     waypoints = plan_waypoints(
-        "Go right", pos, backend="openai", api_base="http://127.0.0.1:9", max_retries=0, mock_response="garbage"
+        "Go right",
+        pos,
+        backend="openai",
+        api_base="http://127.0.0.1:9",
+        max_retries=0,
+        mock_response="garbage",
     )
     assert np.allclose(waypoints, pos[:, None].repeat(K, 1))
 
@@ -416,7 +473,9 @@ def test_cache_replays_without_calling_the_backend(offline_handler: Any, tmp_pat
     replay = LLMPlanner(cache_dir=tmp_path).plan("Spread out", pos)  # a later evaluation
     assert offline_handler.invocations - before == 1
     assert not first.cached and second.cached and replay.cached and second.attempts == 0
-    assert second.raw == first.raw == replay.raw and np.array_equal(second.waypoints, first.waypoints)
+    assert second.raw == first.raw == replay.raw and np.array_equal(
+        second.waypoints, first.waypoints
+    )
     assert planner.stats["cache_hits"] == 1 and planner.stats["backend_calls"] == 1
     assert len(list(tmp_path.glob("*.json"))) == 1
 
@@ -424,7 +483,9 @@ def test_cache_replays_without_calling_the_backend(offline_handler: Any, tmp_pat
     assert offline_handler.invocations - before == 2 and len(list(tmp_path.glob("*.json"))) == 2
 
 
-def test_failures_are_not_cached_and_cache_can_be_disabled(offline_handler: Any, tmp_path: Path) -> None:
+def test_failures_are_not_cached_and_cache_can_be_disabled(
+    offline_handler: Any, tmp_path: Path
+) -> None:
     planner = mocked(cache_dir=tmp_path, max_retries=0)
     assert not planner.plan("Go right", starts(0), mock_response="garbage").ok
     assert list(tmp_path.glob("*.json")) == []
@@ -455,15 +516,21 @@ def test_task_aligned_prompt_bends_the_plan_toward_the_task():
     positions = np.array([[0.0, 0.0], [1.0, 1.0], [-1.0, -2.0]])
     plain, _ = rule_plan("Go right", positions, n_waypoints=4, half=3.25)
     invader, resource = np.array([[3.2, -3.0]]), np.array([[1.5, 1.2], [-2.5, 2.5]])
-    tap, strategy = rule_plan("Go right", positions, n_waypoints=4, half=3.25, resources=resource, invader=invader)
+    tap, strategy = rule_plan(
+        "Go right", positions, n_waypoints=4, half=3.25, resources=resource, invader=invader
+    )
     assert "intercepts the invader" in strategy
     interceptor = int(strategy.split("agent_")[1][0])
     path = invader[0] * (1 - np.linspace(0, 1, 50))[:, None]  # the invader's straight path home
     assert np.min(np.linalg.norm(path - tap[interceptor, -1], axis=1)) < 0.2
-    detour = [i for i in range(3) if i != interceptor and np.allclose(tap[i, 1], resource[0], atol=1e-6)]
+    detour = [
+        i for i in range(3) if i != interceptor and np.allclose(tap[i, 1], resource[0], atol=1e-6)
+    ]
     assert detour, "the robot next to a resource should pass through it"
     others = [i for i in range(3) if i != interceptor]
-    np.testing.assert_allclose(tap[others, -1], plain[others, -1])  # they still end on the instructed line
+    np.testing.assert_allclose(
+        tap[others, -1], plain[others, -1]
+    )  # they still end on the instructed line
 
 
 # --- a provider that does not reply ---------------------------------------------------------
@@ -495,7 +562,9 @@ NO_REPLY = {"refused": "Connection refused", "hang": "Timeout", "401": "Authenti
 
 @pytest.mark.parametrize("case", NO_REPLY)
 @pytest.mark.fault
-def test_a_model_that_never_replies_fails_fast_in_one_line(litellm: Any, openai_key: None, case: str) -> None:
+def test_a_model_that_never_replies_fails_fast_in_one_line(
+    litellm: Any, openai_key: None, case: str
+) -> None:
     with provider(case) as (url, server):
         planner = remote(url)
         begin = time.monotonic()
@@ -504,7 +573,11 @@ def test_a_model_that_never_replies_fails_fast_in_one_line(litellm: Any, openai_
         elapsed = time.monotonic() - begin
     message = str(info.value)
     assert elapsed < 3.0, f"took {elapsed:.1f} s for a {planner.deadline_s} s deadline"
-    assert "\n" not in message and NO_REPLY[case] in message and "llm.fallback_on_error=true" in message
+    assert (
+        "\n" not in message
+        and NO_REPLY[case] in message
+        and "llm.fallback_on_error=true" in message
+    )
     assert url.removesuffix("/v1") in message
     if case == "401":  # a refused key is refused again: not retried
         assert len(server.requests) == 1 and planner.stats["backend_calls"] == 1
@@ -513,8 +586,9 @@ def test_a_model_that_never_replies_fails_fast_in_one_line(litellm: Any, openai_
 
 @pytest.mark.parametrize("case", NO_REPLY)
 @pytest.mark.fault
-def test_with_fallbacks_a_model_that_never_replies_falls_back_and_records_it(litellm: Any, openai_key: None,
-                                                                             case: str) -> None:
+def test_with_fallbacks_a_model_that_never_replies_falls_back_and_records_it(
+    litellm: Any, openai_key: None, case: str
+) -> None:
     with provider(case) as (url, _):
         planner = remote(url, fallback_on_error=True)
         begin = time.monotonic()
@@ -560,11 +634,18 @@ def test_a_fake_openai_server_that_answers_gives_a_plan(litellm: Any, openai_key
     with FakeOpenAI("ok", reply=valid_reply(value=0.5)) as server:
         result = remote(server.url).plan("Go right", starts(0))
     assert result.ok and result.attempts == 1 and np.allclose(result.waypoints, [0.5, -0.5])
-    assert server.requests[0]["model"] == "gpt-4o" and server.requests[0]["messages"][-1]["role"] == "user"
+    assert (
+        server.requests[0]["model"] == "gpt-4o"
+        and server.requests[0]["messages"][-1]["role"] == "user"
+    )
 
 
 def test_a_bad_reply_still_falls_back_without_fallback_on_error(litellm: Any) -> None:
     planner = mocked(max_retries=1)
     assert not planner.fallback_on_error
     result = planner.plan("Go right", starts(0), mock_response="no plan here")
-    assert not result.ok and result.fallback == "positions" and result.error == "no JSON object in the reply"
+    assert (
+        not result.ok
+        and result.fallback == "positions"
+        and result.error == "no JSON object in the reply"
+    )

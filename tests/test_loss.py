@@ -4,6 +4,7 @@ The TD target is checked against hand-computed numbers with stand-in networks (a
 a sum mixer); gradients, recurrent replay and segment cutting are checked on real rollouts of
 the resource-collection env.
 """
+
 import pytest
 import torch
 from tensordict import TensorDict
@@ -39,13 +40,28 @@ class SumMixer(nn.Module):
 
 
 def table_loss(online, target, *, gamma, double_q, td_lambda=0.0):
-    agent = TensorDictModule(TableAgent(online), in_keys=[("agents", "observation")],
-                             out_keys=[("agents", "action_value")])
-    mixer = TensorDictModule(SumMixer(), in_keys=[("agents", "chosen_action_value"), "state"],
-                             out_keys=["chosen_action_value"])
-    loss = ICCOLoss(agent, mixer, gamma=gamma, double_q=double_q, td_lambda=td_lambda, ce_coef=0.0,
-                    entropy_coef=0.0)
-    loss.target_agent_params["module", "table"].data.copy_(torch.as_tensor(target, dtype=torch.float32))
+    agent = TensorDictModule(
+        TableAgent(online),
+        in_keys=[("agents", "observation")],
+        out_keys=[("agents", "action_value")],
+    )
+    mixer = TensorDictModule(
+        SumMixer(),
+        in_keys=[("agents", "chosen_action_value"), "state"],
+        out_keys=["chosen_action_value"],
+    )
+    loss = ICCOLoss(
+        agent,
+        mixer,
+        gamma=gamma,
+        double_q=double_q,
+        td_lambda=td_lambda,
+        ce_coef=0.0,
+        entropy_coef=0.0,
+    )
+    loss.target_agent_params["module", "table"].data.copy_(
+        torch.as_tensor(target, dtype=torch.float32)
+    )
     return loss
 
 
@@ -54,23 +70,36 @@ def segment_batch(ids, actions, rewards, terminated=None, mask=None):
     ids = torch.as_tensor(ids, dtype=torch.float32)
     S, T1, N = ids.shape
     T = T1 - 1
-    obs = ids.unsqueeze(-1).expand(S, T1, N, 2).clone()          # feature 0: the id, feature 1: copy
+    obs = ids.unsqueeze(-1).expand(S, T1, N, 2).clone()  # feature 0: the id, feature 1: copy
     if terminated is None:
         terminated = torch.zeros(S, T, 1, dtype=torch.bool)
     terminated = torch.as_tensor(terminated).reshape(S, T, 1)
-    td = TensorDict({
-        "agents": TensorDict({"observation": obs[:, :T], "action": torch.as_tensor(actions).reshape(S, T, N),
-                              "prev_action": torch.zeros(S, T, N, dtype=torch.long),
-                              "rnn_hidden": torch.zeros(S, T, N, 4)}, [S, T, N]),
-        "state": torch.zeros(S, T, 3),
-        "step_count": torch.arange(T).expand(S, T).unsqueeze(-1).clone(),
-        "next": TensorDict({
-            "agents": TensorDict({"observation": obs[:, 1:]}, [S, T, N]),
+    td = TensorDict(
+        {
+            "agents": TensorDict(
+                {
+                    "observation": obs[:, :T],
+                    "action": torch.as_tensor(actions).reshape(S, T, N),
+                    "prev_action": torch.zeros(S, T, N, dtype=torch.long),
+                    "rnn_hidden": torch.zeros(S, T, N, 4),
+                },
+                [S, T, N],
+            ),
             "state": torch.zeros(S, T, 3),
-            "reward": torch.as_tensor(rewards, dtype=torch.float32).reshape(S, T, 1),
-            "done": terminated.clone(), "terminated": terminated,
-        }, [S, T]),
-    }, [S, T])
+            "step_count": torch.arange(T).expand(S, T).unsqueeze(-1).clone(),
+            "next": TensorDict(
+                {
+                    "agents": TensorDict({"observation": obs[:, 1:]}, [S, T, N]),
+                    "state": torch.zeros(S, T, 3),
+                    "reward": torch.as_tensor(rewards, dtype=torch.float32).reshape(S, T, 1),
+                    "done": terminated.clone(),
+                    "terminated": terminated,
+                },
+                [S, T],
+            ),
+        },
+        [S, T],
+    )
     if mask is not None:
         td["mask"] = torch.as_tensor(mask).reshape(S, T)
     return td
@@ -79,7 +108,7 @@ def segment_batch(ids, actions, rewards, terminated=None, mask=None):
 # Online / target tables over 6 ids and 2 actions (numbers chosen so the two argmaxes differ).
 Q_ONLINE = [[1, 2], [3, 0], [0, 5], [2, 1], [4, 1], [0, 2]]
 Q_TARGET = [[0, 0], [0, 0], [1, 3], [2, 6], [2, 7], [5, 1]]
-IDS = [[[0, 1], [2, 3], [4, 5]]]            # S=1, T=2, N=2
+IDS = [[[0, 1], [2, 3], [4, 5]]]  # S=1, T=2, N=2
 ACTIONS = [[[1, 0], [0, 1]]]
 REWARDS = [[1.0, -3.0]]
 # chosen: step 0 = Qo[0][1] + Qo[1][0] = 5 ; step 1 = Qo[2][0] + Qo[3][1] = 1. gamma = 0.5.
@@ -88,13 +117,23 @@ REWARDS = [[1.0, -3.0]]
 # max-Q:    step 0 -> 3 + 6 = 9 -> y0 = 5.5 ; step 1 -> 7 + 5 = 12 -> y1 = 3
 CASES = [
     # double_q, terminated, mask, expected loss_td
-    (True, None, None, ((5 - 3.5) ** 2 + (1 + 1.5) ** 2) / 2),              # 4.25
-    (False, None, None, ((5 - 5.5) ** 2 + (1 - 3) ** 2) / 2),               # 2.125
-    (True, [[False, True]], None, ((5 - 3.5) ** 2 + (1 + 3) ** 2) / 2),     # y1 = r1 = -3: 9.125
-    (True, [[True, False]], [[True, True]], ((5 - 1) ** 2 + (1 + 1.5) ** 2) / 2),  # y0 = r0 = 1: 11.125
-    (True, [[True, False]], None, (5 - 1) ** 2),    # no mask: derived from done, step 1 (after the end) dropped
-    (True, None, [[True, False]], (5 - 3.5) ** 2),                          # only step 0: 2.25
-    (True, None, [[False, True]], (1 + 1.5) ** 2),                          # only step 1: 6.25
+    (True, None, None, ((5 - 3.5) ** 2 + (1 + 1.5) ** 2) / 2),  # 4.25
+    (False, None, None, ((5 - 5.5) ** 2 + (1 - 3) ** 2) / 2),  # 2.125
+    (True, [[False, True]], None, ((5 - 3.5) ** 2 + (1 + 3) ** 2) / 2),  # y1 = r1 = -3: 9.125
+    (
+        True,
+        [[True, False]],
+        [[True, True]],
+        ((5 - 1) ** 2 + (1 + 1.5) ** 2) / 2,
+    ),  # y0 = r0 = 1: 11.125
+    (
+        True,
+        [[True, False]],
+        None,
+        (5 - 1) ** 2,
+    ),  # no mask: derived from done, step 1 (after the end) dropped
+    (True, None, [[True, False]], (5 - 3.5) ** 2),  # only step 0: 2.25
+    (True, None, [[False, True]], (1 + 1.5) ** 2),  # only step 1: 6.25
     (False, [[False, True]], [[True, True]], ((5 - 5.5) ** 2 + (1 + 3) ** 2) / 2),  # 8.125
 ]
 
@@ -141,8 +180,8 @@ def test_td_gradient_hand_computed():
     loss(segment_batch(IDS, ACTIONS, REWARDS))["loss_td"].backward()
     grad = loss.agent_params["module", "table"].grad
     expected = torch.zeros(6, 2)
-    expected[0, 1] = expected[1, 0] = 2 * (5 - 3.5) / 2          # step 0 chosen entries
-    expected[2, 0] = expected[3, 1] = 2 * (1 + 1.5) / 2          # step 1 chosen entries
+    expected[0, 1] = expected[1, 0] = 2 * (5 - 3.5) / 2  # step 0 chosen entries
+    expected[2, 0] = expected[3, 1] = 2 * (1 + 1.5) / 2  # step 1 chosen entries
     torch.testing.assert_close(grad, expected)
 
 
@@ -182,8 +221,17 @@ def test_td_target_random_batch_matches_reference(double_q):
     mask[1, 4] = False
     loss = table_loss(q_on, q_tg, gamma=0.9, double_q=double_q)
     out = loss(segment_batch(ids, actions, rewards, terminated, mask))
-    ref = _reference_td(ids.tolist(), actions.tolist(), rewards.tolist(), terminated.tolist(), mask.tolist(),
-                        q_on, q_tg, 0.9, double_q)
+    ref = _reference_td(
+        ids.tolist(),
+        actions.tolist(),
+        rewards.tolist(),
+        terminated.tolist(),
+        mask.tolist(),
+        q_on,
+        q_tg,
+        0.9,
+        double_q,
+    )
     assert out["loss_td"].item() == pytest.approx(ref, rel=1e-5)
 
 
@@ -223,12 +271,17 @@ def test_coordinator_gets_gradient_from_td_alone(icco):
     out = loss(seg)
     out["loss_td"].backward()
     cp = loss.coordinator_params
-    assert _has_grad(cp.select(("module", "loc"))), "L_RL must reach the coordinator's mean through z"
-    assert _has_grad(cp.select(("module", "logvar"))), "L_RL must reach the coordinator's scale through z"
+    assert _has_grad(cp.select(("module", "loc"))), (
+        "L_RL must reach the coordinator's mean through z"
+    )
+    assert _has_grad(cp.select(("module", "logvar"))), (
+        "L_RL must reach the coordinator's scale through z"
+    )
     assert _has_grad(cp.select(("module", "encoder")))
     assert _has_grad(loss.agent_params) and _has_grad(loss.mixer_params)
-    assert not any(p.grad is not None and p.grad.abs().sum() > 0 for p in loss.posterior.parameters()), \
-        "the posterior appears only in L_CE"
+    assert not any(
+        p.grad is not None and p.grad.abs().sum() > 0 for p in loss.posterior.parameters()
+    ), "the posterior appears only in L_CE"
 
 
 def test_coordinator_gets_gradient_from_ce_alone(icco):
@@ -255,16 +308,18 @@ def test_ce_term_scores_the_z_the_agents_acted_on(combine):
     loss = parts["loss"]
     assert loss.posterior.module.combine == combine
     out = loss(seg)
-    z0 = seg["agents", "z"][:, 0]                                        # stored at the broadcast step
+    z0 = seg["agents", "z"][:, 0]  # stored at the broadcast step
     with torch.no_grad():
-        log_q = loss.posterior.module(z0, seg["state"], seg["agents", "action"], seg["agents", "observation"],
-                                      seg["mask"])                      # [S, N]
+        log_q = loss.posterior.module(
+            z0, seg["state"], seg["agents", "action"], seg["agents", "observation"], seg["mask"]
+        )  # [S, N]
         _, scale0 = loss.coordinator.module.distribution(seg["state"][:, 0])
     entropy = gaussian_entropy(scale0).mean()
     assert out["log_q"].item() == pytest.approx(log_q.mean().item(), abs=1e-4)
     assert out["entropy"].item() == pytest.approx(entropy.item(), abs=1e-4)
-    assert out["loss_ce"].item() == pytest.approx(-loss.ce_coef * log_q.mean().item()
-                                                  - loss.entropy_coef * entropy.item(), abs=1e-6)
+    assert out["loss_ce"].item() == pytest.approx(
+        -loss.ce_coef * log_q.mean().item() - loss.entropy_coef * entropy.item(), abs=1e-6
+    )
 
 
 def test_target_params_receive_no_grad(icco):
@@ -280,7 +335,9 @@ def test_target_params_receive_no_grad(icco):
             assert p.grad is None, (n, key)
             target_ids.add(p.data_ptr())
     online_ids = {p.data_ptr() for p in loss.parameters()}
-    assert not target_ids & online_ids, "target params must be distinct tensors that the optimiser never sees"
+    assert not target_ids & online_ids, (
+        "target params must be distinct tensors that the optimiser never sees"
+    )
 
 
 def test_target_params_never_require_grad():
@@ -291,17 +348,21 @@ def test_target_params_never_require_grad():
     for n in ("agent", "mixer", "coordinator"):
         for key, p in getattr(loss, f"target_{n}_params").items(True, True):
             assert not p.requires_grad, (n, key)
-    make_target_updater(loss, "hard", interval=5)     # TorchRL refuses targets that require grad
+    make_target_updater(loss, "hard", interval=5)  # TorchRL refuses targets that require grad
 
 
 def test_target_update_after_forward_reaches_the_loss():
     """The loss bootstraps from the very tensors the updater writes, also after forward passes."""
     loss = table_loss(Q_ONLINE, Q_TARGET, gamma=0.5, double_q=True)
-    updater = make_target_updater(loss, "hard", interval=1)   # TorchRL's init_ copies online -> target
-    loss.target_agent_params["module", "table"].data.copy_(torch.tensor(Q_TARGET, dtype=torch.float32))
+    updater = make_target_updater(
+        loss, "hard", interval=1
+    )  # TorchRL's init_ copies online -> target
+    loss.target_agent_params["module", "table"].data.copy_(
+        torch.tensor(Q_TARGET, dtype=torch.float32)
+    )
     batch = segment_batch(IDS, ACTIONS, REWARDS)
     assert loss(batch)["loss_td"].item() == pytest.approx(4.25)
-    updater.step()                                       # target := online
+    updater.step()  # target := online
     # with Qt = Qo: y0 = 1 + 0.5 * (Qo[2][1] + Qo[3][0]) = 4.5, y1 = -3 + 0.5 * (Qo[4][0] + Qo[5][1]) = 0
     assert loss(batch)["loss_td"].item() == pytest.approx(((5 - 4.5) ** 2 + (1 - 0) ** 2) / 2)
 
@@ -362,14 +423,16 @@ def test_hard_update_copies_exactly_every_k_steps(k):
     loss = _small_loss()
     updater = make_target_updater(loss, "hard", interval=k)
     for call in range(1, 3 * k + 1):
-        _perturb(loss, 0.5)                                     # online moves away before every call
+        _perturb(loss, 0.5)  # online moves away before every call
         before = [t.clone() for _, t in _online_target_pairs(loss)]
         updater.step()
         pairs = list(_online_target_pairs(loss))
         if call % k == 0:
             assert all(torch.equal(t, p) for p, t in pairs), f"call {call} must copy (interval {k})"
         else:
-            assert all(torch.equal(t, b) for (_, t), b in zip(pairs, before)), f"call {call} must not copy"
+            assert all(torch.equal(t, b) for (_, t), b in zip(pairs, before)), (
+                f"call {call} must not copy"
+            )
             assert not all(torch.equal(t, p) for p, t in pairs)
 
 
@@ -382,7 +445,9 @@ def test_soft_update_moves_by_tau():
     updater.step()
     for (p0, t0), (_, t1) in zip(before, _online_target_pairs(loss)):
         torch.testing.assert_close(t1, (1 - tau) * t0 + tau * p0)
-    assert any(not torch.equal(t0, t1) for (_, t0), (_, t1) in zip(before, _online_target_pairs(loss)))
+    assert any(
+        not torch.equal(t0, t1) for (_, t0), (_, t1) in zip(before, _online_target_pairs(loss))
+    )
 
 
 def test_target_updater_rejects_bad_arguments():
@@ -402,37 +467,49 @@ def test_coordinator_on_two_states_equals_every_state(icco):
     x = loss._read(seg)
     noise = torch.randn_like(x["z_noise"])
     full = loss._z_sequences(x, loss.coordinator_params, x["z_noise"][:, 0], noise, every_step=True)
-    short = loss._z_sequences(x, loss.coordinator_params, x["z_noise"][:, 0], noise, every_step=False)
+    short = loss._z_sequences(
+        x, loss.coordinator_params, x["z_noise"][:, 0], noise, every_step=False
+    )
     for a, b in zip(full, short):
         torch.testing.assert_close(a, b)
     # a segment that starts mid-period broadcasts inside: the default takes the all-states path
     ro = _rollout_segments(parts)[0]
-    ro["cut_at"] = ro["step_count"] * 2  # segments of 4 steps at every even step: half start mid-period
+    ro["cut_at"] = (
+        ro["step_count"] * 2
+    )  # segments of 4 steps at every even step: half start mid-period
     mixed = loss._read(SegmentCutter(length=4, step_key="cut_at")(ro))
     assert (mixed["next_step_count"][:, :-1] % loss.period == 0).any()
     noise = torch.randn_like(mixed["z_noise"])
     auto = loss._z_sequences(mixed, loss.coordinator_params, mixed["z_noise"][:, 0], noise)
-    full = loss._z_sequences(mixed, loss.coordinator_params, mixed["z_noise"][:, 0], noise, every_step=True)
+    full = loss._z_sequences(
+        mixed, loss.coordinator_params, mixed["z_noise"][:, 0], noise, every_step=True
+    )
     for a, b in zip(auto, full):
         torch.testing.assert_close(a, b)
 
 
 @pytest.mark.parametrize("method", ["icco", "qmix_full"])
 def test_online_pass_with_a_separate_bootstrap_step_equals_one_sequence(method):
-    parts = build_components(compose_config([f"method={method}", "env.params.max_steps=10"]), num_envs=4)
+    parts = build_components(
+        compose_config([f"method={method}", "env.params.max_steps=10"]), num_envs=4
+    )
     _, seg = _rollout_segments(parts, steps=20)
     loss = parts["loss"]
     x = loss._read(seg)
     z = None
     if loss.has_coordinator:
-        z, _, _ = loss._z_sequences(x, loss.coordinator_params, x["z_noise"][:, 0], torch.randn_like(x["z_noise"]))
+        z, _, _ = loss._z_sequences(
+            x, loss.coordinator_params, x["z_noise"][:, 0], torch.randn_like(x["z_noise"])
+        )
     with torch.no_grad():
-        full = loss._q_sequence(loss.agent_params, x, z)                                      # [S, T+1, N, A]
+        full = loss._q_sequence(loss.agent_params, x, z)  # [S, T+1, N, A]
         q, q_boot = loss._q_online(x, z)
     T = seg.shape[1]
     torch.testing.assert_close(q, full[:, :T], atol=1e-6, rtol=0)
     torch.testing.assert_close(q_boot, full[:, T], atol=1e-6, rtol=0)
-    assert q.requires_grad is False  # computed under no_grad here; in forward the first T steps carry grad
+    assert (
+        q.requires_grad is False
+    )  # computed under no_grad here; in forward the first T steps carry grad
     loss.double_q = False
     q_single, none = loss._q_online(x, z)
     assert none is None
@@ -442,7 +519,9 @@ def test_online_pass_with_a_separate_bootstrap_step_equals_one_sequence(method):
 # ============================================================================ recurrent replay
 @pytest.mark.parametrize("method", ["icco", "qmix_full"])
 def test_replay_reproduces_collection_action_values(method):
-    cfg = compose_config([f"method={method}", "env.params.max_steps=10"])   # episode ends inside segments
+    cfg = compose_config(
+        [f"method={method}", "env.params.max_steps=10"]
+    )  # episode ends inside segments
     parts = build_components(cfg, num_envs=6)
     ro, seg = _rollout_segments(parts, steps=30)
     assert (~seg["mask"]).any() and (seg["step_count"][:, 0] == 0).any()
@@ -451,16 +530,23 @@ def test_replay_reproduces_collection_action_values(method):
     with torch.no_grad():
         z_seq = None
         if loss.has_coordinator:
-            z_seq, _, _ = loss._z_sequences(x, loss.coordinator_params, x["z_noise"][:, 0],
-                                            torch.randn_like(x["z_noise"]))
-            torch.testing.assert_close(z_seq[:, :-1][seg["mask"]], seg["agents", "z"][seg["mask"]], atol=1e-5, rtol=0)
+            z_seq, _, _ = loss._z_sequences(
+                x, loss.coordinator_params, x["z_noise"][:, 0], torch.randn_like(x["z_noise"])
+            )
+            torch.testing.assert_close(
+                z_seq[:, :-1][seg["mask"]], seg["agents", "z"][seg["mask"]], atol=1e-5, rtol=0
+            )
         q = loss._q_sequence(loss.agent_params, x, z_seq)
     T = seg.shape[1]
     valid = seg["mask"]
-    torch.testing.assert_close(q[:, :T][valid], seg["agents", "action_value"][valid], atol=1e-5, rtol=0)
+    torch.testing.assert_close(
+        q[:, :T][valid], seg["agents", "action_value"][valid], atol=1e-5, rtol=0
+    )
     # forward itself: its q_taken / q_tot summaries are the collection values of the taken actions
     out = loss(seg)
-    chosen = seg["agents", "action_value"].gather(-1, seg["agents", "action"].unsqueeze(-1)).squeeze(-1)
+    chosen = (
+        seg["agents", "action_value"].gather(-1, seg["agents", "action"].unsqueeze(-1)).squeeze(-1)
+    )
     assert out["q_taken"].item() == pytest.approx(chosen[valid].mean().item(), abs=1e-5)
     with torch.no_grad():
         q_tot = loss.mixer.module(chosen.unsqueeze(-1), seg["state"]).squeeze(-1)
@@ -501,7 +587,9 @@ def test_segments_start_at_broadcast_steps(short_episode_rollout):
     got = _sorted(seg)
     e, t = starts.nonzero(as_tuple=True)
     for j in range(T):
-        torch.testing.assert_close(got["agents", "observation"][:, j], ro["agents", "observation"][e, t + j])
+        torch.testing.assert_close(
+            got["agents", "observation"][:, j], ro["agents", "observation"][e, t + j]
+        )
 
 
 @pytest.mark.parametrize("chunks", [[7, 5], [4], [13, 1, 3]])
@@ -511,7 +599,7 @@ def test_segments_stitched_across_batches(short_episode_rollout, chunks):
     cutter, parts, start, i = SegmentCutter(T), [], 0, 0
     while start < ro.shape[1]:
         size = chunks[i % len(chunks)]
-        parts.append(cutter(ro[:, start:start + size]))
+        parts.append(cutter(ro[:, start : start + size]))
         start, i = start + size, i + 1
     stitched = _sorted(torch.cat([p for p in parts if p.shape[0]], 0))
     assert stitched.shape == whole.shape
@@ -522,7 +610,7 @@ def test_segments_stitched_across_tiny_batches(short_episode_rollout):
     ro, T = short_episode_rollout
     whole = _sorted(SegmentCutter(T)(ro))
     cutter = SegmentCutter(T)
-    out = [cutter(ro[:, s:s + 2]) for s in range(0, ro.shape[1], 2)]
+    out = [cutter(ro[:, s : s + 2]) for s in range(0, ro.shape[1], 2)]
     stitched = _sorted(torch.cat([p for p in out if p.shape[0]], 0))
     assert (stitched == whole).all()
 
@@ -561,14 +649,17 @@ def _named(key):
     return repr(key)
 
 
-@pytest.mark.parametrize("key,expected", [
-    (("agents", "observation"), "[S, T, N, obs_dim]"),
-    (("agents", "rnn_hidden"), "[S, T, N, 64]"),
-    ("state", "[S, T, state_dim]"),
-    (("next", "reward"), "[S, T, 1]"),
-    (("agents", "z_noise"), "[S, T, N, 32]"),
-    ("step_count", "[S, T, 1]"),
-])
+@pytest.mark.parametrize(
+    "key,expected",
+    [
+        (("agents", "observation"), "[S, T, N, obs_dim]"),
+        (("agents", "rnn_hidden"), "[S, T, N, 64]"),
+        ("state", "[S, T, state_dim]"),
+        (("next", "reward"), "[S, T, 1]"),
+        (("agents", "z_noise"), "[S, T, N, 32]"),
+        ("step_count", "[S, T, 1]"),
+    ],
+)
 def test_missing_key_names_key_and_shape(icco, key, expected):
     td = _seg_copy(icco)
     del td[key]
@@ -578,13 +669,16 @@ def test_missing_key_names_key_and_shape(icco, key, expected):
     assert _named(key) in msg and expected in msg
 
 
-@pytest.mark.parametrize("key,bad_shape_fn,expected", [
-    (("agents", "rnn_hidden"), lambda v: v[..., :10], "[S, T, N, 64]"),
-    (("next", "reward"), lambda v: v.squeeze(-1), "[S, T, 1]"),
-    (("agents", "action"), lambda v: v.unsqueeze(-1), "[S, T, N]"),
-    (("agents", "z"), lambda v: v[..., :5], "[S, T, N, 32]"),
-    (("next", "agents", "observation"), lambda v: v[..., :7], "[S, T, N, obs_dim]"),
-])
+@pytest.mark.parametrize(
+    "key,bad_shape_fn,expected",
+    [
+        (("agents", "rnn_hidden"), lambda v: v[..., :10], "[S, T, N, 64]"),
+        (("next", "reward"), lambda v: v.squeeze(-1), "[S, T, 1]"),
+        (("agents", "action"), lambda v: v.unsqueeze(-1), "[S, T, N]"),
+        (("agents", "z"), lambda v: v[..., :5], "[S, T, N, 32]"),
+        (("next", "agents", "observation"), lambda v: v[..., :7], "[S, T, N, obs_dim]"),
+    ],
+)
 def test_wrong_shape_names_key_and_shape(icco, key, bad_shape_fn, expected):
     td = _seg_copy(icco)
     value = bad_shape_fn(td.get(key))
@@ -620,9 +714,13 @@ def test_non_finite_loss_raises(icco):
 def test_loss_rejects_bad_coefficients(icco):
     parts = icco[0]
     with pytest.raises(ValueError, match="gamma"):
-        ICCOLoss(parts["agent"], parts["mixer"], parts["coordinator"], parts["posterior"], gamma=1.5)
+        ICCOLoss(
+            parts["agent"], parts["mixer"], parts["coordinator"], parts["posterior"], gamma=1.5
+        )
     with pytest.raises(ValueError, match="ce_coef"):
-        ICCOLoss(parts["agent"], parts["mixer"], parts["coordinator"], parts["posterior"], ce_coef=-1.0)
+        ICCOLoss(
+            parts["agent"], parts["mixer"], parts["coordinator"], parts["posterior"], ce_coef=-1.0
+        )
 
 
 # ============================================================================ split instruction head
@@ -637,9 +735,11 @@ def test_split_instruction_head_with_a_silent_instruction_part_is_the_joint_loss
     with torch.no_grad():
         for name, value in state.items():
             if "head.2." in name:
-                value[A:] = 0.0                                    # the instruction head says nothing
+                value[A:] = 0.0  # the instruction head says nothing
         split["loss"].load_state_dict(state)
-        joint["loss"].load_state_dict({n: (v[:A] if "head.2." in n else v) for n, v in state.items()})
+        joint["loss"].load_state_dict(
+            {n: (v[:A] if "head.2." in n else v) for n, v in state.items()}
+        )
     ro, seg = _rollout_segments(joint, steps=24)
     assert seg["next", "events", "inst_reward"].abs().max() == 0
     out_split, out_joint = split["loss"](seg), joint["loss"](seg)
@@ -648,7 +748,9 @@ def test_split_instruction_head_with_a_silent_instruction_part_is_the_joint_loss
     total_loss(out_split).backward()
     total_loss(out_joint).backward()
     trunk = [n for n, _ in joint["loss"].named_parameters() if "gru" in n]
-    for (name, p_split), (_, p_joint) in zip(split["loss"].named_parameters(), joint["loss"].named_parameters()):
+    for (name, p_split), (_, p_joint) in zip(
+        split["loss"].named_parameters(), joint["loss"].named_parameters()
+    ):
         if name in trunk:
             torch.testing.assert_close(p_split.grad, p_joint.grad, atol=1e-6, rtol=1e-4)
     assert trunk
@@ -657,16 +759,19 @@ def test_split_instruction_head_with_a_silent_instruction_part_is_the_joint_loss
 def test_split_instruction_head_learns_each_reward_on_its_own_head():
     """The two TD targets: task reward for the mixed task head, the scaled instruction reward for
     the summed instruction head; acting uses their sum."""
-    parts = build_components(compose_config(["method=qmix", "method.instruction_head=true"]), num_envs=6)
+    parts = build_components(
+        compose_config(["method=qmix", "method.instruction_head=true"]), num_envs=6
+    )
     net, loss = parts["agent"].module, parts["loss"]
     assert net.value_heads == 2 and loss.split_instruction
     ro, seg = _rollout_segments(parts, steps=24)
     q = ro["agents", "action_value"]
-    assert q.shape[-1] == net.n_actions                            # the policy acts on Q_task + Q_inst
+    assert q.shape[-1] == net.n_actions  # the policy acts on Q_task + Q_inst
     assert seg["next", "events", "inst_reward"].abs().sum() > 0
     out = loss(seg)
     assert set(loss.metric_keys) <= set(out.keys()) and out["loss_td_inst"].item() > 0
     with pytest.raises(ValueError, match="two value heads"):
         from icco_torchrl.objectives import ICCOLoss as Loss
+
         joint = build_components(compose_config(["method=qmix"]), num_envs=2)
         Loss(joint["agent"], joint["mixer"], split_instruction=True)

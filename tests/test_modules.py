@@ -4,6 +4,7 @@ Every numeric check compares against either a hand computation on explicit numbe
 independent implementation (``torch.distributions``); every structural check (masking,
 invariance, holding z) is written so that a plausible regression makes it fail.
 """
+
 import math
 
 import pytest
@@ -12,8 +13,15 @@ from torch.distributions import Independent, Normal
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from icco_torchrl.envs.resource_collection import ObsLayout
-from icco_torchrl.modules import (EntityAttentionEncoder, Posterior, RecurrentQNet, combine_log_prob,
-                                  diag_normal_log_prob, gaussian_entropy, make_mixer)
+from icco_torchrl.modules import (
+    EntityAttentionEncoder,
+    Posterior,
+    RecurrentQNet,
+    combine_log_prob,
+    diag_normal_log_prob,
+    gaussian_entropy,
+    make_mixer,
+)
 from icco_torchrl.modules.coordinator import Coordinator
 from icco_torchrl.training.build import build_components, compose_config
 
@@ -40,10 +48,10 @@ def test_diag_normal_log_prob_hand_and_torch():
 
 def _factors():
     """S=1, K=3 factors, N=1 robot, Z=2; the third factor is garbage and masked out."""
-    loc = torch.tensor([[[[0.0, 1.0]], [[2.0, 1.0]], [[50.0, -40.0]]]])        # [1, 3, 1, 2]
+    loc = torch.tensor([[[[0.0, 1.0]], [[2.0, 1.0]], [[50.0, -40.0]]]])  # [1, 3, 1, 2]
     scale = torch.tensor([[[[1.0, 1.0]], [[1.0, 2.0]], [[0.01, 0.01]]]])
     mask = torch.tensor([[True, True, False]])
-    z = torch.tensor([[[0.5, 1.0]]])                                           # [1, 1, 2]
+    z = torch.tensor([[[0.5, 1.0]]])  # [1, 1, 2]
     return z, loc, scale, mask
 
 
@@ -57,7 +65,9 @@ def test_product_of_gaussians_hand_computation():
     assert out.shape == (1, 1)
     assert out.item() == pytest.approx(d0 + d1, abs=1e-5)
     # against torch.distributions with the precision-weighted mean and variance
-    ref = Independent(Normal(torch.tensor([1.0, 1.0]), torch.tensor([0.5, 0.8]).sqrt()), 1).log_prob(z[0, 0])
+    ref = Independent(
+        Normal(torch.tensor([1.0, 1.0]), torch.tensor([0.5, 0.8]).sqrt()), 1
+    ).log_prob(z[0, 0])
     assert out.item() == pytest.approx(ref.item(), abs=1e-5)
 
 
@@ -68,7 +78,9 @@ def test_sum_of_log_likelihoods_hand_computation():
     hand = -0.125 - 1.125 - math.log(2.0) - 4 * 0.5 * LOG_2PI
     out = combine_log_prob(z, loc, scale, mask, "sum")
     assert out.item() == pytest.approx(hand, abs=1e-5)
-    ref = sum(Independent(Normal(loc[0, k, 0], scale[0, k, 0]), 1).log_prob(z[0, 0]) for k in (0, 1))
+    ref = sum(
+        Independent(Normal(loc[0, k, 0], scale[0, k, 0]), 1).log_prob(z[0, 0]) for k in (0, 1)
+    )
     assert out.item() == pytest.approx(ref.item(), abs=1e-5)
 
 
@@ -78,7 +90,9 @@ def test_masked_factors_are_ignored(combine):
     S, K, N, Z = 3, 4, 2, 3
     loc, z = torch.randn(S, K, N, Z, generator=g), torch.randn(S, N, Z, generator=g)
     scale = torch.rand(S, K, N, Z, generator=g) + 0.2
-    mask = torch.tensor([[True, True, False, False], [True, False, True, False], [True, True, True, True]])
+    mask = torch.tensor(
+        [[True, True, False, False], [True, False, True, False], [True, True, True, True]]
+    )
     out = combine_log_prob(z, loc, scale, mask, combine)
     loc2, scale2 = loc.clone(), scale.clone()
     loc2[~mask] = 1e3 * torch.randn_like(loc2[~mask])
@@ -92,7 +106,11 @@ def test_masked_factors_are_ignored(combine):
             mean = (loc[s, keep] / scale[s, keep] ** 2).sum(0) / prec
             ref = Independent(Normal(mean, prec.rsqrt()), 1).log_prob(z[s])
         else:
-            ref = Independent(Normal(loc[s, keep], scale[s, keep]), 1).log_prob(z[s].unsqueeze(0)).sum(0)
+            ref = (
+                Independent(Normal(loc[s, keep], scale[s, keep]), 1)
+                .log_prob(z[s].unsqueeze(0))
+                .sum(0)
+            )
         torch.testing.assert_close(out[s], ref, atol=1e-4, rtol=1e-5)
 
 
@@ -103,8 +121,15 @@ def test_combine_rejects_unknown_mode():
 
 
 def test_posterior_scores_its_own_factors():
-    layout = ObsLayout(n_agents=2, n_waypoints=2, own_dim=4, n_entities=2, entity_dim=3, state_tokens=3,
-                       state_token_dim=4)
+    layout = ObsLayout(
+        n_agents=2,
+        n_waypoints=2,
+        own_dim=4,
+        n_entities=2,
+        entity_dim=3,
+        state_tokens=3,
+        state_token_dim=4,
+    )
     torch.manual_seed(0)
     post = Posterior(layout, n_actions=5, z_dim=3, hidden=8, combine="product")
     S, T, N = 2, 4, 2
@@ -113,16 +138,22 @@ def test_posterior_scores_its_own_factors():
     mask = torch.tensor([[True, True, True, False], [True, False, False, False]])
     loc, scale = post.factors(state, action, obs)
     assert loc.shape == scale.shape == (S, T, N, 3)
-    torch.testing.assert_close(post(z, state, action, obs, mask), combine_log_prob(z, loc, scale, mask, "product"))
+    torch.testing.assert_close(
+        post(z, state, action, obs, mask), combine_log_prob(z, loc, scale, mask, "product")
+    )
     # later factors read only their own step: changing a masked step's observation changes nothing
     obs2 = obs.clone()
     obs2[0, 3] += 5.0
-    torch.testing.assert_close(post(z, state, action, obs2, mask), post(z, state, action, obs, mask))
+    torch.testing.assert_close(
+        post(z, state, action, obs2, mask), post(z, state, action, obs, mask)
+    )
 
 
 def test_gaussian_entropy_closed_form_and_torch():
     scale = torch.tensor([1.0, math.e])
-    assert gaussian_entropy(scale).item() == pytest.approx(math.log(2 * math.pi * math.e) + 1.0, abs=1e-6)
+    assert gaussian_entropy(scale).item() == pytest.approx(
+        math.log(2 * math.pi * math.e) + 1.0, abs=1e-6
+    )
     g = torch.Generator().manual_seed(2)
     scale = torch.rand(5, 3, 7, generator=g) * 2 + 0.01
     ref = Normal(torch.zeros_like(scale), scale).entropy().sum(-1)
@@ -139,12 +170,12 @@ def test_qmixer_is_monotone_in_every_local_q(seed):
     mixer = make_mixer(D, N, embed_dim=8).module
     with torch.no_grad():
         for p in mixer.parameters():
-            p.normal_(0.0, 1.0)           # random weights, negative ones included
-    q = (torch.randn(4, 5, N, 1) * 5).requires_grad_(True)          # leading [S, T]
+            p.normal_(0.0, 1.0)  # random weights, negative ones included
+    q = (torch.randn(4, 5, N, 1) * 5).requires_grad_(True)  # leading [S, T]
     state = torch.randn(4, 5, D)
     out = mixer(q, state)
     assert out.shape == (4, 5, 1)
-    (grad,) = torch.autograd.grad(out.sum(), q)   # rows are independent: d out[s,t] / d q[s,t,i]
+    (grad,) = torch.autograd.grad(out.sum(), q)  # rows are independent: d out[s,t] / d q[s,t,i]
     assert (grad >= 0).all(), grad.min()
     assert (grad > 0).any()
     # and a direct check: raising one agent's Q never lowers Q_tot
@@ -173,11 +204,13 @@ def test_entity_attention_ignores_invisible_tokens():
     assert invisible.any() and (~invisible).any()
     x2 = x.clone()
     t2 = x2[:, 3:].view(6, 4, 5)
-    t2[..., :-1] = torch.where(invisible[..., None], 100 * torch.randn(6, 4, 4, generator=g), t2[..., :-1])
+    t2[..., :-1] = torch.where(
+        invisible[..., None], 100 * torch.randn(6, 4, 4, generator=g), t2[..., :-1]
+    )
     torch.testing.assert_close(enc(x2), out)
     # a visible token does matter (the test can fail)
     x3 = x.clone()
-    x3[0, 3:8] += 3.0                                 # entity 0 of row 0 is visible
+    x3[0, 3:8] += 3.0  # entity 0 of row 0 is visible
     assert not torch.allclose(enc(x3)[0], out[0])
     # nothing visible: the read-out is zero, so the output equals the one with all tokens zeroed
     x4 = x.clone()
@@ -199,13 +232,23 @@ def test_entity_attention_is_permutation_invariant():
 
 
 # ---------------------------------------------------------------------------- recurrent agent
-LAYOUT = ObsLayout(n_agents=3, n_waypoints=2, own_dim=9, n_entities=4, entity_dim=5, state_tokens=4, state_token_dim=6)
+LAYOUT = ObsLayout(
+    n_agents=3,
+    n_waypoints=2,
+    own_dim=9,
+    n_entities=4,
+    entity_dim=5,
+    state_tokens=4,
+    state_token_dim=6,
+)
 
 
 def _agent_inputs(g, B=2, L=6):
     N = LAYOUT.n_agents
     obs = torch.randn(B, L, N, LAYOUT.obs_dim, generator=g)
-    obs[..., LAYOUT.own_dim:].view(B, L, N, 4, 5)[..., -1] = (torch.rand(B, L, N, 4, generator=g) > 0.5).float()
+    obs[..., LAYOUT.own_dim :].view(B, L, N, 4, 5)[..., -1] = (
+        torch.rand(B, L, N, 4, generator=g) > 0.5
+    ).float()
     prev = torch.randint(0, 5, (B, L, N), generator=g)
     z = torch.randn(B, L, N, 4, generator=g)
     state = torch.randn(B, L, LAYOUT.state_dim, generator=g)
@@ -213,23 +256,42 @@ def _agent_inputs(g, B=2, L=6):
     return obs, prev, z, state, h0
 
 
-@pytest.mark.parametrize("encoder,full_state,z_dim,z_input",
-                         [("attention", False, 4, "head"), ("mlp", True, 0, "head"), ("attention", True, 4, "head"),
-                          ("attention", False, 4, "gru")])
+@pytest.mark.parametrize(
+    "encoder,full_state,z_dim,z_input",
+    [
+        ("attention", False, 4, "head"),
+        ("mlp", True, 0, "head"),
+        ("attention", True, 4, "head"),
+        ("attention", False, 4, "gru"),
+    ],
+)
 def test_agent_one_step_forward_equals_sequence(encoder, full_state, z_dim, z_input):
     torch.manual_seed(0)
-    net = RecurrentQNet(LAYOUT, n_actions=5, hidden=16, z_dim=z_dim, full_state=full_state, encoder=encoder,
-                        z_input=z_input)
+    net = RecurrentQNet(
+        LAYOUT,
+        n_actions=5,
+        hidden=16,
+        z_dim=z_dim,
+        full_state=full_state,
+        encoder=encoder,
+        z_input=z_input,
+    )
     obs, prev, z, state, h0 = _agent_inputs(torch.Generator().manual_seed(5))
     z = z if z_dim else None
     B, L = obs.shape[:2]
     seq = net.sequence(obs, prev, h0, z=z, state=state if full_state else None)
     assert seq.shape == (B, L, 3, 5)
     h, steps = h0, []
-    step_count = torch.full((B, 1), 3)              # never a reset
+    step_count = torch.full((B, 1), 3)  # never a reset
     for t in range(L):
-        q, h = net(obs[:, t], prev[:, t], h, step_count, z=None if z is None else z[:, t],
-                   state=state[:, t] if full_state else None)
+        q, h = net(
+            obs[:, t],
+            prev[:, t],
+            h,
+            step_count,
+            z=None if z is None else z[:, t],
+            state=state[:, t] if full_state else None,
+        )
         steps.append(q)
     torch.testing.assert_close(torch.stack(steps, 1), seq, atol=1e-5, rtol=1e-5)
     # the hidden state carries information: another h0 gives other values after step 0
@@ -251,8 +313,12 @@ def test_agent_hidden_restarts_at_step_zero():
     assert not torch.allclose(q[~restart], q0[~restart])
     # the returned hidden state is the GRU output fed to the next step
     q1, _ = net(obs, prev, h_new, torch.full_like(step_count, 7), z=z)
-    seq = net.sequence(torch.stack([obs, obs], 1), torch.stack([prev, prev], 1), h * (~restart)[:, None, None],
-                       z=torch.stack([z, z], 1))
+    seq = net.sequence(
+        torch.stack([obs, obs], 1),
+        torch.stack([prev, prev], 1),
+        h * (~restart)[:, None, None],
+        z=torch.stack([z, z], 1),
+    )
     torch.testing.assert_close(q1, seq[:, 1], atol=1e-5, rtol=1e-5)
 
 
@@ -369,7 +435,9 @@ def _relative_scene():
     env.reset()
     env.pos[0] = torch.tensor([[1.0, 0.0], [-1.0, -1.0], [2.0, 2.0]])
     env.vel.zero_()
-    env.res_pos[0] = torch.tensor([[1.0, 1.0], [3.0, 0.0], [-2.0, 2.0], [0.5, -2.5], [-3.0, -3.0], [2.5, -1.0]])
+    env.res_pos[0] = torch.tensor(
+        [[1.0, 1.0], [3.0, 0.0], [-2.0, 2.0], [0.5, -2.5], [-3.0, -3.0], [2.5, -1.0]]
+    )
     env.inv_active[0] = False
     env.waypoints = env.pos.unsqueeze(-2).expand(1, 3, env.n_waypoints, 2) + 0.5
     return env, env._observe()[1]
@@ -381,22 +449,26 @@ def test_relative_tokens_hand_built_scene():
     env, state = _relative_scene()
     L = env.layout
     own_dim, E, D = relative_dims(L)
-    x = relative_tokens(state, L)[0]                                   # [N, own + E * D]
+    x = relative_tokens(state, L)[0]  # [N, own + E * D]
     own, tok = x[:, :own_dim], x[:, own_dim:].unflatten(-1, (E, D))
     N = L.n_agents
     torch.testing.assert_close(own[0, :2], torch.tensor([1.0, 0.0]))
-    torch.testing.assert_close(own[0, 6:], torch.full((2 * L.n_waypoints,), 0.5))  # own waypoints, relative
-    res0 = tok[0, N]                                                   # robot 0 sees resource 0
+    torch.testing.assert_close(
+        own[0, 6:], torch.full((2 * L.n_waypoints,), 0.5)
+    )  # own waypoints, relative
+    res0 = tok[0, N]  # robot 0 sees resource 0
     torch.testing.assert_close(res0[:3], torch.tensor([0.0, 1.0, 1.0]))  # dx, dy, distance
     assert res0[5:9].tolist() == [0.0, 1.0, 0.0, 0.0] and res0[-1] == 1  # type resource, present
     home = tok[0, -1]
     torch.testing.assert_close(home[:3], torch.tensor([-1.0, 0.0, 1.0]))
     assert home[5:9].tolist() == [0.0, 0.0, 0.0, 1.0]
     assert tok[:, N + L.n_agents * 0 + env.n_resources, -1].eq(0).all()  # inactive invader: masked
-    assert [tok[i, i, -1].item() for i in range(N)] == [0.0] * N       # a robot is not its own entity
-    other = tok[0, 1]                                                  # robot 1 seen from robot 0, its waypoints too
+    assert [tok[i, i, -1].item() for i in range(N)] == [0.0] * N  # a robot is not its own entity
+    other = tok[0, 1]  # robot 1 seen from robot 0, its waypoints too
     torch.testing.assert_close(other[:2], torch.tensor([-2.0, -1.0]))
-    torch.testing.assert_close(other[-1 - 2 * L.n_waypoints:-1], torch.tensor([-1.5, -0.5] * L.n_waypoints))
+    torch.testing.assert_close(
+        other[-1 - 2 * L.n_waypoints : -1], torch.tensor([-1.5, -0.5] * L.n_waypoints)
+    )
 
 
 def test_relative_encoder_ignores_resource_order():
@@ -441,15 +513,18 @@ def test_guided_exploration_takes_the_guides_actions_with_probability_eps():
         with set_exploration_type(ExplorationType.RANDOM):
             got = torch.stack([policy(td.clone())["agents", "action"] for _ in range(20)])
         from_guide = (got == wanted).float().mean().item()
-        assert 0.5 <= from_guide < 1.0  # about half the agents follow the guide (and some agree anyway)
+        assert (
+            0.5 <= from_guide < 1.0
+        )  # about half the agents follow the guide (and some agree anyway)
 
 
 # ---------------------------------------------------------------------------- waypoint features
 def test_path_features_give_the_direction_the_instruction_reward_scores():
     from icco_torchrl.envs._kernels import instruction_reward
     from icco_torchrl.modules.waypoint_features import path_features
+
     g = torch.Generator().manual_seed(3)
-    rel = torch.randn(64, 4, 2, generator=g)                       # K = 4 waypoints relative to the robot
+    rel = torch.randn(64, 4, 2, generator=g)  # K = 4 waypoints relative to the robot
     disp = torch.randn(64, 2, generator=g) * 0.2
     f = path_features(rel)
     # hand-picked: the nearest waypoint is the one of least norm
@@ -458,33 +533,52 @@ def test_path_features_give_the_direction_the_instruction_reward_scores():
     torch.testing.assert_close(f[:, 2:].norm(dim=-1), torch.ones(64))
     # e_cossim of the env's reward (dist_coef 0) is the cosine of the displacement with the feature direction
     zero = torch.zeros(64, 2)
-    r = instruction_reward(rel.permute(1, 2, 0).unsqueeze(0), zero.t().unsqueeze(0),
-                           disp.t().unsqueeze(0), 1.0, 0.0)      # batch-last layout [N=1, K, 2, B]
+    r = instruction_reward(
+        rel.permute(1, 2, 0).unsqueeze(0), zero.t().unsqueeze(0), disp.t().unsqueeze(0), 1.0, 0.0
+    )  # batch-last layout [N=1, K, 2, B]
     cos = torch.nn.functional.cosine_similarity(disp, f[:, 2:], dim=-1)
     torch.testing.assert_close(r.squeeze(0), cos, atol=1e-5, rtol=1e-5)
 
 
 def test_path_features_tie_goes_to_lower_index_and_zero_path_is_zero():
     from icco_torchrl.modules.waypoint_features import path_features
+
     rel = torch.tensor([[[0.0, 1.0], [1.0, 0.0], [1.0, 0.0], [3.0, 3.0]]])
     f = path_features(rel)
-    torch.testing.assert_close(f, torch.tensor([[0.0, 1.0, 2 ** -0.5, -(2 ** -0.5)]]))
+    torch.testing.assert_close(f, torch.tensor([[0.0, 1.0, 2**-0.5, -(2**-0.5)]]))
     same = torch.tensor([[[0.5, 0.0], [0.5, 0.0], [2.0, 2.0]]])
     torch.testing.assert_close(path_features(same), torch.tensor([[0.5, 0.0, 0.0, 0.0]]))
     with pytest.raises(ValueError, match="K>=2"):
         path_features(torch.zeros(3, 1, 2))
 
 
-@pytest.mark.parametrize("full_state,state_encoder", [(False, "flat"), (True, "relative"), (True, "flat")])
+@pytest.mark.parametrize(
+    "full_state,state_encoder", [(False, "flat"), (True, "relative"), (True, "flat")]
+)
 def test_agent_reads_waypoint_features(full_state, state_encoder):
     from icco_torchrl.envs import ResourceCollectionEnv
+
     env = ResourceCollectionEnv(num_envs=2, seed=0)
     torch.manual_seed(0)
-    net = RecurrentQNet(env.layout, n_actions=5, hidden=16, z_dim=4, full_state=full_state,
-                        state_encoder=state_encoder, waypoint_features=True)
+    net = RecurrentQNet(
+        env.layout,
+        n_actions=5,
+        hidden=16,
+        z_dim=4,
+        full_state=full_state,
+        state_encoder=state_encoder,
+        waypoint_features=True,
+    )
     td = env.reset()
-    obs, state = td["agents", "observation"].unsqueeze(1), td["state"].unsqueeze(1)   # segments of length 1
-    prev, z, h0 = torch.zeros(2, 1, 3, dtype=torch.long), torch.randn(2, 1, 3, 4), torch.randn(2, 3, 16)
+    obs, state = (
+        td["agents", "observation"].unsqueeze(1),
+        td["state"].unsqueeze(1),
+    )  # segments of length 1
+    prev, z, h0 = (
+        torch.zeros(2, 1, 3, dtype=torch.long),
+        torch.randn(2, 1, 3, 4),
+        torch.randn(2, 3, 16),
+    )
     s = state if full_state else None
     seq = net.sequence(obs, prev, h0, z=z, state=s)
     q, _ = net.step(obs[:, 0], prev[:, 0], h0, z[:, 0], None if s is None else s[:, 0])

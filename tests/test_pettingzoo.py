@@ -1,4 +1,5 @@
 """The PettingZoo view: API compliance, seeding, and the same dynamics as the batched env."""
+
 import numpy as np
 import pytest
 import torch
@@ -46,7 +47,13 @@ def test_episode_protocol_and_spaces():
             assert isinstance(rew[a], float)
             assert term[a] is False
             assert trunc[a] is (t == 5)
-            assert set(info[a]["events"]) == {"pick", "collect", "defense", "invasion", "inst_reward"}
+            assert set(info[a]["events"]) == {
+                "pick",
+                "collect",
+                "defense",
+                "invasion",
+                "inst_reward",
+            }
         state = env.state()
         assert state.shape == env.state_space.shape and state in env.state_space
     assert env.agents == []
@@ -96,15 +103,21 @@ def test_same_dynamics_as_the_batched_env():
     rng = np.random.default_rng(0)
     for t in range(batched.max_steps):
         expected = td["agents", "observation"][0].numpy()
-        np.testing.assert_array_equal(np.stack([obs[f"agent_{i}"] for i in range(n_agents)]), expected)
+        np.testing.assert_array_equal(
+            np.stack([obs[f"agent_{i}"] for i in range(n_agents)]), expected
+        )
         np.testing.assert_array_equal(view.state(), td["state"][0].numpy())
         actions = random_actions(view, rng)
         obs, rew, _, trunc, info = view.step(actions)
         assert all(obs[a] in view.observation_space(a) for a in obs)
-        td.set(("agents", "action"), torch.tensor([[actions[f"agent_{i}"] for i in range(n_agents)]]))
+        td.set(
+            ("agents", "action"), torch.tensor([[actions[f"agent_{i}"] for i in range(n_agents)]])
+        )
         td = batched.step(td)
         nxt = td["next"]
-        assert [rew[f"agent_{i}"] for i in range(n_agents)] == nxt["agents", "reward"][0, :, 0].tolist()
+        assert [rew[f"agent_{i}"] for i in range(n_agents)] == nxt["agents", "reward"][
+            0, :, 0
+        ].tolist()
         assert info["agent_0"]["events"]["pick"] == nxt["events", "pick"].item()
         assert trunc["agent_0"] == nxt["truncated"].item()
         td = step_mdp(td)
@@ -120,13 +133,29 @@ def test_render():
         parallel_env(render_mode="human")
 
 
-@pytest.mark.parametrize("bad", [2.9, 2.0, "2", True, None, -1, N_ACTIONS, np.float32(1.0), [1], np.array(2.0),
-                                 torch.tensor(2.5)])
+@pytest.mark.parametrize(
+    "bad",
+    [
+        2.9,
+        2.0,
+        "2",
+        True,
+        None,
+        -1,
+        N_ACTIONS,
+        np.float32(1.0),
+        [1],
+        np.array(2.0),
+        torch.tensor(2.5),
+    ],
+)
 @pytest.mark.fault
 def test_an_action_that_is_not_an_integer_in_range_is_one_clear_line(bad):
     env = parallel_env(seed=0)
     env.reset()
-    with pytest.raises(ValueError, match=r"action for agent_1 must be an integer in 0\.\.4") as info:
+    with pytest.raises(
+        ValueError, match=r"action for agent_1 must be an integer in 0\.\.4"
+    ) as info:
         env.step({"agent_0": 1, "agent_1": bad, "agent_2": 0})
     assert "\n" not in str(info.value) and repr(bad) in str(info.value)
 
@@ -146,11 +175,29 @@ def test_step_before_reset_is_a_clear_error():
 
 
 EXTREME = [  # valid parameters far from the defaults
-    dict(invader_speed=2.0, vision_radius=1e12, invader_respawn_max=3),  # inactive invaders in sight
-    dict(field_size=1.0, agent_radius=0.8, resource_radius=0.9, home_radius=0.7, vision_radius=1e12,
-         spawn="copa", resource_min_radius=0.1, invader_min_radius=0.0),  # bodies larger than the field
-    dict(dt=0.05, accel=400.0, max_speed=20.0, damping=0.0, field_size=20.0, vision_radius=5.0, invader_speed=5.0,
-         waypoint_sigma=5.0),  # fast robots and invaders
+    dict(
+        invader_speed=2.0, vision_radius=1e12, invader_respawn_max=3
+    ),  # inactive invaders in sight
+    dict(
+        field_size=1.0,
+        agent_radius=0.8,
+        resource_radius=0.9,
+        home_radius=0.7,
+        vision_radius=1e12,
+        spawn="copa",
+        resource_min_radius=0.1,
+        invader_min_radius=0.0,
+    ),  # bodies larger than the field
+    dict(
+        dt=0.05,
+        accel=400.0,
+        max_speed=20.0,
+        damping=0.0,
+        field_size=20.0,
+        vision_radius=5.0,
+        invader_speed=5.0,
+        waypoint_sigma=5.0,
+    ),  # fast robots and invaders
 ]
 
 
@@ -167,7 +214,9 @@ def test_observations_and_states_stay_in_the_declared_boxes_at_extreme_parameter
                 space = env.observation_space(a)
                 outside = np.nonzero((obs[a] < space.low) | (obs[a] > space.high))[0]
                 assert not outside.size, f"{a}: features {outside[:5]} = {obs[a][outside[:5]]}"
-                assert np.abs(obs[a]).max() < 1e6  # never the 1e9 placeholder of an inactive invader
+                assert (
+                    np.abs(obs[a]).max() < 1e6
+                )  # never the 1e9 placeholder of an inactive invader
             state = env.state()
             outside = np.nonzero((state < env.state_space.low) | (state > env.state_space.high))[0]
             assert not outside.size, f"state features {outside[:5]} = {state[outside[:5]]}"

@@ -1,5 +1,6 @@
 """Instruction-schedule protocols: metrics reward following the instruction, segments add up
 to the episode, and bad input fails before any work."""
+
 import math
 
 import numpy as np
@@ -15,17 +16,24 @@ TRIALS, STEPS = 6, 30
 
 
 def quadrant_env(steps=STEPS, trials=TRIALS, seed=0):
-    return ResourceCollectionEnv(num_envs=trials, seed=seed, max_steps=4 * steps, waypoint_mode="external")
+    return ResourceCollectionEnv(
+        num_envs=trials, seed=seed, max_steps=4 * steps, waypoint_mode="external"
+    )
 
 
 def follower(env):
     """Heads for each robot's second waypoint along its larger axis gap: follows the instruction."""
+
     def policy(td):
         gap = env.waypoints[:, :, 1] - env.pos
         along_x = torch.where(gap[..., 0] > 0, 2, 1)
         along_y = torch.where(gap[..., 1] > 0, 4, 3)
-        td.set(("agents", "action"), torch.where(gap[..., 0].abs() > gap[..., 1].abs(), along_x, along_y))
+        td.set(
+            ("agents", "action"),
+            torch.where(gap[..., 0].abs() > gap[..., 1].abs(), along_x, along_y),
+        )
         return td
+
     return policy
 
 
@@ -33,8 +41,11 @@ def random_policy(env, seed=0):
     gen = torch.Generator().manual_seed(seed)
 
     def policy(td):
-        td.set(("agents", "action"), torch.randint(0, 5, (env.num_envs, env.n_agents), generator=gen))
+        td.set(
+            ("agents", "action"), torch.randint(0, 5, (env.num_envs, env.n_agents), generator=gen)
+        )
         return td
+
     return policy
 
 
@@ -65,15 +76,24 @@ def test_segments_add_up_to_the_episode(runs):
     for trial in range(TRIALS):
         rows = [r for r in run.rows if r["trial"] == trial]
         segments, whole = rows[:-1], rows[-1]
-        assert whole["segment"] == EPISODE and whole["steps"] == sum(r["steps"] for r in segments) == 120
+        assert (
+            whole["segment"] == EPISODE
+            and whole["steps"] == sum(r["steps"] for r in segments) == 120
+        )
         for key in ADDITIVE:
-            assert math.isclose(sum(r[key] for r in segments), whole[key], rel_tol=1e-5, abs_tol=1e-4), key
+            assert math.isclose(
+                sum(r[key] for r in segments), whole[key], rel_tol=1e-5, abs_tol=1e-4
+            ), key
         for key in ("waypoint_dist", "in_quadrant"):  # step-weighted means
             weighted = sum(r[key] * r["steps"] for r in segments) / whole["steps"]
             assert math.isclose(weighted, whole[key], rel_tol=1e-5), key
         # ...and the episode totals are the env's own step values.
-        assert math.isclose(whole["reward"], float(run.per_step["reward"][:, trial].sum()), rel_tol=1e-5)
-        assert math.isclose(whole["task_reward"] + whole["inst_reward"], whole["reward"], rel_tol=1e-5, abs_tol=1e-4)
+        assert math.isclose(
+            whole["reward"], float(run.per_step["reward"][:, trial].sum()), rel_tol=1e-5
+        )
+        assert math.isclose(
+            whole["task_reward"] + whole["inst_reward"], whole["reward"], rel_tol=1e-5, abs_tol=1e-4
+        )
 
 
 def test_trajectories_are_recorded_for_figures(runs):
@@ -82,16 +102,21 @@ def test_trajectories_are_recorded_for_figures(runs):
     assert traj["carry"].shape == traj["defended"].shape == (T + 1, B, 3)
     assert traj["res_pos"].shape == (T + 1, B, 6, 2) and traj["inv_active"].shape == (T + 1, B, 1)
     # the waypoints in force during quadrant 3 lie in quadrant 3
-    assert (traj["waypoints"][2 * STEPS:3 * STEPS] < 0).all()
+    assert (traj["waypoints"][2 * STEPS : 3 * STEPS] < 0).all()
 
 
 def test_schedules_mix_sources_and_metrics_skip_quadrant_where_there_is_none():
     env = ResourceCollectionEnv(num_envs=2, seed=1, max_steps=12, waypoint_mode="external")
-    schedule = [("walk", RandomWalkSource(), 5), ("hold", FixedSource(torch.zeros(3, 4, 2)), 4),
-                ("q2", QuadrantSource(2), 3)]
+    schedule = [
+        ("walk", RandomWalkSource(), 5),
+        ("hold", FixedSource(torch.zeros(3, 4, 2)), 4),
+        ("q2", QuadrantSource(2), 3),
+    ]
     run = run_schedule(env, random_policy(env), schedule, trials=2, method="x")
     rows = {(r["trial"], r["segment"]): r for r in run.rows}
-    assert math.isnan(rows[0, "walk"]["in_quadrant"]) and not math.isnan(rows[0, "q2"]["in_quadrant"])
+    assert math.isnan(rows[0, "walk"]["in_quadrant"]) and not math.isnan(
+        rows[0, "q2"]["in_quadrant"]
+    )
     assert rows[0, EPISODE]["in_quadrant"] == rows[0, "q2"]["in_quadrant"]
     assert np.allclose(run.trajectory["waypoints"][5:9], 0.0)
 
@@ -115,7 +140,12 @@ def test_an_env_unfit_for_the_schedule_is_refused():
     with pytest.raises(ValueError, match="num_envs=trials"):
         run_schedule(quadrant_env(steps=5, trials=3), None, schedule, 2)
     with pytest.raises(ValueError, match="max_steps=20"):
-        run_schedule(ResourceCollectionEnv(num_envs=2, max_steps=10, waypoint_mode="external"), None, schedule, 2)
+        run_schedule(
+            ResourceCollectionEnv(num_envs=2, max_steps=10, waypoint_mode="external"),
+            None,
+            schedule,
+            2,
+        )
     with pytest.raises(ValueError, match="external"):
         run_schedule(ResourceCollectionEnv(num_envs=2, max_steps=20), None, schedule, 2)
 

@@ -1,14 +1,19 @@
 """Reference policies: the yardsticks behave as their names say, on small batched runs."""
+
 import math
 
 import pytest
 import torch
 
 from icco_torchrl.envs import ResourceCollectionEnv
-from icco_torchrl.envs.reference_policies import (REFERENCE_POLICIES, BlendPolicy, HeuristicPolicy,
-                                                  make_reference_policy)
-from icco_torchrl.training.rollout import episode_metrics
+from icco_torchrl.envs.reference_policies import (
+    REFERENCE_POLICIES,
+    BlendPolicy,
+    HeuristicPolicy,
+    make_reference_policy,
+)
 from icco_torchrl.training.build import compose_config, make_env
+from icco_torchrl.training.rollout import episode_metrics
 
 EPISODES = 96
 
@@ -70,14 +75,18 @@ def test_heuristic_targets_on_a_hand_built_scene():
     env.pos[0] = torch.tensor([[2.0, 2.0], [-2.0, -2.0], [2.5, -2.5]])
     env.vel.zero_()
     env.carry[0] = torch.tensor([True, False, False])
-    env.res_pos[0] = torch.tensor([[-2.0, -1.0], [-1.5, -2.0], [3.0, 3.0], [-3.0, 3.0], [0.0, 3.0], [1.0, -3.0]])
+    env.res_pos[0] = torch.tensor(
+        [[-2.0, -1.0], [-1.5, -2.0], [3.0, 3.0], [-3.0, 3.0], [0.0, 3.0], [1.0, -3.0]]
+    )
     env.inv_active[0] = True
     env.inv_pos[0] = torch.tensor([[3.0, -2.0]])  # robot 2 is next to its path home
     target, _ = HeuristicPolicy(env).targets()
     assert torch.allclose(target[0, 0], torch.zeros(2))  # the carrier goes home
     assert torch.allclose(target[0, 1], torch.tensor([-1.5, -2.0]))  # nearest resource
     inv_path = target[0, 2] / target[0, 2].norm()
-    assert torch.allclose(inv_path, torch.tensor([3.0, -2.0]) / math.hypot(3, 2), atol=1e-4)  # on the invader's path
+    assert torch.allclose(
+        inv_path, torch.tensor([3.0, -2.0]) / math.hypot(3, 2), atol=1e-4
+    )  # on the invader's path
     assert target[0, 2].norm() < math.hypot(3, 2)  # ahead of the invader, not behind it
     # Steering: a robot at rest west of its target pushes +x.
     env.pos[0, 1] = torch.tensor([-2.5, -2.0])

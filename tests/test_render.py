@@ -1,10 +1,18 @@
 """Rendering: frames show the scene where it is, and GIFs are written and readable."""
+
 import numpy as np
 import torch
 from PIL import Image
 
 from icco_torchrl.envs import ResourceCollectionEnv
-from icco_torchrl.envs.render import INVADER, RESOURCE, render_frame, robot_color, to_pixel, write_gif
+from icco_torchrl.envs.render import (
+    INVADER,
+    RESOURCE,
+    render_frame,
+    robot_color,
+    to_pixel,
+    write_gif,
+)
 
 torch.set_num_threads(1)
 
@@ -51,7 +59,9 @@ def test_frame_changes_when_a_robot_moves():
     assert not np.array_equal(before, after)
     assert pixel(after, env, env.pos[1, 0], size) == robot_color(0)
     assert pixel(after, env, old, size) != robot_color(0)
-    assert np.array_equal(render_frame(env, index=0, size=size), render_frame(env, index=0, size=size))
+    assert np.array_equal(
+        render_frame(env, index=0, size=size), render_frame(env, index=0, size=size)
+    )
 
 
 def test_carry_marker_resources_and_invader():
@@ -76,4 +86,9 @@ def test_write_gif(tmp_path):
     assert not np.array_equal(frames[0], frames[-1])
     write_gif(frames, tmp_path / "sub" / "short.gif", fps=5)
     with Image.open(tmp_path / "sub" / "short.gif") as gif:
-        assert gif.is_animated and gif.n_frames == 4 and gif.info["duration"] == 200 and gif.size == (480, 480)
+        assert (
+            gif.is_animated
+            and gif.n_frames == 4
+            and gif.info["duration"] == 200
+            and gif.size == (480, 480)
+        )

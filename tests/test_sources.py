@@ -1,12 +1,12 @@
 """Instruction sources: quadrant references stay inside their quadrant and are smooth, the
 random-walk source reproduces the env's training convention, fixed waypoints are written once."""
+
 import pytest
 import torch
 
 from icco_torchrl.envs import ResourceCollectionEnv
 from icco_torchrl.instructions import FixedSource, QuadrantSource, RandomWalkSource
 from icco_torchrl.instructions.sources import QUADRANT_SIGNS
-
 
 
 def drive(env, source, steps, seed=0):
@@ -24,7 +24,9 @@ def drive(env, source, steps, seed=0):
             written.append(step)
         waypoints.append(env.waypoints.clone())
         positions.append(env.pos.clone())
-        td.set(("agents", "action"), torch.randint(0, 5, (env.num_envs, env.n_agents), generator=gen))
+        td.set(
+            ("agents", "action"), torch.randint(0, 5, (env.num_envs, env.n_agents), generator=gen)
+        )
         td = env.step(td)["next"]
     return torch.stack(waypoints), torch.stack(positions), written
 
@@ -36,7 +38,9 @@ def test_quadrant_waypoints_stay_strictly_inside_and_move_in_bounded_steps(quadr
     wps, pos, written = drive(env, source, 40)
     sx, sy = QUADRANT_SIGNS[quadrant]
     assert (wps[..., 0] * sx > 0).all() and (wps[..., 1] * sy > 0).all()
-    assert (wps.abs() <= env.half - source.margin + 1e-6).all() and (wps.abs() >= source.margin - 1e-6).all()
+    assert (wps.abs() <= env.half - source.margin + 1e-6).all() and (
+        wps.abs() >= source.margin - 1e-6
+    ).all()
     limit = 3 * env.waypoint_sigma + 1e-5
     assert ((wps[:, :, :, 1:] - wps[:, :, :, :-1]).abs() <= limit).all()
     # The walk starts where the robot is, projected into the quadrant.
@@ -66,7 +70,12 @@ def test_quadrant_refreshes_at_segment_start_and_on_the_env_clock():
 
 
 def test_bad_quadrant_arguments_fail_fast():
-    for kwargs in (dict(quadrant=0), dict(quadrant=5), dict(quadrant=1, margin=0), dict(quadrant=1, sigma=-1)):
+    for kwargs in (
+        dict(quadrant=0),
+        dict(quadrant=5),
+        dict(quadrant=1, margin=0),
+        dict(quadrant=1, sigma=-1),
+    ):
         with pytest.raises(ValueError):
             QuadrantSource(**kwargs)
     env = ResourceCollectionEnv(num_envs=1, waypoint_mode="external")
@@ -79,7 +88,11 @@ def test_random_walk_source_follows_the_env_training_convention():
     internal = ResourceCollectionEnv(num_envs=n, seed=0, max_steps=16)  # the env's own random walk
     external = ResourceCollectionEnv(num_envs=n, seed=0, max_steps=16, waypoint_mode="external")
     source = RandomWalkSource(seed=1)
-    assert source.settings(external) == (internal.waypoint_sigma, internal.waypoint_interval) == (0.19, 4)
+    assert (
+        source.settings(external)
+        == (internal.waypoint_sigma, internal.waypoint_interval)
+        == (0.19, 4)
+    )
 
     def increments(env, src):
         wps, pos, _ = drive(env, src, 16)

@@ -1,4 +1,5 @@
 """The training pipeline through the real CLI: every method, resume, determinism, bad input."""
+
 from __future__ import annotations
 
 import csv
@@ -11,8 +12,8 @@ import time
 
 import pytest
 import torch
-
 from conftest import run_cli
+
 from icco_torchrl.training.build import compose_config
 from icco_torchrl.training.checkpoint import FORMAT_VERSION, CheckpointError, load_checkpoint
 
@@ -31,15 +32,18 @@ def test_every_method_trains_end_to_end(tmp_path, method):
     assert int(rows[-1]["frames"]) == 2048
     assert int(rows[-1]["updates"]) > 0
     losses = [float(r["loss_td"]) for r in rows if int(r["updates"]) > 0]
-    assert losses and all(math.isfinite(x) and x >= 0 for x in losses)  # logged and finite once updates start
+    assert losses and all(
+        math.isfinite(x) and x >= 0 for x in losses
+    )  # logged and finite once updates start
     assert ("loss_ce" in rows[0]) == (method == "icco")
     assert len(read_csv(tmp_path / "eval.csv")) >= 2
     ckpt = torch.load(tmp_path / "checkpoint.pt", weights_only=False)
     assert ckpt["frames"] == 2048 and ckpt["cfg"]["method"]["name"] == method
     assert (tmp_path / "learning_curve.png").stat().st_size > 0
     if method.startswith("qmix_full"):  # the paper's QMIX (FULL) reads the state as one flat vector
-        assert ckpt["cfg"]["method"]["full_state"] and (ckpt["cfg"]["method"]["state_encoder"] == "flat") == (
-            method == "qmix_full_flat")
+        assert ckpt["cfg"]["method"]["full_state"] and (
+            ckpt["cfg"]["method"]["state_encoder"] == "flat"
+        ) == (method == "qmix_full_flat")
 
 
 def test_training_reports_the_reference_policies(tmp_path):
@@ -52,13 +56,17 @@ def test_training_reports_the_reference_policies(tmp_path):
     assert refs["follower"]["inst_reward"] > refs["random"]["inst_reward"] + 30
     rows = read_csv(tmp_path / "eval.csv")
     for row in rows:  # the logged task reward is the team reward without the instruction reward
-        assert float(row["task_reward"]) == pytest.approx(float(row["reward"]) - float(row["inst_reward"]), abs=1e-3)
+        assert float(row["task_reward"]) == pytest.approx(
+            float(row["reward"]) - float(row["inst_reward"]), abs=1e-3
+        )
 
 
 def test_same_seed_gives_identical_metrics(tmp_path):
     run_cli("train", *SMOKE, "seed=3", f"hydra.run.dir={tmp_path / 'a'}")
     # The second run also logs to wandb in offline mode: no network, no account, same metrics.
-    run_cli("train", *SMOKE, "seed=3", "logger.wandb.mode=offline", f"hydra.run.dir={tmp_path / 'b'}")
+    run_cli(
+        "train", *SMOKE, "seed=3", "logger.wandb.mode=offline", f"hydra.run.dir={tmp_path / 'b'}"
+    )
     assert list((tmp_path / "b" / "wandb").glob("offline-run-*")), "wandb offline wrote nothing"
     for stream in ("train.csv", "eval.csv"):
         assert (tmp_path / "a" / stream).read_text() == (tmp_path / "b" / stream).read_text()
@@ -73,7 +81,12 @@ def test_resume_continues_frames_and_schedules(tmp_path):
     first = torch.load(tmp_path / "part" / "checkpoint.pt", weights_only=False)
     assert first["frames"] == 1024
     assert first["replay_segments"] > 0 and (tmp_path / "part" / "replay").is_dir()
-    proc = run_cli("train", *SMOKE, f"resume={tmp_path / 'part' / 'checkpoint.pt'}", f"hydra.run.dir={tmp_path / 'other'}")
+    proc = run_cli(
+        "train",
+        *SMOKE,
+        f"resume={tmp_path / 'part' / 'checkpoint.pt'}",
+        f"hydra.run.dir={tmp_path / 'other'}",
+    )
     assert f"replay buffer restored: {first['replay_segments']} segments" in proc.stdout
     resumed = torch.load(tmp_path / "part" / "checkpoint.pt", weights_only=False)
     assert resumed["frames"] == 2048
@@ -101,47 +114,66 @@ def test_unreadable_replay_dump_is_one_clear_line(tmp_path):
     run_cli("train", *SMOKE, "train.total_frames=1024", f"hydra.run.dir={tmp_path}")
     shutil.rmtree(tmp_path / "replay" / "storage")
     proc = run_cli("train", *SMOKE, f"resume={tmp_path / 'checkpoint.pt'}", check=False)
-    assert proc.returncode == 2 and "replay buffer dump" in proc.stderr and "Traceback" not in proc.stderr
+    assert (
+        proc.returncode == 2
+        and "replay buffer dump" in proc.stderr
+        and "Traceback" not in proc.stderr
+    )
 
 
 def test_replay_dump_can_be_turned_off(tmp_path):
-    run_cli("train", *SMOKE, "train.total_frames=1024", "train.checkpoint_buffer=false", f"hydra.run.dir={tmp_path}")
+    run_cli(
+        "train",
+        *SMOKE,
+        "train.total_frames=1024",
+        "train.checkpoint_buffer=false",
+        f"hydra.run.dir={tmp_path}",
+    )
     assert not (tmp_path / "replay").exists()
     assert torch.load(tmp_path / "checkpoint.pt", weights_only=False)["replay_segments"] == 0
 
 
-@pytest.mark.parametrize("override, field", [
-    ("train.total_frames=-5", "train.total_frames"),
-    ("train.totl_frames=5", "train.totl_frames"),
-    ("train.total_frames=lots", "train.total_frames"),
-    ("train.batch_segments=100000", "train.batch_segments"),
-    ("device=cuda:7", "device"),
-    ("logger.wandb.mode=sometimes", "logger.wandb.mode"),
-    ("method=sarsa", "method"),
-    ("env.params.spawn=edge", "env.params.spawn"),
-    ("env.params.n_agents=0", "env.params.n_agents"),
-    ("env.params.vision_radius=-1", "env.params.vision_radius"),
-    ("env.params.field_size=0", "env.params.field_size"),
-    ("+env.params.bogus=1", "env.params.bogus"),
-    ("llm.timeout_s=abc", "llm.timeout_s"),
-    ("train.updates_per_batch=0", "train.updates_per_batch"),
-    ("train.warmup_segments=30000", "train.warmup_segments"),
-    ("train.lr=0", "train.lr"),
-    ("train.tau=0", "train.tau"),
-    ("train.env_params.max_steps=0", "train.env_params.max_steps"),
-    ("train.env_params.spawn=edge", "train.env_params.spawn"),
-    ("train.env_params.collect_reward=much", "train.env_params.collect_reward"),
-])
+@pytest.mark.parametrize(
+    "override, field",
+    [
+        ("train.total_frames=-5", "train.total_frames"),
+        ("train.totl_frames=5", "train.totl_frames"),
+        ("train.total_frames=lots", "train.total_frames"),
+        ("train.batch_segments=100000", "train.batch_segments"),
+        ("device=cuda:7", "device"),
+        ("logger.wandb.mode=sometimes", "logger.wandb.mode"),
+        ("method=sarsa", "method"),
+        ("env.params.spawn=edge", "env.params.spawn"),
+        ("env.params.n_agents=0", "env.params.n_agents"),
+        ("env.params.vision_radius=-1", "env.params.vision_radius"),
+        ("env.params.field_size=0", "env.params.field_size"),
+        ("+env.params.bogus=1", "env.params.bogus"),
+        ("llm.timeout_s=abc", "llm.timeout_s"),
+        ("train.updates_per_batch=0", "train.updates_per_batch"),
+        ("train.warmup_segments=30000", "train.warmup_segments"),
+        ("train.lr=0", "train.lr"),
+        ("train.tau=0", "train.tau"),
+        ("train.env_params.max_steps=0", "train.env_params.max_steps"),
+        ("train.env_params.spawn=edge", "train.env_params.spawn"),
+        ("train.env_params.collect_reward=much", "train.env_params.collect_reward"),
+    ],
+)
 def test_bad_config_fails_naming_the_field(override, field):
     with pytest.raises(Exception) as info:
         compose_config(["experiment=smoke", override])
     assert field in str(info.value)
 
 
-@pytest.mark.parametrize("override, message", [
-    ("reward=bogus", "config group 'reward' has no option 'bogus'; choose from calibrated, paper"),
-    ("env.params.spawn=edge", "config field 'env.params.spawn' must be one of"),
-])
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        (
+            "reward=bogus",
+            "config group 'reward' has no option 'bogus'; choose from calibrated, paper",
+        ),
+        ("env.params.spawn=edge", "config field 'env.params.spawn' must be one of"),
+    ],
+)
 def test_unknown_preset_or_spawn_mode_fails_before_any_work(tmp_path, override, message):
     proc = run_cli("train", *SMOKE, override, f"hydra.run.dir={tmp_path}", check=False)
     assert proc.returncode == 2 and message in proc.stderr, proc.stderr
@@ -149,7 +181,9 @@ def test_unknown_preset_or_spawn_mode_fails_before_any_work(tmp_path, override, 
 
 
 def test_bad_config_on_the_cli_is_one_clear_line(tmp_path):
-    proc = run_cli("train", *SMOKE, "train.total_frames=-5", f"hydra.run.dir={tmp_path}", check=False)
+    proc = run_cli(
+        "train", *SMOKE, "train.total_frames=-5", f"hydra.run.dir={tmp_path}", check=False
+    )
     assert proc.returncode == 2
     assert "train.total_frames" in proc.stderr and "Traceback" not in proc.stderr
     assert not (tmp_path / "train.csv").exists()
@@ -167,7 +201,9 @@ def test_bad_checkpoint_gives_a_clear_error(tmp_path, content):
 def test_checkpoint_of_another_format_names_both_formats(tmp_path):
     path = tmp_path / "old.pt"
     torch.save({"format_version": FORMAT_VERSION - 1, "loss": {}}, path)
-    with pytest.raises(CheckpointError, match=f"format {FORMAT_VERSION - 1}.*format {FORMAT_VERSION}"):
+    with pytest.raises(
+        CheckpointError, match=f"format {FORMAT_VERSION - 1}.*format {FORMAT_VERSION}"
+    ):
         load_checkpoint(path)
 
 
@@ -177,7 +213,9 @@ def test_weights_that_do_not_fit_the_networks_are_one_clear_line(tmp_path):
     ckpt = torch.load(path, weights_only=False)
     ckpt["loss"] = {k: v for k, v in ckpt["loss"].items() if "prev_action_embed" not in k}
     torch.save(ckpt, path)
-    proc = run_cli("train", *SMOKE, "method=qmix", "train.total_frames=1024", f"resume={path}", check=False)
+    proc = run_cli(
+        "train", *SMOKE, "method=qmix", "train.total_frames=1024", f"resume={path}", check=False
+    )
     assert proc.returncode == 2 and "does not match the qmix networks" in proc.stderr
     assert "Traceback" not in proc.stderr
 
@@ -185,20 +223,41 @@ def test_weights_that_do_not_fit_the_networks_are_one_clear_line(tmp_path):
 def test_bad_checkpoint_on_the_cli_is_one_clear_line(tmp_path):
     path = tmp_path / "ckpt.pt"
     path.write_bytes(b"PK\x03\x04truncated")
-    proc = run_cli("train", *SMOKE, f"resume={path}", f"hydra.run.dir={tmp_path / 'run'}", check=False)
+    proc = run_cli(
+        "train", *SMOKE, f"resume={path}", f"hydra.run.dir={tmp_path / 'run'}", check=False
+    )
     assert proc.returncode == 2
-    assert "truncated" in proc.stderr and str(path) in proc.stderr and "Traceback" not in proc.stderr
+    assert (
+        "truncated" in proc.stderr and str(path) in proc.stderr and "Traceback" not in proc.stderr
+    )
 
 
 def test_incompatible_checkpoint_is_refused(tmp_path):
-    run_cli("train", *SMOKE, "method=qmix", "train.total_frames=512", f"hydra.run.dir={tmp_path / 'q'}")
-    proc = run_cli("train", *SMOKE, "method=icco", f"resume={tmp_path / 'q' / 'checkpoint.pt'}",
-                   f"hydra.run.dir={tmp_path / 'i'}", check=False)
-    assert proc.returncode == 2 and "incompatible" in proc.stderr and "method.coordinator" in proc.stderr
+    run_cli(
+        "train", *SMOKE, "method=qmix", "train.total_frames=512", f"hydra.run.dir={tmp_path / 'q'}"
+    )
+    proc = run_cli(
+        "train",
+        *SMOKE,
+        "method=icco",
+        f"resume={tmp_path / 'q' / 'checkpoint.pt'}",
+        f"hydra.run.dir={tmp_path / 'i'}",
+        check=False,
+    )
+    assert (
+        proc.returncode == 2
+        and "incompatible" in proc.stderr
+        and "method.coordinator" in proc.stderr
+    )
 
 
-LONG_RUN = ("logger.progress=false", "train.total_frames=10000000", "env.num_envs=8", "train.warmup_segments=16",
-            "train.batch_segments=16")
+LONG_RUN = (
+    "logger.progress=false",
+    "train.total_frames=10000000",
+    "env.num_envs=8",
+    "train.warmup_segments=16",
+    "train.batch_segments=16",
+)
 
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
@@ -215,7 +274,10 @@ def test_ctrl_c_and_sigterm_save_a_checkpoint_and_exit_cleanly(tmp_path, sig):
     assert proc.returncode == 0, err[-2000:]
     ckpt = load_checkpoint(tmp_path / "checkpoint.pt")
     assert 0 < ckpt["frames"] < 10_000_000
-    assert f"interrupted by {signal.Signals(sig).name}" in out and f"icco train resume={tmp_path}" in out
+    assert (
+        f"interrupted by {signal.Signals(sig).name}" in out
+        and f"icco train resume={tmp_path}" in out
+    )
 
 
 def _frames(path):
@@ -226,12 +288,21 @@ def _frames(path):
 def test_kill_9_then_resume_logs_every_frame_once(tmp_path):
     """SIGKILL after a checkpoint (rows already logged past it), resume: the CSVs have the frame
     column of an uninterrupted same-seed run (values differ: the env state is not checkpointed)."""
-    budget = ("train.total_frames=8192", "train.checkpoint_interval=1024", "train.eval_interval=1024")
+    budget = (
+        "train.total_frames=8192",
+        "train.checkpoint_interval=1024",
+        "train.eval_interval=1024",
+    )
     run = tmp_path / "killed"
-    proc = subprocess.Popen([sys.executable, "-m", "icco_torchrl", "train", *SMOKE, *budget, f"hydra.run.dir={run}"],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "icco_torchrl", "train", *SMOKE, *budget, f"hydra.run.dir={run}"],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     deadline = time.time() + 150
-    while time.time() < deadline and proc.poll() is None:  # until rows exist past the last checkpoint
+    while (
+        time.time() < deadline and proc.poll() is None
+    ):  # until rows exist past the last checkpoint
         if (run / "checkpoint.pt").exists() and (run / "train.csv").exists():
             try:
                 saved = load_checkpoint(run / "checkpoint.pt")["frames"]
@@ -250,12 +321,23 @@ def test_kill_9_then_resume_logs_every_frame_once(tmp_path):
 
 
 def test_a_bare_resume_continues_the_run_with_its_own_method_seed_and_budget(tmp_path):
-    run_cli("train", *SMOKE, "method=qmix", "seed=3", "train.total_frames=1024", f"hydra.run.dir={tmp_path}")
+    run_cli(
+        "train",
+        *SMOKE,
+        "method=qmix",
+        "seed=3",
+        "train.total_frames=1024",
+        f"hydra.run.dir={tmp_path}",
+    )
     ckpt = tmp_path / "checkpoint.pt"
     # Only the new budget is given: method, seed and the smoke settings are the run's own.
     run_cli("train", "logger.progress=false", f"resume={ckpt}", "train.total_frames=2048")
     saved = torch.load(ckpt, weights_only=False)
-    assert saved["frames"] == 2048 and saved["cfg"]["method"]["name"] == "qmix" and saved["cfg"]["seed"] == 3
+    assert (
+        saved["frames"] == 2048
+        and saved["cfg"]["method"]["name"] == "qmix"
+        and saved["cfg"]["seed"] == 3
+    )
     assert saved["cfg"]["env"]["num_envs"] == 8  # experiment=smoke's, not the default 32
     # Nothing given: the budget is the one it was last saved with (reached): nothing more to do.
     proc = run_cli("train", "logger.progress=false", f"resume={ckpt}")
@@ -265,9 +347,20 @@ def test_a_bare_resume_continues_the_run_with_its_own_method_seed_and_budget(tmp
 
 def test_a_resume_into_a_given_folder_keeps_the_runs_method_fields(tmp_path):
     # a non-default method field (and the smoke budget) must survive a resume that names its run folder
-    run_cli("train", *SMOKE, "method.waypoint_features=false", "train.total_frames=512", f"hydra.run.dir={tmp_path}")
-    run_cli("train", "logger.progress=false", f"resume={tmp_path / 'checkpoint.pt'}", "train.total_frames=1024",
-            f"hydra.run.dir={tmp_path}")
+    run_cli(
+        "train",
+        *SMOKE,
+        "method.waypoint_features=false",
+        "train.total_frames=512",
+        f"hydra.run.dir={tmp_path}",
+    )
+    run_cli(
+        "train",
+        "logger.progress=false",
+        f"resume={tmp_path / 'checkpoint.pt'}",
+        "train.total_frames=1024",
+        f"hydra.run.dir={tmp_path}",
+    )
     saved = torch.load(tmp_path / "checkpoint.pt", weights_only=False)
     assert saved["frames"] == 1024 and saved["cfg"]["method"]["waypoint_features"] is False
 
@@ -280,18 +373,32 @@ def test_training_env_params_shape_the_training_env_only():
     assert run.env.base_env.event_rewards["collect"] == 3.5
     assert run.eval_env.base_env.event_rewards["collect"] == 1.0  # the evaluations during training
     assert build(cfg).env.base_env.event_rewards["collect"] == 1.0  # restore, icco eval/instruct
-    assert run.env.base_env.event_rewards["pick"] == run.eval_env.base_env.event_rewards["pick"] == 5.0
+    assert (
+        run.env.base_env.event_rewards["pick"] == run.eval_env.base_env.event_rewards["pick"] == 5.0
+    )
 
 
 def test_training_env_params_survive_a_resume_and_may_change_there(tmp_path):
-    run_cli("train", *SMOKE, "train.env_params.collect_reward=3.5", "train.total_frames=512",
-            f"hydra.run.dir={tmp_path}")
+    run_cli(
+        "train",
+        *SMOKE,
+        "train.env_params.collect_reward=3.5",
+        "train.total_frames=512",
+        f"hydra.run.dir={tmp_path}",
+    )
     ckpt = tmp_path / "checkpoint.pt"
     run_cli("train", "logger.progress=false", f"resume={ckpt}", "train.total_frames=1024")
-    assert torch.load(ckpt, weights_only=False)["cfg"]["train"]["env_params"]["collect_reward"] == 3.5
+    assert (
+        torch.load(ckpt, weights_only=False)["cfg"]["train"]["env_params"]["collect_reward"] == 3.5
+    )
     # A curriculum: the shaping changes at resume (the seed and env.params may not), and says so.
-    proc = run_cli("train", "logger.progress=false", f"resume={ckpt}", "train.total_frames=1536",
-                   "train.env_params.collect_reward=null")
+    proc = run_cli(
+        "train",
+        "logger.progress=false",
+        f"resume={ckpt}",
+        "train.total_frames=1536",
+        "train.env_params.collect_reward=null",
+    )
     assert "instead of {'collect_reward': 3.5}" in proc.stdout
     saved = torch.load(ckpt, weights_only=False)
     assert saved["frames"] == 1536 and saved["cfg"]["train"]["env_params"]["collect_reward"] is None
@@ -300,13 +407,22 @@ def test_training_env_params_survive_a_resume_and_may_change_there(tmp_path):
 def test_resume_continues_in_the_checkpoint_folder():
     from icco_torchrl.cli import _resume_folder
 
-    assert _resume_folder(["resume=/a/b/checkpoint.pt"]) == ["resume=/a/b/checkpoint.pt", "hydra.run.dir=/a/b"]
+    assert _resume_folder(["resume=/a/b/checkpoint.pt"]) == [
+        "resume=/a/b/checkpoint.pt",
+        "hydra.run.dir=/a/b",
+    ]
     assert _resume_folder(["resume=x.pt", "hydra.run.dir=D"]) == ["resume=x.pt", "hydra.run.dir=D"]
     assert _resume_folder(["seed=1"]) == ["seed=1"]
 
 
-@pytest.mark.parametrize("override, named", [("seed=5", "seed"), ("env.params.pick_reward=9", "env"),
-                                             ("train.eps_decay_frames=5", "train.eps_decay_frames")])
+@pytest.mark.parametrize(
+    "override, named",
+    [
+        ("seed=5", "seed"),
+        ("env.params.pick_reward=9", "env"),
+        ("train.eps_decay_frames=5", "train.eps_decay_frames"),
+    ],
+)
 def test_resume_refuses_overrides_it_cannot_honour(tmp_path, override, named):
     run_cli("train", *SMOKE, "train.total_frames=1024", f"hydra.run.dir={tmp_path}")
     config = (tmp_path / "config.yaml").read_text()
@@ -316,7 +432,9 @@ def test_resume_refuses_overrides_it_cannot_honour(tmp_path, override, named):
 
 
 def test_a_config_error_leaves_no_run_folder(tmp_path):
-    proc = run_cli("train", *SMOKE, "train.lr=abc", f"hydra.run.dir={tmp_path / 'run'}", check=False)
+    proc = run_cli(
+        "train", *SMOKE, "train.lr=abc", f"hydra.run.dir={tmp_path / 'run'}", check=False
+    )
     assert proc.returncode == 2 and not (tmp_path / "run").exists()
 
 
@@ -325,15 +443,27 @@ def test_repeated_kills_inside_checkpoints_and_dumps_lose_nothing(tmp_path):
     """Three SIGKILLs while the run checkpoints (and dumps its replay buffer) after every batch,
     each followed by a resume: the CSVs end with the uninterrupted run's frame column, the
     checkpoint loads, and no temp file or folder survives."""
-    budget = ("train.total_frames=6144", "train.checkpoint_interval=128", "train.eval_interval=1024")
+    budget = (
+        "train.total_frames=6144",
+        "train.checkpoint_interval=128",
+        "train.eval_interval=1024",
+    )
     run = tmp_path / "killed"
     command = [sys.executable, "-m", "icco_torchrl", "train", *SMOKE, *budget]
     kills = 0
     for delay in (1.0, 2.0, 3.0):
-        resume = [f"resume={run / 'checkpoint.pt'}"] if (run / "checkpoint.pt").exists() else [f"hydra.run.dir={run}"]
-        proc = subprocess.Popen([*command, *resume], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        resume = (
+            [f"resume={run / 'checkpoint.pt'}"]
+            if (run / "checkpoint.pt").exists()
+            else [f"hydra.run.dir={run}"]
+        )
+        proc = subprocess.Popen(
+            [*command, *resume], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+        )
         deadline = time.time() + 120
-        while time.time() < deadline and proc.poll() is None and not (run / "checkpoint.pt").exists():
+        while (
+            time.time() < deadline and proc.poll() is None and not (run / "checkpoint.pt").exists()
+        ):
             time.sleep(0.1)
         time.sleep(delay)
         if proc.poll() is None:
@@ -362,8 +492,13 @@ def test_an_exported_policy_acts_like_its_checkpoint_and_cannot_be_resumed(tmp_p
     from torchrl.envs.utils import ExplorationType, set_exploration_type
 
     td = full["env"].reset()
-    with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):  # greedy, coordinator mean
-        assert torch.equal(full["policy"](td.clone())["agents", "action_value"],
-                           slim["policy"](td.clone())["agents", "action_value"])
+    with (
+        torch.no_grad(),
+        set_exploration_type(ExplorationType.DETERMINISTIC),
+    ):  # greedy, coordinator mean
+        assert torch.equal(
+            full["policy"](td.clone())["agents", "action_value"],
+            slim["policy"](td.clone())["agents", "action_value"],
+        )
     proc = run_cli("train", *SMOKE, f"resume={small}", check=False)
     assert proc.returncode == 2 and "is an exported policy" in proc.stderr

@@ -14,6 +14,7 @@ Trained teams (``../four_quadrants/results.json``) are drawn on the same plane.
 
     python experiments/calibration/frontier.py        # ~1 min on one core; results/frontier.{json,png}
 """
+
 from __future__ import annotations
 
 import argparse
@@ -24,7 +25,12 @@ from pathlib import Path
 import torch
 from omegaconf import OmegaConf
 
-from icco_torchrl.envs.reference_policies import BlendPolicy, lookahead, make_reference_policy, steer
+from icco_torchrl.envs.reference_policies import (
+    BlendPolicy,
+    lookahead,
+    make_reference_policy,
+    steer,
+)
 from icco_torchrl.training.build import EVAL_SEED_OFFSET, METHOD_LABELS, compose_config
 
 HERE = Path(__file__).resolve().parent
@@ -61,27 +67,54 @@ def plot(rows: list[dict], trained: dict, bars: dict, out: Path) -> None:
     fig, ax = plt.subplots(figsize=(7, 5))
     for family, style in (("blend", "o-"), ("anchored", "s-"), ("anchored + robot 0.65 m", "^-")):
         pts = [r for r in rows if r["family"] == family]
-        ax.plot([p["in_quadrant"] for p in pts], [p["task_reward"] for p in pts], style, label=family, alpha=0.8)
+        ax.plot(
+            [p["in_quadrant"] for p in pts],
+            [p["task_reward"] for p in pts],
+            style,
+            label=family,
+            alpha=0.8,
+        )
         for p in pts:
-            ax.annotate(f"{p['radius']:g}", (p["in_quadrant"], p["task_reward"]), fontsize=7,
-                        textcoords="offset points", xytext=(3, 3))
+            ax.annotate(
+                f"{p['radius']:g}",
+                (p["in_quadrant"], p["task_reward"]),
+                fontsize=7,
+                textcoords="offset points",
+                xytext=(3, 3),
+            )
     for p in (r for r in rows if r["family"] in ("follower", "heuristic")):
         ax.plot(p["in_quadrant"], p["task_reward"], "k*", ms=10)
-        ax.annotate(p["family"], (p["in_quadrant"], p["task_reward"]), fontsize=8, textcoords="offset points",
-                    xytext=(4, -10))
+        ax.annotate(
+            p["family"],
+            (p["in_quadrant"], p["task_reward"]),
+            fontsize=8,
+            textcoords="offset points",
+            xytext=(4, -10),
+        )
     for name, m in trained.items():
         ax.plot(m["in_quadrant"]["mean"], m["task_reward"]["mean"], "D", color="crimson", ms=6)
-        ax.annotate(name, (m["in_quadrant"]["mean"], m["task_reward"]["mean"]), fontsize=7, color="crimson",
-                    textcoords="offset points", xytext=(4, 2))
+        ax.annotate(
+            name,
+            (m["in_quadrant"]["mean"], m["task_reward"]["mean"]),
+            fontsize=7,
+            color="crimson",
+            textcoords="offset points",
+            xytext=(4, 2),
+        )
     ax.axhline(bars["task"], color="grey", ls="--", lw=1)
     ax.axvline(bars["in_quadrant"], color="grey", ls="--", lw=1)
-    ax.fill_between([bars["in_quadrant"], 1.0], bars["task"], 450, color="green", alpha=0.08, label="both bars")
+    ax.fill_between(
+        [bars["in_quadrant"], 1.0], bars["task"], 450, color="green", alpha=0.08, label="both bars"
+    )
     ax.set_xlim(0.15, 0.85)
     ax.set_ylim(-120, 420)
     ax.set_xlabel("fraction of robot-steps in the instructed quadrant")
     ax.set_ylabel("task reward per 580-step episode (team)")
-    ax.set_title("four-quadrant protocol, calibrated reward: scripted families (label: r in m)\n"
-                 "and trained teams (3 seeds, red)", fontsize=9)
+    ax.set_title(
+        "four-quadrant protocol, calibrated reward: scripted families (label: r in m)\n"
+        "and trained teams (3 seeds, red)",
+        fontsize=9,
+    )
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8, loc="lower left")
     fig.tight_layout()
@@ -95,31 +128,64 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=HERE / "results")
     args = parser.parse_args()
     torch.set_num_threads(1)
-    params = OmegaConf.to_container(compose_config([]).env.params, resolve=True)  # the calibrated eval env
+    params = OmegaConf.to_container(
+        compose_config([]).env.params, resolve=True
+    )  # the calibrated eval env
     rows = []
 
-    def add(family: str, radius, make):  # the episodes of `icco eval` at seed 0 (env seed 20000, walks seed 0)
-        means = quadrant_means(make, args.trials, env_seed=EVAL_SEED_OFFSET, schedule_seed=0, **params)
+    def add(
+        family: str, radius, make
+    ):  # the episodes of `icco eval` at seed 0 (env seed 20000, walks seed 0)
+        means = quadrant_means(
+            make, args.trials, env_seed=EVAL_SEED_OFFSET, schedule_seed=0, **params
+        )
         rows.append({"family": family, "radius": radius, **means})
-        print(" ".join(f"{k}={v:.2f}" if isinstance(v, float) else f"{k}={v}" for k, v in rows[-1].items()), flush=True)
+        print(
+            " ".join(
+                f"{k}={v:.2f}" if isinstance(v, float) else f"{k}={v}" for k, v in rows[-1].items()
+            ),
+            flush=True,
+        )
 
     add("follower", None, lambda env: make_reference_policy("follower", env))
     add("heuristic", None, lambda env: make_reference_policy("heuristic", env))
     for r in BLEND_RADII:
         add("blend", r, lambda env, r=r: make_reference_policy("blend", env, radius=r))
     for r, robot in ANCHORED:
-        add("anchored" + (f" + robot {robot:g} m" if robot else ""), r, lambda env, r=r, robot=robot:
-            AnchoredBlend(env, r, robot))
+        add(
+            "anchored" + (f" + robot {robot:g} m" if robot else ""),
+            r,
+            lambda env, r=r, robot=robot: AnchoredBlend(env, r, robot),
+        )
     heuristic = next(r for r in rows if r["family"] == "heuristic")
     bars = {"task": heuristic["task_reward"] / 2, "in_quadrant": 0.70}
-    both = [r for r in rows if r["task_reward"] >= bars["task"] and r["in_quadrant"] >= bars["in_quadrant"]]
-    print(f"bars: task >= {bars['task']:.1f} and in quadrant >= 0.70; met by {len(both)} of {len(rows)} policies")
+    both = [
+        r
+        for r in rows
+        if r["task_reward"] >= bars["task"] and r["in_quadrant"] >= bars["in_quadrant"]
+    ]
+    print(
+        f"bars: task >= {bars['task']:.1f} and in quadrant >= 0.70; met by {len(both)} of {len(rows)} policies"
+    )
     trained_path = HERE.parent / "four_quadrants" / "results.json"
-    trained = {k: v for k, v in json.loads(trained_path.read_text())["methods"].items()
-               if k in METHOD_LABELS}  # the methods, not the reference rows
+    trained = {
+        k: v
+        for k, v in json.loads(trained_path.read_text())["methods"].items()
+        if k in METHOD_LABELS
+    }  # the methods, not the reference rows
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "frontier.json").write_text(json.dumps({"trials": args.trials, "steps": 580, "bars": bars,
-                                                        "policies": rows, "both_bars": both}, indent=1))
+    (args.out / "frontier.json").write_text(
+        json.dumps(
+            {
+                "trials": args.trials,
+                "steps": 580,
+                "bars": bars,
+                "policies": rows,
+                "both_bars": both,
+            },
+            indent=1,
+        )
+    )
     plot(rows, trained, bars, args.out / "frontier.png")
 
 

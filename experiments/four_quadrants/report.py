@@ -7,6 +7,7 @@ Reads ``<sweep>/eval_quadrants/quadrants.json`` (from ``icco eval``), the runs' 
 and fills ``README.template.md``. The comparison with the paper is computed from the numbers,
 not written in advance, and a method without a checkpoint is listed as missing.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -20,8 +21,16 @@ import sys
 from pathlib import Path
 from string import Template
 
-from icco_torchrl.evaluation.metrics import (EPISODE, METHOD_LABELS, learning_curves, markdown_table, result_name,
-                                             results_json, segment_table, write_json)
+from icco_torchrl.evaluation.metrics import (
+    EPISODE,
+    METHOD_LABELS,
+    learning_curves,
+    markdown_table,
+    result_name,
+    results_json,
+    segment_table,
+    write_json,
+)
 from icco_torchrl.evaluation.plots import plot_curves
 from icco_torchrl.training.build import METHODS
 
@@ -30,8 +39,17 @@ sys.path.insert(0, str(HERE.parent))
 from aggregate import find_runs  # noqa: E402  (experiments/aggregate.py, a sibling script)
 
 EXPECTED = [METHOD_LABELS[m] for m in METHODS]
-COLUMNS = ("reward", "task_reward", "inst_reward", "pick", "collect", "defense", "invasion", "waypoint_dist",
-           "in_quadrant")
+COLUMNS = (
+    "reward",
+    "task_reward",
+    "inst_reward",
+    "pick",
+    "collect",
+    "defense",
+    "invasion",
+    "waypoint_dist",
+    "in_quadrant",
+)
 SMOKE_FRAMES = 100_000  # below this a run has learned nothing worth comparing
 
 
@@ -51,7 +69,10 @@ def _duration(seconds: float | None) -> str:
 
 def budget_section(runs: dict[str, list[Path]], info: dict) -> tuple[str, bool]:
     """A table of frames, wall time and SPS per method, then the machine; and whether it is a smoke budget."""
-    lines = ["| method | runs | env steps per run | training wall time per run | env steps / s |", "|---|---|---|---|---|"]
+    lines = [
+        "| method | runs | env steps per run | training wall time per run | env steps / s |",
+        "|---|---|---|---|---|",
+    ]
     smoke = False
     for label, dirs in runs.items():
         timing = [row for d in dirs if (row := _last_row(d / "timing.csv"))]
@@ -59,22 +80,31 @@ def budget_section(runs: dict[str, list[Path]], info: dict) -> tuple[str, bool]:
         wall = [sum(float(r[k]) for k in r if k.startswith("time_")) for r in timing]
         sps = [float(r["sps"]) for r in timing]
         smoke |= bool(frames) and max(frames) < SMOKE_FRAMES
-        mean = (lambda xs: sum(xs) / len(xs) if xs else math.nan)
-        lines.append(f"| {label} | {len(dirs)} | {mean(frames):,.0f} | {mean(wall) / 60:.1f} min | {mean(sps):,.0f} |")
+        mean = lambda xs: sum(xs) / len(xs) if xs else math.nan
+        lines.append(
+            f"| {label} | {len(dirs)} | {mean(frames):,.0f} | {mean(wall) / 60:.1f} min | {mean(sps):,.0f} |"
+        )
     m = info.get("machine", {})
-    lines += ["", f"Training overrides: `{' '.join(info.get('budget', [])) or '(defaults)'}`; seeds "
-              f"{info.get('seeds', '?')}. Training wall time summed over run.py invocations (parallel "
-              f"invocations add up): {_duration(info.get('train_wall_s'))}; "
-              f"{_duration(info.get('eval_wall_s'))} evaluation.",
-              f"Machine: {m.get('cpu', '?')} ({m.get('cores', '?')} cores), GPU: {m.get('gpu') or 'none'}, "
-              f"torch {m.get('torch', '?')}, Python {m.get('python', '?')}, {m.get('platform', '?')}."]
+    lines += [
+        "",
+        f"Training overrides: `{' '.join(info.get('budget', [])) or '(defaults)'}`; seeds "
+        f"{info.get('seeds', '?')}. Training wall time summed over run.py invocations (parallel "
+        f"invocations add up): {_duration(info.get('train_wall_s'))}; "
+        f"{_duration(info.get('eval_wall_s'))} evaluation.",
+        f"Machine: {m.get('cpu', '?')} ({m.get('cores', '?')} cores), GPU: {m.get('gpu') or 'none'}, "
+        f"torch {m.get('torch', '?')}, Python {m.get('python', '?')}, {m.get('platform', '?')}.",
+    ]
     return "\n".join(lines), smoke or bool(info.get("smoke"))
 
 
 def comparison(summary: list[dict], missing: list[str]) -> str:
     """Statements of the paper's findings, each checked against these numbers."""
     every = {r["method"]: r for r in summary if r["segment"] == EPISODE}
-    refs = {name: r for name, r in every.items() if result_name(name) in ("random", "follower", "heuristic", "blend")}
+    refs = {
+        name: r
+        for name, r in every.items()
+        if result_name(name) in ("random", "follower", "heuristic", "blend")
+    }
     rows = {name: r for name, r in every.items() if name not in refs}
     if "ICCO" not in rows or len(rows) < 2:
         return "Not enough methods were evaluated to compare (ICCO and at least one baseline are needed)."
@@ -86,30 +116,45 @@ def comparison(summary: list[dict], missing: list[str]) -> str:
     spread = math.hypot(icco["reward_std"], best_other["reward_std"])
     verdict = ("reproduced" if gap > 0 else "not reproduced") + (
         f": the gap to {best_other['method']} ({gap:+.1f}) is {'larger' if abs(gap) > spread else 'smaller'} "
-        f"than the trial-to-trial spread ({spread:.1f})")
+        f"than the trial-to-trial spread ({spread:.1f})"
+    )
     lines = [f"- **Paper: ICCO gets the highest reward.** Here the ranking is {order}; {verdict}."]
     parts = []
     for metric in ("collect", "defense"):
         others_mean = sum(r[metric] for r in others) / len(others)
-        parts.append(f"{metric} ICCO {icco[metric]:.1f} ± {icco[f'{metric}_std']:.1f} vs {others_mean:.1f} for the "
-                     f"baselines on average ({'more' if icco[metric] > others_mean else 'not more'})")
-    lines.append("- **Paper: the baselines fail at collecting and defending; ICCO does both.** Per episode: "
-                 + "; ".join(parts) + ".")
+        parts.append(
+            f"{metric} ICCO {icco[metric]:.1f} ± {icco[f'{metric}_std']:.1f} vs {others_mean:.1f} for the "
+            f"baselines on average ({'more' if icco[metric] > others_mean else 'not more'})"
+        )
+    lines.append(
+        "- **Paper: the baselines fail at collecting and defending; ICCO does both.** Per episode: "
+        + "; ".join(parts)
+        + "."
+    )
     follow = ", ".join(f"{r['method']} {r['in_quadrant']:.2f}" for r in ranked)
-    lines.append(f"- **Paper: all methods follow the quadrant (ICCO approximately).** Fraction of robot-steps "
-                 f"inside the instructed quadrant: {follow}.")
+    lines.append(
+        f"- **Paper: all methods follow the quadrant (ICCO approximately).** Fraction of robot-steps "
+        f"inside the instructed quadrant: {follow}."
+    )
     flat = rows.get(METHOD_LABELS["qmix_full_flat"])
     if flat is not None:
-        gap, spread = icco["reward"] - flat["reward"], math.hypot(icco["reward_std"], flat["reward_std"])
-        lines.append(f"- **Against the paper's QMIX (FULL)** (the global state as one flat vector; `qmix_full` reads "
-                     f"it as relative entity tokens): ICCO {icco['reward']:.1f} vs {flat['reward']:.1f}, "
-                     f"{'ahead' if gap > 0 else 'behind'} by {abs(gap):.1f}, "
-                     f"{'more' if abs(gap) > spread else 'less'} than the trial-to-trial spread ({spread:.1f}).")
+        gap, spread = (
+            icco["reward"] - flat["reward"],
+            math.hypot(icco["reward_std"], flat["reward_std"]),
+        )
+        lines.append(
+            f"- **Against the paper's QMIX (FULL)** (the global state as one flat vector; `qmix_full` reads "
+            f"it as relative entity tokens): ICCO {icco['reward']:.1f} vs {flat['reward']:.1f}, "
+            f"{'ahead' if gap > 0 else 'behind'} by {abs(gap):.1f}, "
+            f"{'more' if abs(gap) > spread else 'less'} than the trial-to-trial spread ({spread:.1f})."
+        )
     lines += criteria(rows, refs)
     if missing:
         lines.append(f"- Missing from this comparison (no checkpoint): {', '.join(missing)}.")
-    lines.append("- Our environment is a re-implementation (geometry scaled from COPA, see the task section of the main README), so absolute "
-                 "rewards differ from the paper's; the ordering is what to compare.")
+    lines.append(
+        "- Our environment is a re-implementation (geometry scaled from COPA, see the task section of the main README), so absolute "
+        "rewards differ from the paper's; the ordering is what to compare."
+    )
     return "\n".join(lines)
 
 
@@ -119,37 +164,60 @@ def criteria(rows: dict, refs: dict) -> list[str]:
     blend = next((r for name, r in refs.items() if name.startswith("blend")), None)
     if heuristic is None or rnd is None:
         return ["- Reference policies missing: issue 7's criteria not checked."]
-    lines = ["- **Issue 7's bar** (task reward >= 50 % of the heuristic's, picks and defenses >= 3x random's, "
-             ">= 70 % of robot-steps in the instructed quadrant; ICCO's team reward >= the best blend's):"]
+    lines = [
+        "- **Issue 7's bar** (task reward >= 50 % of the heuristic's, picks and defenses >= 3x random's, "
+        ">= 70 % of robot-steps in the instructed quadrant; ICCO's team reward >= the best blend's):"
+    ]
     for name in ("ICCO", "QMIX (FULL)"):
         if name not in rows:
             continue
         r = rows[name]
-        checks = [(f"task {r['task_reward']:.1f} vs {0.5 * heuristic['task_reward']:.1f}",
-                   r["task_reward"] >= 0.5 * heuristic["task_reward"]),
-                  (f"picks {r['pick']:.1f} vs {3 * rnd['pick']:.1f}", r["pick"] >= 3 * rnd["pick"]),
-                  (f"defenses {r['defense']:.1f} vs {3 * rnd['defense']:.1f}", r["defense"] >= 3 * rnd["defense"]),
-                  (f"in quadrant {r['in_quadrant']:.2f} vs 0.70", r["in_quadrant"] >= 0.70)]
+        checks = [
+            (
+                f"task {r['task_reward']:.1f} vs {0.5 * heuristic['task_reward']:.1f}",
+                r["task_reward"] >= 0.5 * heuristic["task_reward"],
+            ),
+            (f"picks {r['pick']:.1f} vs {3 * rnd['pick']:.1f}", r["pick"] >= 3 * rnd["pick"]),
+            (
+                f"defenses {r['defense']:.1f} vs {3 * rnd['defense']:.1f}",
+                r["defense"] >= 3 * rnd["defense"],
+            ),
+            (f"in quadrant {r['in_quadrant']:.2f} vs 0.70", r["in_quadrant"] >= 0.70),
+        ]
         if name == "ICCO" and blend is not None:
-            checks.append((f"team reward {r['reward']:.1f} vs {blend['reward']:.1f}", r["reward"] >= blend["reward"]))
+            checks.append(
+                (
+                    f"team reward {r['reward']:.1f} vs {blend['reward']:.1f}",
+                    r["reward"] >= blend["reward"],
+                )
+            )
         met = sum(ok for _, ok in checks)
-        lines.append(f"  - {name}: {met} of {len(checks)} met (" + "; ".join(
-            f"{text} {'met' if ok else 'NOT met'}" for text, ok in checks) + ").")
+        lines.append(
+            f"  - {name}: {met} of {len(checks)} met ("
+            + "; ".join(f"{text} {'met' if ok else 'NOT met'}" for text, ok in checks)
+            + ")."
+        )
     return lines
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("sweep", type=Path, help="the sweep folder written by run.py")
     parser.add_argument("--readme", type=Path, default=HERE / "README.md")
     args = parser.parse_args(argv)
     results = args.sweep / "eval_quadrants" / "quadrants.json"
     if not results.is_file():
-        print(f"report.py: {results} not found: run experiments/four_quadrants/run.py (or icco eval) first",
-              file=sys.stderr)
+        print(
+            f"report.py: {results} not found: run experiments/four_quadrants/run.py (or icco eval) first",
+            file=sys.stderr,
+        )
         return 2
     payload = json.loads(results.read_text())
-    summary = [{k: (math.nan if v is None else v) for k, v in row.items()} for row in payload["summary"]]
+    summary = [
+        {k: (math.nan if v is None else v) for k, v in row.items()} for row in payload["summary"]
+    ]
     info_path = args.sweep / "sweep.json"
     info = json.loads(info_path.read_text()) if info_path.is_file() else {}
     present = {r["method"] for r in summary}
@@ -160,31 +228,53 @@ def main(argv=None) -> int:
     for name in ("quadrants_reward.png", "quadrants_trajectories.png"):
         shutil.copyfile(args.sweep / "eval_quadrants" / name, figures / name)
     found = find_runs([args.sweep])
-    runs = {label: found[label] for label in [*EXPECTED, *found] if label in found}  # the paper's order
+    runs = {
+        label: found[label] for label in [*EXPECTED, *found] if label in found
+    }  # the paper's order
     curves = learning_curves(runs)
     if curves:
         plot_curves(curves, figures / "learning_curves")
         (figures / "learning_curves.pdf").unlink()  # the README shows PNGs; PDFs stay in the sweep
 
     budget, smoke = budget_section(runs, info)
-    banner = ("> **Smoke budget: these numbers only show that the pipeline runs end to end; the policies "
-              "have learned nothing. Re-run without `--smoke` for results.**" if smoke else "")
+    banner = (
+        "> **Smoke budget: these numbers only show that the pipeline runs end to end; the policies "
+        "have learned nothing. Re-run without `--smoke` for results.**"
+        if smoke
+        else ""
+    )
     steps = payload["segment_steps"]["quadrant 1"]
     if info.get("smoke"):
         budget_args = "--smoke"
     else:
         budget_args = " ".join(shlex.quote(a) for a in ["--budget", *info.get("budget", [])])
     text = Template((HERE / "README.template.md").read_text()).substitute(
-        banner=banner, steps=steps, episode_steps=4 * steps, trials=payload["trials"], budget_args=budget_args,
-        sweep=shlex.quote(os.path.relpath(args.sweep)), budget=budget,
-        table=markdown_table(summary, COLUMNS, missing=missing), segment_table=segment_table(summary, "reward"),
-        comparison=comparison(summary, missing))
+        banner=banner,
+        steps=steps,
+        episode_steps=4 * steps,
+        trials=payload["trials"],
+        budget_args=budget_args,
+        sweep=shlex.quote(os.path.relpath(args.sweep)),
+        budget=budget,
+        table=markdown_table(summary, COLUMNS, missing=missing),
+        segment_table=segment_table(summary, "reward"),
+        comparison=comparison(summary, missing),
+    )
     args.readme.write_text(text)
     frames = {}
     for c in payload["checkpoints"]:
         frames[c["method"]] = max(frames.get(c["method"], 0), c.get("frames") or 0)
-    write_json(results_json(summary, protocol="quadrants", steps=4 * steps, trials=payload["trials"], frames=frames,
-                            budget=info.get("budget")), args.readme.parent / "results.json")
+    write_json(
+        results_json(
+            summary,
+            protocol="quadrants",
+            steps=4 * steps,
+            trials=payload["trials"],
+            frames=frames,
+            budget=info.get("budget"),
+        ),
+        args.readme.parent / "results.json",
+    )
     print(f"wrote {args.readme} and results.json")
     return 0
 

@@ -14,6 +14,7 @@
 
 ``--train-only`` stops after step 1 (the language experiment uses it to train its agents).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -35,8 +36,13 @@ from jobs import train_runs  # noqa: E402  (experiments/jobs.py, a sibling scrip
 HERE = Path(__file__).resolve().parent
 SEEDS = (0, 1, 2)
 # Seconds per run: proves the pipeline, says nothing about the methods.
-SMOKE_BUDGET = ("experiment=smoke", "train.total_frames=512", "train.eval_interval=256", "train.checkpoint_interval=0",
-                "train.eval_envs=2")
+SMOKE_BUDGET = (
+    "experiment=smoke",
+    "train.total_frames=512",
+    "train.eval_interval=256",
+    "train.checkpoint_interval=0",
+    "train.eval_envs=2",
+)
 
 
 def icco(*args: str) -> None:
@@ -49,8 +55,14 @@ def icco(*args: str) -> None:
 def train(sweep: Path, methods, seeds, budget, jobs: int = 2) -> None:
     """Bring every ``method x seed`` run in ``sweep`` to its budget (see ``experiments/jobs.py``)."""
     totals = {m: compose_config([f"method={m}", *budget]).train.total_frames for m in methods}
-    train_runs({sweep / f"{m}_seed{s}": ([f"method={m}", f"seed={s}", *budget], totals[m])
-                for m in methods for s in seeds}, jobs)
+    train_runs(
+        {
+            sweep / f"{m}_seed{s}": ([f"method={m}", f"seed={s}", *budget], totals[m])
+            for m in methods
+            for s in seeds
+        },
+        jobs,
+    )
 
 
 def cpu_name() -> str:
@@ -65,27 +77,59 @@ def cpu_name() -> str:
 def machine() -> dict:
     """What the numbers were measured on (for the README)."""
     gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else None
-    return dict(host=platform.node(), cpu=cpu_name(), cores=os.cpu_count(),
-                python=platform.python_version(), torch=torch.__version__, gpu=gpu, platform=platform.platform())
+    return dict(
+        host=platform.node(),
+        cpu=cpu_name(),
+        cores=os.cpu_count(),
+        python=platform.python_version(),
+        torch=torch.__version__,
+        gpu=gpu,
+        platform=platform.platform(),
+    )
 
 
 def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--sweep", type=Path, help="sweep folder (default multirun/four_quadrants[_smoke])")
-    parser.add_argument("--budget", nargs="*", help="training overrides (default experiment=default), "
-                        "e.g. experiment=paper device=cuda; with --smoke, added to the smoke budget")
-    parser.add_argument("--methods", nargs="+", default=[*METHODS, "qmix_full_flat"], choices=list(METHOD_LABELS),
-                        help="default: the paper's four and its flat QMIX (FULL)")
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument(
+        "--sweep", type=Path, help="sweep folder (default multirun/four_quadrants[_smoke])"
+    )
+    parser.add_argument(
+        "--budget",
+        nargs="*",
+        help="training overrides (default experiment=default), "
+        "e.g. experiment=paper device=cuda; with --smoke, added to the smoke budget",
+    )
+    parser.add_argument(
+        "--methods",
+        nargs="+",
+        default=[*METHODS, "qmix_full_flat"],
+        choices=list(METHOD_LABELS),
+        help="default: the paper's four and its flat QMIX (FULL)",
+    )
     parser.add_argument("--seeds", nargs="+", type=int, default=list(SEEDS))
-    parser.add_argument("--trials", type=int, default=20, help="evaluation trials per checkpoint (paper: 20)")
+    parser.add_argument(
+        "--trials", type=int, default=20, help="evaluation trials per checkpoint (paper: 20)"
+    )
     parser.add_argument("--steps", type=int, default=145, help="steps per quadrant (paper: 145)")
     parser.add_argument("--gif", action="store_true", help="also write a GIF per method")
-    parser.add_argument("--smoke", action="store_true", help="tiny budget, 4 trials, 20 steps: a pipeline check")
+    parser.add_argument(
+        "--smoke", action="store_true", help="tiny budget, 4 trials, 20 steps: a pipeline check"
+    )
     parser.add_argument("--train-only", action="store_true", help="stop after training")
-    parser.add_argument("--jobs", type=int, default=2, help="training runs side by side (one core each)")
-    parser.add_argument("--readme", type=Path, default=HERE / "README.md", help="where report.py writes")
+    parser.add_argument(
+        "--jobs", type=int, default=2, help="training runs side by side (one core each)"
+    )
+    parser.add_argument(
+        "--readme", type=Path, default=HERE / "README.md", help="where report.py writes"
+    )
     args = parser.parse_args(argv)
-    budget = [*SMOKE_BUDGET, *(args.budget or [])] if args.smoke else (args.budget or ["experiment=default"])
+    budget = (
+        [*SMOKE_BUDGET, *(args.budget or [])]
+        if args.smoke
+        else (args.budget or ["experiment=default"])
+    )
     trials, steps = (4, 20) if args.smoke else (args.trials, args.steps)
     sweep = (args.sweep or Path("multirun/four_quadrants" + "_smoke" * args.smoke)).resolve()
     sweep.mkdir(parents=True, exist_ok=True)
@@ -94,20 +138,35 @@ def main(argv=None) -> None:
     train(sweep, args.methods, args.seeds, budget, args.jobs)
     info_path = sweep / "sweep.json"
     info = json.loads(info_path.read_text()) if info_path.exists() else {"train_wall_s": 0.0}
-    info.update(budget=budget, methods=args.methods, seeds=args.seeds, machine=machine(), smoke=args.smoke)
+    info.update(
+        budget=budget, methods=args.methods, seeds=args.seeds, machine=machine(), smoke=args.smoke
+    )
     info["train_wall_s"] += time.time() - start  # summed over the script's invocations
     info_path.write_text(json.dumps(info, indent=2))
     if args.train_only:
         return
 
-    checkpoints = [str(p) for m in args.methods for p in sorted(sweep.glob(f"{m}_seed*/checkpoint.pt"))]
+    checkpoints = [
+        str(p) for m in args.methods for p in sorted(sweep.glob(f"{m}_seed*/checkpoint.pt"))
+    ]
     out = sweep / "eval_quadrants"
     start = time.time()
-    icco("eval", f"eval.checkpoints=[{','.join(checkpoints)}]", "eval.protocol=quadrants", f"eval.trials={trials}",
-         f"eval.steps={steps}", f"eval.gif={str(args.gif).lower()}", f"eval.out_dir={out}", f"hydra.run.dir={out}")
+    icco(
+        "eval",
+        f"eval.checkpoints=[{','.join(checkpoints)}]",
+        "eval.protocol=quadrants",
+        f"eval.trials={trials}",
+        f"eval.steps={steps}",
+        f"eval.gif={str(args.gif).lower()}",
+        f"eval.out_dir={out}",
+        f"hydra.run.dir={out}",
+    )
     info.update(eval_wall_s=time.time() - start, eval_trials=trials, eval_steps=steps)
     info_path.write_text(json.dumps(info, indent=2))
-    subprocess.run([sys.executable, str(HERE / "report.py"), str(sweep), "--readme", str(args.readme)], check=True)
+    subprocess.run(
+        [sys.executable, str(HERE / "report.py"), str(sweep), "--readme", str(args.readme)],
+        check=True,
+    )
 
 
 if __name__ == "__main__":

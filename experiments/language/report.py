@@ -5,6 +5,7 @@
 Tables come from the ``icco instruct`` outputs; the comparison with the paper is computed from
 the numbers. A method the paper compares but this run lacks is listed as missing.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -20,12 +21,25 @@ from string import Template
 
 import numpy as np
 
-from icco_torchrl.evaluation.metrics import (EPISODE, METHOD_LABELS, METRICS, markdown_table, result_name, results_json,
-                                             segment_table, summarize, write_json)
+from icco_torchrl.evaluation.metrics import (
+    EPISODE,
+    METHOD_LABELS,
+    METRICS,
+    markdown_table,
+    result_name,
+    results_json,
+    segment_table,
+    summarize,
+    write_json,
+)
 
 HERE = Path(__file__).resolve().parent
 TABLE2 = ("QMIX-TAP", "QMIX-TAP w/o TR", "ICCO")
-PAPER_TABLE2 = {"QMIX-TAP": (5.1, 3.0, 6.8), "QMIX-TAP w/o TR": (3.0, 1.1, 2.0), "ICCO": (5.6, 3.7, 10.5)}
+PAPER_TABLE2 = {
+    "QMIX-TAP": (5.1, 3.0, 6.8),
+    "QMIX-TAP w/o TR": (3.0, 1.1, 2.0),
+    "ICCO": (5.6, 3.7, 10.5),
+}
 COUNTS = ("pick", "collect", "defense")
 REFERENCE_NAMES = ("random", "follower", "heuristic", "blend")
 SMOKE_FRAMES = 100_000
@@ -33,13 +47,18 @@ SMOKE_FRAMES = 100_000
 
 def load(folder: Path) -> tuple[dict, list[dict]]:
     payload = json.loads((folder / "instruct.json").read_text())
-    payload["summary"] = [{k: (math.nan if v is None else v) for k, v in r.items()} for r in payload["summary"]]
+    payload["summary"] = [
+        {k: (math.nan if v is None else v) for k, v in r.items()} for r in payload["summary"]
+    ]
     return payload, list(csv.DictReader((folder / "instruct_trials.csv").open()))
 
 
 def table2(rows: list[dict]) -> tuple[str, dict]:
     """Markdown of picks/collects/defenses per instruction segment, and ``{method: (means...)}``."""
-    lines = ["| method | segments | pick | collect | defense | paper (pick / collect / defense) |", "|---|---|---|---|---|---|"]
+    lines = [
+        "| method | segments | pick | collect | defense | paper (pick / collect / defense) |",
+        "|---|---|---|---|---|---|",
+    ]
     means = {}
     for method in TABLE2:
         segs = [r for r in rows if r["method"] == method and r["segment"] != EPISODE]
@@ -52,7 +71,9 @@ def table2(rows: list[dict]) -> tuple[str, dict]:
         cells = " | ".join(f"{values[k].mean():.1f} ± {values[k].std():.1f}" for k in COUNTS)
         lines.append(f"| {method} | {len(segs)} | {cells} | {paper} |")
     # The scripted reference policies, driven by the same task-aligned plans (extra rows, not in the paper).
-    for method in dict.fromkeys(r["method"] for r in rows if result_name(r["method"]) in REFERENCE_NAMES):
+    for method in dict.fromkeys(
+        r["method"] for r in rows if result_name(r["method"]) in REFERENCE_NAMES
+    ):
         segs = [r for r in rows if r["method"] == method and r["segment"] != EPISODE]
         values = {k: np.array([float(r[k]) for r in segs]) for k in COUNTS}
         cells = " | ".join(f"{values[k].mean():.1f} ± {values[k].std():.1f}" for k in COUNTS)
@@ -66,22 +87,31 @@ def comparison(fig5b: list[dict], means: dict) -> str:
     if ("ICCO", EPISODE) in cell and ("QMIX (FULL)", EPISODE) in cell:
         segments = [s for (m, s) in cell if m == "ICCO" and s != EPISODE]
         wins = [s for s in segments if cell["ICCO", s]["reward"] > cell["QMIX (FULL)", s]["reward"]]
-        lines.append(f"- **Paper: ICCO gets more reward than QMIX (FULL) for every instruction.** Here ICCO is ahead "
-                     f"on {len(wins)} of {len(segments)} instructions ({', '.join(wins) or 'none'}); whole episode "
-                     f"{cell['ICCO', EPISODE]['reward']:.1f} vs {cell['QMIX (FULL)', EPISODE]['reward']:.1f}.")
+        lines.append(
+            f"- **Paper: ICCO gets more reward than QMIX (FULL) for every instruction.** Here ICCO is ahead "
+            f"on {len(wins)} of {len(segments)} instructions ({', '.join(wins) or 'none'}); whole episode "
+            f"{cell['ICCO', EPISODE]['reward']:.1f} vs {cell['QMIX (FULL)', EPISODE]['reward']:.1f}."
+        )
         if ("ICCO", "Gather center") in cell:
             icco, full = cell["ICCO", "Gather center"], cell["QMIX (FULL)", "Gather center"]
-            lines.append(f"- **Paper: in Gather Center ICCO gathers and also collects/defends better.** Here: distance to "
-                         f"the waypoints {icco['waypoint_dist']:.2f} vs {full['waypoint_dist']:.2f} m, deliveries "
-                         f"{icco['collect']:.1f} vs {full['collect']:.1f}, defenses {icco['defense']:.1f} vs "
-                         f"{full['defense']:.1f} (ICCO vs QMIX (FULL)).")
+            lines.append(
+                f"- **Paper: in Gather Center ICCO gathers and also collects/defends better.** Here: distance to "
+                f"the waypoints {icco['waypoint_dist']:.2f} vs {full['waypoint_dist']:.2f} m, deliveries "
+                f"{icco['collect']:.1f} vs {full['collect']:.1f}, defenses {icco['defense']:.1f} vs "
+                f"{full['defense']:.1f} (ICCO vs QMIX (FULL))."
+            )
         flat = METHOD_LABELS["qmix_full_flat"]
-        if (flat, EPISODE) in cell:  # the paper's own QMIX (FULL): the global state as one flat vector
+        if (
+            flat,
+            EPISODE,
+        ) in cell:  # the paper's own QMIX (FULL): the global state as one flat vector
             wins = [s for s in segments if cell["ICCO", s]["reward"] > cell[flat, s]["reward"]]
-            lines.append(f"- **Against the paper's QMIX (FULL)** (one flat state vector; `qmix_full` reads relative "
-                         f"entity tokens): ICCO is ahead on {len(wins)} of {len(segments)} instructions "
-                         f"({', '.join(wins) or 'none'}); whole episode {cell['ICCO', EPISODE]['reward']:.1f} vs "
-                         f"{cell[flat, EPISODE]['reward']:.1f}.")
+            lines.append(
+                f"- **Against the paper's QMIX (FULL)** (one flat state vector; `qmix_full` reads relative "
+                f"entity tokens): ICCO is ahead on {len(wins)} of {len(segments)} instructions "
+                f"({', '.join(wins) or 'none'}); whole episode {cell['ICCO', EPISODE]['reward']:.1f} vs "
+                f"{cell[flat, EPISODE]['reward']:.1f}."
+            )
     else:
         lines.append("- Fig. 5b: ICCO or QMIX (FULL) is missing; no comparison.")
     if len(means) == len(TABLE2):
@@ -90,12 +120,18 @@ def comparison(fig5b: list[dict], means: dict) -> str:
             icco, tap, wo_tr = (means[m][i] for m in ("ICCO", "QMIX-TAP", "QMIX-TAP w/o TR"))
             holds = "holds" if icco > tap > wo_tr else "does not hold"
             verdicts.append(f"{name} {holds} ({icco:.1f} / {tap:.1f} / {wo_tr:.1f})")
-        lines.append("- **Paper (Table II): ICCO > QMIX-TAP > QMIX-TAP w/o TR on picks, deliveries and defenses.** "
-                     "Here the strict ordering: " + "; ".join(verdicts) + ".")
+        lines.append(
+            "- **Paper (Table II): ICCO > QMIX-TAP > QMIX-TAP w/o TR on picks, deliveries and defenses.** "
+            "Here the strict ordering: " + "; ".join(verdicts) + "."
+        )
     else:
-        lines.append(f"- Table II: missing {', '.join(m for m in TABLE2 if m not in means)}; no comparison.")
-    lines.append("- Our environment is a re-implementation and the default planner is a rule program, so absolute "
-                 "numbers differ from the paper's; the orderings are what to compare.")
+        lines.append(
+            f"- Table II: missing {', '.join(m for m in TABLE2 if m not in means)}; no comparison."
+        )
+    lines.append(
+        "- Our environment is a re-implementation and the default planner is a rule program, so absolute "
+        "numbers differ from the paper's; the orderings are what to compare."
+    )
     return "\n".join(lines)
 
 
@@ -118,19 +154,42 @@ def _frames(*payloads: dict) -> dict[str, int]:
     return frames
 
 
-def language_results(fig5b: dict, fig5b_rows: list[dict], tap: dict, tap_rows: list[dict], steps: int) -> dict:
+def language_results(
+    fig5b: dict, fig5b_rows: list[dict], tap: dict, tap_rows: list[dict], steps: int
+) -> dict:
     """results.json: Fig. 5b (whole 4-instruction episode) and, under ``table2``, the per-instruction
     means of Table II (ICCO with the plain prompt, QMIX-TAP and QMIX-TAP w/o TR with the task-aligned one)."""
     n_segments = len(fig5b["segment_steps"])
-    out = results_json(fig5b["summary"], protocol="language", steps=steps * n_segments, trials=fig5b["trials"],
-                       frames=_frames(fig5b), instructions=list(fig5b["segment_steps"]), model=fig5b["model"])
+    out = results_json(
+        fig5b["summary"],
+        protocol="language",
+        steps=steps * n_segments,
+        trials=fig5b["trials"],
+        frames=_frames(fig5b),
+        instructions=list(fig5b["segment_steps"]),
+        model=fig5b["model"],
+    )
     rows = [r for r in fig5b_rows if r["method"] == "ICCO"] + tap_rows
-    per_instruction = [{**{k: float(r[k]) for k in METRICS if r.get(k) not in (None, "")}, "method": r["method"],
-                        "seed": r["seed"], "segment": "instruction"} for r in rows if r["segment"] != EPISODE]
+    per_instruction = [
+        {
+            **{k: float(r[k]) for k in METRICS if r.get(k) not in (None, "")},
+            "method": r["method"],
+            "seed": r["seed"],
+            "segment": "instruction",
+        }
+        for r in rows
+        if r["segment"] != EPISODE
+    ]
     for r in per_instruction:
         r.setdefault("in_quadrant", math.nan)
-    out["table2"] = results_json(summarize(per_instruction), protocol="language_tap", steps=steps,
-                                 trials=tap["trials"] * n_segments, frames=_frames(fig5b, tap), segment="instruction")
+    out["table2"] = results_json(
+        summarize(per_instruction),
+        protocol="language_tap",
+        steps=steps,
+        trials=tap["trials"] * n_segments,
+        frames=_frames(fig5b, tap),
+        segment="instruction",
+    )
     return out
 
 
@@ -145,21 +204,27 @@ def run_arguments(out: Path, llm: str | None) -> str:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("out", type=Path, help="the results folder written by run.py")
     parser.add_argument("--readme", type=Path, default=HERE / "README.md")
     args = parser.parse_args(argv)
     for sub in ("fig5b", "table2_tap"):
         if not (args.out / sub / "instruct.json").is_file():
-            print(f"report.py: {args.out / sub / 'instruct.json'} not found: run experiments/language/run.py first",
-                  file=sys.stderr)
+            print(
+                f"report.py: {args.out / sub / 'instruct.json'} not found: run experiments/language/run.py first",
+                file=sys.stderr,
+            )
             return 2
     fig5b, fig5b_rows = load(args.out / "fig5b")
     tap, tap_rows = load(args.out / "table2_tap")
     figures = args.readme.parent / "figures"
     figures.mkdir(parents=True, exist_ok=True)
     shutil.copyfile(args.out / "fig5b" / "instruct_reward.png", figures / "fig5b_reward.png")
-    shutil.copyfile(args.out / "fig5b" / "instruct_trajectories.png", figures / "fig6_trajectories.png")
+    shutil.copyfile(
+        args.out / "fig5b" / "instruct_trajectories.png", figures / "fig6_trajectories.png"
+    )
 
     table, means = table2([r for r in fig5b_rows if r["method"] == "ICCO"] + tap_rows)
     frames = [c["frames"] or 0 for p in (fig5b, tap) for c in p["checkpoints"]]
@@ -167,25 +232,48 @@ def main(argv=None) -> int:
     model = fig5b["model"]
     offline = model.startswith("offline/")
     steps = next(iter(fig5b["segment_steps"].values()))
-    fig5b_missing = [m for m in ("ICCO", "QMIX (FULL)") if m not in {r["method"] for r in fig5b["summary"]}]
+    fig5b_missing = [
+        m for m in ("ICCO", "QMIX (FULL)") if m not in {r["method"] for r in fig5b["summary"]}
+    ]
     text = Template((HERE / "README.template.md").read_text()).substitute(
-        banner=("> **Smoke budget: these numbers only show that the pipeline runs end to end; the policies have "
-                "learned nothing. Re-run without `--smoke` for results.**" if smoke else ""),
-        steps=steps, model=model, trials=fig5b["trials"],
-        planner_note=("**Planner caveat.** The default planner is the offline rule program (not a language model): "
-                      "it draws the four formations exactly, and under the task-aligned prompt it bends them toward "
-                      "the task by a fixed rule (the robot nearest the invader's path intercepts it; a robot within "
-                      "1.5 m of a resource passes through it on the way to its slot). A language model decides this "
-                      "itself: run with `--llm openai` (or any litellm model) for the paper's setting." if offline else ""),
-        run_args="--smoke" if smoke else run_arguments(args.out, None if offline else fig5b["llm_backend"]),
+        banner=(
+            "> **Smoke budget: these numbers only show that the pipeline runs end to end; the policies have "
+            "learned nothing. Re-run without `--smoke` for results.**"
+            if smoke
+            else ""
+        ),
+        steps=steps,
+        model=model,
+        trials=fig5b["trials"],
+        planner_note=(
+            "**Planner caveat.** The default planner is the offline rule program (not a language model): "
+            "it draws the four formations exactly, and under the task-aligned prompt it bends them toward "
+            "the task by a fixed rule (the robot nearest the invader's path intercepts it; a robot within "
+            "1.5 m of a resource passes through it on the way to its slot). A language model decides this "
+            "itself: run with `--llm openai` (or any litellm model) for the paper's setting."
+            if offline
+            else ""
+        ),
+        run_args="--smoke"
+        if smoke
+        else run_arguments(args.out, None if offline else fig5b["llm_backend"]),
         out=shlex.quote(os.path.relpath(args.out)),
-        fig5b_table=segment_table(fig5b["summary"], "reward") + "\n\nWhole episode:\n\n"
-        + markdown_table(fig5b["summary"], ("reward", "pick", "collect", "defense", "invasion", "waypoint_dist"),
-                         missing=fig5b_missing),
-        table2=table, planner_stats=planner_stats({"fig5b": fig5b, "table2_tap": tap}),
-        comparison=comparison(fig5b["summary"], means))
+        fig5b_table=segment_table(fig5b["summary"], "reward")
+        + "\n\nWhole episode:\n\n"
+        + markdown_table(
+            fig5b["summary"],
+            ("reward", "pick", "collect", "defense", "invasion", "waypoint_dist"),
+            missing=fig5b_missing,
+        ),
+        table2=table,
+        planner_stats=planner_stats({"fig5b": fig5b, "table2_tap": tap}),
+        comparison=comparison(fig5b["summary"], means),
+    )
     args.readme.write_text(text)
-    write_json(language_results(fig5b, fig5b_rows, tap, tap_rows, steps), args.readme.parent / "results.json")
+    write_json(
+        language_results(fig5b, fig5b_rows, tap, tap_rows, steps),
+        args.readme.parent / "results.json",
+    )
     print(f"wrote {args.readme} and results.json")
     return 0
 

@@ -17,6 +17,7 @@
    Counts are per 145-step instruction segment.
 4. ``report.py <out>`` fills ``README.md`` here.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -27,8 +28,12 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 INSTRUCTIONS = ("Go right", "Move top", "Gather center", "Spread out")
-NO_TASK_REWARD = ("env.params.pick_reward=0", "env.params.collect_reward=0", "env.params.defense_reward=0",
-                  "env.params.invasion_penalty=0")
+NO_TASK_REWARD = (
+    "env.params.pick_reward=0",
+    "env.params.collect_reward=0",
+    "env.params.defense_reward=0",
+    "env.params.invasion_penalty=0",
+)
 
 
 def run(*command: str) -> None:
@@ -38,9 +43,19 @@ def run(*command: str) -> None:
 
 def train(sweep: Path, methods, seeds, budget, smoke: bool) -> None:
     """Resumable training through the four-quadrant script (one code path for every sweep)."""
-    run(sys.executable, str(HERE.parent / "four_quadrants" / "run.py"), "--train-only", "--sweep", str(sweep),
-        "--methods", *methods, "--seeds", *map(str, seeds), *(["--smoke"] if smoke else []),
-        *(["--budget", *budget] if budget else []))
+    run(
+        sys.executable,
+        str(HERE.parent / "four_quadrants" / "run.py"),
+        "--train-only",
+        "--sweep",
+        str(sweep),
+        "--methods",
+        *methods,
+        "--seeds",
+        *map(str, seeds),
+        *(["--smoke"] if smoke else []),
+        *(["--budget", *budget] if budget else []),
+    )
 
 
 def checkpoints(sweep: Path, method: str) -> list[str]:
@@ -51,24 +66,55 @@ def checkpoints(sweep: Path, method: str) -> list[str]:
 
 
 def instruct(out: Path, paths, trials: int, steps: int, llm: str, extra=()) -> None:
-    run(sys.executable, "-m", "icco_torchrl", "instruct", "; ".join(INSTRUCTIONS), f"eval.checkpoints=[{','.join(paths)}]",
-        f"eval.trials={trials}", f"eval.steps={steps}", f"llm={llm}", *extra, f"eval.out_dir={out}",
-        f"hydra.run.dir={out}")
+    run(
+        sys.executable,
+        "-m",
+        "icco_torchrl",
+        "instruct",
+        "; ".join(INSTRUCTIONS),
+        f"eval.checkpoints=[{','.join(paths)}]",
+        f"eval.trials={trials}",
+        f"eval.steps={steps}",
+        f"llm={llm}",
+        *extra,
+        f"eval.out_dir={out}",
+        f"hydra.run.dir={out}",
+    )
 
 
 def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--sweep", type=Path, help="four-quadrant sweep (default multirun/four_quadrants[_smoke])")
-    parser.add_argument("--wo-tr-sweep", type=Path, help="QMIX w/o task reward sweep (default multirun/inst_only[_smoke])")
-    parser.add_argument("--out", type=Path, help="results folder (default multirun/language[_smoke])")
-    parser.add_argument("--budget", nargs="*", help="training overrides (see four_quadrants/run.py)")
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument(
+        "--sweep", type=Path, help="four-quadrant sweep (default multirun/four_quadrants[_smoke])"
+    )
+    parser.add_argument(
+        "--wo-tr-sweep",
+        type=Path,
+        help="QMIX w/o task reward sweep (default multirun/inst_only[_smoke])",
+    )
+    parser.add_argument(
+        "--out", type=Path, help="results folder (default multirun/language[_smoke])"
+    )
+    parser.add_argument(
+        "--budget", nargs="*", help="training overrides (see four_quadrants/run.py)"
+    )
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
-    parser.add_argument("--llm", default="offline", help="conf/llm group: offline | openai | ollama")
+    parser.add_argument(
+        "--llm", default="offline", help="conf/llm group: offline | openai | ollama"
+    )
     parser.add_argument("--trials", type=int, default=20, help="trials per checkpoint (paper: 20)")
     parser.add_argument("--steps", type=int, default=145, help="steps per instruction (paper: 145)")
-    parser.add_argument("--replan-every", type=int, help="re-prompt every N steps (paper: once per instruction)")
-    parser.add_argument("--smoke", action="store_true", help="tiny budget, 4 trials, 20 steps: a pipeline check")
-    parser.add_argument("--readme", type=Path, default=HERE / "README.md", help="where report.py writes")
+    parser.add_argument(
+        "--replan-every", type=int, help="re-prompt every N steps (paper: once per instruction)"
+    )
+    parser.add_argument(
+        "--smoke", action="store_true", help="tiny budget, 4 trials, 20 steps: a pipeline check"
+    )
+    parser.add_argument(
+        "--readme", type=Path, default=HERE / "README.md", help="where report.py writes"
+    )
     args = parser.parse_args(argv)
     tag = "_smoke" * args.smoke
     sweep = (args.sweep or Path(f"multirun/four_quadrants{tag}")).resolve()
@@ -76,16 +122,39 @@ def main(argv=None) -> None:
     out = (args.out or Path(f"multirun/language{tag}")).resolve()
     trials, steps = (4, 20) if args.smoke else (args.trials, args.steps)
 
-    train(sweep, ["icco", "qmix", "qmix_full", "qmix_full_flat"], args.seeds, args.budget, args.smoke)
-    train(wo_tr, ["qmix"], args.seeds, [*(args.budget or ([] if args.smoke else ["experiment=default"])),
-                                        *NO_TASK_REWARD], args.smoke)
+    train(
+        sweep, ["icco", "qmix", "qmix_full", "qmix_full_flat"], args.seeds, args.budget, args.smoke
+    )
+    train(
+        wo_tr,
+        ["qmix"],
+        args.seeds,
+        [*(args.budget or ([] if args.smoke else ["experiment=default"])), *NO_TASK_REWARD],
+        args.smoke,
+    )
     replan = [f"eval.replan_every={args.replan_every}"] if args.replan_every else []
-    instruct(out / "fig5b", checkpoints(sweep, "icco") + checkpoints(sweep, "qmix_full")
-             + checkpoints(sweep, "qmix_full_flat"), trials, steps, args.llm, replan)
-    instruct(out / "table2_tap", checkpoints(sweep, "qmix") + checkpoints(wo_tr, "qmix"), trials, steps, args.llm,
-             ["llm.prompt=tap", *replan])
+    instruct(
+        out / "fig5b",
+        checkpoints(sweep, "icco")
+        + checkpoints(sweep, "qmix_full")
+        + checkpoints(sweep, "qmix_full_flat"),
+        trials,
+        steps,
+        args.llm,
+        replan,
+    )
+    instruct(
+        out / "table2_tap",
+        checkpoints(sweep, "qmix") + checkpoints(wo_tr, "qmix"),
+        trials,
+        steps,
+        args.llm,
+        ["llm.prompt=tap", *replan],
+    )
     # What the report cannot read from the checkpoints: the command line that reproduces this folder.
-    (out / "run.json").write_text(json.dumps({"budget": args.budget or [], "seeds": args.seeds, "llm": args.llm}))
+    (out / "run.json").write_text(
+        json.dumps({"budget": args.budget or [], "seeds": args.seeds, "llm": args.llm})
+    )
     run(sys.executable, str(HERE / "report.py"), str(out), "--readme", str(args.readme))
 
 

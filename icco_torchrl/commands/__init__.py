@@ -4,6 +4,7 @@
 :mod:`icco_torchrl.evaluation` and :mod:`icco_torchrl.instructions`, which do not import each
 other; :func:`clean_errors` turns bad input into one line and exit code 2.
 """
+
 from __future__ import annotations
 
 import sys

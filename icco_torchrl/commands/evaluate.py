@@ -6,6 +6,7 @@
 Outputs go to ``eval.out_dir`` or to ``eval_<protocol>/`` next to the checkpoint(s); what is
 measured and written: :mod:`icco_torchrl.evaluation.runner`.
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -13,8 +14,14 @@ from pathlib import Path
 from omegaconf import DictConfig
 
 from icco_torchrl.commands import clean_errors
-from icco_torchrl.evaluation.runner import (PROTOCOL_TITLES, default_out_dir, evaluate_checkpoints, find_checkpoints,
-                                            protocol_schedules, write_report)
+from icco_torchrl.evaluation.runner import (
+    PROTOCOL_TITLES,
+    default_out_dir,
+    evaluate_checkpoints,
+    find_checkpoints,
+    protocol_schedules,
+    write_report,
+)
 
 
 def run_eval(cfg: DictConfig, run_dir: str | Path) -> float:
@@ -23,9 +30,18 @@ def run_eval(cfg: DictConfig, run_dir: str | Path) -> float:
         schedules = protocol_schedules(cfg)
         paths = find_checkpoints(cfg)
         given = bool(cfg.checkpoint or cfg.eval.checkpoints)
-        print(("evaluating " if given else "no checkpoint= given: evaluating the newest, ")
-              + ", ".join(map(str, paths)), flush=True)
+        print(
+            ("evaluating " if given else "no checkpoint= given: evaluating the newest, ")
+            + ", ".join(map(str, paths)),
+            flush=True,
+        )
         name = cfg.eval.protocol
-        out_dir = Path(cfg.eval.out_dir) if cfg.eval.out_dir else default_out_dir(paths, f"eval_{name}")
-        result = evaluate_checkpoints(cfg, paths, schedules, gif_stem=out_dir / name if cfg.eval.gif else None)
-        return write_report(result, cfg, name=name, out_dir=out_dir, title=PROTOCOL_TITLES[name], traj_segments=[0])
+        out_dir = (
+            Path(cfg.eval.out_dir) if cfg.eval.out_dir else default_out_dir(paths, f"eval_{name}")
+        )
+        result = evaluate_checkpoints(
+            cfg, paths, schedules, gif_stem=out_dir / name if cfg.eval.gif else None
+        )
+        return write_report(
+            result, cfg, name=name, out_dir=out_dir, title=PROTOCOL_TITLES[name], traj_segments=[0]
+        )

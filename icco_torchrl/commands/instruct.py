@@ -13,6 +13,7 @@ to ``eval.out_dir`` or ``instruct_<instructions>_<hash>/`` next to the checkpoin
 model that never replies (down, bad key, timeouts) ends the command with one line and exit
 code 2, unless ``llm.fallback_on_error=true``.
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -23,7 +24,13 @@ from pathlib import Path
 from omegaconf import DictConfig
 
 from icco_torchrl.commands import clean_errors
-from icco_torchrl.evaluation.runner import default_out_dir, evaluate_checkpoints, find_checkpoints, slug, write_report
+from icco_torchrl.evaluation.runner import (
+    default_out_dir,
+    evaluate_checkpoints,
+    find_checkpoints,
+    slug,
+    write_report,
+)
 from icco_torchrl.instructions.llm import LLMPlanner, LLMUnavailable
 from icco_torchrl.instructions.planner import check_understood, is_offline
 from icco_torchrl.instructions.sources import language_schedule, split_instructions
@@ -37,7 +44,9 @@ def out_dir_name(instructions: list[str]) -> str:
     overwrite each other's reports; the hash of the full schedule keeps them apart.
     """
     digest = hashlib.sha256(json.dumps(instructions, ensure_ascii=False).encode()).hexdigest()[:8]
-    return "_".join(part for part in ("instruct", slug("_".join(instructions))[:60], digest) if part)
+    return "_".join(
+        part for part in ("instruct", slug("_".join(instructions))[:60], digest) if part
+    )
 
 
 @contextmanager
@@ -63,13 +72,34 @@ def run_instruct(cfg: DictConfig, run_dir: str | Path, instruction: str) -> floa
         paths = find_checkpoints(cfg)
         name = out_dir_name(instructions)
         out_dir = Path(cfg.eval.out_dir) if cfg.eval.out_dir else default_out_dir(paths, name)
-        title = (f"Language instructions via {planner.model} ({planner.prompt} prompt): "
-                 + " -> ".join(f'"{text}"' for text in instructions))
+        title = (
+            f"Language instructions via {planner.model} ({planner.prompt} prompt): "
+            + " -> ".join(f'"{text}"' for text in instructions)
+        )
         result = evaluate_checkpoints(
-            cfg, paths, lambda episode: language_schedule(planner, instructions, cfg.eval.steps,
-                                                          replan_every=cfg.eval.replan_every, strict=offline),
+            cfg,
+            paths,
+            lambda episode: language_schedule(
+                planner,
+                instructions,
+                cfg.eval.steps,
+                replan_every=cfg.eval.replan_every,
+                strict=offline,
+            ),
             gif_stem=out_dir / "instruct" if cfg.eval.gif else None,
-            label_suffix="-TAP" if planner.prompt == "tap" else "")
-        return write_report(result, cfg, name="instruct", out_dir=out_dir, title=title,
-                            meta=dict(llm_backend=cfg.llm.backend, model=planner.model, prompt=planner.prompt,
-                                      instructions=instructions, replan_every=cfg.eval.replan_every))
+            label_suffix="-TAP" if planner.prompt == "tap" else "",
+        )
+        return write_report(
+            result,
+            cfg,
+            name="instruct",
+            out_dir=out_dir,
+            title=title,
+            meta=dict(
+                llm_backend=cfg.llm.backend,
+                model=planner.model,
+                prompt=planner.prompt,
+                instructions=instructions,
+                replan_every=cfg.eval.replan_every,
+            ),
+        )

@@ -13,6 +13,7 @@ float math (:func:`motion`) gets ~4x faster, but kernels that produce bool/uint8
 reduce over a middle dimension come out 5-10x slower than eager, so a compiled step was
 1.0-1.2x the eager one, for ~7 s of compilation per ``num_envs``.
 """
+
 from __future__ import annotations
 
 from typing import NamedTuple
@@ -58,9 +59,13 @@ def first(mask: torch.Tensor, dim: int) -> torch.Tensor:
     """Keep only the first True along ``dim`` (a cumsum or argmax there is several times slower)."""
     size = mask.shape[dim]
     small = size < 255
-    rank = torch.arange(size, 0, -1, dtype=torch.uint8 if small else torch.int32, device=mask.device)
+    rank = torch.arange(
+        size, 0, -1, dtype=torch.uint8 if small else torch.int32, device=mask.device
+    )
     rank = rank.view([size] + [1] * (mask.dim() - dim - 1))
-    score = (mask.view(torch.uint8) if small else mask.int()) * rank  # size - index where True, else 0
+    score = (
+        mask.view(torch.uint8) if small else mask.int()
+    ) * rank  # size - index where True, else 0
     return mask & (score == score.amax(dim, keepdim=True))
 
 
@@ -80,65 +85,87 @@ class Params(NamedTuple):
     damping: float
     max_speed: float
     dt: float
-    wall: float               # robots' centres stay within [-wall, wall]
+    wall: float  # robots' centres stay within [-wall, wall]
     invader_speed: float
-    touch_invader2: float     # (agent_radius + invader_radius) ** 2
-    touch_resource2: float    # (agent_radius + resource_radius) ** 2
-    invader_home2: float      # (home_radius + invader_radius) ** 2
-    robot_home2: float        # (home_radius + agent_radius) ** 2
+    touch_invader2: float  # (agent_radius + invader_radius) ** 2
+    touch_resource2: float  # (agent_radius + resource_radius) ** 2
+    invader_home2: float  # (home_radius + invader_radius) ** 2
+    robot_home2: float  # (home_radius + agent_radius) ** 2
     inst_scale: float
     inst_dist_coef: float
     pick: float
     collect: float
     defense: float
-    invasion_share: float     # -invasion_penalty / n_agents
+    invasion_share: float  # -invasion_penalty / n_agents
 
 
 class Dynamics(NamedTuple):
     """Everything one step decides before its random respawns (batch-last)."""
 
-    pos: torch.Tensor          # [N, 2, B]
-    vel: torch.Tensor          # [N, 2, B]
-    carry: torch.Tensor        # [N, B]
-    defense: torch.Tensor      # [N, B]
-    inv: torch.Tensor          # [I, 2, B] moved; respawning invaders still to be placed
-    inv_vel: torch.Tensor      # [I, 2, B]
-    inv_on: torch.Tensor       # [I, B] active and not removed this step (respawns still to add)
-    gone: torch.Tensor         # [I, B] removed this step: needs a new respawn timer
-    respawn: torch.Tensor      # [I, B] inactive invaders whose timer ran out: need an edge point
-    timer: torch.Tensor        # [I, B] respawn timers (entries of `gone` still to draw)
-    picked: torch.Tensor       # [R, B] resources picked this step: need a new position
+    pos: torch.Tensor  # [N, 2, B]
+    vel: torch.Tensor  # [N, 2, B]
+    carry: torch.Tensor  # [N, B]
+    defense: torch.Tensor  # [N, B]
+    inv: torch.Tensor  # [I, 2, B] moved; respawning invaders still to be placed
+    inv_vel: torch.Tensor  # [I, 2, B]
+    inv_on: torch.Tensor  # [I, B] active and not removed this step (respawns still to add)
+    gone: torch.Tensor  # [I, B] removed this step: needs a new respawn timer
+    respawn: torch.Tensor  # [I, B] inactive invaders whose timer ran out: need an edge point
+    timer: torch.Tensor  # [I, B] respawn timers (entries of `gone` still to draw)
+    picked: torch.Tensor  # [R, B] resources picked this step: need a new position
     agent_reward: torch.Tensor  # [N, B]
-    r_inst: torch.Tensor       # [N, B]
-    counts: torch.Tensor       # [4, B] picks, collects, defenses, invasions
+    r_inst: torch.Tensor  # [N, B]
+    counts: torch.Tensor  # [4, B] picks, collects, defenses, invasions
 
 
-def dynamics(pos, vel, carry, res, inv, inv_on, timer, wp, action, action_force, p: Params) -> Dynamics:
+def dynamics(
+    pos, vel, carry, res, inv, inv_on, timer, wp, action, action_force, p: Params
+) -> Dynamics:
     """One step of robots, invaders and events (see the env's docstring for the rules).
 
     ``wp`` [N, K, 2, B] are the waypoints, ``action`` [B, N] indices into ``action_force`` [5, 2].
     """
-    new_pos, new_vel, r_inst, inv, inv_vel = motion(pos, vel, inv, inv_on, wp, action, action_force, p)
+    new_pos, new_vel, r_inst, inv, inv_vel = motion(
+        pos, vel, inv, inv_on, wp, action, action_force, p
+    )
 
     # Events; one per robot per step, defense > pick > collect, ties to the lower index.
-    hit = assign((pair_sq_dist(new_pos, inv) < p.touch_invader2) & inv_on)                  # [N, I, B]
+    hit = assign((pair_sq_dist(new_pos, inv) < p.touch_invader2) & inv_on)  # [N, I, B]
     defense = any_(hit, 1)
     removed = any_(hit, 0)
     invaded = inv_on & ~removed & (sq_norm(inv) < p.invader_home2)
     gone = removed | invaded
     timer = timer - (~inv_on).long()
     respawn = ~inv_on & ~gone & (timer <= 0)
-    took = assign((pair_sq_dist(new_pos, res) < p.touch_resource2) & ~(carry | defense).unsqueeze(1))  # [N, R, B]
+    took = assign(
+        (pair_sq_dist(new_pos, res) < p.touch_resource2) & ~(carry | defense).unsqueeze(1)
+    )  # [N, R, B]
     pick = any_(took, 1)
     collect = carry & ~defense & (sq_norm(new_pos) < p.robot_home2)
 
     n_invasion = invaded.sum(0)
-    agent_reward = (p.pick * pick + p.collect * collect + p.defense * defense).float() \
-        + p.invasion_share * n_invasion.float() + r_inst
+    agent_reward = (
+        (p.pick * pick + p.collect * collect + p.defense * defense).float()
+        + p.invasion_share * n_invasion.float()
+        + r_inst
+    )
     counts = torch.cat([torch.stack([pick, collect, defense]).sum(1), n_invasion.unsqueeze(0)])
-    return Dynamics(pos=new_pos, vel=new_vel, carry=(carry & ~collect) | pick, defense=defense, inv=inv,
-                    inv_vel=inv_vel, inv_on=inv_on & ~gone, gone=gone, respawn=respawn, timer=timer,
-                    picked=any_(took, 0), agent_reward=agent_reward, r_inst=r_inst, counts=counts)
+    return Dynamics(
+        pos=new_pos,
+        vel=new_vel,
+        carry=(carry & ~collect) | pick,
+        defense=defense,
+        inv=inv,
+        inv_vel=inv_vel,
+        inv_on=inv_on & ~gone,
+        gone=gone,
+        respawn=respawn,
+        timer=timer,
+        picked=any_(took, 0),
+        agent_reward=agent_reward,
+        r_inst=r_inst,
+        counts=counts,
+    )
 
 
 def motion(pos, vel, inv, inv_on, wp, action, action_force, p: Params):
@@ -160,7 +187,6 @@ def motion(pos, vel, inv, inv_on, wp, action, action_force, p: Params):
     return new_pos, new_vel, r_inst, inv + move, move / p.dt  # velocity in m/s, like the robots'
 
 
-
 def instruction_reward(wp, old_pos, new_pos, scale: float, dist_coef: float) -> torch.Tensor:
     """``r_inst = scale * (e_cossim + dist_coef * e_dist)`` per robot, [N, B].
 
@@ -168,13 +194,13 @@ def instruction_reward(wp, old_pos, new_pos, scale: float, dist_coef: float) -> 
     nearest to the robot (before the move) to the second-nearest one; 0 when either is
     zero. e_dist: minus the distance from the new position to its nearest waypoint.
     """
-    d_old = sq_dist(wp, old_pos.unsqueeze(1))                                                # [N, K, B]
-    nearest = first(d_old == d_old.amin(1, keepdim=True), 1)                                # one-hot over K
+    d_old = sq_dist(wp, old_pos.unsqueeze(1))  # [N, K, B]
+    nearest = first(d_old == d_old.amin(1, keepdim=True), 1)  # one-hot over K
     d_old.masked_fill_(nearest, float("inf"))
     second = first(d_old == d_old.amin(1, keepdim=True), 1)
     # wp[second] - wp[nearest] as a masked sum (exact: the other terms add zeros); ~2x faster
     # than min(dim).indices + gather over a middle dimension.
-    path = (wp * (second.to(wp.dtype) - nearest.to(wp.dtype)).unsqueeze(2)).sum(1)          # [N, 2, B]
+    path = (wp * (second.to(wp.dtype) - nearest.to(wp.dtype)).unsqueeze(2)).sum(1)  # [N, 2, B]
     disp = new_pos - old_pos
     norms = sq_norm(disp).sqrt_().mul_(sq_norm(path).sqrt_())
     cos = (disp * path).sum(1).div_(norms.clamp_min_(1e-8))

@@ -5,6 +5,7 @@ and relative-state encoders of :mod:`icco_torchrl.modules` read it. It is a plai
 (no env code), so networks can be built for any env that describes itself this way, and a flat
 observation needs no layout at all (see ``make_agent(obs_dim=...)``).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -16,10 +17,10 @@ class ObsLayout:
 
     n_agents: int
     n_waypoints: int
-    own_dim: int          # [x, y, vx, vy, carry] + relative waypoints
-    n_entities: int       # other robots + resources + invaders + home
+    own_dim: int  # [x, y, vx, vy, carry] + relative waypoints
+    n_entities: int  # other robots + resources + invaders + home
     entity_dim: int
-    state_tokens: int     # robots + resources + invaders
+    state_tokens: int  # robots + resources + invaders
     state_token_dim: int
 
     @property

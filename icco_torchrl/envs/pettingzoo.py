@@ -5,6 +5,7 @@ and out, one dict entry per robot) while the dynamics stay those of
 :class:`~icco_torchrl.envs.resource_collection.ResourceCollectionEnv` with ``num_envs=1``:
 there is one implementation of the task, so the two views cannot drift apart.
 """
+
 from __future__ import annotations
 
 import gymnasium
@@ -41,7 +42,11 @@ class ResourceCollectionParallelEnv(ParallelEnv):
     placing them 1e9 m away, which a robot with a vision radius that large would "see".
     """
 
-    metadata = {"render_modes": ["rgb_array"], "name": "resource_collection_v0", "is_parallelizable": True}
+    metadata = {
+        "render_modes": ["rgb_array"],
+        "name": "resource_collection_v0",
+        "is_parallelizable": True,
+    }
 
     def __init__(self, render_mode: str | None = None, render_size: int = 480, **env_kwargs):
         modes = self.metadata["render_modes"]
@@ -56,14 +61,18 @@ class ResourceCollectionParallelEnv(ParallelEnv):
         self.possible_agents = [f"agent_{i}" for i in range(self._env.n_agents)]
         self.agents: list[str] = []
         (obs_low, obs_high), (state_low, state_high) = space_bounds(self._env)
-        self.observation_spaces = {a: spaces.Box(obs_low, obs_high, dtype=np.float32) for a in self.possible_agents}
+        self.observation_spaces = {
+            a: spaces.Box(obs_low, obs_high, dtype=np.float32) for a in self.possible_agents
+        }
         self.action_spaces = {a: spaces.Discrete(N_ACTIONS) for a in self.possible_agents}
         self.state_space = spaces.Box(state_low, state_high, dtype=np.float32)
         L = self._env.layout
         # Columns of the invaders' tokens in an observation: after the other robots and resources.
         first = L.own_dim + (L.n_agents - 1 + self._env.n_resources) * L.entity_dim
-        self._invader_cols = [slice(first + i * L.entity_dim, first + (i + 1) * L.entity_dim)
-                              for i in range(self._env.n_invaders)]
+        self._invader_cols = [
+            slice(first + i * L.entity_dim, first + (i + 1) * L.entity_dim)
+            for i in range(self._env.n_invaders)
+        ]
         self._td = None
         self._steps = 0
 
@@ -88,9 +97,13 @@ class ResourceCollectionParallelEnv(ParallelEnv):
         if not self.agents:
             raise RuntimeError("step() called on a finished episode; call reset() first")
         if set(actions) != set(self.agents):
-            raise ValueError(f"actions must have exactly one entry per live agent {self.agents}, "
-                             f"got {sorted(actions)}")
-        action = torch.tensor([[_action_index(a, actions[a]) for a in self.possible_agents]], dtype=torch.int64)
+            raise ValueError(
+                f"actions must have exactly one entry per live agent {self.agents}, "
+                f"got {sorted(actions)}"
+            )
+        action = torch.tensor(
+            [[_action_index(a, actions[a]) for a in self.possible_agents]], dtype=torch.int64
+        )
         self._td.set(("agents", "action"), action)
         nxt = self._env.step(self._td).get("next")
         self._td = nxt.exclude("reward", ("agents", "reward"))
@@ -120,7 +133,9 @@ class ResourceCollectionParallelEnv(ParallelEnv):
 
     def render(self):
         if self.render_mode is None:
-            gymnasium.logger.warn("render() called with render_mode=None; pass render_mode='rgb_array'")
+            gymnasium.logger.warn(
+                "render() called with render_mode=None; pass render_mode='rgb_array'"
+            )
             return None
         from icco_torchrl.envs.render import render_frame
 
@@ -142,10 +157,16 @@ def _action_index(agent: str, value) -> int:
     index = value
     if isinstance(index, (np.ndarray, torch.Tensor)) and index.ndim == 0:
         index = index.item()  # a 0-d array or tensor, e.g. np.asarray(space.sample()) or q.argmax()
-    if isinstance(index, (int, np.integer)) and not isinstance(index, (bool, np.bool_)) and 0 <= index < N_ACTIONS:
+    if (
+        isinstance(index, (int, np.integer))
+        and not isinstance(index, (bool, np.bool_))
+        and 0 <= index < N_ACTIONS
+    ):
         return int(index)
-    raise ValueError(f"action for {agent} must be an integer in 0..{N_ACTIONS - 1} "
-                     f"(int or numpy integer), got {value!r}")
+    raise ValueError(
+        f"action for {agent} must be an integer in 0..{N_ACTIONS - 1} "
+        f"(int or numpy integer), got {value!r}"
+    )
 
 
 def _pad(bound: float) -> float:
@@ -164,7 +185,9 @@ def _flags(n: int) -> list[tuple[float, float]]:
     return [(0.0, 1.0)] * n
 
 
-def space_bounds(env: ResourceCollectionEnv) -> tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]:
+def space_bounds(
+    env: ResourceCollectionEnv,
+) -> tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]:
     """``(low, high)`` of every observation feature and of every state feature, from ``env``'s parameters.
 
     Robots stay within ``|x|, |y| <= |field_size/2 - agent_radius|`` (the wall); invaders and
@@ -175,14 +198,23 @@ def space_bounds(env: ResourceCollectionEnv) -> tuple[tuple[np.ndarray, np.ndarr
     """
     half = env.field_size / 2
     robot = abs(half - env.agent_radius)
-    extent = max(half, robot, abs(half - env.resource_radius), env.home_radius + env.resource_radius)
+    extent = max(
+        half, robot, abs(half - env.resource_radius), env.home_radius + env.resource_radius
+    )
     invader_v = env.invader_speed / env.dt
     K = env.n_waypoints
     own = _sym(robot, 2) + _sym(env.max_speed, 2) + _flags(1) + _sym(robot + extent, 2 * K)
-    token = (_sym(min(env.vision_radius, 2 * extent), 2) + _sym(env.max_speed + max(env.max_speed, invader_v), 2)
-             + _flags(6))                                               # one-hot type (4), flag, visible
-    state_token = (_sym(extent, 2) + _sym(max(env.max_speed, invader_v), 2) + _flags(5)   # type (3), flag, defended
-                   + _sym(extent, 2 * K))
+    token = (
+        _sym(min(env.vision_radius, 2 * extent), 2)
+        + _sym(env.max_speed + max(env.max_speed, invader_v), 2)
+        + _flags(6)
+    )  # one-hot type (4), flag, visible
+    state_token = (
+        _sym(extent, 2)
+        + _sym(max(env.max_speed, invader_v), 2)
+        + _flags(5)  # type (3), flag, defended
+        + _sym(extent, 2 * K)
+    )
     obs = np.array(own + token * env.layout.n_entities, np.float32)
     state = np.array(state_token * env.layout.state_tokens, np.float32)
     return (obs[:, 0], obs[:, 1]), (state[:, 0], state[:, 1])

@@ -22,6 +22,7 @@ env just returned (as rollouts do). Moves are chosen by a one-step lookahead thr
 own dynamics kernel; the few loops below run over a fixed small count (robots, lookahead
 steps), never over envs.
 """
+
 from __future__ import annotations
 
 import math
@@ -42,12 +43,16 @@ def raw_env(env) -> ResourceCollectionEnv:
     """The :class:`ResourceCollectionEnv` under ``env``, or a one-line error naming what it is."""
     base = getattr(env, "base_env", env)
     if not isinstance(base, ResourceCollectionEnv):
-        raise TypeError(f"reference policies drive a ResourceCollectionEnv (5 move actions, its state layout); "
-                        f"got {type(base).__name__}")
+        raise TypeError(
+            f"reference policies drive a ResourceCollectionEnv (5 move actions, its state layout); "
+            f"got {type(base).__name__}"
+        )
     spec = base.full_action_spec[ACTION_KEY]
     n = getattr(spec, "n", None) or getattr(getattr(spec, "space", None), "n", None)
     if n != N_ACTIONS:
-        raise TypeError(f"reference policies need the {N_ACTIONS} actions no-op/-x/+x/-y/+y; this env has {n}")
+        raise TypeError(
+            f"reference policies need the {N_ACTIONS} actions no-op/-x/+x/-y/+y; this env has {n}"
+        )
     return base
 
 
@@ -80,7 +85,9 @@ class RandomPolicy(ReferencePolicy):
 
     def act(self) -> torch.Tensor:
         e = self.env
-        return torch.randint(0, N_ACTIONS, (e.num_envs, e.n_agents), generator=self.generator, device=e.device)
+        return torch.randint(
+            0, N_ACTIONS, (e.num_envs, e.n_agents), generator=self.generator, device=e.device
+        )
 
 
 def lookahead(env: ResourceCollectionEnv) -> tuple[torch.Tensor, torch.Tensor]:
@@ -90,16 +97,25 @@ def lookahead(env: ResourceCollectionEnv) -> tuple[torch.Tensor, torch.Tensor]:
     A, N, B = N_ACTIONS, env.n_agents, env.num_envs
     fold = lambda x: x.unsqueeze(-1).expand(*x.shape, A).flatten(-2)  # noqa: E731  (env b, action a -> b*A + a)
     action = torch.arange(A, device=env.device).repeat(B).unsqueeze(-1).expand(B * A, N)
-    params = env._params()._replace(inst_scale=1.0)  # the argmax must not vanish when the env's scale is 0
-    new_pos, _, r_inst, _, _ = motion(fold(env._pos), fold(env._vel), fold(env._inv), fold(env._inv_on),
-                                      fold(env._waypoints_bl()), action, (env.dt * env.accel) * env._action_dirs,
-                                      params)
+    params = env._params()._replace(
+        inst_scale=1.0
+    )  # the argmax must not vanish when the env's scale is 0
+    new_pos, _, r_inst, _, _ = motion(
+        fold(env._pos),
+        fold(env._vel),
+        fold(env._inv),
+        fold(env._inv_on),
+        fold(env._waypoints_bl()),
+        action,
+        (env.dt * env.accel) * env._action_dirs,
+        params,
+    )
     return new_pos.view(N, 2, B, A).permute(3, 0, 1, 2), r_inst.view(N, B, A).transpose(0, 1)
 
 
 def steer(new_pos: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """The action whose predicted position is nearest ``target`` [B, N, 2]: ``[B, N]``."""
-    d = (new_pos - batch_last(target).unsqueeze(0)).square().sum(2)                          # [A, N, B]
+    d = (new_pos - batch_last(target).unsqueeze(0)).square().sum(2)  # [A, N, B]
     return d.argmin(0).t()
 
 
@@ -118,39 +134,51 @@ class HeuristicPolicy(ReferencePolicy):
     def targets(self) -> tuple[torch.Tensor, torch.Tensor]:
         """Each robot's task target ``[B, N, 2]`` and its distance ``[B, N]``."""
         e = self.env
-        pos, carry = e.pos, e.carry                                                          # [B, N, 2], [B, N]
+        pos, carry = e.pos, e.carry  # [B, N, 2], [B, N]
         B, N = carry.shape
         target = torch.zeros(B, N, 2, device=e.device)  # carriers: home (the origin)
         busy = carry.clone()
         # Invaders: interception point of the robot that gets there first.
-        step = e.max_speed * e.dt                                                            # metres per robot step
+        step = e.max_speed * e.dt  # metres per robot step
         touch = e.agent_radius + e.invader_radius
         horizon = math.ceil(e.field_size * math.sqrt(2) / e.invader_speed) + 1
-        k = torch.arange(horizon, device=e.device, dtype=pos.dtype)                          # [H]
-        inv, on = e.inv_pos, e.inv_active                                                    # [B, I, 2], [B, I]
-        dist_home = inv.norm(dim=-1, keepdim=True)                                           # [B, I, 1]
-        walk = (k * e.invader_speed).clamp(max=dist_home)                                    # [B, I, H]
-        future = inv.unsqueeze(2) * (1 - walk / dist_home.clamp_min(1e-6)).unsqueeze(-1)      # [B, I, H, 2]
-        reach = (pos[:, :, None, None] - future[:, None]).norm(dim=-1) - touch               # [B, N, I, H]
+        k = torch.arange(horizon, device=e.device, dtype=pos.dtype)  # [H]
+        inv, on = e.inv_pos, e.inv_active  # [B, I, 2], [B, I]
+        dist_home = inv.norm(dim=-1, keepdim=True)  # [B, I, 1]
+        walk = (k * e.invader_speed).clamp(max=dist_home)  # [B, I, H]
+        future = inv.unsqueeze(2) * (1 - walk / dist_home.clamp_min(1e-6)).unsqueeze(
+            -1
+        )  # [B, I, H, 2]
+        reach = (pos[:, :, None, None] - future[:, None]).norm(dim=-1) - touch  # [B, N, I, H]
         feasible = reach <= k * step
         feasible[..., -1] = True  # else: wait at the last point (home's rim)
-        when = feasible.to(torch.uint8).argmax(-1)                                           # [B, N, I] first feasible
+        when = feasible.to(torch.uint8).argmax(-1)  # [B, N, I] first feasible
         for i in range(inv.shape[1]):  # a fixed small count (1 invader by default)
-            robot = when[:, :, i].argmin(-1)  # the soonest interceptor, carriers included       # [B]
+            robot = when[:, :, i].argmin(
+                -1
+            )  # the soonest interceptor, carriers included       # [B]
             active = on[:, i]
-            point = future[torch.arange(B, device=e.device), i, when[torch.arange(B, device=e.device), robot, i]]
-            sel = torch.nn.functional.one_hot(robot, N).bool() & active.unsqueeze(-1)        # [B, N]
+            point = future[
+                torch.arange(B, device=e.device),
+                i,
+                when[torch.arange(B, device=e.device), robot, i],
+            ]
+            sel = torch.nn.functional.one_hot(robot, N).bool() & active.unsqueeze(-1)  # [B, N]
             target = torch.where(sel.unsqueeze(-1), point.unsqueeze(1), target)
             busy = busy | sel
         # Free robots: nearest resource not claimed by a lower-index robot.
-        d_res = torch.cdist(pos, e.res_pos)                                                  # [B, N, R]
-        claimed = torch.zeros_like(d_res[:, 0], dtype=torch.bool)                            # [B, R]
+        d_res = torch.cdist(pos, e.res_pos)  # [B, N, R]
+        claimed = torch.zeros_like(d_res[:, 0], dtype=torch.bool)  # [B, R]
         for n in range(N):  # robots claim in index order
             d = d_res[:, n].masked_fill(claimed, float("inf"))
             j = d.argmin(-1)
             free = ~busy[:, n]
-            target[:, n] = torch.where(free.unsqueeze(-1), e.res_pos[torch.arange(B, device=e.device), j], target[:, n])
-            claimed = claimed | (torch.nn.functional.one_hot(j, claimed.shape[1]).bool() & free.unsqueeze(-1))
+            target[:, n] = torch.where(
+                free.unsqueeze(-1), e.res_pos[torch.arange(B, device=e.device), j], target[:, n]
+            )
+            claimed = claimed | (
+                torch.nn.functional.one_hot(j, claimed.shape[1]).bool() & free.unsqueeze(-1)
+            )
         return target, (target - pos).norm(dim=-1)
 
     def act(self) -> torch.Tensor:
@@ -184,7 +212,9 @@ def reference_label(name: str, radius: float = BEST_BLEND_RADIUS) -> str:
     return f"blend (r={radius:g} m)" if name == "blend" else name
 
 
-def make_reference_policy(name: str, env, *, radius: float | None = None, seed: int = 0) -> ReferencePolicy:
+def make_reference_policy(
+    name: str, env, *, radius: float | None = None, seed: int = 0
+) -> ReferencePolicy:
     """A reference policy by name (``random``, ``follower``, ``heuristic``, ``blend``)."""
     if name == "random":
         return RandomPolicy(env, seed=seed)

@@ -4,10 +4,11 @@ Frames are drawn straight from the env's state tensors with ``ImageDraw`` (a few
 microseconds per frame), so recording an evaluation episode costs little next to stepping
 it, and nothing here needs matplotlib or imageio.
 """
+
 from __future__ import annotations
 
 import os
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 import torch
@@ -22,8 +23,14 @@ RESOURCE = (218, 165, 32)
 INVADER = (200, 30, 45)
 # Robot colours (Tableau-like), chosen far from the resource gold and the invader red.
 ROBOT_COLORS = (
-    (31, 119, 180), (44, 160, 44), (148, 103, 189), (255, 127, 14),
-    (23, 190, 207), (227, 119, 194), (140, 86, 75), (127, 127, 127),
+    (31, 119, 180),
+    (44, 160, 44),
+    (148, 103, 189),
+    (255, 127, 14),
+    (23, 190, 207),
+    (227, 119, 194),
+    (140, 86, 75),
+    (127, 127, 127),
 )
 MARGIN = 0.04  # fraction of the frame left around the field so edge spawns stay visible
 
@@ -46,11 +53,13 @@ def render_frame(env: ResourceCollectionEnv, index: int = 0, size: int = 480) ->
     with its vision circle, its waypoints (dots joined by a line) and, when it carries a
     resource, a gold dot at its centre.
     """
+
     def grab(t: torch.Tensor) -> list:
         return t[index].detach().cpu().tolist()
 
-    pos, carry, res, inv, inv_on, wps = map(grab, (env.pos, env.carry, env.res_pos, env.inv_pos,
-                                                   env.inv_active, env.waypoints))
+    pos, carry, res, inv, inv_on, wps = map(
+        grab, (env.pos, env.carry, env.res_pos, env.inv_pos, env.inv_active, env.waypoints)
+    )
     scale = size * (1 - 2 * MARGIN) / env.field_size
     img = Image.new("RGB", (size, size), BACKGROUND)
     draw = ImageDraw.Draw(img)
@@ -60,7 +69,10 @@ def render_frame(env: ResourceCollectionEnv, index: int = 0, size: int = 480) ->
         r = max(radius_m * scale, min_px)
         draw.ellipse((cx - r, cy - r, cx + r, cy + r), **style)
 
-    corner0, corner1 = to_pixel(env, (-env.half, env.half), size), to_pixel(env, (env.half, -env.half), size)
+    corner0, corner1 = (
+        to_pixel(env, (-env.half, env.half), size),
+        to_pixel(env, (env.half, -env.half), size),
+    )
     draw.rectangle((*corner0, *corner1), outline=FIELD_EDGE, width=2)
     circle((0.0, 0.0), env.home_radius, fill=HOME, outline=FIELD_EDGE)
     for i, p in enumerate(pos):
@@ -91,8 +103,13 @@ def write_gif(frames: Sequence[np.ndarray], path: str | os.PathLike, fps: float 
     """
     if not frames:
         raise ValueError("write_gif needs at least one frame")
-    images = [Image.fromarray(np.asarray(f, dtype=np.uint8)).quantize(method=Image.Quantize.FASTOCTREE,
-                                                                       dither=Image.Dither.NONE)
-              for f in frames]
+    images = [
+        Image.fromarray(np.asarray(f, dtype=np.uint8)).quantize(
+            method=Image.Quantize.FASTOCTREE, dither=Image.Dither.NONE
+        )
+        for f in frames
+    ]
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    images[0].save(path, save_all=True, append_images=images[1:], duration=int(round(1000 / fps)), loop=0)
+    images[0].save(
+        path, save_all=True, append_images=images[1:], duration=int(round(1000 / fps)), loop=0
+    )

@@ -36,6 +36,7 @@ batch-last copy that is refreshed only when they change. The step's arithmetic i
 edge points, picked resources, refreshed waypoints, reset envs), so a run is reproducible
 under a seed but its stream differs from versions that drew for every env at every step.
 """
+
 from __future__ import annotations
 
 import math
@@ -52,7 +53,7 @@ N_ACTIONS = 5
 # Unit force per action: no-op, -x, +x, -y, +y (COPA's order).
 _ACTION_DIRS = ((0.0, 0.0), (-1.0, 0.0), (1.0, 0.0), (0.0, -1.0), (0.0, 1.0))
 EVENTS = ("pick", "collect", "defense", "invasion")  # the counted events, under ("events", name)
-EVENT_KEYS = (*EVENTS, "inst_reward")                 # every ("events", ...) entry of a step
+EVENT_KEYS = (*EVENTS, "inst_reward")  # every ("events", ...) entry of a step
 _EVENTS = EVENTS
 _FAR = 1e9  # where inactive invaders are "seen" from: beyond any vision radius
 SPAWN_MODES = ("uniform", "copa")
@@ -173,40 +174,72 @@ class ResourceCollectionEnv(EnvBase):
         invader_min_radius: float = 1.5,
         validate: bool = True,
     ):
-        for name, value in dict(num_envs=num_envs, n_agents=n_agents, n_resources=n_resources,
-                                n_invaders=n_invaders, max_steps=max_steps, n_waypoints=n_waypoints,
-                                waypoint_interval=waypoint_interval,
-                                invader_respawn_max=invader_respawn_max).items():
+        for name, value in dict(
+            num_envs=num_envs,
+            n_agents=n_agents,
+            n_resources=n_resources,
+            n_invaders=n_invaders,
+            max_steps=max_steps,
+            n_waypoints=n_waypoints,
+            waypoint_interval=waypoint_interval,
+            invader_respawn_max=invader_respawn_max,
+        ).items():
             _positive(name, value, integer=True)
-        for name, value in dict(field_size=field_size, vision_radius=vision_radius, dt=dt,
-                                accel=accel, max_speed=max_speed, home_radius=home_radius,
-                                resource_radius=resource_radius, agent_radius=agent_radius,
-                                invader_radius=invader_radius, invader_speed=invader_speed).items():
+        for name, value in dict(
+            field_size=field_size,
+            vision_radius=vision_radius,
+            dt=dt,
+            accel=accel,
+            max_speed=max_speed,
+            home_radius=home_radius,
+            resource_radius=resource_radius,
+            agent_radius=agent_radius,
+            invader_radius=invader_radius,
+            invader_speed=invader_speed,
+        ).items():
             _positive(name, value)
         if n_waypoints < 2:
             raise ValueError(f"n_waypoints must be >= 2 (e_cossim needs two), got {n_waypoints}")
         if waypoint_sigma < 0 or not 0 <= damping < 1 or inst_reward_scale < 0:
             raise ValueError("waypoint_sigma, inst_reward_scale must be >= 0 and damping in [0, 1)")
         if not 0 < resource_min_radius < field_size / 2:
-            raise ValueError(f"resource_min_radius must be in (0, field_size/2), got {resource_min_radius}")
+            raise ValueError(
+                f"resource_min_radius must be in (0, field_size/2), got {resource_min_radius}"
+            )
         if not 0 <= invader_min_radius < field_size / 2:
-            raise ValueError(f"invader_min_radius must be in [0, field_size/2), got {invader_min_radius}")
+            raise ValueError(
+                f"invader_min_radius must be in [0, field_size/2), got {invader_min_radius}"
+            )
         if spawn not in SPAWN_MODES:
             raise ValueError(f"spawn must be one of {SPAWN_MODES}, got {spawn!r}")
         if not 0.0 <= waypoint_path_prob <= 1.0:
             raise ValueError(f"waypoint_path_prob must be in [0, 1], got {waypoint_path_prob}")
         if waypoint_mode not in ("random_walk", "external"):
-            raise ValueError(f"waypoint_mode must be 'random_walk' or 'external', got {waypoint_mode!r}")
+            raise ValueError(
+                f"waypoint_mode must be 'random_walk' or 'external', got {waypoint_mode!r}"
+            )
         super().__init__(device=device, batch_size=torch.Size([num_envs]))
-        self.num_envs, self.n_agents, self.n_resources, self.n_invaders = num_envs, n_agents, n_resources, n_invaders
+        self.num_envs, self.n_agents, self.n_resources, self.n_invaders = (
+            num_envs,
+            n_agents,
+            n_resources,
+            n_invaders,
+        )
         self.field_size, self.half = float(field_size), float(field_size) / 2
         self.vision_radius, self.max_steps = float(vision_radius), max_steps
-        self.inst_reward_scale, self.inst_dist_coef = float(inst_reward_scale), float(inst_dist_coef)
+        self.inst_reward_scale, self.inst_dist_coef = (
+            float(inst_reward_scale),
+            float(inst_dist_coef),
+        )
         self.n_waypoints, self.waypoint_interval = n_waypoints, waypoint_interval
         self.waypoint_sigma, self.waypoint_mode = float(waypoint_sigma), waypoint_mode
         self.waypoint_path_prob = float(waypoint_path_prob)
-        self.event_rewards = dict(pick=pick_reward, collect=collect_reward, defense=defense_reward,
-                                  invasion=-invasion_penalty)
+        self.event_rewards = dict(
+            pick=pick_reward,
+            collect=collect_reward,
+            defense=defense_reward,
+            invasion=-invasion_penalty,
+        )
         self.home_radius, self.resource_radius = home_radius, resource_radius
         self.agent_radius, self.invader_radius = agent_radius, invader_radius
         self.dt, self.damping, self.accel, self.max_speed = dt, damping, accel, max_speed
@@ -215,21 +248,35 @@ class ResourceCollectionEnv(EnvBase):
         self.spawn, self.invader_min_radius = spawn, float(invader_min_radius)
 
         N, R, I, K = n_agents, n_resources, n_invaders, n_waypoints
-        self.layout = ObsLayout(n_agents=N, n_waypoints=K, own_dim=5 + 2 * K,
-                                n_entities=(N - 1) + R + I + 1, entity_dim=10,
-                                state_tokens=N + R + I, state_token_dim=9 + 2 * K)
+        self.layout = ObsLayout(
+            n_agents=N,
+            n_waypoints=K,
+            own_dim=5 + 2 * K,
+            n_entities=(N - 1) + R + I + 1,
+            entity_dim=10,
+            state_tokens=N + R + I,
+            state_token_dim=9 + 2 * K,
+        )
         dev = self.device
         self._action_dirs = torch.tensor(_ACTION_DIRS, device=dev)
         # Entity table seen by robots: robots, resources, invaders, home.
-        types = torch.cat([torch.zeros(N), torch.ones(R), torch.full((I,), 2.0), torch.full((1,), 3.0)]).long()
-        self._entity_type = torch.nn.functional.one_hot(types, 4).float().to(dev)           # [E_all, 4]
+        types = torch.cat(
+            [torch.zeros(N), torch.ones(R), torch.full((I,), 2.0), torch.full((1,), 3.0)]
+        ).long()
+        self._entity_type = torch.nn.functional.one_hot(types, 4).float().to(dev)  # [E_all, 4]
         template, cols = self._state_layout()
         self._state_template, self._state_cols = template.to(dev), cols.to(dev)
         L = self.layout
-        self._own_cols = (torch.arange(N)[:, None] * L.obs_dim + torch.arange(L.own_dim)).view(-1).to(dev)
+        self._own_cols = (
+            (torch.arange(N)[:, None] * L.obs_dim + torch.arange(L.own_dim)).view(-1).to(dev)
+        )
         self._agents_batch = torch.Size([num_envs, n_agents])
         self._rng = torch.Generator(device=dev)
-        self._rng.manual_seed(int(seed) if seed is not None else int(torch.empty((), dtype=torch.int64).random_().item()))
+        self._rng.manual_seed(
+            int(seed)
+            if seed is not None
+            else int(torch.empty((), dtype=torch.int64).random_().item())
+        )
         self._make_specs()
         self._alloc_state()
 
@@ -239,26 +286,42 @@ class ResourceCollectionEnv(EnvBase):
         dev = self.device
         events = Composite(
             {name: Unbounded((B,), dtype=torch.int64, device=dev) for name in _EVENTS},
-            inst_reward=Unbounded((B,), device=dev), shape=(B,), device=dev)
+            inst_reward=Unbounded((B,), device=dev),
+            shape=(B,),
+            device=dev,
+        )
         self.observation_spec = Composite(
             agents=Composite(
                 observation=Unbounded((B, N, L.obs_dim), device=dev),
                 waypoints=Bounded(-self.half, self.half, (B, N, K, 2), device=dev),
-                shape=(B, N), device=dev),
+                shape=(B, N),
+                device=dev,
+            ),
             state=Unbounded((B, L.state_dim), device=dev),
             step_count=Bounded(0, self.max_steps, (B, 1), dtype=torch.int64, device=dev),
             events=events,
-            shape=(B,), device=dev)
+            shape=(B,),
+            device=dev,
+        )
         self.action_spec = Composite(
-            agents=Composite(action=Categorical(N_ACTIONS, (B, N), dtype=torch.int64, device=dev),
-                             shape=(B, N), device=dev),
-            shape=(B,), device=dev)
+            agents=Composite(
+                action=Categorical(N_ACTIONS, (B, N), dtype=torch.int64, device=dev),
+                shape=(B, N),
+                device=dev,
+            ),
+            shape=(B,),
+            device=dev,
+        )
         self.reward_spec = Composite(
             reward=Unbounded((B, 1), device=dev),
             agents=Composite(reward=Unbounded((B, N, 1), device=dev), shape=(B, N), device=dev),
-            shape=(B,), device=dev)
+            shape=(B,),
+            device=dev,
+        )
         flag = lambda: Categorical(2, (B, 1), dtype=torch.bool, device=dev)  # noqa: E731
-        self.done_spec = Composite(done=flag(), terminated=flag(), truncated=flag(), shape=(B,), device=dev)
+        self.done_spec = Composite(
+            done=flag(), terminated=flag(), truncated=flag(), shape=(B,), device=dev
+        )
 
     # ------------------------------------------------------------------ state
     # Batch-last storage (see the module docstring); the public names are [B, ...] views.
@@ -286,16 +349,30 @@ class ResourceCollectionEnv(EnvBase):
         self.__dict__.update(state)
 
     def _alloc_state(self) -> None:
-        B, N, R, I, K, dev = self.num_envs, self.n_agents, self.n_resources, self.n_invaders, self.n_waypoints, self.device
+        B, N, R, I, K, dev = (
+            self.num_envs,
+            self.n_agents,
+            self.n_resources,
+            self.n_invaders,
+            self.n_waypoints,
+            self.device,
+        )
         self._put(
-            _pos=torch.zeros(N, 2, B, device=dev), _vel=torch.zeros(N, 2, B, device=dev),
+            _pos=torch.zeros(N, 2, B, device=dev),
+            _vel=torch.zeros(N, 2, B, device=dev),
             _carry=torch.zeros(N, B, dtype=torch.bool, device=dev),
             _defended=torch.zeros(N, B, dtype=torch.bool, device=dev),
-            _res=torch.zeros(R, 2, B, device=dev), _inv=torch.zeros(I, 2, B, device=dev),
-            _inv_vel=torch.zeros(I, 2, B, device=dev), _inv_on=torch.zeros(I, B, dtype=torch.bool, device=dev),
+            _res=torch.zeros(R, 2, B, device=dev),
+            _inv=torch.zeros(I, 2, B, device=dev),
+            _inv_vel=torch.zeros(I, 2, B, device=dev),
+            _inv_on=torch.zeros(I, B, dtype=torch.bool, device=dev),
             _inv_timer=torch.zeros(I, B, dtype=torch.int64, device=dev),
-            _wp=torch.zeros(B, N, K, 2, device=dev), _wp_cache=(None, None, None), _wp_emitted=(None, None),
-            _on_path=torch.zeros(N, 1, B, dtype=torch.bool, device=dev),  # robots whose walk is a path
+            _wp=torch.zeros(B, N, K, 2, device=dev),
+            _wp_cache=(None, None, None),
+            _wp_emitted=(None, None),
+            _on_path=torch.zeros(
+                N, 1, B, dtype=torch.bool, device=dev
+            ),  # robots whose walk is a path
             t=torch.zeros(B, dtype=torch.int64, device=dev),
         )
         # Scratch entity table for _write_visible_entities: one-hot types and "visible" are fixed.
@@ -314,7 +391,11 @@ class ResourceCollectionEnv(EnvBase):
         return cache
 
     def _set_seed(self, seed: int | None):
-        self._rng.manual_seed(int(seed) if seed is not None else int(torch.empty((), dtype=torch.int64).random_().item()))
+        self._rng.manual_seed(
+            int(seed)
+            if seed is not None
+            else int(torch.empty((), dtype=torch.int64).random_().item())
+        )
 
     # ------------------------------------------------------------------ sampling
     # Random numbers are drawn only for what (re)spawns, so a quiet step draws none. The draws
@@ -327,7 +408,9 @@ class ResourceCollectionEnv(EnvBase):
 
     def _respawn_timer(self, n: int) -> torch.Tensor:
         """``n`` waits U{1..invader_respawn_max} before an invader comes back."""
-        return torch.randint(1, self.invader_respawn_max + 1, (n,), generator=self._rng, device=self.device)
+        return torch.randint(
+            1, self.invader_respawn_max + 1, (n,), generator=self._rng, device=self.device
+        )
 
     def _invader_points(self, n: int) -> torch.Tensor:
         """``n`` spawn points of invaders [n, 2]: see ``spawn`` in the class docstring."""
@@ -339,7 +422,7 @@ class ResourceCollectionEnv(EnvBase):
         todo = torch.arange(n, device=self.device)
         while todo.numel():
             cand = (self._rand(todo.numel(), 2) * 2 - 1) * self.half
-            ok = cand.square().sum(-1) >= self.invader_min_radius ** 2
+            ok = cand.square().sum(-1) >= self.invader_min_radius**2
             out[todo[ok]] = cand[ok]
             todo = todo[~ok]
         return out
@@ -350,7 +433,9 @@ class ResourceCollectionEnv(EnvBase):
         along = (self._rand(n) * 2 - 1) * self.half
         fixed = torch.where(side % 2 == 0, -self.half, self.half)
         vertical = side < 2  # sides 0, 1: x fixed; sides 2, 3: y fixed
-        return torch.stack([torch.where(vertical, fixed, along), torch.where(vertical, along, fixed)], -1)
+        return torch.stack(
+            [torch.where(vertical, fixed, along), torch.where(vertical, along, fixed)], -1
+        )
 
     def _resource_candidates(self, n: int, n_candidates: int = 8) -> torch.Tensor:
         """``n`` sets of candidate spawn points [n, C, 2]: uniform in the field outside home
@@ -362,7 +447,9 @@ class ResourceCollectionEnv(EnvBase):
             clear = self.home_radius + self.resource_radius
             norm = cand.norm(dim=-1, keepdim=True)
             return torch.where(norm < clear, cand / norm.clamp_min(1e-6) * clear, cand)
-        r = self.resource_min_radius + self._rand(n, n_candidates) * (self.half - self.resource_min_radius)
+        r = self.resource_min_radius + self._rand(n, n_candidates) * (
+            self.half - self.resource_min_radius
+        )
         angle = self._rand(n, n_candidates) * (2 * math.pi)
         return torch.stack([r * torch.cos(angle), r * torch.sin(angle)], -1)
 
@@ -376,16 +463,16 @@ class ResourceCollectionEnv(EnvBase):
         """
         if not bool(respawn.any()):
             return res_pos
-        rank = respawn.long().cumsum(-1) - 1                                                 # k-th respawn of its env
+        rank = respawn.long().cumsum(-1) - 1  # k-th respawn of its env
         pending = respawn
         for k in range(int(rank.masked_fill(~respawn, 0).max()) + 1):
             now = pending & (rank == k)
             env, slot = now.nonzero(as_tuple=True)
-            cand = self._resource_candidates(env.numel())                                    # [P, C, 2]
-            d2 = (cand.unsqueeze(2) - res_pos[env].unsqueeze(1)).square().sum(-1)            # [P, C, R]
+            cand = self._resource_candidates(env.numel())  # [P, C, 2]
+            d2 = (cand.unsqueeze(2) - res_pos[env].unsqueeze(1)).square().sum(-1)  # [P, C, R]
             blocking = (~pending[env]).unsqueeze(1) & (d2 < (2 * self.resource_radius) ** 2)
-            first = (~any_(blocking, -1)).to(torch.uint8).argmax(-1)                         # first free or 0
-            chosen = cand[torch.arange(env.numel(), device=self.device), first]             # [P, 2]
+            first = (~any_(blocking, -1)).to(torch.uint8).argmax(-1)  # first free or 0
+            chosen = cand[torch.arange(env.numel(), device=self.device), first]  # [P, 2]
             res_pos = res_pos.index_put((env, slot), chosen)
             pending = pending & ~now
         return res_pos
@@ -409,21 +496,31 @@ class ResourceCollectionEnv(EnvBase):
         M = B if ids is None else ids.numel()
         lim = self.half - self.agent_radius
         pos = (self._rand(M, N, 2) * 2 - 1) * lim
-        res_pos = self._spawn_resources(torch.zeros(M, R, 2, device=dev), torch.ones(M, R, dtype=torch.bool, device=dev))
+        res_pos = self._spawn_resources(
+            torch.zeros(M, R, 2, device=dev), torch.ones(M, R, dtype=torch.bool, device=dev)
+        )
         pos_bl = batch_last(pos)
         fresh = dict(  # batch-last, in the order the random numbers are drawn
-            _pos=pos_bl, _vel=torch.zeros_like(pos_bl), _carry=torch.zeros(N, M, dtype=torch.bool, device=dev),
-            _defended=torch.zeros(N, M, dtype=torch.bool, device=dev), _res=batch_last(res_pos),
-            _inv=batch_last(self._invader_points(M * I).view(M, I, 2)), _inv_vel=torch.zeros(I, 2, M, device=dev),
+            _pos=pos_bl,
+            _vel=torch.zeros_like(pos_bl),
+            _carry=torch.zeros(N, M, dtype=torch.bool, device=dev),
+            _defended=torch.zeros(N, M, dtype=torch.bool, device=dev),
+            _res=batch_last(res_pos),
+            _inv=batch_last(self._invader_points(M * I).view(M, I, 2)),
+            _inv_vel=torch.zeros(I, 2, M, device=dev),
             # uniform: the invader is on the field from the first step; copa: it appears later.
             _inv_on=torch.full((I, M), self.spawn == "uniform", dtype=torch.bool, device=dev),
             _inv_timer=self._respawn_timer(M * I).view(M, I).t().contiguous(),
         )
         if self.waypoint_mode == "random_walk":
             start = pos_bl
-            if self.waypoint_path_prob > 0:  # drawn last and only then: the paper's episodes stay the same
+            if (
+                self.waypoint_path_prob > 0
+            ):  # drawn last and only then: the paper's episodes stay the same
                 fresh["_on_path"] = batch_last(self._rand(M, N, 1) < self.waypoint_path_prob)
-                start = torch.where(fresh["_on_path"], batch_last((self._rand(M, N, 2) * 2 - 1) * self.half), pos_bl)
+                start = torch.where(
+                    fresh["_on_path"], batch_last((self._rand(M, N, 2) * 2 - 1) * self.half), pos_bl
+                )
             wp = self._random_walk(start)
         else:
             wp = pos.unsqueeze(-2).expand(M, N, self.n_waypoints, 2).clone()
@@ -431,24 +528,42 @@ class ResourceCollectionEnv(EnvBase):
         if ids is None:
             self._put(**fresh, _wp=wp, t=t)
         else:  # batch-last state: envs on the last dim; waypoints and t: on the first
-            self._put(**{name: getattr(self, name).index_copy(-1, ids, value) for name, value in fresh.items()},
-                      _wp=self._wp.index_copy(0, ids, wp), t=self.t.index_copy(0, ids, t))
+            self._put(
+                **{
+                    name: getattr(self, name).index_copy(-1, ids, value)
+                    for name, value in fresh.items()
+                },
+                _wp=self._wp.index_copy(0, ids, wp),
+                t=self.t.index_copy(0, ids, t),
+            )
         zeros = torch.zeros(B, dtype=torch.int64, device=dev)
         false = torch.zeros(B, 1, dtype=torch.bool, device=dev)
         return self._output(
             events={**{k: zeros for k in _EVENTS}, "inst_reward": torch.zeros(B, device=dev)},
-            done=false, terminated=false, truncated=false)
+            done=false,
+            terminated=false,
+            truncated=false,
+        )
 
     # ------------------------------------------------------------------ step
     def _read_action(self, tensordict: TensorDictBase) -> torch.Tensor:
         """The action as ``[B, N]`` indices, checked when ``validate``."""
         action = tensordict.get(("agents", "action"))
-        if action.shape != (self.num_envs, self.n_agents):  # one-hot or trailing dim: take the index
-            action = action.argmax(-1) if action.shape[-1] == N_ACTIONS and action.dim() == 3 else action.reshape(self.num_envs, self.n_agents)
+        if action.shape != (
+            self.num_envs,
+            self.n_agents,
+        ):  # one-hot or trailing dim: take the index
+            action = (
+                action.argmax(-1)
+                if action.shape[-1] == N_ACTIONS and action.dim() == 3
+                else action.reshape(self.num_envs, self.n_agents)
+            )
         if self.validate:
             lo, hi = torch.aminmax(action)
             if lo < 0 or hi >= N_ACTIONS:
-                raise ValueError(f"('agents', 'action') must be in [0, {N_ACTIONS - 1}], got {action.tolist()}")
+                raise ValueError(
+                    f"('agents', 'action') must be in [0, {N_ACTIONS - 1}], got {action.tolist()}"
+                )
         return action
 
     def _read_waypoints(self, tensordict: TensorDictBase) -> None:
@@ -463,7 +578,9 @@ class ResourceCollectionEnv(EnvBase):
     def _check_waypoints(self, wp: torch.Tensor) -> torch.Tensor:
         expected = (self.num_envs, self.n_agents, self.n_waypoints, 2)
         if tuple(wp.shape) != expected:
-            raise ValueError(f"('agents', 'waypoints') must have shape {list(expected)}, got {list(wp.shape)}")
+            raise ValueError(
+                f"('agents', 'waypoints') must have shape {list(expected)}, got {list(wp.shape)}"
+            )
         wp = wp.to(self.device, torch.float32)
         if self.validate and not torch.isfinite(wp).view(torch.uint8).all():
             raise ValueError("('agents', 'waypoints') contains non-finite values")
@@ -472,8 +589,19 @@ class ResourceCollectionEnv(EnvBase):
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = self._read_action(tensordict)
         self._read_waypoints(tensordict)
-        d = dynamics(self._pos, self._vel, self._carry, self._res, self._inv, self._inv_on, self._inv_timer,
-                     self._waypoints_bl(), action, (self.dt * self.accel) * self._action_dirs, self._params())
+        d = dynamics(
+            self._pos,
+            self._vel,
+            self._carry,
+            self._res,
+            self._inv,
+            self._inv_on,
+            self._inv_timer,
+            self._waypoints_bl(),
+            action,
+            (self.dt * self.accel) * self._action_dirs,
+            self._params(),
+        )
         # Respawns draw from the env's generator, so they happen here, only where needed.
         timer, inv, on = d.timer, d.inv, d.inv_on
         n_gone = int(d.gone.sum())
@@ -483,29 +611,52 @@ class ResourceCollectionEnv(EnvBase):
         if env.numel():
             inv[which, :, env] = self._invader_points(env.numel())
             on = on | d.respawn
-        self._put(_pos=d.pos, _vel=d.vel, _carry=d.carry, _defended=d.defense, _res=self._respawn_picked(d.picked),
-                  _inv=inv, _inv_vel=d.inv_vel, _inv_on=on, _inv_timer=timer, t=self.t + 1)
+        self._put(
+            _pos=d.pos,
+            _vel=d.vel,
+            _carry=d.carry,
+            _defended=d.defense,
+            _res=self._respawn_picked(d.picked),
+            _inv=inv,
+            _inv_vel=d.inv_vel,
+            _inv_on=on,
+            _inv_timer=timer,
+            t=self.t + 1,
+        )
         if self.waypoint_mode == "random_walk":
             self._refresh_waypoints((self.t % self.waypoint_interval == 0).nonzero().squeeze(-1))
 
         truncated = (self.t >= self.max_steps).unsqueeze(-1)
         return self._output(
-            agent_reward=d.agent_reward, reward=d.agent_reward.sum(0).unsqueeze(-1),
+            agent_reward=d.agent_reward,
+            reward=d.agent_reward.sum(0).unsqueeze(-1),
             events=dict(zip(_EVENTS, d.counts), inst_reward=d.r_inst.sum(0)),
-            done=truncated, terminated=torch.zeros_like(truncated), truncated=truncated)
+            done=truncated,
+            terminated=torch.zeros_like(truncated),
+            truncated=truncated,
+        )
 
     def _params(self) -> Params:
         """The constants of :func:`dynamics`, read from the attributes at every step."""
         r2 = lambda a, b: (a + b) ** 2  # noqa: E731  (contacts compare squared distances)
         w = self.event_rewards
         return Params(
-            damping=self.damping, max_speed=self.max_speed, dt=self.dt, wall=self.half - self.agent_radius,
-            invader_speed=self.invader_speed, touch_invader2=r2(self.agent_radius, self.invader_radius),
+            damping=self.damping,
+            max_speed=self.max_speed,
+            dt=self.dt,
+            wall=self.half - self.agent_radius,
+            invader_speed=self.invader_speed,
+            touch_invader2=r2(self.agent_radius, self.invader_radius),
             touch_resource2=r2(self.agent_radius, self.resource_radius),
             invader_home2=r2(self.home_radius, self.invader_radius),
             robot_home2=r2(self.home_radius, self.agent_radius),
-            inst_scale=self.inst_reward_scale, inst_dist_coef=self.inst_dist_coef, pick=w["pick"],
-            collect=w["collect"], defense=w["defense"], invasion_share=w["invasion"] / self.n_agents)
+            inst_scale=self.inst_reward_scale,
+            inst_dist_coef=self.inst_dist_coef,
+            pick=w["pick"],
+            collect=w["collect"],
+            defense=w["defense"],
+            invasion_share=w["invasion"] / self.n_agents,
+        )
 
     def _refresh_waypoints(self, ids: torch.Tensor) -> None:
         """New random-walk waypoints for the envs ``ids``: from the robots' positions, or for a robot
@@ -524,11 +675,15 @@ class ResourceCollectionEnv(EnvBase):
         rows = any_(picked, 0).nonzero().squeeze(-1)
         if not rows.numel():
             return res
-        new = self._spawn_resources(res[:, :, rows].permute(2, 0, 1), picked[:, rows].t())   # [M, R, 2]
+        new = self._spawn_resources(
+            res[:, :, rows].permute(2, 0, 1), picked[:, rows].t()
+        )  # [M, R, 2]
         return res.index_copy(2, rows, new.permute(1, 2, 0))
 
     # ------------------------------------------------------------------ observations
-    def _output(self, agent_reward: torch.Tensor | None = None, events: dict | None = None, **root) -> TensorDictBase:
+    def _output(
+        self, agent_reward: torch.Tensor | None = None, events: dict | None = None, **root
+    ) -> TensorDictBase:
         """The TensorDict ``_reset``/``_step`` return: observation, state and ``root`` entries."""
         obs, state = self._observe()
         wp = self._wp.clone()  # the emitted copy; _read_waypoints recognises it next step
@@ -536,9 +691,16 @@ class ResourceCollectionEnv(EnvBase):
         agents = {"observation": obs, "waypoints": wp}
         if agent_reward is not None:
             agents["reward"] = batch_first(agent_reward).unsqueeze(-1)
-        return self._td({"agents": self._td(agents, self._agents_batch), "state": state,
-                         "step_count": self.t.unsqueeze(-1), "events": self._td(events, self.batch_size), **root},
-                        self.batch_size)
+        return self._td(
+            {
+                "agents": self._td(agents, self._agents_batch),
+                "state": state,
+                "step_count": self.t.unsqueeze(-1),
+                "events": self._td(events, self.batch_size),
+                **root,
+            },
+            self.batch_size,
+        )
 
     def _td(self, source: dict, batch_size: torch.Size) -> TensorDictBase:
         # Skips the per-entry checks of TensorDict(...) (~50 us a step): every entry is built
@@ -559,14 +721,25 @@ class ResourceCollectionEnv(EnvBase):
         obs = torch.zeros(B, N * L.obs_dim, device=self.device)
         obs.index_copy_(1, self._own_cols, own.reshape(N * L.own_dim, B).t())
         obs = obs.view(B, N, L.obs_dim)
-        self._write_visible_entities(obs[..., L.own_dim:].view(B, N, L.n_entities, L.entity_dim))
+        self._write_visible_entities(obs[..., L.own_dim :].view(B, N, L.n_entities, L.entity_dim))
 
         # Global state: the constant entries (types, zeros) from a template, then every varying
         # entry from one batch-last table of them, each row to its column.
         on = self._inv_on.float()
-        src = torch.cat([pos.flatten(0, 1), vel.flatten(0, 1), carry, self._defended.float(), wp.flatten(0, 2),
-                         self._res.flatten(0, 1), (self._inv * on.unsqueeze(1)).flatten(0, 1),
-                         (self._inv_vel * on.unsqueeze(1)).flatten(0, 1), on], 0)                # [S, B]
+        src = torch.cat(
+            [
+                pos.flatten(0, 1),
+                vel.flatten(0, 1),
+                carry,
+                self._defended.float(),
+                wp.flatten(0, 2),
+                self._res.flatten(0, 1),
+                (self._inv * on.unsqueeze(1)).flatten(0, 1),
+                (self._inv_vel * on.unsqueeze(1)).flatten(0, 1),
+                on,
+            ],
+            0,
+        )  # [S, B]
         state = self._state_template.expand(B, -1).clone()
         state.index_copy_(1, self._state_cols, src.t())
         return obs, state
@@ -579,18 +752,20 @@ class ResourceCollectionEnv(EnvBase):
         # rewritten (types, the visible flag and zeros stay). Inactive invaders are put far away.
         table, inv = self._entity_table, slice(N + R, N + R + I)
         table[:N, 0:2], table[:N, 2:4], table[:N, 8] = self._pos, self._vel, self._carry
-        table[N:N + R, 0:2] = self._res
+        table[N : N + R, 0:2] = self._res
         table[inv, 0:2] = torch.where(on.unsqueeze(1), self._inv, _FAR)
         table[inv, 2:4], table[inv, 8] = self._inv_vel, on
-        visible = pair_sq_dist(self._pos, table[:, 0:2]) <= self.vision_radius ** 2             # [N, E_all, B]
+        visible = pair_sq_dist(self._pos, table[:, 0:2]) <= self.vision_radius**2  # [N, E_all, B]
         visible[:, :N].diagonal(0, 0, 1).fill_(False)  # a robot is not its own entity
-        flat = visible.reshape(-1).nonzero().squeeze(1)  # 1-D nonzero: ~2x faster than on [N, E_all, B]
+        flat = (
+            visible.reshape(-1).nonzero().squeeze(1)
+        )  # 1-D nonzero: ~2x faster than on [N, E_all, B]
         if not flat.numel():
             return
         E_all, B = visible.shape[1:]
         n, rest = flat.div(E_all * B, rounding_mode="floor"), flat % (E_all * B)
         j, b = rest.div(B, rounding_mode="floor"), rest % B
-        tokens = table[j, :, b]                                                              # [V, 10]
+        tokens = table[j, :, b]  # [V, 10]
         tokens[:, :4] -= table[n, :4, b]  # relative position and velocity
         slot = j - (j > n).long()  # entity j's place in robot n's list (itself removed)
         ent.index_put_((b, n, slot), tokens)
@@ -598,23 +773,37 @@ class ResourceCollectionEnv(EnvBase):
     def _state_layout(self) -> tuple[torch.Tensor, torch.Tensor]:
         """The state's constant template [state_dim] and, for each row of the table built by
         :meth:`_observe`, the state column it goes to [S]."""
-        N, R, I, K, L = self.n_agents, self.n_resources, self.n_invaders, self.n_waypoints, self.layout
+        N, R, I, K, L = (
+            self.n_agents,
+            self.n_resources,
+            self.n_invaders,
+            self.n_waypoints,
+            self.layout,
+        )
         D = L.state_token_dim
         robot, res, inv = (lambda n: n * D), (lambda r: (N + r) * D), (lambda i: (N + R + i) * D)
         # Token features: x, y, vx, vy, type (3), flag, defended, waypoints (2K).
-        cols = [robot(n) + c for n in range(N) for c in (0, 1)] + [robot(n) + c for n in range(N) for c in (2, 3)]
-        cols += [robot(n) + 7 for n in range(N)] + [robot(n) + 8 for n in range(N)]              # carry, defended
-        cols += [robot(n) + 9 + k for n in range(N) for k in range(2 * K)]                       # waypoints
+        cols = [robot(n) + c for n in range(N) for c in (0, 1)] + [
+            robot(n) + c for n in range(N) for c in (2, 3)
+        ]
+        cols += [robot(n) + 7 for n in range(N)] + [
+            robot(n) + 8 for n in range(N)
+        ]  # carry, defended
+        cols += [robot(n) + 9 + k for n in range(N) for k in range(2 * K)]  # waypoints
         cols += [res(r) + c for r in range(R) for c in (0, 1)]
-        cols += [inv(i) + c for i in range(I) for c in (0, 1)] + [inv(i) + c for i in range(I) for c in (2, 3)]
-        cols += [inv(i) + 7 for i in range(I)]                                                   # active
+        cols += [inv(i) + c for i in range(I) for c in (0, 1)] + [
+            inv(i) + c for i in range(I) for c in (2, 3)
+        ]
+        cols += [inv(i) + 7 for i in range(I)]  # active
         template = torch.zeros(L.state_tokens, D)
-        template[:, 4:7] = self._entity_type[:L.state_tokens, :3].cpu()
+        template[:, 4:7] = self._entity_type[: L.state_tokens, :3].cpu()
         assert sorted(set(cols)) == sorted(cols) and not template.view(-1)[cols].any()
         return template.view(-1), torch.tensor(cols)
 
     # ------------------------------------------------------------------ instructions
-    def write_waypoints(self, tensordict: TensorDictBase, waypoints: torch.Tensor) -> TensorDictBase:
+    def write_waypoints(
+        self, tensordict: TensorDictBase, waypoints: torch.Tensor
+    ) -> TensorDictBase:
         """Give the robots new instruction waypoints ``[num_envs, n_agents, K, 2]`` now.
 
         Clips them to the field, stores them in the env and rewrites the observation and the
@@ -630,4 +819,3 @@ class ResourceCollectionEnv(EnvBase):
         tensordict.set(("agents", "waypoints"), wp)
         tensordict.set("state", state)
         return tensordict
-

@@ -12,6 +12,7 @@ the env, for the sources, the metrics and the figures.
 Shapes: ``B = num_envs``, ``N = n_agents``, ``K = n_waypoints``; waypoints are ``[B, N, K, 2]``
 in metres on the env's device.
 """
+
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
@@ -108,7 +109,9 @@ class RandomWalkSource(_NoisySource):
         if (refresh := self._due(env, step)) is None:
             return None
         env, sigma, due = refresh
-        walk = (env.pos.unsqueeze(-2) + self._noise(env, sigma).cumsum(-2)).clamp(-env.half, env.half)
+        walk = (env.pos.unsqueeze(-2) + self._noise(env, sigma).cumsum(-2)).clamp(
+            -env.half, env.half
+        )
         return torch.where(due[:, None, None, None], walk, env.waypoints)
 
 
@@ -126,12 +129,21 @@ class QuadrantSource(_NoisySource):
     4 = (x>0, y<0).
     """
 
-    def __init__(self, quadrant: int, sigma: float | None = None, interval: int | None = None,
-                 margin: float = 0.25, max_step: float | None = None, seed: int = 0):
+    def __init__(
+        self,
+        quadrant: int,
+        sigma: float | None = None,
+        interval: int | None = None,
+        margin: float = 0.25,
+        max_step: float | None = None,
+        seed: int = 0,
+    ):
         if quadrant not in QUADRANT_SIGNS:
             raise ValueError(f"quadrant must be 1, 2, 3 or 4, got {quadrant!r}")
         if not margin > 0:
-            raise ValueError(f"margin must be > 0 so that waypoints stay strictly inside, got {margin!r}")
+            raise ValueError(
+                f"margin must be > 0 so that waypoints stay strictly inside, got {margin!r}"
+            )
         if max_step is not None and not max_step > 0:
             raise ValueError(f"max_step must be > 0, got {max_step!r}")
         super().__init__(sigma, interval, seed)
@@ -140,7 +152,9 @@ class QuadrantSource(_NoisySource):
     def bounds(self, env: ResourceCollectionEnv) -> tuple[torch.Tensor, torch.Tensor]:
         """Lower and upper corners ``[2]`` of the shrunk quadrant every waypoint lies in."""
         if not self.margin < env.half / 2:
-            raise ValueError(f"margin {self.margin} leaves no room in a {env.field_size} m field's quadrant")
+            raise ValueError(
+                f"margin {self.margin} leaves no room in a {env.field_size} m field's quadrant"
+            )
         signs = torch.tensor(QUADRANT_SIGNS[self.quadrant], device=env.device)
         near, far = self.margin, env.half - self.margin
         low = torch.where(signs > 0, torch.full_like(signs, near), torch.full_like(signs, -far))
@@ -168,7 +182,9 @@ class FixedSource(InstructionSource):
     def __init__(self, waypoints):
         self.waypoints = torch.as_tensor(np.asarray(waypoints), dtype=torch.float32)
         if self.waypoints.dim() not in (3, 4) or self.waypoints.shape[-1] != 2:
-            raise ValueError(f"waypoints must be [N, K, 2] or [B, N, K, 2], got {list(self.waypoints.shape)}")
+            raise ValueError(
+                f"waypoints must be [N, K, 2] or [B, N, K, 2], got {list(self.waypoints.shape)}"
+            )
 
     def __call__(self, env, td, step):
         if step != 0:
@@ -178,4 +194,6 @@ class FixedSource(InstructionSource):
         try:
             return self.waypoints.to(env.device).expand(shape)
         except RuntimeError:
-            raise ValueError(f"fixed waypoints {list(self.waypoints.shape)} do not fit the env's {list(shape)}") from None
+            raise ValueError(
+                f"fixed waypoints {list(self.waypoints.shape)} do not fit the env's {list(shape)}"
+            ) from None

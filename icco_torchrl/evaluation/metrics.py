@@ -5,14 +5,15 @@ episode; distances and fractions are averaged over steps, so the episode value i
 step-weighted mean of its segments'. Standard deviations are over trials (population std,
 as in :func:`icco_torchrl.training.rollout.evaluate`).
 """
+
 from __future__ import annotations
 
 import csv
 import json
 import math
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterable, Mapping, Sequence
 
 import numpy as np
 import torch
@@ -60,8 +61,12 @@ def step_values(env, nxt, waypoints: torch.Tensor, quadrant: int | None) -> dict
     return out
 
 
-def trial_rows(per_step: Mapping[str, np.ndarray], names: Sequence[str], bounds: Sequence[tuple[int, int]],
-               **labels) -> list[dict]:
+def trial_rows(
+    per_step: Mapping[str, np.ndarray],
+    names: Sequence[str],
+    bounds: Sequence[tuple[int, int]],
+    **labels,
+) -> list[dict]:
     """One row per trial and segment, then one ``"episode"`` row per trial.
 
     ``per_step[key]`` is ``[T, B]``; ``bounds`` are the segments' ``[start, stop)`` steps;
@@ -96,7 +101,9 @@ def summarize(rows: Iterable[Mapping], by: Sequence[str] = ("method", "segment")
     for key, members in groups.items():
         summary = dict(zip(by, key), n=len(members), seeds=len({m.get("seed") for m in members}))
         for metric in METRICS:
-            summary[metric], summary[f"{metric}_std"] = _stats(np.array([m[metric] for m in members], float))
+            summary[metric], summary[f"{metric}_std"] = _stats(
+                np.array([m[metric] for m in members], float)
+            )
         out.append(summary)
     return out
 
@@ -106,19 +113,30 @@ def _cell(summary: Mapping, metric: str, digits: int) -> str:
     return "–" if not math.isfinite(mean) else f"{mean:.{digits}f} ± {std:.{digits}f}"
 
 
-def markdown_table(summary: Sequence[Mapping], metrics: Sequence[str] = METRICS, *, segment: str = EPISODE,
-                   missing: Sequence[str] = ()) -> str:
+def markdown_table(
+    summary: Sequence[Mapping],
+    metrics: Sequence[str] = METRICS,
+    *,
+    segment: str = EPISODE,
+    missing: Sequence[str] = (),
+) -> str:
     """A Markdown table of ``segment`` rows, one per method (mean ± std over trials); methods
     in ``missing`` get a row saying so, so a comparison never silently loses one. Metrics
     without a value in any row (``in_quadrant`` without quadrants) are left out."""
     digits = {"waypoint_dist": 2, "in_quadrant": 2}
     rows = [row for row in summary if row["segment"] == segment]
-    metrics = [m for m in metrics if any(math.isfinite(row[m]) for row in rows)] if rows else list(metrics)
+    metrics = (
+        [m for m in metrics if any(math.isfinite(row[m]) for row in rows)]
+        if rows
+        else list(metrics)
+    )
     head = ["method", "trials"] + metrics
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for row in rows:
         cells = [str(row["method"]), f"{row['n']} ({row['seeds']} seed{'s' * (row['seeds'] != 1)})"]
-        lines.append("| " + " | ".join(cells + [_cell(row, m, digits.get(m, 1)) for m in metrics]) + " |")
+        lines.append(
+            "| " + " | ".join(cells + [_cell(row, m, digits.get(m, 1)) for m in metrics]) + " |"
+        )
     for method in missing:
         lines.append("| " + " | ".join([method, "missing"] + ["–"] * len(metrics)) + " |")
     return "\n".join(lines)
@@ -131,7 +149,9 @@ def segment_table(summary: Sequence[Mapping], metric: str = "reward") -> str:
     cell = {(row["method"], row["segment"]): _cell(row, metric, 1) for row in summary}
     lines = ["| method | " + " | ".join(segments) + " |", "|" + "---|" * (len(segments) + 1)]
     for method in methods:
-        lines.append(f"| {method} | " + " | ".join(cell.get((method, s), "–") for s in segments) + " |")
+        lines.append(
+            f"| {method} | " + " | ".join(cell.get((method, s), "–") for s in segments) + " |"
+        )
     return "\n".join(lines)
 
 
@@ -148,6 +168,7 @@ def write_csv(rows: Sequence[Mapping], path: str | Path) -> Path:
 
 def write_json(payload, path: str | Path) -> Path:
     """JSON with NaN written as null (strict JSON readers reject NaN)."""
+
     def clean(value):
         if isinstance(value, float) and not math.isfinite(value):
             return None
@@ -164,10 +185,28 @@ def write_json(payload, path: str | Path) -> Path:
 
 
 # results.json names of the methods and reference policies (labels as the tables print them).
-RESULT_NAMES = {"ICCO": "icco", "ICCO w/o CE": "icco_wo_ce", "QMIX": "qmix", "QMIX (FULL)": "qmix_full",
-                "QMIX (FULL, flat)": "qmix_full_flat", "QMIX-TAP": "qmix_tap", "QMIX-TAP w/o TR": "qmix_tap_wo_tr",
-                "random": "random", "follower": "follower", "heuristic": "heuristic"}
-RESULT_METRICS = ("reward", "task_reward", "inst_reward", "pick", "collect", "defense", "invasion", "in_quadrant")
+RESULT_NAMES = {
+    "ICCO": "icco",
+    "ICCO w/o CE": "icco_wo_ce",
+    "QMIX": "qmix",
+    "QMIX (FULL)": "qmix_full",
+    "QMIX (FULL, flat)": "qmix_full_flat",
+    "QMIX-TAP": "qmix_tap",
+    "QMIX-TAP w/o TR": "qmix_tap_wo_tr",
+    "random": "random",
+    "follower": "follower",
+    "heuristic": "heuristic",
+}
+RESULT_METRICS = (
+    "reward",
+    "task_reward",
+    "inst_reward",
+    "pick",
+    "collect",
+    "defense",
+    "invasion",
+    "in_quadrant",
+)
 
 
 def result_name(label: str) -> str | None:
@@ -175,8 +214,16 @@ def result_name(label: str) -> str | None:
     return "blend" if label.startswith("blend") else RESULT_NAMES.get(label)
 
 
-def results_json(summary: Sequence[Mapping], *, protocol: str, steps: int, trials: int,
-                 frames: Mapping[str, int] | None = None, segment: str = EPISODE, **extra) -> dict:
+def results_json(
+    summary: Sequence[Mapping],
+    *,
+    protocol: str,
+    steps: int,
+    trials: int,
+    frames: Mapping[str, int] | None = None,
+    segment: str = EPISODE,
+    **extra,
+) -> dict:
     """The machine-readable report: ``{"protocol", "steps", "trials", "methods": {name: {"seeds",
     "frames", metric: {"mean", "std"}}}}`` from :func:`summarize` rows of ``segment``. ``frames``
     maps a table label to the training frames of its checkpoints (reference policies: 0);
@@ -186,8 +233,12 @@ def results_json(summary: Sequence[Mapping], *, protocol: str, steps: int, trial
         name = result_name(row["method"])
         if row["segment"] != segment or name is None:
             continue
-        entry = {"seeds": row["seeds"] if name not in ("random", "follower", "heuristic", "blend") else 0,
-                 "frames": int((frames or {}).get(row["method"], 0))}
+        entry = {
+            "seeds": row["seeds"]
+            if name not in ("random", "follower", "heuristic", "blend")
+            else 0,
+            "frames": int((frames or {}).get(row["method"], 0)),
+        }
         if name == "blend":
             entry["label"] = row["method"]
         for metric in RESULT_METRICS:
@@ -207,8 +258,9 @@ class Curve:
     runs: list[str]
 
 
-def learning_curves(runs: Mapping[str, Sequence[str | Path]], stream: str = "eval",
-                    column: str = "reward") -> dict[str, Curve]:
+def learning_curves(
+    runs: Mapping[str, Sequence[str | Path]], stream: str = "eval", column: str = "reward"
+) -> dict[str, Curve]:
     """Mean ± std over seeds of each method's runs (``{label: [run_dir, ...]}``).
 
     Seeds are aligned on the frames of the shortest run (interpolating the others), so runs

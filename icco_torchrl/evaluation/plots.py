@@ -9,24 +9,35 @@
 Figures are built on ``matplotlib.figure.Figure`` (Agg canvas) rather than pyplot, so
 plotting never switches the backend or leaves figures open in the caller's process.
 """
+
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Mapping, Sequence
 
 import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.patches import Circle, Rectangle
 
 from icco_torchrl.envs.render import robot_color
+from icco_torchrl.envs.waypoints import QUADRANT_SIGNS
 from icco_torchrl.evaluation.metrics import EPISODE, Curve
 from icco_torchrl.evaluation.protocols import ScheduleRun
-from icco_torchrl.envs.waypoints import QUADRANT_SIGNS
 
 RESOURCE, INVADER, HOME, SHADE = "#daa520", "#c81e2d", "#c8d6e5", "#f4c7c3"
-METHOD_COLORS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f", "#17becf", "#bcbd22",
-                 "#d62728")  # tab10, red last; distinct for up to 10 rows (5 methods + 4 references + 1)
+METHOD_COLORS = (
+    "#1f77b4",
+    "#ff7f0e",
+    "#2ca02c",
+    "#9467bd",
+    "#8c564b",
+    "#e377c2",
+    "#7f7f7f",
+    "#17becf",
+    "#bcbd22",
+    "#d62728",
+)  # tab10, red last; distinct for up to 10 rows (5 methods + 4 references + 1)
 
 
 def save(fig: Figure, stem: str | Path) -> list[Path]:
@@ -49,40 +60,85 @@ def _events(carry: np.ndarray, defended: np.ndarray) -> dict[str, np.ndarray]:
     A robot carries at most one resource and picks only when empty, so the carry flag going
     up is a pick and going down is a delivery; ``defended`` is set on the step of a hit.
     """
-    return {"pick": carry[1:] & ~carry[:-1], "collect": ~carry[1:] & carry[:-1], "defense": defended[1:]}
+    return {
+        "pick": carry[1:] & ~carry[:-1],
+        "collect": ~carry[1:] & carry[:-1],
+        "defense": defended[1:],
+    }
 
 
 def draw_segment(ax, run: ScheduleRun, segment: int, trial: int = 0) -> None:
     """One panel: the field during ``segment`` of ``trial``."""
     half = run.geometry["half"]
     start, stop = run.bounds[segment]
-    traj = {k: v[start:stop + 1, trial] for k, v in run.trajectory.items() if k != "waypoints"}
+    traj = {k: v[start : stop + 1, trial] for k, v in run.trajectory.items() if k != "waypoints"}
     ax.add_patch(Rectangle((-half, -half), 2 * half, 2 * half, fill=False, lw=1.2, color="0.35"))
     quadrant = run.quadrants[segment]
     if quadrant is not None:
         sx, sy = QUADRANT_SIGNS[quadrant]
-        ax.add_patch(Rectangle((min(0, sx * half), min(0, sy * half)), half, half, color=SHADE, alpha=0.6, lw=0))
-    ax.add_patch(Circle((0, 0), run.geometry["home_radius"], color=HOME, ec="0.35", zorder=2, label="home"))
+        ax.add_patch(
+            Rectangle(
+                (min(0, sx * half), min(0, sy * half)), half, half, color=SHADE, alpha=0.6, lw=0
+            )
+        )
+    ax.add_patch(
+        Circle((0, 0), run.geometry["home_radius"], color=HOME, ec="0.35", zorder=2, label="home")
+    )
     resources = np.unique(np.round(traj["res_pos"].reshape(-1, 2), 4), axis=0)
-    ax.scatter(resources[:, 0], resources[:, 1], s=40, c=RESOURCE, edgecolors="0.3", zorder=3, label="resource")
+    ax.scatter(
+        resources[:, 0],
+        resources[:, 1],
+        s=40,
+        c=RESOURCE,
+        edgecolors="0.3",
+        zorder=3,
+        label="resource",
+    )
     wps = run.trajectory["waypoints"][start:stop, trial].reshape(-1, 2)
     ax.scatter(wps[:, 0], wps[:, 1], s=3, c="0.5", alpha=0.15, zorder=1, label="waypoints")
     for i in range(traj["inv_pos"].shape[1]):
         path = np.where(traj["inv_active"][:, i, None], traj["inv_pos"][:, i], np.nan)
-        ax.plot(path[:, 0], path[:, 1], ls="--", lw=1, c=INVADER, zorder=3, label="invader" if i == 0 else None)
+        ax.plot(
+            path[:, 0],
+            path[:, 1],
+            ls="--",
+            lw=1,
+            c=INVADER,
+            zorder=3,
+            label="invader" if i == 0 else None,
+        )
     events = _events(traj["carry"], traj["defended"])
     pos = traj["pos"]
     for i in range(pos.shape[1]):
         ax.plot(pos[:, i, 0], pos[:, i, 1], c=_rgb(i), lw=1.3, zorder=4, label=f"robot {i}")
-        ax.scatter(*pos[0, i], s=25, facecolors="none", edgecolors=[_rgb(i)], zorder=5,
-                   label="start (hollow)" if i == 0 else None)
-        ax.scatter(*pos[-1, i], s=25, c=[_rgb(i)], zorder=5, label="end (filled)" if i == 0 else None)
-    styles = {"pick": dict(marker="*", s=90, c=RESOURCE), "collect": dict(marker="s", s=40, c=HOME),
-              "defense": dict(marker="X", s=60, c=INVADER)}
+        ax.scatter(
+            *pos[0, i],
+            s=25,
+            facecolors="none",
+            edgecolors=[_rgb(i)],
+            zorder=5,
+            label="start (hollow)" if i == 0 else None,
+        )
+        ax.scatter(
+            *pos[-1, i], s=25, c=[_rgb(i)], zorder=5, label="end (filled)" if i == 0 else None
+        )
+    styles = {
+        "pick": dict(marker="*", s=90, c=RESOURCE),
+        "collect": dict(marker="s", s=40, c=HOME),
+        "defense": dict(marker="X", s=60, c=INVADER),
+    }
     for name, mask in events.items():
         steps, robots = np.nonzero(mask)
         points = pos[steps + 1, robots]
-        ax.scatter(points[:, 0], points[:, 1], edgecolors="k", linewidths=0.6, zorder=6, label=name, **styles[name])
+        ax.scatter(
+            points[:, 0],
+            points[:, 1],
+            edgecolors="k",
+            linewidths=0.6,
+            zorder=6,
+            label=name,
+            **styles[name],
+        )
     counts = ", ".join(f"{name} {int(mask.sum())}" for name, mask in events.items())
     ax.set_title(f"{run.names[segment]}\n{counts}", fontsize=8)
     ax.set_xlim(-half * 1.03, half * 1.03)
@@ -91,8 +147,12 @@ def draw_segment(ax, run: ScheduleRun, segment: int, trial: int = 0) -> None:
     ax.set_axis_off()  # the field's own border frames the panel
 
 
-def plot_trajectories(runs: Mapping[str, ScheduleRun], stem: str | Path, segments: Sequence[int] = (0,),
-                      trial: int = 0) -> list[Path]:
+def plot_trajectories(
+    runs: Mapping[str, ScheduleRun],
+    stem: str | Path,
+    segments: Sequence[int] = (0,),
+    trial: int = 0,
+) -> list[Path]:
     """A grid of panels, one row per segment and one column per method (``runs`` by label)."""
     if not runs:
         raise ValueError("plot_trajectories needs at least one run")
@@ -105,14 +165,24 @@ def plot_trajectories(runs: Mapping[str, ScheduleRun], stem: str | Path, segment
             if row == 0:
                 axes[row, col].set_title(f"{label}\n" + axes[row, col].get_title(), fontsize=8)
     handles, labels = axes[0, 0].get_legend_handles_labels()
-    rows = 2 if len(labels) > 6 else 1  # robots, home, start/end and the events: two lines when many
-    fig.legend(handles, labels, loc="lower center", ncol=-(-len(labels) // rows), fontsize=7, frameon=False)
+    rows = (
+        2 if len(labels) > 6 else 1
+    )  # robots, home, start/end and the events: two lines when many
+    fig.legend(
+        handles, labels, loc="lower center", ncol=-(-len(labels) // rows), fontsize=7, frameon=False
+    )
     fig.tight_layout(rect=(0, 0.4 * rows / height, 1, 1))
     return save(fig, stem)
 
 
-def plot_bars(summary: Sequence[Mapping], stem: str | Path, metric: str = "reward",
-              segments: Sequence[str] = (EPISODE,), missing: Sequence[str] = (), ylabel: str | None = None) -> list[Path]:
+def plot_bars(
+    summary: Sequence[Mapping],
+    stem: str | Path,
+    metric: str = "reward",
+    segments: Sequence[str] = (EPISODE,),
+    missing: Sequence[str] = (),
+    ylabel: str | None = None,
+) -> list[Path]:
     """Grouped bars: one group per segment, one bar per method, error bars = std over trials.
 
     Methods in ``missing`` are named under the axis, so a gap in a comparison is visible.
@@ -127,8 +197,15 @@ def plot_bars(summary: Sequence[Mapping], stem: str | Path, metric: str = "rewar
         rows = [cell.get((method, s)) for s in segments]
         means = [r[metric] if r else math.nan for r in rows]
         stds = [r[f"{metric}_std"] if r else math.nan for r in rows]
-        ax.bar(x + (m - (len(methods) - 1) / 2) * width, means, width, yerr=stds, capsize=3, label=method,
-               color=METHOD_COLORS[m % len(METHOD_COLORS)])
+        ax.bar(
+            x + (m - (len(methods) - 1) / 2) * width,
+            means,
+            width,
+            yerr=stds,
+            capsize=3,
+            label=method,
+            color=METHOD_COLORS[m % len(METHOD_COLORS)],
+        )
     ax.set_xticks(x, [s if s != EPISODE else "whole episode" for s in segments])
     ax.axhline(0, color="0.3", lw=0.8)
     ax.set_ylabel(ylabel or metric.replace("_", " "))
@@ -140,7 +217,9 @@ def plot_bars(summary: Sequence[Mapping], stem: str | Path, metric: str = "rewar
     return save(fig, stem)
 
 
-def plot_curves(curves: Mapping[str, Curve], stem: str | Path, ylabel: str = "episode team reward") -> list[Path]:
+def plot_curves(
+    curves: Mapping[str, Curve], stem: str | Path, ylabel: str = "episode team reward"
+) -> list[Path]:
     """Mean ± std across seeds against env steps, one line per method."""
     if not curves:
         raise ValueError("plot_curves needs at least one curve")
@@ -149,7 +228,9 @@ def plot_curves(curves: Mapping[str, Curve], stem: str | Path, ylabel: str = "ep
     for m, (label, curve) in enumerate(curves.items()):
         color = METHOD_COLORS[m % len(METHOD_COLORS)]
         ax.plot(curve.frames, curve.mean, color=color, label=f"{label} ({len(curve.runs)} seeds)")
-        ax.fill_between(curve.frames, curve.mean - curve.std, curve.mean + curve.std, color=color, alpha=0.2)
+        ax.fill_between(
+            curve.frames, curve.mean - curve.std, curve.mean + curve.std, color=color, alpha=0.2
+        )
     ax.set_xlabel("env steps")
     ax.set_ylabel(ylabel)
     ax.grid(alpha=0.3)

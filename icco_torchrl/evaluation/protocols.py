@@ -7,18 +7,24 @@ trajectories for figures and computes per-trial, per-segment metrics. The paper'
 are schedules: the four-quadrant test (Sec. V-B) is quadrant 1 -> 2 -> 3 -> 4 for 145 steps
 each, a language run is one instruction per segment.
 """
+
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Sequence
 
 import numpy as np
 import torch
 from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
+from icco_torchrl.envs.waypoints import (
+    InstructionSource,
+    QuadrantSource,
+    RandomWalkSource,
+    base_env,
+)
 from icco_torchrl.evaluation.metrics import step_values, trial_rows
-from icco_torchrl.envs.waypoints import InstructionSource, QuadrantSource, RandomWalkSource, base_env
 
 Schedule = Sequence[tuple[str, InstructionSource, int]]
 # Raw-env state recorded before the first step and after every step: [T + 1, B, ...].
@@ -53,14 +59,23 @@ def check_schedule(schedule: Schedule, trials: int) -> int:
         raise ValueError("the schedule is empty: give at least one (name, source, steps) segment")
     for name, source, steps in schedule:
         if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
-            raise ValueError(f"segment {name!r} has steps={steps!r}; every segment needs a positive integer")
+            raise ValueError(
+                f"segment {name!r} has steps={steps!r}; every segment needs a positive integer"
+            )
         if not isinstance(source, InstructionSource):
             raise ValueError(f"segment {name!r}: {source!r} is not an InstructionSource")
     return sum(steps for _, _, steps in schedule)
 
 
-def run_schedule(env, policy: Callable, schedule: Schedule, trials: int, *,
-                 on_step: Callable | None = None, **labels) -> ScheduleRun:
+def run_schedule(
+    env,
+    policy: Callable,
+    schedule: Schedule,
+    trials: int,
+    *,
+    on_step: Callable | None = None,
+    **labels,
+) -> ScheduleRun:
     """Play ``schedule`` once in each of ``trials`` envs, greedily, and measure it.
 
     ``env`` (a ``ResourceCollectionEnv`` or a ``TransformedEnv`` over one) must have
@@ -72,12 +87,18 @@ def run_schedule(env, policy: Callable, schedule: Schedule, trials: int, *,
     total = check_schedule(schedule, trials)
     raw = base_env(env)
     if raw.num_envs != trials:
-        raise ValueError(f"the env runs {raw.num_envs} envs but trials={trials}: build it with num_envs=trials")
+        raise ValueError(
+            f"the env runs {raw.num_envs} envs but trials={trials}: build it with num_envs=trials"
+        )
     if raw.max_steps < total:
-        raise ValueError(f"the env stops after {raw.max_steps} steps but the schedule needs {total}: "
-                         f"build it with max_steps={total}")
+        raise ValueError(
+            f"the env stops after {raw.max_steps} steps but the schedule needs {total}: "
+            f"build it with max_steps={total}"
+        )
     if raw.waypoint_mode != "external":
-        raise ValueError("the env regenerates its own waypoints: build it with waypoint_mode='external'")
+        raise ValueError(
+            "the env regenerates its own waypoints: build it with waypoint_mode='external'"
+        )
 
     names = [name for name, _, _ in schedule]
     ends = np.cumsum([steps for _, _, steps in schedule]).tolist()
@@ -109,17 +130,37 @@ def run_schedule(env, policy: Callable, schedule: Schedule, trials: int, *,
     trajectory = {key: torch.stack(v).cpu().numpy() for key, v in states.items()}
     trajectory["waypoints"] = torch.stack(waypoints).cpu().numpy()
     per_step = {key: torch.stack([v[key] for v in values]).cpu().numpy() for key in values[0]}
-    counters = [dict(segment=name, **source.stats) for name, source, _ in schedule if hasattr(source, "stats")]
-    geometry = dict(half=raw.half, home_radius=raw.home_radius, resource_radius=raw.resource_radius,
-                    agent_radius=raw.agent_radius, invader_radius=raw.invader_radius)
+    counters = [
+        dict(segment=name, **source.stats)
+        for name, source, _ in schedule
+        if hasattr(source, "stats")
+    ]
+    geometry = dict(
+        half=raw.half,
+        home_radius=raw.home_radius,
+        resource_radius=raw.resource_radius,
+        agent_radius=raw.agent_radius,
+        invader_radius=raw.invader_radius,
+    )
     quadrants = [source.quadrant for _, source, _ in schedule]
-    return ScheduleRun(names, bounds, quadrants, trajectory, per_step,
-                       trial_rows(per_step, names, bounds, **labels), geometry, counters)
+    return ScheduleRun(
+        names,
+        bounds,
+        quadrants,
+        trajectory,
+        per_step,
+        trial_rows(per_step, names, bounds, **labels),
+        geometry,
+        counters,
+    )
 
 
 def quadrant_schedule(steps: int = 145, seed: int = 0, **source_kwargs) -> list:
     """Paper Sec. V-B: quadrant 1 -> 2 -> 3 -> 4, ``steps`` each (580 steps per episode)."""
-    return [(f"quadrant {q}", QuadrantSource(q, seed=seed + q, **source_kwargs), steps) for q in (1, 2, 3, 4)]
+    return [
+        (f"quadrant {q}", QuadrantSource(q, seed=seed + q, **source_kwargs), steps)
+        for q in (1, 2, 3, 4)
+    ]
 
 
 def random_walk_schedule(steps: int = 145, seed: int = 0, **source_kwargs) -> list:
@@ -127,11 +168,21 @@ def random_walk_schedule(steps: int = 145, seed: int = 0, **source_kwargs) -> li
     return [("random walk", RandomWalkSource(seed=seed, **source_kwargs), steps)]
 
 
-PROTOCOLS: dict[str, Callable[..., list]] = {"random_walk": random_walk_schedule, "quadrants": quadrant_schedule}
+PROTOCOLS: dict[str, Callable[..., list]] = {
+    "random_walk": random_walk_schedule,
+    "quadrants": quadrant_schedule,
+}
 
 
-def schedule_env(checkpoint: str | Path, total_steps: int, trials: int, *, device: str = "cpu",
-                 seed: int | None = None, **env_overrides) -> dict:
+def schedule_env(
+    checkpoint: str | Path,
+    total_steps: int,
+    trials: int,
+    *,
+    device: str = "cpu",
+    seed: int | None = None,
+    **env_overrides,
+) -> dict:
     """:func:`~icco_torchrl.training.restore.restore` with an env fit for a schedule:
     ``num_envs=trials``, ``max_steps=total_steps``, external waypoints. ``env_overrides`` may
     change other env parameters; layout changes are refused there (``CheckpointError``)."""
@@ -139,5 +190,10 @@ def schedule_env(checkpoint: str | Path, total_steps: int, trials: int, *, devic
 
     if isinstance(trials, bool) or not isinstance(trials, int) or trials < 1:
         raise ValueError(f"trials must be a positive integer, got {trials!r}")
-    return restore(checkpoint, num_envs=trials, device=device, seed=seed,
-                   **{**env_overrides, "max_steps": total_steps, "waypoint_mode": "external"})
+    return restore(
+        checkpoint,
+        num_envs=trials,
+        device=device,
+        seed=seed,
+        **{**env_overrides, "max_steps": total_steps, "waypoint_mode": "external"},
+    )

@@ -13,27 +13,41 @@ configurations (the env seed is ``seed + EVAL_SEED_OFFSET``). Outputs: ``<name>_
 (one row per checkpoint, trial and segment, plus the whole episode), ``<name>_summary.csv``,
 ``<name>.json``, ``<name>.md`` and figures (PNG + PDF, GIFs on request).
 """
+
 from __future__ import annotations
 
 import glob
 import os
 import re
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Sequence
 
 import torch
 from omegaconf import DictConfig, OmegaConf
 
 from icco_torchrl.envs import ResourceCollectionEnv
 from icco_torchrl.envs.reference_policies import make_reference_policy, reference_label
-from icco_torchrl.evaluation.metrics import (EPISODE, markdown_table, method_label, segment_table, summarize,
-                                             write_csv, write_json)
-from icco_torchrl.evaluation.protocols import PROTOCOLS, Schedule, check_schedule, run_schedule, schedule_env
+from icco_torchrl.evaluation.metrics import (
+    EPISODE,
+    markdown_table,
+    method_label,
+    segment_table,
+    summarize,
+    write_csv,
+    write_json,
+)
+from icco_torchrl.evaluation.protocols import (
+    PROTOCOLS,
+    Schedule,
+    check_schedule,
+    run_schedule,
+    schedule_env,
+)
 from icco_torchrl.training.build import EPISODE_SEED_STRIDE, EVAL_SEED_OFFSET
 from icco_torchrl.training.checkpoint import CheckpointError, load_checkpoint
 
-GIF_MAX_FRAMES = 300       # longer episodes are recorded every few steps
+GIF_MAX_FRAMES = 300  # longer episodes are recorded every few steps
 GIF_SIZE = 320
 
 
@@ -47,12 +61,16 @@ def find_checkpoints(cfg: DictConfig, root: str | Path = ".") -> list[Path]:
     if not patterns:
         found = sorted(Path(root).glob("runs/*/*/checkpoint.pt"), key=lambda p: p.stat().st_mtime)
         if not found:
-            raise ValueError(f"no checkpoint given (checkpoint=PATH) and none found under "
-                             f"{Path(root).resolve() / 'runs'}/*/*/checkpoint.pt: run `make train` first")
+            raise ValueError(
+                f"no checkpoint given (checkpoint=PATH) and none found under "
+                f"{Path(root).resolve() / 'runs'}/*/*/checkpoint.pt: run `make train` first"
+            )
         return [found[-1]]
     paths: list[Path] = []
     for pattern in patterns:
-        matches = sorted(glob.glob(str(pattern))) if glob.has_magic(str(pattern)) else [str(pattern)]
+        matches = (
+            sorted(glob.glob(str(pattern))) if glob.has_magic(str(pattern)) else [str(pattern)]
+        )
         if not matches:
             raise ValueError(f"checkpoint pattern {pattern!r} matched no file")
         paths += [Path(m) for m in matches if Path(m) not in paths]
@@ -66,8 +84,11 @@ def default_out_dir(paths: Sequence[Path], name: str) -> Path:
 
 def _differences(eval_params: dict, trained_params: dict) -> list[str]:
     keys = sorted(set(eval_params) | set(trained_params))
-    return [f"{k}: trained {trained_params.get(k)!r}, evaluated {eval_params.get(k)!r}"
-            for k in keys if eval_params.get(k) != trained_params.get(k)]
+    return [
+        f"{k}: trained {trained_params.get(k)!r}, evaluated {eval_params.get(k)!r}"
+        for k in keys
+        if eval_params.get(k) != trained_params.get(k)
+    ]
 
 
 def slug(text: str) -> str:
@@ -92,31 +113,47 @@ def _gif_recorder(total: int):
 class Evaluation:
     """Everything :func:`evaluate_checkpoints` measured, ready to be written by :func:`write_report`."""
 
-    rows: list = field(default_factory=list)         # metrics rows of every checkpoint, trial and segment
-    runs: dict = field(default_factory=dict)         # the first ScheduleRun of each method, for figures
+    rows: list = field(default_factory=list)  # metrics rows of every checkpoint, trial and segment
+    runs: dict = field(default_factory=dict)  # the first ScheduleRun of each method, for figures
     checkpoints: list = field(default_factory=list)  # path, method, seed, frames, env differences
-    sources: list = field(default_factory=list)      # per-segment counters of the LLM sources
+    sources: list = field(default_factory=list)  # per-segment counters of the LLM sources
     gifs: list = field(default_factory=list)
 
 
 def _restore(cfg: DictConfig, path: Path, total: int, eval_params: dict) -> dict:
     """The checkpoint's policy in the command line's env; a layout clash names the params."""
     try:
-        return schedule_env(path, total, cfg.eval.trials, device=cfg.device, seed=cfg.seed + EVAL_SEED_OFFSET,
-                            **eval_params)
+        return schedule_env(
+            path,
+            total,
+            cfg.eval.trials,
+            device=cfg.device,
+            seed=cfg.seed + EVAL_SEED_OFFSET,
+            **eval_params,
+        )
     except CheckpointError as err:
         trained = load_checkpoint(path)["cfg"]["env"]["params"]
-        raise CheckpointError(f"{err} (env.params on the command line vs training: "
-                              f"{'; '.join(_differences(eval_params, trained)) or 'none'})") from None
+        raise CheckpointError(
+            f"{err} (env.params on the command line vs training: "
+            f"{'; '.join(_differences(eval_params, trained)) or 'none'})"
+        ) from None
 
 
-def evaluate_checkpoints(cfg: DictConfig, paths: Sequence[Path], make_schedule: Callable[[int], Schedule], *,
-                         gif_stem: Path | None = None, label_suffix: str = "") -> Evaluation:
+def evaluate_checkpoints(
+    cfg: DictConfig,
+    paths: Sequence[Path],
+    make_schedule: Callable[[int], Schedule],
+    *,
+    gif_stem: Path | None = None,
+    label_suffix: str = "",
+) -> Evaluation:
     """Run ``make_schedule(episode)`` (fresh sources per checkpoint and episode) on every
     checkpoint, ``eval.episodes`` times ``eval.trials`` trials. ``label_suffix`` is appended to
     the method names (e.g. "-TAP"); with ``gif_stem`` trial 0 of each method's first checkpoint
     is recorded to ``<gif_stem>_<method>.gif``."""
-    torch.set_num_threads(cfg.train.threads)  # tiny networks: extra threads only contend on shared CPUs
+    torch.set_num_threads(
+        cfg.train.threads
+    )  # tiny networks: extra threads only contend on shared CPUs
     e = cfg.eval
     eval_params = OmegaConf.to_container(cfg.env.params, resolve=True)
     out = Evaluation()
@@ -127,16 +164,37 @@ def evaluate_checkpoints(cfg: DictConfig, paths: Sequence[Path], make_schedule: 
         label, seed = method_label(trained, label_suffix), trained["seed"]
         diffs = _differences(eval_params, trained["env"]["params"])
         if diffs:
-            print(f"note: {path} is evaluated in another env than it was trained in: " + "; ".join(diffs))
-        out.checkpoints.append(dict(path=str(path), method=label, seed=seed, frames=restored["checkpoint"].get("frames"),
-                                    env_differences=diffs))
+            print(
+                f"note: {path} is evaluated in another env than it was trained in: "
+                + "; ".join(diffs)
+            )
+        out.checkpoints.append(
+            dict(
+                path=str(path),
+                method=label,
+                seed=seed,
+                frames=restored["checkpoint"].get("frames"),
+                env_differences=diffs,
+            )
+        )
         for episode in range(e.episodes):
             record = gif_stem is not None and episode == 0 and label not in out.runs
             on_step, frames = _gif_recorder(total) if record else (None, None)
-            run = run_schedule(restored["env"], restored["policy"], make_schedule(episode), e.trials, on_step=on_step,
-                               method=label, seed=seed, checkpoint=str(path), episode=episode)
+            run = run_schedule(
+                restored["env"],
+                restored["policy"],
+                make_schedule(episode),
+                e.trials,
+                on_step=on_step,
+                method=label,
+                seed=seed,
+                checkpoint=str(path),
+                episode=episode,
+            )
             out.rows += run.rows
-            out.sources += [dict(method=label, seed=seed, episode=episode, **s) for s in run.sources]
+            out.sources += [
+                dict(method=label, seed=seed, episode=episode, **s) for s in run.sources
+            ]
             out.runs.setdefault(label, run)
             if record:
                 from icco_torchrl.envs.render import write_gif
@@ -146,18 +204,39 @@ def evaluate_checkpoints(cfg: DictConfig, paths: Sequence[Path], make_schedule: 
     for name in e.references:  # scripted yardsticks on the same initial configurations
         label = reference_label(name, e.blend_radius)
         for episode in range(e.episodes):
-            env = ResourceCollectionEnv(num_envs=e.trials, seed=cfg.seed + EVAL_SEED_OFFSET,
-                                        **{**eval_params, "max_steps": total, "waypoint_mode": "external"})
-            policy = make_reference_policy(name, env, radius=e.blend_radius, seed=cfg.seed + episode)
-            run = run_schedule(env, policy, make_schedule(episode), e.trials, method=label, seed=-1,
-                               checkpoint="", episode=episode)
+            env = ResourceCollectionEnv(
+                num_envs=e.trials,
+                seed=cfg.seed + EVAL_SEED_OFFSET,
+                **{**eval_params, "max_steps": total, "waypoint_mode": "external"},
+            )
+            policy = make_reference_policy(
+                name, env, radius=e.blend_radius, seed=cfg.seed + episode
+            )
+            run = run_schedule(
+                env,
+                policy,
+                make_schedule(episode),
+                e.trials,
+                method=label,
+                seed=-1,
+                checkpoint="",
+                episode=episode,
+            )
             out.rows += run.rows
             out.runs.setdefault(label, run)
     return out
 
 
-def write_report(result: Evaluation, cfg: DictConfig, *, name: str, out_dir: Path, title: str,
-                 traj_segments: Sequence[int] | None = None, meta: dict | None = None) -> float:
+def write_report(
+    result: Evaluation,
+    cfg: DictConfig,
+    *,
+    name: str,
+    out_dir: Path,
+    title: str,
+    traj_segments: Sequence[int] | None = None,
+    meta: dict | None = None,
+) -> float:
     """Tables (CSV, Markdown, JSON with ``meta``) and figures into ``out_dir``; prints the
     Markdown and returns the first method's mean episode reward. ``traj_segments`` picks the
     segments drawn (default: all)."""
@@ -167,36 +246,65 @@ def write_report(result: Evaluation, cfg: DictConfig, *, name: str, out_dir: Pat
     summary = summarize(rows, by=("method", "segment"))
     steps = {r["segment"]: r["steps"] for r in rows}
     segments = [s for s in steps if s != EPISODE]
-    header = (f"# {title}\n\n{e.trials} trials x {e.episodes} episode(s) per checkpoint; segments: "
-              + ", ".join(f"{s} ({steps[s]} steps)" for s in segments)
-              + ".\nMean ± std over trials (seeds pooled). Rewards are team totals (sum over robots).\n")
-    markdown = (f"{header}\n## Whole episode\n\n{markdown_table(summary)}\n\n"
-                f"## Team reward per segment\n\n{segment_table(summary, 'reward')}\n")
+    header = (
+        f"# {title}\n\n{e.trials} trials x {e.episodes} episode(s) per checkpoint; segments: "
+        + ", ".join(f"{s} ({steps[s]} steps)" for s in segments)
+        + ".\nMean ± std over trials (seeds pooled). Rewards are team totals (sum over robots).\n"
+    )
+    markdown = (
+        f"{header}\n## Whole episode\n\n{markdown_table(summary)}\n\n"
+        f"## Team reward per segment\n\n{segment_table(summary, 'reward')}\n"
+    )
     out_dir.mkdir(parents=True, exist_ok=True)
     write_csv(rows, out_dir / f"{name}_trials.csv")
     write_csv(summary, out_dir / f"{name}_summary.csv")
     (out_dir / f"{name}.md").write_text(markdown)
-    figures = plot_bars(summary, out_dir / f"{name}_reward", "reward", segments=[*segments, EPISODE],
-                        ylabel="team reward")
-    figures += plot_trajectories(result.runs, out_dir / f"{name}_trajectories",
-                                 segments=range(len(segments)) if traj_segments is None else traj_segments)
-    write_json(dict(**(meta or {}), title=title, name=name, trials=e.trials, episodes=e.episodes, segments=segments,
-                    segment_steps={s: steps[s] for s in segments}, checkpoints=result.checkpoints, summary=summary,
-                    sources=result.sources, figures=[str(p) for p in figures], gifs=[str(p) for p in result.gifs]),
-               out_dir / f"{name}.json")
+    figures = plot_bars(
+        summary,
+        out_dir / f"{name}_reward",
+        "reward",
+        segments=[*segments, EPISODE],
+        ylabel="team reward",
+    )
+    figures += plot_trajectories(
+        result.runs,
+        out_dir / f"{name}_trajectories",
+        segments=range(len(segments)) if traj_segments is None else traj_segments,
+    )
+    write_json(
+        dict(
+            **(meta or {}),
+            title=title,
+            name=name,
+            trials=e.trials,
+            episodes=e.episodes,
+            segments=segments,
+            segment_steps={s: steps[s] for s in segments},
+            checkpoints=result.checkpoints,
+            summary=summary,
+            sources=result.sources,
+            figures=[str(p) for p in figures],
+            gifs=[str(p) for p in result.gifs],
+        ),
+        out_dir / f"{name}.json",
+    )
     print(markdown)
     print(f"results: {out_dir}")
     return float(next(r for r in summary if r["segment"] == EPISODE)["reward"])
 
 
-PROTOCOL_TITLES = {"quadrants": "Four-quadrant protocol (paper Sec. V-B, Fig. 4/5a)",
-                   "random_walk": "Random-walk instructions (the training distribution)"}
+PROTOCOL_TITLES = {
+    "quadrants": "Four-quadrant protocol (paper Sec. V-B, Fig. 4/5a)",
+    "random_walk": "Random-walk instructions (the training distribution)",
+}
 
 
 def protocol_schedules(cfg: DictConfig) -> Callable[[int], Schedule]:
     """``episode -> schedule`` of ``eval.protocol``: each episode draws its own reference walks (the env
     draws its own initial states)."""
     if cfg.eval.protocol not in PROTOCOLS:
-        raise ValueError(f"eval.protocol must be one of {sorted(PROTOCOLS)}, got {cfg.eval.protocol!r}")
+        raise ValueError(
+            f"eval.protocol must be one of {sorted(PROTOCOLS)}, got {cfg.eval.protocol!r}"
+        )
     protocol = PROTOCOLS[cfg.eval.protocol]
     return lambda episode: protocol(cfg.eval.steps, seed=cfg.seed + EPISODE_SEED_STRIDE * episode)

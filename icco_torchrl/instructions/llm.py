@@ -34,11 +34,12 @@ import os
 import re
 import threading
 import time
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
 from string import Template
-from typing import Any, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -49,8 +50,14 @@ logger = logging.getLogger(__name__)
 
 PROMPTS = ("plain", "tap")
 # Default litellm model per ``backend`` name; any other backend string is taken as a model.
-BACKEND_MODELS = {"offline": DEFAULT_MODEL, "openai": "openai/gpt-4o", "ollama": "ollama_chat/llama3.1"}
-ABSURD_FACTOR = 10.0  # |coordinate| > ABSURD_FACTOR * field_size: the reply is nonsense, not merely off-field
+BACKEND_MODELS = {
+    "offline": DEFAULT_MODEL,
+    "openai": "openai/gpt-4o",
+    "ollama": "ollama_chat/llama3.1",
+}
+ABSURD_FACTOR = (
+    10.0  # |coordinate| > ABSURD_FACTOR * field_size: the reply is nonsense, not merely off-field
+)
 _SHOWN_CHARS = 2000  # raw replies in logs and retry feedback are cut to this length
 
 
@@ -110,12 +117,14 @@ def _describe(exc: BaseException) -> str:
     text = " ".join(str(exc).split())
     if root is not exc and str(root) not in text:
         text += f" ({type(root).__name__}: {' '.join(str(root).split())})"
-    return f"{type(exc).__name__}: {text}"[:_SHOWN_CHARS // 4]
+    return f"{type(exc).__name__}: {text}"[: _SHOWN_CHARS // 4]
 
 
 @cache
 def _template(name: str) -> Template:
-    return Template((Path(__file__).with_name("prompts") / f"{name}.txt").read_text(encoding="utf-8"))
+    return Template(
+        (Path(__file__).with_name("prompts") / f"{name}.txt").read_text(encoding="utf-8")
+    )
 
 
 def _litellm() -> Any:
@@ -124,7 +133,11 @@ def _litellm() -> Any:
     import litellm
 
     litellm.suppress_debug_info = True
-    for name in ("LiteLLM", "LiteLLM Router", "LiteLLM Proxy"):  # else one INFO line per request under Hydra
+    for name in (
+        "LiteLLM",
+        "LiteLLM Router",
+        "LiteLLM Proxy",
+    ):  # else one INFO line per request under Hydra
         logging.getLogger(name).setLevel(logging.WARNING)
     register_offline_provider(litellm)
     return litellm
@@ -141,7 +154,10 @@ def _points(values: Any, name: str) -> np.ndarray:
 
 
 def _listing(label: str, points: np.ndarray) -> str:
-    return "\n".join(f"- {label}_{i}: ({x:.2f}, {y:.2f})" for i, (x, y) in enumerate(points)) or "- none"
+    return (
+        "\n".join(f"- {label}_{i}: ({x:.2f}, {y:.2f})" for i, (x, y) in enumerate(points))
+        or "- none"
+    )
 
 
 def _as_json(points: np.ndarray) -> str:
@@ -170,7 +186,11 @@ def build_messages(
     half = field_size / 2.0
     keys = _agent_keys(len(positions))
     trajectory = "[" + ", ".join(["[x, y]"] * n_waypoints) + "]"
-    example = "{" + ", ".join(['"movement_strategy": "..."'] + [f'"{k}": {trajectory}' for k in keys]) + "}"
+    example = (
+        "{"
+        + ", ".join(['"movement_strategy": "..."'] + [f'"{k}": {trajectory}' for k in keys])
+        + "}"
+    )
     resources, invader = _points(resources, "resources"), _points(invader, "invader")
     user = _template(prompt).substitute(
         x_min=-half, x_max=half, y_min=-half, y_max=half,
@@ -181,7 +201,10 @@ def build_messages(
         instruction_json=json.dumps(instruction, ensure_ascii=False),
         n_waypoints=n_waypoints, agent_keys=", ".join(f'"{k}"' for k in keys), example=example,
     )  # fmt: skip
-    return [{"role": "system", "content": _template("system").template.strip()}, {"role": "user", "content": user}]
+    return [
+        {"role": "system", "content": _template("system").template.strip()},
+        {"role": "user", "content": user},
+    ]
 
 
 def response_format(n_agents: int, n_waypoints: int) -> dict[str, Any]:
@@ -199,7 +222,10 @@ def response_format(n_agents: int, n_waypoints: int) -> dict[str, Any]:
         "required": ["movement_strategy", *keys],
         "additionalProperties": False,
     }
-    return {"type": "json_schema", "json_schema": {"name": "waypoints", "strict": True, "schema": schema}}
+    return {
+        "type": "json_schema",
+        "json_schema": {"name": "waypoints", "strict": True, "schema": schema},
+    }
 
 
 def last_json_object(text: str) -> dict[str, Any] | None:
@@ -253,12 +279,16 @@ def parse_reply(raw: str | None, n_agents: int, n_waypoints: int, field_size: fl
     for i in range(n_agents):
         trajectory = reply[f"agent_{i}"]
         if not isinstance(trajectory, list) or len(trajectory) != n_waypoints:
-            raise ReplyError(f"agent_{i} must be a list of {n_waypoints} [x, y] waypoints, got {trajectory!r}")
+            raise ReplyError(
+                f"agent_{i} must be a list of {n_waypoints} [x, y] waypoints, got {trajectory!r}"
+            )
         waypoints[i] = [_waypoint(point) for point in trajectory]
     if not np.isfinite(waypoints).all():
         raise ReplyError("non-finite coordinate (NaN or infinity)")
     if np.abs(waypoints).max() > ABSURD_FACTOR * field_size:
-        raise ReplyError(f"absurd coordinate {np.abs(waypoints).max():g} for a {field_size:g} m field")
+        raise ReplyError(
+            f"absurd coordinate {np.abs(waypoints).max():g} for a {field_size:g} m field"
+        )
     return np.clip(waypoints, -field_size / 2.0, field_size / 2.0)
 
 
@@ -294,18 +324,44 @@ class LLMPlanner:
         if n_waypoints < 1 or max_retries < 0 or field_size <= 0:
             raise ValueError("need n_waypoints >= 1, max_retries >= 0 and field_size > 0")
         if not timeout > 0 or not deadline_s > 0:
-            raise ValueError(f"llm timeout_s and deadline_s must be > 0, got {timeout!r} and {deadline_s!r}")
-        self.model, self.api_base, self.temperature, self.timeout = model, api_base, temperature, timeout
-        self.max_retries, self.prompt, self.n_waypoints, self.field_size = max_retries, prompt, n_waypoints, field_size
-        self.backoff_s, self.deadline_s, self.fallback_on_error = backoff_s, deadline_s, bool(fallback_on_error)
+            raise ValueError(
+                f"llm timeout_s and deadline_s must be > 0, got {timeout!r} and {deadline_s!r}"
+            )
+        self.model, self.api_base, self.temperature, self.timeout = (
+            model,
+            api_base,
+            temperature,
+            timeout,
+        )
+        self.max_retries, self.prompt, self.n_waypoints, self.field_size = (
+            max_retries,
+            prompt,
+            n_waypoints,
+            field_size,
+        )
+        self.backoff_s, self.deadline_s, self.fallback_on_error = (
+            backoff_s,
+            deadline_s,
+            bool(fallback_on_error),
+        )
         self.cache = ResponseCache(cache_dir)
-        self.stats = {"calls": 0, "backend_calls": 0, "failures": 0, "fallbacks": 0, "cache_hits": 0}
+        self.stats = {
+            "calls": 0,
+            "backend_calls": 0,
+            "failures": 0,
+            "fallbacks": 0,
+            "cache_hits": 0,
+        }
 
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any], *, field_size: float = 6.5) -> LLMPlanner:
         """Build from a ``conf/llm/*.yaml`` group: ``timeout_s`` is ``timeout``, and a
         null ``model`` means the ``backend``'s default model. Unknown keys raise TypeError."""
-        kwargs = {("timeout" if k == "timeout_s" else k): v for k, v in dict(cfg).items() if k != "backend"}
+        kwargs = {
+            ("timeout" if k == "timeout_s" else k): v
+            for k, v in dict(cfg).items()
+            if k != "backend"
+        }
         if kwargs.get("model") is None:
             backend = str(cfg.get("backend", "offline"))
             kwargs["model"] = BACKEND_MODELS.get(backend, backend)
@@ -332,17 +388,23 @@ class LLMPlanner:
         messages = build_messages(instruction, pos, prompt=self.prompt, n_waypoints=self.n_waypoints,
                                   field_size=self.field_size, resources=resources, invader=invader)  # fmt: skip
         fmt = response_format(len(pos), self.n_waypoints)
-        key = cache_key(self.model, messages, {"response_format": fmt, "temperature": self.temperature})
+        key = cache_key(
+            self.model, messages, {"response_format": fmt, "temperature": self.temperature}
+        )
         self.stats["calls"] += 1
         cached = self.cache.get(key)
         if cached is not None:
             try:
                 waypoints = parse_reply(cached, len(pos), self.n_waypoints, self.field_size)
             except ReplyError as exc:
-                logger.warning("ignoring invalid cached LLM reply (%s); asking %s again", exc, self.model)
+                logger.warning(
+                    "ignoring invalid cached LLM reply (%s); asking %s again", exc, self.model
+                )
             else:
                 self.stats["cache_hits"] += 1
-                return PlanResult(waypoints.astype(np.float32), ok=True, attempts=0, raw=cached, cached=True)
+                return PlanResult(
+                    waypoints.astype(np.float32), ok=True, attempts=0, raw=cached, cached=True
+                )
 
         litellm = _litellm()  # outside the loop: a broken install is an error, not a bad reply
         start = time.monotonic()
@@ -355,18 +417,30 @@ class LLMPlanner:
                 break
             raw, attempts, stop = None, attempt, False
             try:
-                raw = self._complete(litellm, conversation, fmt, _nth(mock_response, attempt - 1), remaining)
+                raw = self._complete(
+                    litellm, conversation, fmt, _nth(mock_response, attempt - 1), remaining
+                )
                 answered = True
                 waypoints = parse_reply(raw, len(pos), self.n_waypoints, self.field_size)
             except PlannerDeclined as exc:
-                error, stop = str(exc), True  # "cannot do this" is an answer, not noise: asking again changes nothing
+                error, stop = (
+                    str(exc),
+                    True,
+                )  # "cannot do this" is an answer, not noise: asking again changes nothing
             except ReplyError as exc:
                 error = str(exc)
                 conversation = messages + self._feedback(raw, error, len(pos))
-            except Exception as exc:  # timeouts, auth, rate limits, provider bugs: no reply this attempt
+            except (
+                Exception
+            ) as exc:  # timeouts, auth, rate limits, provider bugs: no reply this attempt
                 error, stop = _describe(exc), _is_final(exc)
                 if not stop and attempt <= self.max_retries and self.backoff_s > 0:
-                    time.sleep(min(self.backoff_s * 2 ** (attempt - 1), max(deadline - time.monotonic(), 0.0)))
+                    time.sleep(
+                        min(
+                            self.backoff_s * 2 ** (attempt - 1),
+                            max(deadline - time.monotonic(), 0.0),
+                        )
+                    )
             else:
                 self.cache.put(key, raw, model=self.model, messages=messages)
                 return PlanResult(waypoints.astype(np.float32), ok=True, attempts=attempt, raw=raw)
@@ -379,7 +453,8 @@ class LLMPlanner:
             raise LLMUnavailable(
                 f"LLM {self.model} at {self.api_base or 'its default URL'} gave no reply to {instruction!r} "
                 f"({attempts} attempt(s) in {time.monotonic() - start:.1f} s): {error}; check llm.api_base, the API "
-                "key and that the server is up, or set llm.fallback_on_error=true to run on fallback waypoints")
+                "key and that the server is up, or set llm.fallback_on_error=true to run on fallback waypoints"
+            )
         return self._fallback(instruction, pos, previous, attempts, error, raw)
 
     def _complete(self, litellm: Any, messages: list[dict[str, str]], fmt: dict[str, Any], mock: Any,
@@ -397,9 +472,14 @@ class LLMPlanner:
     def _feedback(self, raw: str | None, error: str, n_agents: int) -> list[dict[str, str]]:
         """Show the model its rejected reply and why, as RoCo-style re-prompting does."""
         retry = _template("retry").substitute(
-            error=error, agent_keys=", ".join(f'"{k}"' for k in _agent_keys(n_agents)), n_waypoints=self.n_waypoints
+            error=error,
+            agent_keys=", ".join(f'"{k}"' for k in _agent_keys(n_agents)),
+            n_waypoints=self.n_waypoints,
         )
-        return [{"role": "assistant", "content": _shown(raw) or "(empty)"}, {"role": "user", "content": retry}]
+        return [
+            {"role": "assistant", "content": _shown(raw) or "(empty)"},
+            {"role": "user", "content": retry},
+        ]
 
     def _fallback(self, instruction: str, pos: np.ndarray, previous: Any, attempts: int, error: str,
                   raw: str | None) -> PlanResult:  # fmt: skip
@@ -409,11 +489,15 @@ class LLMPlanner:
             fallback, waypoints = "previous", prev
         else:
             fallback, waypoints = "positions", np.broadcast_to(pos[:, None], shape)
-        waypoints = np.clip(waypoints, -self.field_size / 2.0, self.field_size / 2.0).astype(np.float32)
+        waypoints = np.clip(waypoints, -self.field_size / 2.0, self.field_size / 2.0).astype(
+            np.float32
+        )
         self.stats["fallbacks"] += 1
         logger.warning("LLM %s gave no usable plan for %r after %d attempt(s) (%s); falling back to %s",
                        self.model, instruction, attempts, error, fallback)  # fmt: skip
-        return PlanResult(waypoints, ok=False, attempts=attempts, fallback=fallback, error=error, raw=raw)
+        return PlanResult(
+            waypoints, ok=False, attempts=attempts, fallback=fallback, error=error, raw=raw
+        )
 
 
 def _within(seconds: float, call: Any) -> Any:
@@ -435,7 +519,9 @@ def _within(seconds: float, call: Any) -> Any:
     worker.start()
     worker.join(seconds)
     if worker.is_alive():
-        raise DeadlineExceeded(f"no reply within the plan's deadline ({seconds:.1f} s left of llm.deadline_s)")
+        raise DeadlineExceeded(
+            f"no reply within the plan's deadline ({seconds:.1f} s left of llm.deadline_s)"
+        )
     if "error" in outcome:
         raise outcome["error"]
     return outcome["value"]
@@ -451,8 +537,18 @@ def _shown(raw: str | None) -> str | None:
     return None if raw is None else raw[:_SHOWN_CHARS]
 
 
-_PLANNER_ARGS = ("model", "api_base", "temperature", "timeout", "max_retries", "cache_dir", "prompt", "backoff_s",
-                 "deadline_s", "fallback_on_error")
+_PLANNER_ARGS = (
+    "model",
+    "api_base",
+    "temperature",
+    "timeout",
+    "max_retries",
+    "cache_dir",
+    "prompt",
+    "backoff_s",
+    "deadline_s",
+    "fallback_on_error",
+)
 
 
 def plan_waypoints(
@@ -475,7 +571,9 @@ def plan_waypoints(
     raise :class:`LLMUnavailable` when the provider never replies (unless
     ``fallback_on_error=True``).
     """
-    unknown = set(context) - set(_PLANNER_ARGS) - {"resources", "invader", "previous", "mock_response"}
+    unknown = (
+        set(context) - set(_PLANNER_ARGS) - {"resources", "invader", "previous", "mock_response"}
+    )
     if unknown:
         raise TypeError(f"plan_waypoints() got unexpected context {sorted(unknown)}")
     settings = {k: context.pop(k) for k in _PLANNER_ARGS if k in context}

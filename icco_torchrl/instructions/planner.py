@@ -193,7 +193,10 @@ def _line_axis(text: str, direction: tuple[float, float]) -> tuple[float, float]
 
 def _place_name(direction: tuple[float, float]) -> str:
     dx, dy = direction
-    names = [("top" if dy > 0 else "bottom") if dy else "", ("right" if dx > 0 else "left") if dx else ""]
+    names = [
+        ("top" if dy > 0 else "bottom") if dy else "",
+        ("right" if dx > 0 else "left") if dx else "",
+    ]
     return "the " + " ".join(name for name in names if name) + " side"
 
 
@@ -248,7 +251,9 @@ def parse(instruction: str, half: float) -> Intent:
     if _GATHER.search(text) or point is not None or anchor == (0.0, 0.0):
         return Intent("cluster", anchor, description=f"gather at {place or 'the team centroid'}")
     if quadrant is not None:
-        return Intent("circle", anchor, radius=LOCAL_RADIUS * half, description=f"move into {place}")
+        return Intent(
+            "circle", anchor, radius=LOCAL_RADIUS * half, description=f"move into {place}"
+        )
     if sided:
         return Intent("line", anchor, _line_axis(text, direction), description=f"line at {place}")
     if _HOLD.search(text):
@@ -274,7 +279,9 @@ def _ring_slots(positions: np.ndarray, centre: np.ndarray, radius: float) -> np.
     return targets
 
 
-def _line_slots(positions: np.ndarray, anchor: np.ndarray, axis: np.ndarray, half: float) -> np.ndarray:
+def _line_slots(
+    positions: np.ndarray, anchor: np.ndarray, axis: np.ndarray, half: float
+) -> np.ndarray:
     """Evenly spaced points along ``axis`` through ``anchor``; agents keep their order along it."""
     n = len(positions)
     spacing = min(LINE_SPACING * half, LINE_EXTENT * half / max(n - 1, 1))
@@ -298,7 +305,9 @@ def _intercept(position: np.ndarray, invader: np.ndarray) -> tuple[float, np.nda
     return float(fractions[index]), path[index]
 
 
-def _task_targets(intent: Intent, positions: np.ndarray, resources: np.ndarray, invader: np.ndarray) -> np.ndarray:
+def _task_targets(
+    intent: Intent, positions: np.ndarray, resources: np.ndarray, invader: np.ndarray
+) -> np.ndarray:
     """One agent intercepts the invader, the others take the nearest free resources, the rest guard home."""
     if intent.collect and not intent.defend and len(resources) == 0:
         raise UnknownInstruction("collecting needs resource positions: use the task-aligned prompt")
@@ -358,7 +367,9 @@ def rule_plan(
     """
     positions = np.asarray(positions, dtype=np.float64).reshape(-1, 2)
     empty = np.zeros((0, 2))
-    resources = empty if resources is None else np.asarray(resources, dtype=np.float64).reshape(-1, 2)
+    resources = (
+        empty if resources is None else np.asarray(resources, dtype=np.float64).reshape(-1, 2)
+    )
     invader = empty if invader is None else np.asarray(invader, dtype=np.float64).reshape(-1, 2)
     intent = parse(instruction, half)
     targets = np.clip(_targets(intent, positions, half, resources, invader), -half, half)
@@ -371,8 +382,13 @@ def rule_plan(
     return np.clip(waypoints, -half, half), strategy
 
 
-def _align_with_task(waypoints: np.ndarray, positions: np.ndarray, resources: np.ndarray, invader: np.ndarray,
-                     half: float) -> tuple[np.ndarray, str]:
+def _align_with_task(
+    waypoints: np.ndarray,
+    positions: np.ndarray,
+    resources: np.ndarray,
+    invader: np.ndarray,
+    half: float,
+) -> tuple[np.ndarray, str]:
     """Bend an instruction's plan toward the task, as the task-aligned prompt asks an LLM to.
 
     The robot that reaches the invader's path home first intercepts it; each other robot with a
@@ -396,8 +412,12 @@ def _align_with_task(waypoints: np.ndarray, positions: np.ndarray, resources: np
         if distance[j] <= DETOUR_RADIUS:
             taken.add(j)
             first = max(k // 2, 1)
-            waypoints[i, :first] = positions[i] + np.arange(1, first + 1)[:, None] / first * (resources[j] - positions[i])
-            notes.append(f"agent_{i} picks the resource at ({resources[j][0]:.1f}, {resources[j][1]:.1f}) on the way")
+            waypoints[i, :first] = positions[i] + np.arange(1, first + 1)[:, None] / first * (
+                resources[j] - positions[i]
+            )
+            notes.append(
+                f"agent_{i} picks the resource at ({resources[j][0]:.1f}, {resources[j][1]:.1f}) on the way"
+            )
     return waypoints, "; ".join(notes) or "no task detour needed"
 
 
@@ -425,7 +445,9 @@ def reply_to(messages: list[dict[str, Any]]) -> str:
         if not orders:
             raise ValueError("no 'STRICTLY COMPLY with the following order:' line")
         instruction = json.loads(orders[-1])
-        positions = np.asarray(_tagged_json("POSITIONS_JSON", text), dtype=np.float64).reshape(-1, 2)
+        positions = np.asarray(_tagged_json("POSITIONS_JSON", text), dtype=np.float64).reshape(
+            -1, 2
+        )
         half = float(_tagged_json("FIELD_JSON", text)["x"][1])
         n_waypoints = int(_tagged_json("WAYPOINTS_PER_AGENT", text))
         resources = _tagged_json("RESOURCES_JSON", text)
@@ -478,7 +500,10 @@ def register_offline_provider(litellm: Any) -> Any:
         if entry.get("provider") == PROVIDER:
             return entry["custom_handler"]
     handler = _provider_class()()
-    litellm.custom_provider_map = [*litellm.custom_provider_map, {"provider": PROVIDER, "custom_handler": handler}]
+    litellm.custom_provider_map = [
+        *litellm.custom_provider_map,
+        {"provider": PROVIDER, "custom_handler": handler},
+    ]
     return handler
 
 

@@ -3,6 +3,7 @@
 The other sources (random walk, quadrant reference, fixed waypoints) and their base class live
 in :mod:`icco_torchrl.envs.waypoints` and are re-exported here (their former home).
 """
+
 from __future__ import annotations
 
 import copy
@@ -10,8 +11,10 @@ import copy
 import numpy as np
 import torch
 
-from icco_torchrl.envs.waypoints import (QUADRANT_SIGNS, FixedSource, InstructionSource,  # noqa: F401 (re-exported)
-                                         QuadrantSource, RandomWalkSource, base_env)
+from icco_torchrl.envs.waypoints import (
+    InstructionSource,  # noqa: F401 (re-exported)
+    base_env,
+)
 from icco_torchrl.instructions.llm import PROMPTS, LLMPlanner
 
 
@@ -28,18 +31,31 @@ class LLMSource(InstructionSource):
     deterministic planner, a refusal means the instruction is not understood, not noise.
     """
 
-    def __init__(self, planner: LLMPlanner, instruction: str, prompt: str | None = None,
-                 replan_every: int | None = None, strict: bool = False):
+    def __init__(
+        self,
+        planner: LLMPlanner,
+        instruction: str,
+        prompt: str | None = None,
+        replan_every: int | None = None,
+        strict: bool = False,
+    ):
         if not isinstance(instruction, str) or not instruction.strip():
             raise ValueError(f"instruction must be a non-empty string, got {instruction!r}")
         if prompt is not None and prompt not in PROMPTS:
             raise ValueError(f"prompt must be one of {PROMPTS}, got {prompt!r}")
         if replan_every is not None and (not isinstance(replan_every, int) or replan_every < 1):
-            raise ValueError(f"replan_every must be a positive integer or None, got {replan_every!r}")
+            raise ValueError(
+                f"replan_every must be a positive integer or None, got {replan_every!r}"
+            )
         if prompt is not None and prompt != planner.prompt:
             planner = copy.copy(planner)  # shares the cache and counters; only the prompt differs
             planner.prompt = prompt
-        self.planner, self.instruction, self.replan_every, self.strict = planner, instruction.strip(), replan_every, strict
+        self.planner, self.instruction, self.replan_every, self.strict = (
+            planner,
+            instruction.strip(),
+            replan_every,
+            strict,
+        )
         self.stats = {"plans": 0, "failures": 0, "fallbacks": 0, "cache_hits": 0}
         self.errors: list[str] = []
         self._pending: torch.Tensor | None = None
@@ -63,15 +79,26 @@ class LLMSource(InstructionSource):
         """Ask the planner once per env; ``[B, N, K, 2]`` waypoints on the env's device."""
         env = base_env(env)
         if self.planner.n_waypoints != env.n_waypoints:
-            raise ValueError(f"the planner gives {self.planner.n_waypoints} waypoints per robot, the env uses "
-                             f"{env.n_waypoints} (set llm.n_waypoints)")
+            raise ValueError(
+                f"the planner gives {self.planner.n_waypoints} waypoints per robot, the env uses "
+                f"{env.n_waypoints} (set llm.n_waypoints)"
+            )
         pos, previous = env.pos.cpu().numpy(), env.waypoints.cpu().numpy()
-        res, inv, active = env.res_pos.cpu().numpy(), env.inv_pos.cpu().numpy(), env.inv_active.cpu().numpy()
+        res, inv, active = (
+            env.res_pos.cpu().numpy(),
+            env.inv_pos.cpu().numpy(),
+            env.inv_active.cpu().numpy(),
+        )
         plans = []
         for b in range(env.num_envs):  # one request per env: each has its own configuration
             # Resources and the invader on the field reach the model only through the "tap" prompt.
-            result = self.planner.plan(self.instruction, pos[b], previous=previous[b], resources=res[b],
-                                       invader=inv[b][active[b]])
+            result = self.planner.plan(
+                self.instruction,
+                pos[b],
+                previous=previous[b],
+                resources=res[b],
+                invader=inv[b][active[b]],
+            )
             self._count(result)
             plans.append(result.waypoints)
         return torch.as_tensor(np.stack(plans), device=env.device)
@@ -84,20 +111,31 @@ class LLMSource(InstructionSource):
             self.stats["fallbacks"] += 1
             self.errors.append(result.error or "unknown error")
             if self.strict:
-                raise ValueError(f"instruction {self.instruction!r} could not be planned by "
-                                 f"{self.planner.model}: {result.error}")
+                raise ValueError(
+                    f"instruction {self.instruction!r} could not be planned by "
+                    f"{self.planner.model}: {result.error}"
+                )
 
 
 def split_instructions(text: str) -> list[str]:
     """``"Go right; Move top"`` -> ``["Go right", "Move top"]``; empty parts are an error."""
     parts = [part.strip() for part in text.split(";")]
     if not text.strip() or not all(parts):
-        raise ValueError(f"instruction {text!r} has an empty part: give e.g. \"Go right; Move top\"")
+        raise ValueError(f'instruction {text!r} has an empty part: give e.g. "Go right; Move top"')
     return parts
 
 
-def language_schedule(planner: LLMPlanner, instructions: list[str], steps: int, *, replan_every: int | None = None,
-                      strict: bool = False) -> list:
+def language_schedule(
+    planner: LLMPlanner,
+    instructions: list[str],
+    steps: int,
+    *,
+    replan_every: int | None = None,
+    strict: bool = False,
+) -> list:
     """One segment of ``steps`` steps per instruction, each an :class:`LLMSource` (a fresh one per call:
     sources keep counters). The schedule format of :func:`~icco_torchrl.evaluation.protocols.run_schedule`."""
-    return [(text, LLMSource(planner, text, replan_every=replan_every, strict=strict), steps) for text in instructions]
+    return [
+        (text, LLMSource(planner, text, replan_every=replan_every, strict=strict), steps)
+        for text in instructions
+    ]

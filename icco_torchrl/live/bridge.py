@@ -17,6 +17,7 @@ A robot whose pose is older than ``timeout`` seconds (or never seen) gets ``v = 
 ``"stopped": true, "reason": "stale"``, and the event is logged once; the others keep going.
 A malformed datagram is logged, counted in ``stats["malformed"]`` and ignored, never a crash.
 """
+
 from __future__ import annotations
 
 import json
@@ -54,14 +55,22 @@ def parse_message(data: bytes, n_robots: int) -> dict:
     if not isinstance(robots, list):
         raise ProtocolError("'robots' must be a list")
     for r in robots:
-        if not isinstance(r, dict) or not isinstance(r.get("id"), int) or not 0 <= r["id"] < n_robots:
+        if (
+            not isinstance(r, dict)
+            or not isinstance(r.get("id"), int)
+            or not 0 <= r["id"] < n_robots
+        ):
             raise ProtocolError(f"each robot needs an integer 'id' in [0, {n_robots})")
         pose = r.get("pose")
         if not (isinstance(pose, list) and len(pose) == 3 and all(_finite(v) for v in pose)):
             raise ProtocolError(f"robot {r['id']}: 'pose' must be [x, y, theta] (finite numbers)")
     for key in ("resources", "invader"):
-        if key in msg and not (isinstance(msg[key], list) and all(
-                isinstance(p, list) and len(p) == 2 and all(_finite(v) for v in p) for p in msg[key])):
+        if key in msg and not (
+            isinstance(msg[key], list)
+            and all(
+                isinstance(p, list) and len(p) == 2 and all(_finite(v) for v in p) for p in msg[key]
+            )
+        ):
             raise ProtocolError(f"'{key}' must be a list of [x, y] points")
     if "time" in msg and not _finite(msg["time"]):
         raise ProtocolError("'time' must be a number (seconds)")
@@ -75,11 +84,24 @@ def _finite(value) -> bool:
 class Bridge:
     """Serve one team over UDP (see the module docstring); :meth:`serve` runs until ``stop`` is set."""
 
-    def __init__(self, loop: LiveLoop, *, host: str = "127.0.0.1", port: int = 0, rate_hz: float = 10.0,
-                 timeout: float = 0.5, limits: RobotLimits = RobotLimits()):
+    def __init__(
+        self,
+        loop: LiveLoop,
+        *,
+        host: str = "127.0.0.1",
+        port: int = 0,
+        rate_hz: float = 10.0,
+        timeout: float = 0.5,
+        limits: RobotLimits = RobotLimits(),
+    ):
         if not rate_hz > 0 or not timeout > 0:
             raise ValueError(f"rate_hz and timeout must be > 0, got {rate_hz!r} and {timeout!r}")
-        self.loop, self.rate_hz, self.timeout, self.limits = loop, float(rate_hz), float(timeout), limits
+        self.loop, self.rate_hz, self.timeout, self.limits = (
+            loop,
+            float(rate_hz),
+            float(timeout),
+            limits,
+        )
         self.n = loop.raw.n_agents
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         try:
@@ -88,15 +110,21 @@ class Bridge:
             raise OSError(f"cannot listen on udp {host}:{port}: {err.strerror or err}") from None
         self.address = self.sock.getsockname()
         self.poses = np.zeros((self.n, 3))
-        self.seen = np.full(self.n, -np.inf)          # monotonic time of each robot's latest pose
-        self.velocity = np.zeros((self.n, 2))          # measured, m/s (for the policy)
-        self.command = np.zeros((self.n, 2))           # last (v, w) sent
+        self.seen = np.full(self.n, -np.inf)  # monotonic time of each robot's latest pose
+        self.velocity = np.zeros((self.n, 2))  # measured, m/s (for the policy)
+        self.command = np.zeros((self.n, 2))  # last (v, w) sent
         self.resources = self.invader = None
         self.reply_to = None
         self.stale_logged = np.zeros(self.n, bool)
-        self.stats = {"messages": 0, "malformed": 0, "commands": 0, "stale_stops": 0, "latency_ms": []}
+        self.stats = {
+            "messages": 0,
+            "malformed": 0,
+            "commands": 0,
+            "stale_stops": 0,
+            "latency_ms": [],
+        }
         self._received_at = None
-        self.on_command = None                         # called with each command message (e.g. the live page)
+        self.on_command = None  # called with each command message (e.g. the live page)
 
     def handle(self, data: bytes, sender) -> None:
         """One datagram: update the measured state, or pass an instruction to the live loop."""
@@ -129,26 +157,57 @@ class Bridge:
             return None
         now = time.monotonic()
         fresh = now - self.seen <= self.timeout
-        resources = self.resources if self.resources is not None and len(self.resources) == self.loop.raw.n_resources \
+        resources = (
+            self.resources
+            if self.resources is not None and len(self.resources) == self.loop.raw.n_resources
             else None
-        _, targets = self.loop.act_on(self.poses[:, :2], velocities=self.velocity, resources=resources,
-                                      invader=self.invader)
+        )
+        _, targets = self.loop.act_on(
+            self.poses[:, :2], velocities=self.velocity, resources=resources, invader=self.invader
+        )
         robots = []
         for i in range(self.n):
             if not fresh[i]:
                 if not self.stale_logged[i]:
-                    log.warning("bridge: robot %d sent no pose for %.2f s: stopping it", i, now - self.seen[i])
+                    log.warning(
+                        "bridge: robot %d sent no pose for %.2f s: stopping it",
+                        i,
+                        now - self.seen[i],
+                    )
                     self.stale_logged[i] = True
                     self.stats["stale_stops"] += 1
                 self.command[i] = 0.0
-                robots.append({"id": i, "target": targets[i].tolist(), "v": 0.0, "w": 0.0, "stopped": True,
-                               "reason": "stale"})
+                robots.append(
+                    {
+                        "id": i,
+                        "target": targets[i].tolist(),
+                        "v": 0.0,
+                        "w": 0.0,
+                        "stopped": True,
+                        "reason": "stale",
+                    }
+                )
                 continue
             others = np.delete(self.poses[:, :2], i, axis=0)
-            v, w = dwa_command(self.poses[i], self.command[i], targets[i], self.limits, 1.0 / self.rate_hz,
-                               others=others)
+            v, w = dwa_command(
+                self.poses[i],
+                self.command[i],
+                targets[i],
+                self.limits,
+                1.0 / self.rate_hz,
+                others=others,
+            )
             self.command[i] = (v, w)
-            robots.append({"id": i, "target": targets[i].tolist(), "v": v, "w": w, "stopped": False, "reason": None})
+            robots.append(
+                {
+                    "id": i,
+                    "target": targets[i].tolist(),
+                    "v": v,
+                    "w": w,
+                    "stopped": False,
+                    "reason": None,
+                }
+            )
         message = {"type": "command", "time": time.time(), "robots": robots}
         self.sock.sendto(json.dumps(message).encode(), self.reply_to)
         self.stats["commands"] += 1
@@ -169,14 +228,17 @@ class Bridge:
             try:
                 data, sender = self.sock.recvfrom(MAX_DATAGRAM)
                 self.handle(data, sender)
-            except socket.timeout:
+            except TimeoutError:
                 pass
             if time.monotonic() >= next_tick:
                 next_tick += period
                 try:
                     self.control()
                 except Exception as err:  # a bad tick must not end the bridge: log and go on
-                    log.error("bridge: control tick failed: %s", f"{type(err).__name__}: {err}".splitlines()[0])
+                    log.error(
+                        "bridge: control tick failed: %s",
+                        f"{type(err).__name__}: {err}".splitlines()[0],
+                    )
 
     def close(self) -> None:
         self.sock.close()

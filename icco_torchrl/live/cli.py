@@ -8,6 +8,7 @@
 Both print where they listen, then a summary when stopped (Ctrl-C, SIGTERM or ``live.seconds``).
 Settings: the ``live`` section of ``conf/config.yaml``.
 """
+
 from __future__ import annotations
 
 import logging
@@ -35,15 +36,22 @@ def _checkpoint(cfg: DictConfig, command: str) -> Path:
     if cfg.checkpoint:
         return Path(cfg.checkpoint)
     if not DEMO_POLICY.is_file():
-        raise ValueError(f"no checkpoint= given and no demo policy at {DEMO_POLICY}: give checkpoint=PATH")
-    print(f"icco {command}: no checkpoint= given: using the demo policy {DEMO_POLICY} (see assets/README.md)")
+        raise ValueError(
+            f"no checkpoint= given and no demo policy at {DEMO_POLICY}: give checkpoint=PATH"
+        )
+    print(
+        f"icco {command}: no checkpoint= given: using the demo policy {DEMO_POLICY} (see assets/README.md)"
+    )
     return DEMO_POLICY
 
 
 def _warn_if_exposed(host: str) -> None:
     if host not in LOOPBACK:
-        print(f"warning: live.host={host} is reachable from other machines; anyone who can reach it can "
-              f"watch and steer the team", file=sys.stderr)
+        print(
+            f"warning: live.host={host} is reachable from other machines; anyone who can reach it can "
+            f"watch and steer the team",
+            file=sys.stderr,
+        )
 
 
 def _stop_on_signals() -> threading.Event:
@@ -54,7 +62,9 @@ def _stop_on_signals() -> threading.Event:
 
 
 def _planner_label(cfg: DictConfig) -> str:
-    return str(cfg.llm.get("model") or cfg.llm.get("backend") or "offline") if cfg.llm else "offline"
+    return (
+        str(cfg.llm.get("model") or cfg.llm.get("backend") or "offline") if cfg.llm else "offline"
+    )
 
 
 def run_live(cfg: DictConfig) -> float:
@@ -65,25 +75,40 @@ def run_live(cfg: DictConfig) -> float:
     checkpoint = _checkpoint(cfg, "live")
     _warn_if_exposed(live.host)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    loop = LiveLoop.from_checkpoint(checkpoint, planner=LLMPlanner.from_config(cfg.llm), device=cfg.device,
-                                    seed=cfg.seed)
-    server = LiveServer(loop, host=live.host, port=live.web_port, rate_hz=live.rate_hz,
-                        policy=checkpoint.name, planner=_planner_label(cfg))
+    loop = LiveLoop.from_checkpoint(
+        checkpoint, planner=LLMPlanner.from_config(cfg.llm), device=cfg.device, seed=cfg.seed
+    )
+    server = LiveServer(
+        loop,
+        host=live.host,
+        port=live.web_port,
+        rate_hz=live.rate_hz,
+        policy=checkpoint.name,
+        planner=_planner_label(cfg),
+    )
     stop = _stop_on_signals()
 
     def started(address):
-        print(f"icco live: open http://{address[0]}:{address[1]}/ ({checkpoint.name} at {live.rate_hz:g} Hz, "
-              f"any number of tabs); Ctrl-C stops", flush=True)
+        print(
+            f"icco live: open http://{address[0]}:{address[1]}/ ({checkpoint.name} at {live.rate_hz:g} Hz, "
+            f"any number of tabs); Ctrl-C stops",
+            flush=True,
+        )
 
     server.serve(stop, max_seconds=live.seconds, on_start=started)
     lat = server.stats["latency_ms"]
-    print(f"icco live: {loop.ticks} ticks, {server.stats['connections']} page connections, median tick "
-          f"{np.median(lat) if lat else float('nan'):.1f} ms; totals {_totals(loop)}", flush=True)
+    print(
+        f"icco live: {loop.ticks} ticks, {server.stats['connections']} page connections, median tick "
+        f"{np.median(lat) if lat else float('nan'):.1f} ms; totals {_totals(loop)}",
+        flush=True,
+    )
     return float(loop.ticks)
 
 
 def _totals(loop: LiveLoop) -> str:
-    return ", ".join(f"{k} {v:.1f}" if k.endswith("reward") else f"{k} {v:.0f}" for k, v in loop.totals.items())
+    return ", ".join(
+        f"{k} {v:.1f}" if k.endswith("reward") else f"{k} {v:.0f}" for k, v in loop.totals.items()
+    )
 
 
 def run_bridge(cfg: DictConfig) -> float:
@@ -93,14 +118,35 @@ def run_bridge(cfg: DictConfig) -> float:
     checkpoint = _checkpoint(cfg, "bridge")
     _warn_if_exposed(live.host)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    limits = RobotLimits(max_speed=live.max_speed, max_turn=live.max_turn, max_accel=live.max_accel,
-                         max_turn_accel=live.max_turn_accel, radius=live.robot_radius)
-    loop = LiveLoop.from_checkpoint(checkpoint, planner=LLMPlanner.from_config(cfg.llm), device=cfg.device)
-    bridge = Bridge(loop, host=live.host, port=live.port, rate_hz=live.rate_hz, timeout=live.timeout_s, limits=limits)
+    limits = RobotLimits(
+        max_speed=live.max_speed,
+        max_turn=live.max_turn,
+        max_accel=live.max_accel,
+        max_turn_accel=live.max_turn_accel,
+        radius=live.robot_radius,
+    )
+    loop = LiveLoop.from_checkpoint(
+        checkpoint, planner=LLMPlanner.from_config(cfg.llm), device=cfg.device
+    )
+    bridge = Bridge(
+        loop,
+        host=live.host,
+        port=live.port,
+        rate_hz=live.rate_hz,
+        timeout=live.timeout_s,
+        limits=limits,
+    )
     page = None
     if live.web:
-        page = LiveServer(loop, host=live.host, port=live.web_port, rate_hz=live.rate_hz, drive=False,
-                          policy=checkpoint.name, planner=_planner_label(cfg))
+        page = LiveServer(
+            loop,
+            host=live.host,
+            port=live.web_port,
+            rate_hz=live.rate_hz,
+            drive=False,
+            policy=checkpoint.name,
+            planner=_planner_label(cfg),
+        )
         try:
             address = page.start_in_thread()
         except OSError:
@@ -111,11 +157,22 @@ def run_bridge(cfg: DictConfig) -> float:
     stop = _stop_on_signals()
     threads = []
     if live.fleet:
-        fleet = SimulatedFleet(bridge.address, n_robots=loop.raw.n_agents, n_resources=loop.raw.n_resources,
-                               limits=limits, field_size=loop.raw.field_size, seed=cfg.seed)
-        threads.append(threading.Thread(target=fleet.run, args=(stop, live.seconds or 1e9), daemon=True))
-    print(f"icco bridge: listening on udp {bridge.address[0]}:{bridge.address[1]} at {live.rate_hz:g} Hz "
-          f"({'with the simulated fleet' if live.fleet else 'waiting for state messages'}); Ctrl-C stops", flush=True)
+        fleet = SimulatedFleet(
+            bridge.address,
+            n_robots=loop.raw.n_agents,
+            n_resources=loop.raw.n_resources,
+            limits=limits,
+            field_size=loop.raw.field_size,
+            seed=cfg.seed,
+        )
+        threads.append(
+            threading.Thread(target=fleet.run, args=(stop, live.seconds or 1e9), daemon=True)
+        )
+    print(
+        f"icco bridge: listening on udp {bridge.address[0]}:{bridge.address[1]} at {live.rate_hz:g} Hz "
+        f"({'with the simulated fleet' if live.fleet else 'waiting for state messages'}); Ctrl-C stops",
+        flush=True,
+    )
     for t in threads:
         t.start()
     try:
@@ -129,6 +186,9 @@ def run_bridge(cfg: DictConfig) -> float:
             page.close()
     s = bridge.stats
     latency = np.median(s["latency_ms"]) if s["latency_ms"] else float("nan")
-    print(f"icco bridge: {s['messages']} messages, {s['commands']} commands, {s['malformed']} malformed, "
-          f"{s['stale_stops']} stale-robot stops; median state-to-command latency {latency:.1f} ms", flush=True)
+    print(
+        f"icco bridge: {s['messages']} messages, {s['commands']} commands, {s['malformed']} malformed, "
+        f"{s['stale_stops']} stale-robot stops; median state-to-command latency {latency:.1f} ms",
+        flush=True,
+    )
     return float(s["commands"])

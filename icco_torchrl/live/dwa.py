@@ -7,6 +7,7 @@ linear and an angular velocity that respect its limits. As in the paper's robot 
 ends closest to the target and best headed toward it, among those that keep ``2 * radius``
 clear of the other robots. Vectorised over the sampled window (numpy).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -18,11 +19,11 @@ import numpy as np
 class RobotLimits:
     """A unicycle's limits (SI units). Defaults: a small indoor robot (TurtleBot-like)."""
 
-    max_speed: float = 0.5        # m/s, forward only
-    max_turn: float = 2.0         # rad/s
-    max_accel: float = 1.0        # m/s^2
-    max_turn_accel: float = 4.0   # rad/s^2
-    radius: float = 0.15          # m (the env's robot radius)
+    max_speed: float = 0.5  # m/s, forward only
+    max_turn: float = 2.0  # rad/s
+    max_accel: float = 1.0  # m/s^2
+    max_turn_accel: float = 4.0  # rad/s^2
+    radius: float = 0.15  # m (the env's robot radius)
 
     def __post_init__(self):
         for name in ("max_speed", "max_turn", "max_accel", "max_turn_accel", "radius"):
@@ -31,8 +32,17 @@ class RobotLimits:
                 raise ValueError(f"robot limit {name} must be a positive number, got {value!r}")
 
 
-def dwa_command(pose, velocity, target, limits: RobotLimits, dt: float, *, others=None, horizon: float = 1.0,
-                samples: int = 11) -> tuple[float, float]:
+def dwa_command(
+    pose,
+    velocity,
+    target,
+    limits: RobotLimits,
+    dt: float,
+    *,
+    others=None,
+    horizon: float = 1.0,
+    samples: int = 11,
+) -> tuple[float, float]:
     """``(v, w)`` for a robot at ``pose`` (x, y, theta) moving at ``velocity`` (v, w) toward ``target`` (x, y).
 
     ``others`` [M, 2] are the other robots' positions (kept ``2 * radius`` away); ``dt`` is the
@@ -41,27 +51,34 @@ def dwa_command(pose, velocity, target, limits: RobotLimits, dt: float, *, other
     x, y, theta = map(float, pose)
     v0, w0 = map(float, velocity)
     L = limits
-    vs = np.linspace(max(0.0, v0 - L.max_accel * dt), min(L.max_speed, v0 + L.max_accel * dt), samples)
-    ws = np.linspace(max(-L.max_turn, w0 - L.max_turn_accel * dt), min(L.max_turn, w0 + L.max_turn_accel * dt),
-                     2 * samples - 1)
-    v, w = (a.ravel() for a in np.meshgrid(vs, ws))                                   # [S]
+    vs = np.linspace(
+        max(0.0, v0 - L.max_accel * dt), min(L.max_speed, v0 + L.max_accel * dt), samples
+    )
+    ws = np.linspace(
+        max(-L.max_turn, w0 - L.max_turn_accel * dt),
+        min(L.max_turn, w0 + L.max_turn_accel * dt),
+        2 * samples - 1,
+    )
+    v, w = (a.ravel() for a in np.meshgrid(vs, ws))  # [S]
     steps = max(1, int(round(horizon / dt)))
-    t = np.arange(1, steps + 1) * dt                                                  # [H]
-    heading = theta + w[:, None] * t                                                  # [S, H]
+    t = np.arange(1, steps + 1) * dt  # [H]
+    heading = theta + w[:, None] * t  # [S, H]
     px = x + np.cumsum(v[:, None] * np.cos(heading) * dt, axis=1)
     py = y + np.cumsum(v[:, None] * np.sin(heading) * dt, axis=1)
     tx, ty = map(float, target)
     dist = np.hypot(tx - px[:, -1], ty - py[:, -1])
     bearing = np.arctan2(ty - py[:, -1], tx - px[:, -1]) - heading[:, -1]
-    align = np.abs(np.arctan2(np.sin(bearing), np.cos(bearing)))                      # [0, pi]
+    align = np.abs(np.arctan2(np.sin(bearing), np.cos(bearing)))  # [0, pi]
     cost = dist + 0.3 * align - 0.05 * v
     if others is not None and len(others):
         others = np.asarray(others, dtype=float).reshape(-1, 2)
-        gap = np.hypot(px[:, :, None] - others[:, 0], py[:, :, None] - others[:, 1]).min(axis=(1, 2))
+        gap = np.hypot(px[:, :, None] - others[:, 0], py[:, :, None] - others[:, 1]).min(
+            axis=(1, 2)
+        )
         cost = np.where(gap < 2 * L.radius, np.inf, cost)
-    if np.hypot(tx - x, ty - y) < 0.02:   # arrived: brake
+    if np.hypot(tx - x, ty - y) < 0.02:  # arrived: brake
         cost = np.abs(v) + 0.1 * np.abs(w)
     best = int(np.argmin(cost))
-    if not np.isfinite(cost[best]):       # boxed in: stop turning in place
+    if not np.isfinite(cost[best]):  # boxed in: stop turning in place
         return 0.0, 0.0
     return float(v[best]), float(w[best])

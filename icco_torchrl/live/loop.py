@@ -9,6 +9,7 @@ returns at once, so the team keeps moving on its previous waypoints until the pl
 (the next tick applies it). :meth:`LiveLoop.run` ticks at a fixed rate (default real time: one
 env step per ``env.dt`` seconds). No web code here: a page or a bridge drives this object.
 """
+
 from __future__ import annotations
 
 import threading
@@ -47,17 +48,17 @@ class TickState:
 
     tick: int
     step: int
-    positions: np.ndarray        # [N, 2]
-    waypoints: np.ndarray        # [N, K, 2]
-    resources: np.ndarray        # [R, 2]
-    invader: np.ndarray          # [I, 2]
-    invader_active: np.ndarray   # [I]
-    carry: np.ndarray            # [N]
-    z: np.ndarray | None         # [N, z_dim] (ICCO) or None
-    events: dict = field(default_factory=dict)   # this step's counts and instruction reward
-    totals: dict = field(default_factory=dict)   # running sums since the loop started
+    positions: np.ndarray  # [N, 2]
+    waypoints: np.ndarray  # [N, K, 2]
+    resources: np.ndarray  # [R, 2]
+    invader: np.ndarray  # [I, 2]
+    invader_active: np.ndarray  # [I]
+    carry: np.ndarray  # [N]
+    z: np.ndarray | None  # [N, z_dim] (ICCO) or None
+    events: dict = field(default_factory=dict)  # this step's counts and instruction reward
+    totals: dict = field(default_factory=dict)  # running sums since the loop started
     planner: dict = field(default_factory=dict)
-    latency_ms: float = 0.0      # policy + env step + bookkeeping of this tick
+    latency_ms: float = 0.0  # policy + env step + bookkeeping of this tick
 
     def to_dict(self) -> dict:
         out = asdict(self)
@@ -78,27 +79,42 @@ class LiveLoop:
     def __init__(self, env, policy, planner=None):
         raw = base_env(env)
         if raw.num_envs != 1 or raw.waypoint_mode != "external":
-            raise ValueError("LiveLoop drives one team with external waypoints: build the env with num_envs=1 and "
-                             "waypoint_mode='external' (LiveLoop.from_checkpoint does)")
+            raise ValueError(
+                "LiveLoop drives one team with external waypoints: build the env with num_envs=1 and "
+                "waypoint_mode='external' (LiveLoop.from_checkpoint does)"
+            )
         self.env, self.raw, self.policy, self.planner = env, raw, policy, planner
         self.status = PlannerStatus()
         self.totals = {k: 0.0 for k in (*EVENTS, "inst_reward", "reward")}
         self.ticks = 0
-        self._lock = threading.Lock()     # one tick or plan hand-over at a time
+        self._lock = threading.Lock()  # one tick or plan hand-over at a time
         self._pending: np.ndarray | None = None
         self._thread: threading.Thread | None = None
         with torch.no_grad():
             self.td = env.reset()
 
     @classmethod
-    def from_checkpoint(cls, path, *, planner=None, device: str = "cpu", seed: int | None = None,
-                        episode_steps: int = 10 ** 6) -> "LiveLoop":
+    def from_checkpoint(
+        cls,
+        path,
+        *,
+        planner=None,
+        device: str = "cpu",
+        seed: int | None = None,
+        episode_steps: int = 10**6,
+    ) -> LiveLoop:
         """The checkpoint's policy on a one-team env; ``episode_steps`` long episodes (a live team
         does not stop at 145 steps), reset when one ends."""
         from icco_torchrl.training.restore import restore  # heavy: networks and Hydra config
 
-        restored = restore(path, num_envs=1, device=device, seed=seed, max_steps=episode_steps,
-                           waypoint_mode="external")
+        restored = restore(
+            path,
+            num_envs=1,
+            device=device,
+            seed=seed,
+            max_steps=episode_steps,
+            waypoint_mode="external",
+        )
         return cls(restored["env"], restored["policy"], planner)
 
     # ------------------------------------------------------------------ instructions
@@ -112,7 +128,9 @@ class LiveLoop:
         if not isinstance(instruction, str) or not instruction.strip():
             raise ValueError(f"an instruction must be a non-empty string, got {instruction!r}")
         if self.planner is None:
-            raise ValueError("this live loop has no planner: give one (LLMPlanner) to take instructions")
+            raise ValueError(
+                "this live loop has no planner: give one (LLMPlanner) to take instructions"
+            )
         instruction = instruction.strip()
         with self._lock:
             positions = self.raw.pos[0].cpu().numpy().copy()
@@ -120,27 +138,42 @@ class LiveLoop:
             resources = self.raw.res_pos[0].cpu().numpy().copy()
             invader = self.raw.inv_pos[0][self.raw.inv_active[0]].cpu().numpy().copy()
             self.status = PlannerStatus("thinking", instruction, requests=self.status.requests + 1)
-        thread = threading.Thread(target=self._plan, args=(instruction, positions, previous, resources, invader),
-                                  daemon=True, name="icco-live-planner")
+        thread = threading.Thread(
+            target=self._plan,
+            args=(instruction, positions, previous, resources, invader),
+            daemon=True,
+            name="icco-live-planner",
+        )
         self._thread = thread
         thread.start()
 
     def _plan(self, instruction, positions, previous, resources, invader) -> None:
         start = time.perf_counter()
         try:
-            result = self.planner.plan(instruction, positions, previous=previous, resources=resources, invader=invader)
+            result = self.planner.plan(
+                instruction, positions, previous=previous, resources=resources, invader=invader
+            )
             ok, error, waypoints = result.ok, result.error, result.waypoints
-        except Exception as err:  # an unreachable model must not stop the team: report, keep the plan
+        except (
+            Exception
+        ) as err:  # an unreachable model must not stop the team: report, keep the plan
             ok, error, waypoints = False, f"{type(err).__name__}: {err}".splitlines()[0], None
         with self._lock:
-            if self.status.instruction != instruction or threading.current_thread() is not self._thread:
+            if (
+                self.status.instruction != instruction
+                or threading.current_thread() is not self._thread
+            ):
                 return  # superseded by a newer instruction
             latency = time.perf_counter() - start
             if ok:
                 self._pending = np.asarray(waypoints, dtype=np.float32)
-                self.status = PlannerStatus("used", instruction, None, latency, self.status.requests)
+                self.status = PlannerStatus(
+                    "used", instruction, None, latency, self.status.requests
+                )
             else:
-                self.status = PlannerStatus("fell back", instruction, error or "no plan", latency, self.status.requests)
+                self.status = PlannerStatus(
+                    "fell back", instruction, error or "no plan", latency, self.status.requests
+                )
 
     def wait_for_plan(self, timeout: float | None = None) -> PlannerStatus:
         """Block until the current planning request is answered (tests, scripted demos)."""
@@ -154,7 +187,9 @@ class LiveLoop:
         start = time.perf_counter()
         with self._lock, torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
             if self._pending is not None:
-                self.raw.write_waypoints(self.td, torch.as_tensor(self._pending, device=self.raw.device)[None])
+                self.raw.write_waypoints(
+                    self.td, torch.as_tensor(self._pending, device=self.raw.device)[None]
+                )
                 self._pending = None
             td = self.env.step(self.policy(self.td))
             nxt = td.get("next")
@@ -165,7 +200,9 @@ class LiveLoop:
             self.ticks += 1
             state = self._state(td.get(("agents", "z"), None), events)
             self.td = step_mdp(td)
-            if bool(nxt.get("done").any()):  # a live team never stops: the next tick starts a new episode
+            if bool(
+                nxt.get("done").any()
+            ):  # a live team never stops: the next tick starts a new episode
                 self.td = self.env.reset()
         state.latency_ms = (time.perf_counter() - start) * 1e3
         return state
@@ -174,10 +211,19 @@ class LiveLoop:
         """The team as it is now (call under the lock)."""
         raw = self.raw
         return TickState(
-            tick=self.ticks, step=int(raw.t[0]), positions=_np(raw.pos[0]), waypoints=_np(raw.waypoints[0]),
-            resources=_np(raw.res_pos[0]), invader=_np(raw.inv_pos[0]), invader_active=_np(raw.inv_active[0]),
-            carry=_np(raw.carry[0]), z=None if z is None else _np(z[0]),
-            events=events, totals=dict(self.totals), planner=asdict(self.status))
+            tick=self.ticks,
+            step=int(raw.t[0]),
+            positions=_np(raw.pos[0]),
+            waypoints=_np(raw.waypoints[0]),
+            resources=_np(raw.res_pos[0]),
+            invader=_np(raw.inv_pos[0]),
+            invader_active=_np(raw.inv_active[0]),
+            carry=_np(raw.carry[0]),
+            z=None if z is None else _np(z[0]),
+            events=events,
+            totals=dict(self.totals),
+            planner=asdict(self.status),
+        )
 
     def snapshot(self) -> TickState:
         """The team's current state without stepping it (what a display shows between ticks, or after
@@ -195,7 +241,9 @@ class LiveLoop:
             self.status = PlannerStatus(requests=self.status.requests)
             return self._state(None, {})
 
-    def act_on(self, positions, *, velocities=None, resources=None, invader=None) -> tuple[np.ndarray, np.ndarray]:
+    def act_on(
+        self, positions, *, velocities=None, resources=None, invader=None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """The policy's move for robots measured from outside (motion capture), without stepping the env.
 
         The env's state is overwritten by the measurements: ``positions`` [N, 2], ``velocities``
@@ -209,13 +257,22 @@ class LiveLoop:
         dev = raw.device
         lim = raw.half - raw.agent_radius
         with self._lock, torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
-            pos = torch.as_tensor(np.asarray(positions, np.float32), device=dev).reshape(1, raw.n_agents, 2)
+            pos = torch.as_tensor(np.asarray(positions, np.float32), device=dev).reshape(
+                1, raw.n_agents, 2
+            )
             raw.pos = pos.clamp(-lim, lim)
-            vel = torch.zeros_like(pos) if velocities is None else torch.as_tensor(
-                np.asarray(velocities, np.float32), device=dev).reshape(1, raw.n_agents, 2)
+            vel = (
+                torch.zeros_like(pos)
+                if velocities is None
+                else torch.as_tensor(np.asarray(velocities, np.float32), device=dev).reshape(
+                    1, raw.n_agents, 2
+                )
+            )
             raw.vel = vel
             if resources is not None:
-                res = torch.as_tensor(np.asarray(resources, np.float32), device=dev).reshape(1, raw.n_resources, 2)
+                res = torch.as_tensor(np.asarray(resources, np.float32), device=dev).reshape(
+                    1, raw.n_resources, 2
+                )
                 raw.res_pos = res.clamp(-raw.half, raw.half)
             if invader is not None:
                 inv = np.asarray(invader, np.float32).reshape(-1, 2)[: raw.n_invaders]
@@ -226,12 +283,17 @@ class LiveLoop:
             waypoints = raw.waypoints
             if self._pending is not None:
                 waypoints, self._pending = torch.as_tensor(self._pending, device=dev)[None], None
-            raw.write_waypoints(self.td, waypoints)  # rebuilds the observation and the state from the above
+            raw.write_waypoints(
+                self.td, waypoints
+            )  # rebuilds the observation and the state from the above
             td = self.policy(self.td)
             action = td.get(("agents", "action"))[0]
             nxt = td.get("next", None)
             carried = td.exclude("next")
-            for key in (("agents", "rnn_hidden"), ("agents", "prev_action")):  # a trained policy's memory
+            for key in (
+                ("agents", "rnn_hidden"),
+                ("agents", "prev_action"),
+            ):  # a trained policy's memory
                 if nxt is not None and key in nxt.keys(True):
                     carried.set(key, nxt.get(key))
             carried.set("step_count", td.get("step_count") + 1)
@@ -243,7 +305,13 @@ class LiveLoop:
             targets = raw.pos[0] + step * dirs
         return _np(action), _np(targets)
 
-    def run(self, ticks: int, rate_hz: float | None = None, on_tick=None, stop: threading.Event | None = None) -> list[float]:
+    def run(
+        self,
+        ticks: int,
+        rate_hz: float | None = None,
+        on_tick=None,
+        stop: threading.Event | None = None,
+    ) -> list[float]:
         """``ticks`` ticks at ``rate_hz`` (default: real time, ``1 / env.dt``); ``on_tick(state)`` is
         called after each. Returns the tick latencies (ms). Late ticks are not made up for."""
         rate = rate_hz or 1.0 / self.raw.dt

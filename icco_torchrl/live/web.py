@@ -20,6 +20,7 @@ WebSocket protocol (JSON text frames):
 
 A tab that disconnects or errs is dropped; the loop keeps ticking with no tab at all.
 """
+
 from __future__ import annotations
 
 import asyncio
@@ -60,17 +61,39 @@ class LiveServer:
     """Serve ``loop`` to browser tabs (module docstring). ``drive=False``: show a loop that
     another owner ticks (pause/step/reset/speed are then refused with a message)."""
 
-    def __init__(self, loop: LiveLoop, *, host: str = "127.0.0.1", port: int = 0, rate_hz: float = 10.0,
-                 drive: bool = True, policy: str = "", planner: str = ""):
+    def __init__(
+        self,
+        loop: LiveLoop,
+        *,
+        host: str = "127.0.0.1",
+        port: int = 0,
+        rate_hz: float = 10.0,
+        drive: bool = True,
+        policy: str = "",
+        planner: str = "",
+    ):
         if not rate_hz > 0:
             raise ValueError(f"rate_hz must be > 0, got {rate_hz!r}")
-        self.loop, self.host, self.port, self.rate_hz, self.drive = loop, host, int(port), float(rate_hz), drive
+        self.loop, self.host, self.port, self.rate_hz, self.drive = (
+            loop,
+            host,
+            int(port),
+            float(rate_hz),
+            drive,
+        )
         self.policy, self.planner = policy, planner
         self.paused, self.speed = False, 1.0
         self.clients: set[_Client] = set()
-        self.stats = {"broadcasts": 0, "frames": 0, "dropped": 0, "errors": 0, "connections": 0, "latency_ms": []}
+        self.stats = {
+            "broadcasts": 0,
+            "frames": 0,
+            "dropped": 0,
+            "errors": 0,
+            "connections": 0,
+            "latency_ms": [],
+        }
         self.address: tuple[str, int] | None = None
-        self._steps = 0                       # single steps requested while paused
+        self._steps = 0  # single steps requested while paused
         self._aio: asyncio.AbstractEventLoop | None = None
         self._runner: web.AppRunner | None = None
         self._ticker: ThreadPoolExecutor | None = None
@@ -91,8 +114,10 @@ class LiveServer:
             await site.start()
         except OSError as err:
             await self._runner.cleanup()
-            raise OSError(f"cannot listen on http://{self.host}:{self.port}: {err.strerror or err} "
-                          f"(choose another port with live.web_port=...)") from None
+            raise OSError(
+                f"cannot listen on http://{self.host}:{self.port}: {err.strerror or err} "
+                f"(choose another port with live.web_port=...)"
+            ) from None
         self._aio = asyncio.get_running_loop()
         self.address = tuple(self._runner.addresses[0][:2])  # the bound port when port=0
         if self.drive:
@@ -114,7 +139,9 @@ class LiveServer:
         if self._ticker is not None:
             self._ticker.shutdown(wait=True)
 
-    def serve(self, stop: threading.Event | None = None, max_seconds: float | None = None, on_start=None) -> None:
+    def serve(
+        self, stop: threading.Event | None = None, max_seconds: float | None = None, on_start=None
+    ) -> None:
         """Serve in this thread until ``stop`` is set or ``max_seconds`` pass (``icco live``)."""
 
         async def main():
@@ -123,7 +150,9 @@ class LiveServer:
                 on_start(address)
             end = None if max_seconds is None else time.monotonic() + max_seconds
             try:
-                while not (stop is not None and stop.is_set()) and (end is None or time.monotonic() < end):
+                while not (stop is not None and stop.is_set()) and (
+                    end is None or time.monotonic() < end
+                ):
                     await asyncio.sleep(0.05)
             finally:
                 await self.stop()
@@ -183,7 +212,7 @@ class LiveServer:
             self._broadcast(state.to_dict())
             next_time += 1.0 / (self.rate_hz * self.speed)
             pause = next_time - time.perf_counter()
-            if pause < 0:            # late ticks are not made up for
+            if pause < 0:  # late ticks are not made up for
                 next_time, pause = time.perf_counter(), 0
             await asyncio.sleep(pause)
 
@@ -204,17 +233,36 @@ class LiveServer:
             client.offer(frame)
 
     def _tick_frame(self, payload: dict) -> str:
-        return json.dumps({"type": "tick", **payload, "paused": self.paused, "speed": self.speed,
-                           "clients": len(self.clients)})
+        return json.dumps(
+            {
+                "type": "tick",
+                **payload,
+                "paused": self.paused,
+                "speed": self.speed,
+                "clients": len(self.clients),
+            }
+        )
 
     def _hello(self) -> dict:
         raw = self.loop.raw
-        return {"type": "hello", "field_size": raw.field_size, "home_radius": raw.home_radius,
-                "vision_radius": raw.vision_radius, "n_agents": raw.n_agents, "dt": raw.dt,
-                "agent_radius": raw.agent_radius, "resource_radius": raw.resource_radius,
-                "invader_radius": raw.invader_radius,
-                "rate_hz": self.rate_hz, "speed": self.speed, "paused": self.paused, "drive": self.drive,
-                "speeds": list(SPEEDS), "policy": self.policy, "planner": self.planner}
+        return {
+            "type": "hello",
+            "field_size": raw.field_size,
+            "home_radius": raw.home_radius,
+            "vision_radius": raw.vision_radius,
+            "n_agents": raw.n_agents,
+            "dt": raw.dt,
+            "agent_radius": raw.agent_radius,
+            "resource_radius": raw.resource_radius,
+            "invader_radius": raw.invader_radius,
+            "rate_hz": self.rate_hz,
+            "speed": self.speed,
+            "paused": self.paused,
+            "drive": self.drive,
+            "speeds": list(SPEEDS),
+            "policy": self.policy,
+            "planner": self.planner,
+        }
 
     # ------------------------------------------------------------------ HTTP and WebSocket handlers
     async def _page(self, request: web.Request) -> web.StreamResponse:
@@ -300,6 +348,7 @@ class LiveServer:
 
     def _show(self, state_fn) -> None:
         """Run ``state_fn`` (reset or snapshot) in tick order, never mid-tick, and show its state."""
+
         def run_and_show():
             state = state_fn()
             self._aio.call_soon_threadsafe(self._broadcast, state.to_dict())

@@ -9,6 +9,7 @@ Sizes come from the caller (the env's specs): ``n_actions`` always, and either a
 :class:`~icco_torchrl.envs.layout.ObsLayout` (a structured observation read by entity attention)
 or ``obs_dim`` (any flat per-agent observation, read by an MLP).
 """
+
 from __future__ import annotations
 
 from typing import TYPE_CHECKING
@@ -29,7 +30,9 @@ if TYPE_CHECKING:
     from icco_torchrl.envs.layout import ObsLayout
 
 
-def keep_hidden(hidden: torch.Tensor, is_init: torch.Tensor | None, step_count: torch.Tensor | None) -> torch.Tensor:
+def keep_hidden(
+    hidden: torch.Tensor, is_init: torch.Tensor | None, step_count: torch.Tensor | None
+) -> torch.Tensor:
     """``hidden [..., N, H]`` zeroed where an episode starts: TorchRL's ``is_init`` (``InitTracker``,
     ``[..., 1]`` or per agent ``[..., N, 1]``), else ``step_count == 0`` (``[..., 1]``)."""
     if is_init is not None:
@@ -37,8 +40,10 @@ def keep_hidden(hidden: torch.Tensor, is_init: torch.Tensor | None, step_count: 
     elif step_count is not None:
         keep = step_count != 0
     else:
-        raise KeyError("the agent needs 'is_init' (TorchRL's InitTracker) or 'step_count' (StepCounter) to know "
-                       "where episodes start")
+        raise KeyError(
+            "the agent needs 'is_init' (TorchRL's InitTracker) or 'step_count' (StepCounter) to know "
+            "where episodes start"
+        )
     if keep.dim() < hidden.dim():
         keep = keep.unsqueeze(-1)
     return hidden * keep.to(hidden.dtype)
@@ -69,42 +74,76 @@ class RecurrentQNet(nn.Module):
             ``"gru"`` (z joins the GRU's input, so the recurrent core can relate it to the robot's motion).
     """
 
-    def __init__(self, layout: ObsLayout | None = None, *, n_actions: int, obs_dim: int | None = None,
-                 state_dim: int | None = None, hidden: int = 64, z_dim: int = 0, full_state: bool = False,
-                 encoder: str | None = None, state_encoder: str = "flat", value_heads: int = 1,
-                 waypoint_features: bool = False, z_input: str = "head"):
+    def __init__(
+        self,
+        layout: ObsLayout | None = None,
+        *,
+        n_actions: int,
+        obs_dim: int | None = None,
+        state_dim: int | None = None,
+        hidden: int = 64,
+        z_dim: int = 0,
+        full_state: bool = False,
+        encoder: str | None = None,
+        state_encoder: str = "flat",
+        value_heads: int = 1,
+        waypoint_features: bool = False,
+        z_input: str = "head",
+    ):
         super().__init__()
         if z_input not in Z_INPUTS:
             raise ValueError(f"z_input must be one of {Z_INPUTS}, got {z_input!r}")
         if state_encoder not in STATE_ENCODERS:
-            raise ValueError(f"state_encoder must be one of {STATE_ENCODERS}, got {state_encoder!r}")
+            raise ValueError(
+                f"state_encoder must be one of {STATE_ENCODERS}, got {state_encoder!r}"
+            )
         if not isinstance(n_actions, int) or n_actions < 1:
-            raise ValueError(f"n_actions must be a positive integer (the env's action count), got {n_actions!r}")
+            raise ValueError(
+                f"n_actions must be a positive integer (the env's action count), got {n_actions!r}"
+            )
         if value_heads not in (1, 2):
             raise ValueError(f"value_heads must be 1 or 2, got {value_heads!r}")
-        self.hidden, self.z_dim, self.full_state, self.n_actions = hidden, z_dim, full_state, n_actions
+        self.hidden, self.z_dim, self.full_state, self.n_actions = (
+            hidden,
+            z_dim,
+            full_state,
+            n_actions,
+        )
         self.value_heads = value_heads
         if waypoint_features and layout is None:
-            raise ValueError("waypoint_features reads the own waypoints of a structured observation: it needs a layout")
+            raise ValueError(
+                "waypoint_features reads the own waypoints of a structured observation: it needs a layout"
+            )
         self.waypoint_features = waypoint_features
         wf = PATH_FEATURES if waypoint_features else 0
         self.relative = full_state and state_encoder == "relative"
         if layout is None:  # a flat observation (any env): [obs; state] through an MLP
             if obs_dim is None:
-                raise ValueError("RecurrentQNet needs a layout (structured observation) or obs_dim (flat observation)")
+                raise ValueError(
+                    "RecurrentQNet needs a layout (structured observation) or obs_dim (flat observation)"
+                )
             if (encoder or "mlp") != "mlp" or self.relative:
-                raise ValueError("a flat observation (no layout) is read by encoder='mlp' with state_encoder='flat'")
+                raise ValueError(
+                    "a flat observation (no layout) is read by encoder='mlp' with state_encoder='flat'"
+                )
             if full_state and state_dim is None:
                 raise ValueError("full_state without a layout needs state_dim")
             self.encoder = MLPEncoder(obs_dim + (state_dim if full_state else 0), hidden)
             self._own_dim = obs_dim  # the state goes after the whole observation
-        elif self.relative:  # QMIX (FULL): every entity relative to the robot (the coordinator's encoder)
+        elif (
+            self.relative
+        ):  # QMIX (FULL): every entity relative to the robot (the coordinator's encoder)
             self.encoder = RelativeStateEncoder(layout, hidden, extra_own=wf)
             self._own_dim = layout.own_dim
         else:  # flat: the global state joins the own token of the local-observation encoder
             extra = layout.state_dim if full_state else 0
-            self.encoder = make_encoder(encoder or "attention", own_dim=layout.own_dim + wf + extra,
-                                        n_entities=layout.n_entities, entity_dim=layout.entity_dim, hidden=hidden)
+            self.encoder = make_encoder(
+                encoder or "attention",
+                own_dim=layout.own_dim + wf + extra,
+                n_entities=layout.n_entities,
+                entity_dim=layout.entity_dim,
+                hidden=hidden,
+            )
             self._own_dim = layout.own_dim
         # embed([features; one_hot(prev_action)]) written as a linear map plus a per-action row:
         # the same function without building the one-hot and the concatenation.
@@ -118,11 +157,13 @@ class RecurrentQNet(nn.Module):
         self.z_in_gru = z_input == "gru" and z_dim > 0
         self.z_embed = nn.Linear(z_dim, hidden, bias=False) if self.z_in_gru else None
         head_in = hidden + (z_dim if not self.z_in_gru else 0)
-        self.head = nn.Sequential(nn.Linear(head_in, hidden), nn.ReLU(), nn.Linear(hidden, value_heads * n_actions))
+        self.head = nn.Sequential(
+            nn.Linear(head_in, hidden), nn.ReLU(), nn.Linear(hidden, value_heads * n_actions)
+        )
 
     def _path(self, obs):
         # own features are [x, y, vx, vy, carry, K relative waypoints] (ObsLayout)
-        return path_features(obs[..., 5:self._own_dim].unflatten(-1, (-1, 2)))
+        return path_features(obs[..., 5 : self._own_dim].unflatten(-1, (-1, 2)))
 
     def _features(self, obs, prev_action, state, z=None):
         x = self._encode(obs, state)
@@ -140,7 +181,7 @@ class RecurrentQNet(nn.Module):
         if self.full_state:
             own.append(state.unsqueeze(-2).expand(*obs.shape[:-1], state.shape[-1]))
         if len(own) > 1:
-            obs = torch.cat([*own, obs[..., self._own_dim:]], -1)
+            obs = torch.cat([*own, obs[..., self._own_dim :]], -1)
         return self.encoder(obs)
 
     def _q(self, h, z):
@@ -155,7 +196,7 @@ class RecurrentQNet(nn.Module):
         state after every step ``[S, L, N, H]``.
         """
         if recurrent_mode():
-            first = (lambda v: None if v is None else v[:, 0])
+            first = lambda v: None if v is None else v[:, 0]
             h0 = keep_hidden(hidden[:, 0], first(is_init), first(step_count))
             q, h = self.sequence(obs, prev_action, h0, z=z, state=state, return_hidden="all")
         else:
@@ -166,23 +207,33 @@ class RecurrentQNet(nn.Module):
         """The acting Q ``[..., A]`` from the heads' output (the sum of task and instruction heads)."""
         if self.value_heads == 1:
             return q
-        return q[..., : self.n_actions] + q[..., self.n_actions:]
+        return q[..., : self.n_actions] + q[..., self.n_actions :]
 
     def step(self, obs, prev_action, hidden, z=None, state=None):
         """One step from ``hidden`` as given (no restart): Q ``[B, N, A]`` and the new hidden state."""
         x = self._features(obs, prev_action, state, z)
         g = self.gru  # one step of the same nn.GRU, without its sequence-call overhead
-        h = torch.gru_cell(x.reshape(-1, self.hidden), hidden.reshape(-1, self.hidden), g.weight_ih_l0,
-                           g.weight_hh_l0, g.bias_ih_l0, g.bias_hh_l0).reshape(x.shape)
+        h = torch.gru_cell(
+            x.reshape(-1, self.hidden),
+            hidden.reshape(-1, self.hidden),
+            g.weight_ih_l0,
+            g.weight_hh_l0,
+            g.bias_ih_l0,
+            g.bias_hh_l0,
+        ).reshape(x.shape)
         return self._q(h, z), h
 
-    def sequence(self, obs, prev_action, hidden0, z=None, state=None, return_hidden: bool | str = False):
+    def sequence(
+        self, obs, prev_action, hidden0, z=None, state=None, return_hidden: bool | str = False
+    ):
         """A segment in one GRU call: inputs ``[S, L, N, ...]``, ``hidden0 [S, N, H]`` -> Q ``[S, L, N, A]``
         (and, with ``return_hidden``, the hidden state after the last step, ``[S, N, H]``, or with
         ``return_hidden="all"`` after every step, ``[S, L, N, H]``)."""
         x = self._features(obs, prev_action, state, z)
         S, L, N, H = x.shape
-        out, h_last = self.gru(x.permute(0, 2, 1, 3).reshape(S * N, L, H), hidden0.reshape(1, S * N, H).contiguous())
+        out, h_last = self.gru(
+            x.permute(0, 2, 1, 3).reshape(S * N, L, H), hidden0.reshape(1, S * N, H).contiguous()
+        )
         h = out.reshape(S, N, L, H).permute(0, 2, 1, 3)
         q = self._q(h, z)
         if return_hidden == "all":
@@ -190,12 +241,26 @@ class RecurrentQNet(nn.Module):
         return (q, h_last.reshape(S, N, H)) if return_hidden else q
 
 
-def make_agent(layout: ObsLayout | None = None, *, n_actions: int, obs_dim: int | None = None,
-               state_dim: int | None = None, hidden: int = 64, z_dim: int = 0, full_state: bool = False,
-               encoder: str | None = None, state_encoder: str = "flat", value_heads: int = 1,
-               waypoint_features: bool = False, z_input: str = "head", obs_key=("agents", "observation"),
-               state_key="state", action_key=("agents", "action"), step_count_key="step_count",
-               is_init_key="is_init") -> TensorDictModule:
+def make_agent(
+    layout: ObsLayout | None = None,
+    *,
+    n_actions: int,
+    obs_dim: int | None = None,
+    state_dim: int | None = None,
+    hidden: int = 64,
+    z_dim: int = 0,
+    full_state: bool = False,
+    encoder: str | None = None,
+    state_encoder: str = "flat",
+    value_heads: int = 1,
+    waypoint_features: bool = False,
+    z_input: str = "head",
+    obs_key=("agents", "observation"),
+    state_key="state",
+    action_key=("agents", "action"),
+    step_count_key="step_count",
+    is_init_key="is_init",
+) -> TensorDictModule:
     """The agent as a TensorDictModule (see :class:`RecurrentQNet` for the sizes).
 
     in:  ``obs_key``, ``(group, "prev_action")``, ``(group, "rnn_hidden")``, ``is_init_key`` (TorchRL's
@@ -206,14 +271,31 @@ def make_agent(layout: ObsLayout | None = None, *, n_actions: int, obs_dim: int 
     TorchRL's ``set_recurrent_mode(True)`` (what :class:`~icco_torchrl.objectives.ICCOLoss` uses).
     """
     group = action_key[:-1] if isinstance(action_key, tuple) else ()
-    net = RecurrentQNet(layout, n_actions=n_actions, obs_dim=obs_dim, state_dim=state_dim, hidden=hidden,
-                        z_dim=z_dim, full_state=full_state, encoder=encoder, state_encoder=state_encoder,
-                        value_heads=value_heads, waypoint_features=waypoint_features, z_input=z_input)
-    in_keys = {"obs": obs_key, "prev_action": (*group, "prev_action"), "hidden": (*group, "rnn_hidden"),
-               "step_count": step_count_key, "is_init": is_init_key}  # forward argument -> tensordict key
+    net = RecurrentQNet(
+        layout,
+        n_actions=n_actions,
+        obs_dim=obs_dim,
+        state_dim=state_dim,
+        hidden=hidden,
+        z_dim=z_dim,
+        full_state=full_state,
+        encoder=encoder,
+        state_encoder=state_encoder,
+        value_heads=value_heads,
+        waypoint_features=waypoint_features,
+        z_input=z_input,
+    )
+    in_keys = {
+        "obs": obs_key,
+        "prev_action": (*group, "prev_action"),
+        "hidden": (*group, "rnn_hidden"),
+        "step_count": step_count_key,
+        "is_init": is_init_key,
+    }  # forward argument -> tensordict key
     if z_dim:
         in_keys["z"] = (*group, "z")
     if full_state:
         in_keys["state"] = state_key
-    return TensorModule(net, in_keys=in_keys,
-                        out_keys=[(*group, "action_value"), ("next", *group, "rnn_hidden")])
+    return TensorModule(
+        net, in_keys=in_keys, out_keys=[(*group, "action_value"), ("next", *group, "rnn_hidden")]
+    )

@@ -6,6 +6,7 @@ clamped to [-10, 0] as in COPA). During rollouts z is redrawn every ``period`` s
 ``step_count % period == 0``) and held in between; the noise is kept in the TensorDict so the
 loss can rebuild the very z the agents acted on, with gradient (reparameterisation).
 """
+
 from __future__ import annotations
 
 import math
@@ -34,27 +35,44 @@ class StateTokenEncoder(nn.Module):
     to N outputs (a layout, or ``n_agents`` and ``state_dim`` for any env).
     """
 
-    def __init__(self, layout: ObsLayout | None, hidden: int, kind: str = "attention", *,
-                 n_agents: int | None = None, state_dim: int | None = None):
+    def __init__(
+        self,
+        layout: ObsLayout | None,
+        hidden: int,
+        kind: str = "attention",
+        *,
+        n_agents: int | None = None,
+        state_dim: int | None = None,
+    ):
         super().__init__()
         if layout is None and (kind != "mlp" or n_agents is None or state_dim is None):
-            raise ValueError("a state without a layout is read by encoder='mlp' and needs n_agents and state_dim")
+            raise ValueError(
+                "a state without a layout is read by encoder='mlp' and needs n_agents and state_dim"
+            )
         self.kind, self.hidden = kind, hidden
         self.n_agents = layout.n_agents if layout is not None else n_agents
         if kind == "attention":
             self.n_tokens, self.token_dim = layout.state_tokens, layout.state_token_dim
-            self.net = EntityAttentionEncoder(self.token_dim, self.n_tokens, self.token_dim, hidden, masked=False)
+            self.net = EntityAttentionEncoder(
+                self.token_dim, self.n_tokens, self.token_dim, hidden, masked=False
+            )
         elif kind == "mlp":
             width = layout.state_dim if layout is not None else state_dim
-            self.net = nn.Sequential(nn.Linear(width, hidden), nn.ReLU(),
-                                     nn.Linear(hidden, self.n_agents * hidden), nn.ReLU())
+            self.net = nn.Sequential(
+                nn.Linear(width, hidden),
+                nn.ReLU(),
+                nn.Linear(hidden, self.n_agents * hidden),
+                nn.ReLU(),
+            )
         else:
             raise ValueError(f"encoder must be 'attention' or 'mlp', got {kind!r}")
 
     def forward(self, state: torch.Tensor) -> torch.Tensor:
         if self.kind == "mlp":
             return self.net(state).unflatten(-1, (self.n_agents, self.hidden))
-        robots = state[..., : self.n_agents * self.token_dim].unflatten(-1, (self.n_agents, self.token_dim))
+        robots = state[..., : self.n_agents * self.token_dim].unflatten(
+            -1, (self.n_agents, self.token_dim)
+        )
         every = state.unsqueeze(-2).expand(*state.shape[:-1], self.n_agents, state.shape[-1])
         return self.net(torch.cat([robots, every], -1))
 
@@ -66,21 +84,38 @@ class Coordinator(nn.Module):
     ``state_dim`` for any flat global state (``encoder="mlp"``, ``state_encoder="flat"``).
     """
 
-    def __init__(self, layout: ObsLayout | None = None, *, z_dim: int = 32, hidden: int = 64, period: int = 4,
-                 encoder: str | None = None, state_encoder: str = "flat", init_logvar: float = 0.0,
-                 n_agents: int | None = None, state_dim: int | None = None):
+    def __init__(
+        self,
+        layout: ObsLayout | None = None,
+        *,
+        z_dim: int = 32,
+        hidden: int = 64,
+        period: int = 4,
+        encoder: str | None = None,
+        state_encoder: str = "flat",
+        init_logvar: float = 0.0,
+        n_agents: int | None = None,
+        state_dim: int | None = None,
+    ):
         super().__init__()
         if period < 1:
             raise ValueError(f"period must be >= 1, got {period}")
         if state_encoder not in STATE_ENCODERS:
-            raise ValueError(f"state_encoder must be one of {STATE_ENCODERS}, got {state_encoder!r}")
+            raise ValueError(
+                f"state_encoder must be one of {STATE_ENCODERS}, got {state_encoder!r}"
+            )
         if layout is None and state_encoder == "relative":
-            raise ValueError("state_encoder='relative' reads the resource-collection state: it needs a layout")
+            raise ValueError(
+                "state_encoder='relative' reads the resource-collection state: it needs a layout"
+            )
         self.z_dim, self.period = z_dim, period
         encoder = encoder or ("attention" if layout is not None else "mlp")
         # relative: entities seen from each robot (modules/relative.py); flat: absolute state tokens
-        self.encoder = (RelativeStateEncoder(layout, hidden) if state_encoder == "relative"
-                        else StateTokenEncoder(layout, hidden, encoder, n_agents=n_agents, state_dim=state_dim))
+        self.encoder = (
+            RelativeStateEncoder(layout, hidden)
+            if state_encoder == "relative"
+            else StateTokenEncoder(layout, hidden, encoder, n_agents=n_agents, state_dim=state_dim)
+        )
         self.loc = nn.Linear(hidden, z_dim)
         self.logvar = nn.Linear(hidden, z_dim)
         # The initial noise level of z: at 0 (std ~1) z starts as mostly noise and the agents learn
@@ -99,12 +134,17 @@ class Coordinator(nn.Module):
         ``step_count [B, 1]`` (TorchRL's ``StepCounter``); ``state [B, ...]``, trailing dims flattened.
         """
         if step_count is None:
-            raise KeyError("the coordinator needs 'step_count' (add TorchRL's StepCounter transform to the env)")
+            raise KeyError(
+                "the coordinator needs 'step_count' (add TorchRL's StepCounter transform to the env)"
+            )
         if state.dim() > step_count.dim():
             state = state.flatten(step_count.dim() - 1)
-        fresh = (step_count % self.period == 0).unsqueeze(-1)                     # [B, 1, 1]
+        fresh = (step_count % self.period == 0).unsqueeze(-1)  # [B, 1, 1]
         if state.device.type == "cpu" and not torch.compiler.is_compiling() and not fresh.any():
-            return z_prev, noise_prev  # every env holds its z: skip the network (on GPU this test would sync)
+            return (
+                z_prev,
+                noise_prev,
+            )  # every env holds its z: skip the network (on GPU this test would sync)
         loc, scale = self.distribution(state)
         if exploration_type() in (ExplorationType.RANDOM, None):
             noise = torch.randn_like(loc)
@@ -120,19 +160,45 @@ def gaussian_entropy(scale: torch.Tensor) -> torch.Tensor:
     return (0.5 * math.log(2 * math.pi * math.e) + scale.log()).sum(-1)
 
 
-def make_coordinator(layout: ObsLayout | None = None, *, z_dim: int = 32, hidden: int = 64, period: int = 4,
-                     encoder: str | None = None, state_encoder: str = "flat", init_logvar: float = 0.0,
-                     n_agents: int | None = None, state_dim: int | None = None, state_key="state",
-                     group="agents", step_count_key="step_count") -> TensorDictModule:
+def make_coordinator(
+    layout: ObsLayout | None = None,
+    *,
+    z_dim: int = 32,
+    hidden: int = 64,
+    period: int = 4,
+    encoder: str | None = None,
+    state_encoder: str = "flat",
+    init_logvar: float = 0.0,
+    n_agents: int | None = None,
+    state_dim: int | None = None,
+    state_key="state",
+    group="agents",
+    step_count_key="step_count",
+) -> TensorDictModule:
     """The coordinator as a TensorDictModule for rollouts (see :class:`Coordinator` for the sizes).
 
     in:  ``state_key`` (any trailing shape, flattened), ``step_count_key`` (TorchRL's ``StepCounter``),
          ``(group, "z")`` and ``(group, "z_noise")`` (held values)
     out: ``(group, "z")``, ``(group, "z_noise")`` (the distribution itself: ``module.distribution(state)``)
     """
-    net = Coordinator(layout, z_dim=z_dim, hidden=hidden, period=period, encoder=encoder,
-                      state_encoder=state_encoder, init_logvar=init_logvar, n_agents=n_agents, state_dim=state_dim)
+    net = Coordinator(
+        layout,
+        z_dim=z_dim,
+        hidden=hidden,
+        period=period,
+        encoder=encoder,
+        state_encoder=state_encoder,
+        init_logvar=init_logvar,
+        n_agents=n_agents,
+        state_dim=state_dim,
+    )
     return TensorModule(
-        net, in_keys={"state": state_key, "step_count": step_count_key, "z_prev": (group, "z"),
-                      "noise_prev": (group, "z_noise")},
-        out_keys=[(group, "z"), (group, "z_noise")])
+        net,
+        in_keys={
+            "state": state_key,
+            "step_count": step_count_key,
+            "z_prev": (group, "z"),
+            "noise_prev": (group, "z_noise"),
+        },
+        out_keys=[(group, "z"), (group, "z_noise")],
+    )

@@ -4,6 +4,7 @@ Entity attention (COPA's choice) reads a set of entity tokens with a visibility 
 does not care about entity order and can later handle other team sizes. The MLP encoder
 reads the flat vector: smaller and faster, but tied to the layout it was trained on.
 """
+
 from __future__ import annotations
 
 import math
@@ -26,9 +27,16 @@ class EntityAttentionEncoder(nn.Module):
     bias: ``q . b_k`` is the same for every token and softmax ignores a constant shift.
     """
 
-    def __init__(self, own_dim: int, n_entities: int, entity_dim: int, hidden: int, masked: bool = True):
+    def __init__(
+        self, own_dim: int, n_entities: int, entity_dim: int, hidden: int, masked: bool = True
+    ):
         super().__init__()
-        self.own_dim, self.n_entities, self.entity_dim, self.masked = own_dim, n_entities, entity_dim, masked
+        self.own_dim, self.n_entities, self.entity_dim, self.masked = (
+            own_dim,
+            n_entities,
+            entity_dim,
+            masked,
+        )
         self.own = nn.Linear(own_dim, hidden)
         self.key = nn.Linear(entity_dim, hidden, bias=False)
         self.value = nn.Linear(entity_dim, hidden)
@@ -37,17 +45,17 @@ class EntityAttentionEncoder(nn.Module):
         self.scale = 1.0 / math.sqrt(hidden)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        own, tokens = x[..., : self.own_dim], x[..., self.own_dim:]
+        own, tokens = x[..., : self.own_dim], x[..., self.own_dim :]
         tokens = tokens.unflatten(-1, (self.n_entities, self.entity_dim))
         h = torch.relu(self.own(own))
-        q = self.query(h) @ self.key.weight * self.scale                          # the query in token space
+        q = self.query(h) @ self.key.weight * self.scale  # the query in token space
         logits = (tokens @ q.unsqueeze(-1)).squeeze(-1)
         if self.masked:
             visible = tokens[..., -1] > 0
             weights = torch.softmax(logits.masked_fill(~visible, -1e9), -1) * visible
         else:
             weights = torch.softmax(logits, -1)
-        pooled = (weights.unsqueeze(-2) @ tokens).squeeze(-2)                       # [..., entity_dim]
+        pooled = (weights.unsqueeze(-2) @ tokens).squeeze(-2)  # [..., entity_dim]
         read = pooled @ self.value.weight.T + weights.sum(-1, keepdim=True) * self.value.bias
         return self.out(torch.cat([h, read], -1))
 
@@ -57,13 +65,17 @@ class MLPEncoder(nn.Module):
 
     def __init__(self, in_dim: int, hidden: int):
         super().__init__()
-        self.net = nn.Sequential(nn.Linear(in_dim, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU())
+        self.net = nn.Sequential(
+            nn.Linear(in_dim, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU()
+        )
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return self.net(x)
 
 
-def make_encoder(kind: str, *, own_dim: int, n_entities: int, entity_dim: int, hidden: int) -> nn.Module:
+def make_encoder(
+    kind: str, *, own_dim: int, n_entities: int, entity_dim: int, hidden: int
+) -> nn.Module:
     """``kind`` is ``"attention"`` or ``"mlp"``; the input is ``own_dim + n_entities*entity_dim`` wide."""
     if kind == "attention":
         return EntityAttentionEncoder(own_dim, n_entities, entity_dim, hidden)

@@ -5,6 +5,7 @@ Policy = [coordinator] -> agent -> greedy Q (``QValueModule``) -> epsilon-greedy
 ``prev_action``. Under ``ExplorationType.DETERMINISTIC`` the same policy is greedy and the
 coordinator emits its mean: that is the evaluation policy.
 """
+
 from __future__ import annotations
 
 import torch
@@ -18,17 +19,30 @@ from torchrl.modules import EGreedyModule, QValueModule
 from icco_torchrl.modules.tdmodule import TensorModule
 
 
-def make_primer(n_agents: int, hidden: int, z_dim: int = 0, device="cpu", group: str = "agents", *,
-                n_actions: int) -> TensorDictPrimer:
+def make_primer(
+    n_agents: int,
+    hidden: int,
+    z_dim: int = 0,
+    device="cpu",
+    group: str = "agents",
+    *,
+    n_actions: int,
+) -> TensorDictPrimer:
     """Zeros at reset for the per-robot GRU state, previous action (one of the env's ``n_actions``) and
     (with a coordinator) z, under ``group``."""
-    entries = dict(rnn_hidden=Unbounded((n_agents, hidden), device=device),
-                   prev_action=Categorical(n_actions, (n_agents,), dtype=torch.int64, device=device))
+    entries = dict(
+        rnn_hidden=Unbounded((n_agents, hidden), device=device),
+        prev_action=Categorical(n_actions, (n_agents,), dtype=torch.int64, device=device),
+    )
     if z_dim:
-        entries.update(z=Unbounded((n_agents, z_dim), device=device),
-                       z_noise=Unbounded((n_agents, z_dim), device=device))
-    return TensorDictPrimer(Composite({group: Composite(entries, shape=(n_agents,), device=device)}, device=device),
-                            expand_specs=True)
+        entries.update(
+            z=Unbounded((n_agents, z_dim), device=device),
+            z_noise=Unbounded((n_agents, z_dim), device=device),
+        )
+    return TensorDictPrimer(
+        Composite({group: Composite(entries, shape=(n_agents,), device=device)}, device=device),
+        expand_specs=True,
+    )
 
 
 class GuidedEGreedyModule(EGreedyModule):
@@ -54,25 +68,51 @@ class GuidedEGreedyModule(EGreedyModule):
         return tensordict
 
 
-def make_policy(agent: TensorDictModule, action_spec, coordinator: TensorDictModule | None = None, *,
-                eps_init: float = 1.0, eps_end: float = 0.05, annealing_num_steps: int = 1,
-                group: str = "agents", action_name: str = "action", guide=None) -> TensorDictSequential:
+def make_policy(
+    agent: TensorDictModule,
+    action_spec,
+    coordinator: TensorDictModule | None = None,
+    *,
+    eps_init: float = 1.0,
+    eps_end: float = 0.05,
+    annealing_num_steps: int = 1,
+    group: str = "agents",
+    action_name: str = "action",
+    guide=None,
+) -> TensorDictSequential:
     """``action_spec``: the env's unbatched full action spec (``env.full_action_spec_unbatched``).
 
     Keys live under ``group``: ``action_value``, ``action_name``, ``chosen_action_value`` and the
     next step's ``prev_action``. The agent must write ``(group, "action_value")``.
     """
     action_key = (group, action_name)
-    q_value = QValueModule(action_value_key=(group, "action_value"),
-                           out_keys=[action_key, (group, "action_value"), (group, "chosen_action_value")],
-                           spec=None, action_space="categorical")
-    kwargs = dict(spec=action_spec, eps_init=eps_init, eps_end=eps_end, annealing_num_steps=annealing_num_steps,
-                  action_key=action_key)
+    q_value = QValueModule(
+        action_value_key=(group, "action_value"),
+        out_keys=[action_key, (group, "action_value"), (group, "chosen_action_value")],
+        spec=None,
+        action_space="categorical",
+    )
+    kwargs = dict(
+        spec=action_spec,
+        eps_init=eps_init,
+        eps_end=eps_end,
+        annealing_num_steps=annealing_num_steps,
+        action_key=action_key,
+    )
     explore = EGreedyModule(**kwargs) if guide is None else GuidedEGreedyModule(guide, **kwargs)
-    if action_spec.device is not None:  # its eps buffers start on the CPU; it refuses actions elsewhere
+    if (
+        action_spec.device is not None
+    ):  # its eps buffers start on the CPU; it refuses actions elsewhere
         explore = explore.to(action_spec.device)
-    remember = TensorModule(nn.Identity(), in_keys=[action_key], out_keys=[("next", group, "prev_action")])
-    modules = ([coordinator] if coordinator is not None else []) + [agent, q_value, explore, remember]
+    remember = TensorModule(
+        nn.Identity(), in_keys=[action_key], out_keys=[("next", group, "prev_action")]
+    )
+    modules = ([coordinator] if coordinator is not None else []) + [
+        agent,
+        q_value,
+        explore,
+        remember,
+    ]
     return TensorDictSequential(*modules)
 
 

@@ -6,6 +6,7 @@ Gaussian per robot. ``combine="product"`` multiplies them (precision-weighted Ga
 exact reading of the formula); ``combine="sum"`` adds the factors' log-likelihoods (COPA's
 code). Both are tested against hand computations.
 """
+
 from __future__ import annotations
 
 import math
@@ -23,8 +24,13 @@ _LOG_2PI = math.log(2 * math.pi)
 
 
 def _gaussian_head(in_dim: int, hidden: int, z_dim: int) -> nn.Module:
-    return nn.Sequential(nn.Linear(in_dim, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU(),
-                         nn.Linear(hidden, 2 * z_dim))
+    return nn.Sequential(
+        nn.Linear(in_dim, hidden),
+        nn.ReLU(),
+        nn.Linear(hidden, hidden),
+        nn.ReLU(),
+        nn.Linear(hidden, 2 * z_dim),
+    )
 
 
 def _split(out: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -42,13 +48,15 @@ def combine_log_prob(z, loc, scale, mask, combine: str = "product"):
 
     Every row must have at least one valid factor (the first, the broadcast step, always is).
     """
-    m = mask.to(loc.dtype)[..., None, None]                                        # [S, K, 1, 1]
+    m = mask.to(loc.dtype)[..., None, None]  # [S, K, 1, 1]
     if combine == "product":
-        precision = (m / scale ** 2).sum(1)
-        mean = (m * loc / scale ** 2).sum(1) / precision
+        precision = (m / scale**2).sum(1)
+        mean = (m * loc / scale**2).sum(1) / precision
         return diag_normal_log_prob(z, mean, precision.rsqrt())
     if combine == "sum":
-        return (mask.to(loc.dtype)[..., None] * diag_normal_log_prob(z.unsqueeze(1), loc, scale)).sum(1)
+        return (
+            mask.to(loc.dtype)[..., None] * diag_normal_log_prob(z.unsqueeze(1), loc, scale)
+        ).sum(1)
     raise ValueError(f"combine must be 'product' or 'sum', got {combine!r}")
 
 
@@ -59,9 +67,18 @@ class Posterior(nn.Module):
     ``state_dim`` (flat observation and state of any env).
     """
 
-    def __init__(self, layout: ObsLayout | None = None, *, n_actions: int, z_dim: int = 32, hidden: int = 64,
-                 combine: str = "product", n_agents: int | None = None, obs_dim: int | None = None,
-                 state_dim: int | None = None):
+    def __init__(
+        self,
+        layout: ObsLayout | None = None,
+        *,
+        n_actions: int,
+        z_dim: int = 32,
+        hidden: int = 64,
+        combine: str = "product",
+        n_agents: int | None = None,
+        obs_dim: int | None = None,
+        state_dim: int | None = None,
+    ):
         super().__init__()
         if combine not in ("product", "sum"):
             raise ValueError(f"combine must be 'product' or 'sum', got {combine!r}")
@@ -80,10 +97,14 @@ class Posterior(nn.Module):
         reads robot i's own observation and action at step k.
         """
         S, T, N = action.shape
-        onehot = nn.functional.one_hot(action.long(), self.n_actions).to(state.dtype)           # [S, T, N, A]
+        onehot = nn.functional.one_hot(action.long(), self.n_actions).to(
+            state.dtype
+        )  # [S, T, N, A]
         eye = torch.eye(N, device=state.device, dtype=state.dtype).expand(S, N, N)
         joint = onehot[:, 0].reshape(S, 1, -1).expand(S, N, -1)
-        first = self.first(torch.cat([state[:, 0].unsqueeze(1).expand(S, N, -1), joint, eye], -1)).unsqueeze(1)
+        first = self.first(
+            torch.cat([state[:, 0].unsqueeze(1).expand(S, N, -1), joint, eye], -1)
+        ).unsqueeze(1)
         later = self.later(torch.cat([obs[:, 1:], onehot[:, 1:]], -1))
         return _split(torch.cat([first, later], 1))
 
@@ -98,14 +119,30 @@ class Posterior(nn.Module):
         return combine_log_prob(z, loc, scale, mask, self.combine)
 
 
-def make_posterior(layout: ObsLayout | None = None, *, n_actions: int, z_dim: int = 32, hidden: int = 64,
-                   combine: str = "product", n_agents: int | None = None, obs_dim: int | None = None,
-                   state_dim: int | None = None) -> Posterior:
+def make_posterior(
+    layout: ObsLayout | None = None,
+    *,
+    n_actions: int,
+    z_dim: int = 32,
+    hidden: int = 64,
+    combine: str = "product",
+    n_agents: int | None = None,
+    obs_dim: int | None = None,
+    state_dim: int | None = None,
+) -> Posterior:
     """The posterior for :class:`~icco_torchrl.objectives.ICCOLoss` (see :class:`Posterior` for the sizes).
 
     A plain module, not a TensorDictModule: it scores whole segments (z of the broadcast step,
     the segment's states, actions, observations and hold mask), which the loss reads through its
     own keys (``set_keys``) and passes to it; it writes nothing into a tensordict.
     """
-    return Posterior(layout, n_actions=n_actions, z_dim=z_dim, hidden=hidden, combine=combine, n_agents=n_agents,
-                     obs_dim=obs_dim, state_dim=state_dim)
+    return Posterior(
+        layout,
+        n_actions=n_actions,
+        z_dim=z_dim,
+        hidden=hidden,
+        combine=combine,
+        n_agents=n_agents,
+        obs_dim=obs_dim,
+        state_dim=state_dim,
+    )

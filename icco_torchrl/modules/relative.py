@@ -14,6 +14,7 @@ state, a representation the networks learn from quickly (measured in
 Used by the coordinator (``method.state_encoder=relative``) and by QMIX (FULL)'s agents, so the
 full-information baseline reads the state through the same encoder as ICCO's coordinator.
 """
+
 from __future__ import annotations
 
 from typing import TYPE_CHECKING
@@ -37,31 +38,48 @@ def relative_dims(layout: ObsLayout) -> tuple[int, int, int]:
 
 def relative_tokens(state: torch.Tensor, layout: ObsLayout) -> torch.Tensor:
     """``[..., state_dim]`` -> per robot ``[..., N, own_dim + n_entities * entity_dim]``."""
-    N, T, D, K2 = layout.n_agents, layout.state_tokens, layout.state_token_dim, 2 * layout.n_waypoints
-    tok = state.unflatten(-1, (T, D))                                                       # [..., T, D]
-    me = tok[..., :N, :]                                                                     # [..., N, D]
+    N, T, D, K2 = (
+        layout.n_agents,
+        layout.state_tokens,
+        layout.state_token_dim,
+        2 * layout.n_waypoints,
+    )
+    tok = state.unflatten(-1, (T, D))  # [..., T, D]
+    me = tok[..., :N, :]  # [..., N, D]
     my_pos = me[..., 0:2]
     lead = tok.shape[:-2]
     # Entities: the T state tokens then home (the origin), each seen from every robot.
     home = torch.zeros(*lead, 1, D, dtype=state.dtype, device=state.device)
-    ents = torch.cat([tok, home], -2)                                                        # [..., T+1, D]
-    rel = ents[..., None, :, 0:2] - my_pos[..., :, None, :]                                  # [..., N, T+1, 2]
+    ents = torch.cat([tok, home], -2)  # [..., T+1, D]
+    rel = ents[..., None, :, 0:2] - my_pos[..., :, None, :]  # [..., N, T+1, 2]
     dist = rel.norm(dim=-1, keepdim=True)
-    kind = torch.cat([ents[..., 4:7], torch.zeros_like(ents[..., :1])], -1)                 # [..., T+1, 4]
-    kind[..., -1, 3] = 1.0                                                                   # home
+    kind = torch.cat([ents[..., 4:7], torch.zeros_like(ents[..., :1])], -1)  # [..., T+1, 4]
+    kind[..., -1, 3] = 1.0  # home
     # present: inactive invaders (flag 0) and the robot itself are left out of the attention
     is_invader = ents[..., 6:7] > 0
-    present = torch.where(is_invader, ents[..., 7:8], torch.ones_like(ents[..., 7:8]))      # [..., T+1, 1]
+    present = torch.where(
+        is_invader, ents[..., 7:8], torch.ones_like(ents[..., 7:8])
+    )  # [..., T+1, 1]
     present = present.unsqueeze(-3).expand(*lead, N, T + 1, 1).clone()
     present[..., torch.arange(N), torch.arange(N), 0] = 0.0
-    wp = ents[..., 9:9 + K2].unflatten(-1, (-1, 2))                                         # [..., T+1, K, 2]
+    wp = ents[..., 9 : 9 + K2].unflatten(-1, (-1, 2))  # [..., T+1, K, 2]
     is_robot = (ents[..., 4:5] > 0).unsqueeze(-1)
-    wp_rel = torch.where(is_robot.unsqueeze(-4), wp.unsqueeze(-4) - my_pos[..., :, None, None, :], 0.0)
-    shared = torch.cat([ents[..., 2:4], kind, ents[..., 7:9]], -1)                           # vel, type, flag, defended
-    tokens = torch.cat([rel, dist, shared.unsqueeze(-3).expand(*lead, N, T + 1, shared.shape[-1]),
-                        wp_rel.flatten(-2), present], -1)                                    # present last (the mask)
-    own_wp = me[..., 9:9 + K2].unflatten(-1, (-1, 2)) - my_pos.unsqueeze(-2)
-    own = torch.cat([me[..., 0:4], me[..., 7:9], own_wp.flatten(-2)], -1)                   # [..., N, own_dim]
+    wp_rel = torch.where(
+        is_robot.unsqueeze(-4), wp.unsqueeze(-4) - my_pos[..., :, None, None, :], 0.0
+    )
+    shared = torch.cat([ents[..., 2:4], kind, ents[..., 7:9]], -1)  # vel, type, flag, defended
+    tokens = torch.cat(
+        [
+            rel,
+            dist,
+            shared.unsqueeze(-3).expand(*lead, N, T + 1, shared.shape[-1]),
+            wp_rel.flatten(-2),
+            present,
+        ],
+        -1,
+    )  # present last (the mask)
+    own_wp = me[..., 9 : 9 + K2].unflatten(-1, (-1, 2)) - my_pos.unsqueeze(-2)
+    own = torch.cat([me[..., 0:4], me[..., 7:9], own_wp.flatten(-2)], -1)  # [..., N, own_dim]
     return torch.cat([own, tokens.flatten(-2)], -1)
 
 
@@ -72,11 +90,13 @@ class RelativeStateEncoder(nn.Module):
         super().__init__()
         self.layout = layout
         own_dim, n_entities, entity_dim = relative_dims(layout)
-        self.net = EntityAttentionEncoder(own_dim + extra_own, n_entities, entity_dim, hidden, masked=True)
+        self.net = EntityAttentionEncoder(
+            own_dim + extra_own, n_entities, entity_dim, hidden, masked=True
+        )
         self.own_dim = own_dim
 
     def forward(self, state: torch.Tensor, extra_own: torch.Tensor | None = None) -> torch.Tensor:
         x = relative_tokens(state, self.layout)
         if extra_own is not None:  # more own features (an agent's observation) before the tokens
-            x = torch.cat([x[..., : self.own_dim], extra_own, x[..., self.own_dim:]], -1)
+            x = torch.cat([x[..., : self.own_dim], extra_own, x[..., self.own_dim :]], -1)
         return self.net(x)

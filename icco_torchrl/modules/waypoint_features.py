@@ -9,11 +9,14 @@ over directly: the nearest waypoint (relative, 2 numbers) and the unit path dire
 a fixed function of the observation (no new information), switched on by
 ``method.waypoint_features`` (experiments/recipe/README.md measures what it buys).
 """
+
 from __future__ import annotations
 
 import torch
 
-PATH_FEATURES = 4  # nearest waypoint (x, y) relative to the robot, unit direction nearest -> second-nearest
+PATH_FEATURES = (
+    4  # nearest waypoint (x, y) relative to the robot, unit direction nearest -> second-nearest
+)
 
 
 def path_features(rel_wp: torch.Tensor) -> torch.Tensor:
@@ -22,9 +25,11 @@ def path_features(rel_wp: torch.Tensor) -> torch.Tensor:
     Ties go to the lower waypoint index, as in the env's reward; a zero path gives a zero direction.
     """
     if rel_wp.shape[-2] < 2 or rel_wp.shape[-1] != 2:
-        raise ValueError(f"path_features needs [..., K>=2, 2] relative waypoints, got {tuple(rel_wp.shape)}")
-    d = rel_wp.square().sum(-1)                                                    # [..., K]
-    nearest = d.argmin(-1, keepdim=True)                                           # [..., 1]
+        raise ValueError(
+            f"path_features needs [..., K>=2, 2] relative waypoints, got {tuple(rel_wp.shape)}"
+        )
+    d = rel_wp.square().sum(-1)  # [..., K]
+    nearest = d.argmin(-1, keepdim=True)  # [..., 1]
     second = d.scatter(-1, nearest, float("inf")).argmin(-1, keepdim=True)
     take = lambda i: rel_wp.gather(-2, i.unsqueeze(-1).expand(*i.shape, 2)).squeeze(-2)  # noqa: E731
     near = take(nearest)

@@ -1,4 +1,5 @@
 """Losses and target-network updaters."""
+
 from torchrl.objectives import HardUpdate, SoftUpdate
 
 from icco_torchrl.objectives.icco_loss import ICCOLoss, NonFiniteLossError, total_loss
@@ -6,7 +7,9 @@ from icco_torchrl.objectives.icco_loss import ICCOLoss, NonFiniteLossError, tota
 __all__ = ["ICCOLoss", "NonFiniteLossError", "make_target_updater", "total_loss"]
 
 
-def make_target_updater(loss: ICCOLoss, kind: str = "hard", *, interval: int = 200, tau: float = 0.005):
+def make_target_updater(
+    loss: ICCOLoss, kind: str = "hard", *, interval: int = 200, tau: float = 0.005
+):
     """TorchRL updater for every ``target_*_params`` of ``loss``.
 
     ``kind="hard"`` copies on every ``interval``-th ``step()`` call. TorchRL's ``HardUpdate``

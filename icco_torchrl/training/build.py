@@ -5,6 +5,7 @@ the trainer, checkpoint restore (``icco eval``, ``icco instruct``, the live loop
 A method differs only by its ``method`` config group: with or without a coordinator (and its
 posterior), agents reading their local view or the global state, CE weights.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -37,8 +38,13 @@ def _conf_dir() -> Path:
 CONF_DIR = _conf_dir()
 # The methods (conf/method/*.yaml) and the paper's names for them.
 METHODS = ("icco", "icco_wo_ce", "qmix", "qmix_full")  # the paper's methods
-METHOD_LABELS = {"icco": "ICCO", "icco_wo_ce": "ICCO w/o CE", "qmix": "QMIX", "qmix_full": "QMIX (FULL)",
-                 "qmix_full_flat": "QMIX (FULL, flat)"}  # + the paper's own QMIX (FULL), a flat state vector
+METHOD_LABELS = {
+    "icco": "ICCO",
+    "icco_wo_ce": "ICCO w/o CE",
+    "qmix": "QMIX",
+    "qmix_full": "QMIX (FULL)",
+    "qmix_full_flat": "QMIX (FULL, flat)",
+}  # + the paper's own QMIX (FULL), a flat state vector
 # Env seeds relative to cfg.seed: training uses the seed itself, the evaluations during training
 # seed + VALIDATION_SEED_OFFSET, evaluations of a trained policy (icco eval/instruct, restore) seed +
 # EVAL_SEED_OFFSET, so none replays another's episodes; evaluation episode e draws its reference
@@ -57,15 +63,33 @@ def compose_config(overrides: list[str] | None = None, config_name: str = "confi
     return validate(cfg)
 
 
-def make_env(cfg: DictConfig, *, num_envs: int | None = None, seed: int | None = None,
-             device: torch.device | str = "cpu", **overrides) -> TransformedEnv:
+def make_env(
+    cfg: DictConfig,
+    *,
+    num_envs: int | None = None,
+    seed: int | None = None,
+    device: torch.device | str = "cpu",
+    **overrides,
+) -> TransformedEnv:
     """The batched env with the primer that carries the policy's recurrent state."""
     params = {**OmegaConf.to_container(cfg.env.params, resolve=True), **overrides}
-    base = ResourceCollectionEnv(num_envs=num_envs or cfg.env.num_envs, device=device,
-                                 seed=cfg.seed if seed is None else seed, **params)
+    base = ResourceCollectionEnv(
+        num_envs=num_envs or cfg.env.num_envs,
+        device=device,
+        seed=cfg.seed if seed is None else seed,
+        **params,
+    )
     m = cfg.method
-    return TransformedEnv(base, make_primer(base.n_agents, m.hidden, m.z_dim if m.coordinator else 0, device=device,
-                                            n_actions=action_count(base)))
+    return TransformedEnv(
+        base,
+        make_primer(
+            base.n_agents,
+            m.hidden,
+            m.z_dim if m.coordinator else 0,
+            device=device,
+            n_actions=action_count(base),
+        ),
+    )
 
 
 def action_count(env) -> int:
@@ -77,19 +101,37 @@ def make_modules(cfg: DictConfig, layout, device, *, n_actions: int) -> dict:
     """Agent, mixer and (for ICCO) coordinator and posterior, on ``device``."""
     m = cfg.method
     z_dim = m.z_dim if m.coordinator else 0
-    mods = {"agent": make_agent(layout, n_actions=n_actions, hidden=m.hidden, z_dim=z_dim, full_state=m.full_state,
-                                encoder=m.encoder, state_encoder=m.state_encoder,
-                                value_heads=2 if m.instruction_head else 1, waypoint_features=m.waypoint_features,
-                                z_input=m.z_input),
-            "mixer": make_mixer(layout.state_dim, layout.n_agents, device=device),
-            "coordinator": None, "posterior": None}
+    mods = {
+        "agent": make_agent(
+            layout,
+            n_actions=n_actions,
+            hidden=m.hidden,
+            z_dim=z_dim,
+            full_state=m.full_state,
+            encoder=m.encoder,
+            state_encoder=m.state_encoder,
+            value_heads=2 if m.instruction_head else 1,
+            waypoint_features=m.waypoint_features,
+            z_input=m.z_input,
+        ),
+        "mixer": make_mixer(layout.state_dim, layout.n_agents, device=device),
+        "coordinator": None,
+        "posterior": None,
+    }
     if m.coordinator:
-        mods["coordinator"] = make_coordinator(layout, z_dim=m.z_dim, hidden=m.hidden, period=m.period,
-                                               encoder=m.encoder, state_encoder=m.state_encoder,
-                                               init_logvar=m.z_init_logvar)
+        mods["coordinator"] = make_coordinator(
+            layout,
+            z_dim=m.z_dim,
+            hidden=m.hidden,
+            period=m.period,
+            encoder=m.encoder,
+            state_encoder=m.state_encoder,
+            init_logvar=m.z_init_logvar,
+        )
         if m.ce_coef > 0:
-            mods["posterior"] = make_posterior(layout, n_actions=n_actions, z_dim=m.z_dim, hidden=m.hidden,
-                                               combine=m.posterior)
+            mods["posterior"] = make_posterior(
+                layout, n_actions=n_actions, z_dim=m.z_dim, hidden=m.hidden, combine=m.posterior
+            )
     for mod in mods.values():
         if mod is not None:
             mod.to(device)
@@ -98,9 +140,18 @@ def make_modules(cfg: DictConfig, layout, device, *, n_actions: int) -> dict:
 
 def make_loss(cfg: DictConfig, mods: dict) -> ICCOLoss:
     m, t = cfg.method, cfg.train
-    return ICCOLoss(mods["agent"], mods["mixer"], mods["coordinator"], mods["posterior"], gamma=t.gamma,
-                    td_lambda=t.td_lambda, double_q=t.double_q, ce_coef=m.ce_coef if m.coordinator else 0.0,
-                    entropy_coef=m.entropy_coef if m.coordinator else 0.0, split_instruction=m.instruction_head)
+    return ICCOLoss(
+        mods["agent"],
+        mods["mixer"],
+        mods["coordinator"],
+        mods["posterior"],
+        gamma=t.gamma,
+        td_lambda=t.td_lambda,
+        double_q=t.double_q,
+        ce_coef=m.ce_coef if m.coordinator else 0.0,
+        entropy_coef=m.entropy_coef if m.coordinator else 0.0,
+        split_instruction=m.instruction_head,
+    )
 
 
 def make_optimizer(cfg: DictConfig, loss: ICCOLoss) -> torch.optim.Optimizer:
@@ -141,8 +192,15 @@ class Run:
         return name in self.__dataclass_fields__
 
 
-def build(cfg: DictConfig, *, num_envs: int | None = None, seed: int | None = None, device=None,
-          for_training: bool = False, **env_overrides) -> Run:
+def build(
+    cfg: DictConfig,
+    *,
+    num_envs: int | None = None,
+    seed: int | None = None,
+    device=None,
+    for_training: bool = False,
+    **env_overrides,
+) -> Run:
     """Assemble ``cfg`` on ``device`` (default ``cfg.device``). ``num_envs``, ``seed`` and
     ``env_overrides`` change the env (an evaluation env, say); ``for_training`` applies
     ``train.env_params`` to the training env and adds the evaluation env (``train.eval_envs`` envs,
@@ -153,30 +211,62 @@ def build(cfg: DictConfig, *, num_envs: int | None = None, seed: int | None = No
     if for_training:  # training-only env parameters (reward shaping); evaluations keep env.params
         env_overrides = {**set_env_params(t.env_params), **env_overrides}
     env = make_env(cfg, num_envs=num_envs, seed=seed, device=device, **env_overrides)
-    eval_env = (make_env(cfg, num_envs=t.eval_envs, seed=cfg.seed + VALIDATION_SEED_OFFSET, device=device)
-                if for_training else None)
+    eval_env = (
+        make_env(cfg, num_envs=t.eval_envs, seed=cfg.seed + VALIDATION_SEED_OFFSET, device=device)
+        if for_training
+        else None
+    )
     layout = env.base_env.layout
     mods = make_modules(cfg, layout, device, n_actions=action_count(env))
     guide = None
-    if for_training and t.get("explore_guide"):  # exploration from a scripted policy (experiments/recipe)
+    if for_training and t.get(
+        "explore_guide"
+    ):  # exploration from a scripted policy (experiments/recipe)
         from icco_torchrl.envs.reference_policies import make_reference_policy
 
-        guide = make_reference_policy(t.explore_guide, env, radius=cfg.eval.blend_radius, seed=cfg.seed)
-    policy = make_policy(mods["agent"], env.full_action_spec_unbatched, mods["coordinator"],
-                         eps_init=t.eps_init, eps_end=t.eps_end, guide=guide)
+        guide = make_reference_policy(
+            t.explore_guide, env, radius=cfg.eval.blend_radius, seed=cfg.seed
+        )
+    policy = make_policy(
+        mods["agent"],
+        env.full_action_spec_unbatched,
+        mods["coordinator"],
+        eps_init=t.eps_init,
+        eps_end=t.eps_end,
+        guide=guide,
+    )
     loss = make_loss(cfg, mods)
-    run = Run(cfg=cfg, env=env, layout=layout, **mods, policy=policy, loss=loss,
-              cutter=SegmentCutter(length=cfg.method.period), eval_env=eval_env)
+    run = Run(
+        cfg=cfg,
+        env=env,
+        layout=layout,
+        **mods,
+        policy=policy,
+        loss=loss,
+        cutter=SegmentCutter(length=cfg.method.period),
+        eval_env=eval_env,
+    )
     if for_training:
         run.optim = make_optimizer(cfg, loss)
-        run.updater = make_target_updater(loss, t.target_update, interval=t.target_update_interval, tau=t.tau)
-        run.buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(t.buffer_segments, device=device),
-                                            sampler=RandomSampler(), batch_size=t.batch_segments)
+        run.updater = make_target_updater(
+            loss, t.target_update, interval=t.target_update_interval, tau=t.tau
+        )
+        run.buffer = TensorDictReplayBuffer(
+            storage=LazyTensorStorage(t.buffer_segments, device=device),
+            sampler=RandomSampler(),
+            batch_size=t.batch_segments,
+        )
     return run
 
 
-def build_components(cfg: DictConfig | None = None, *, method: str | None = None, num_envs: int | None = None,
-                     device: str = "cpu", seed: int = 0) -> Run:
+def build_components(
+    cfg: DictConfig | None = None,
+    *,
+    method: str | None = None,
+    num_envs: int | None = None,
+    device: str = "cpu",
+    seed: int = 0,
+) -> Run:
     """:func:`build` for scripts and tests: the composed config of ``method`` when no ``cfg`` is given."""
     if cfg is None:
         cfg = compose_config([f"method={method or 'icco'}", f"seed={seed}", f"device={device}"])

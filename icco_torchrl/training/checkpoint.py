@@ -5,6 +5,7 @@ Checkpoints hold only tensors and plain Python data, and are read with
 filled part of the buffer as memory-mapped tensors (no pickle) with a checksummed manifest, so
 a damaged dump is refused instead of resuming on garbage.
 """
+
 from __future__ import annotations
 
 import json
@@ -53,7 +54,10 @@ def _to_plain(obj):
     """``obj`` with numpy arrays and scalars turned into tensors and Python scalars (weights-only loadable)."""
     if isinstance(obj, dict):
         return {k: _to_plain(v) for k, v in obj.items()}
-    if type(obj) in (list, tuple):  # not namedtuples: they are classes, which a checkpoint never holds
+    if type(obj) in (
+        list,
+        tuple,
+    ):  # not namedtuples: they are classes, which a checkpoint never holds
         return type(obj)(_to_plain(v) for v in obj)
     if isinstance(obj, np.ndarray):
         return {_NDARRAY: torch.from_numpy(np.array(obj, copy=True))}
@@ -68,7 +72,10 @@ def _from_plain(obj):
         if set(obj) == {_NDARRAY} and isinstance(obj[_NDARRAY], torch.Tensor):
             return obj[_NDARRAY].numpy()
         return {k: _from_plain(v) for k, v in obj.items()}
-    if type(obj) in (list, tuple):  # not namedtuples: they are classes, which a checkpoint never holds
+    if type(obj) in (
+        list,
+        tuple,
+    ):  # not namedtuples: they are classes, which a checkpoint never holds
         return type(obj)(_from_plain(v) for v in obj)
     return obj
 
@@ -129,20 +136,29 @@ def load_checkpoint(path: str | Path, map_location="cpu") -> dict[str, Any]:
     except Exception as err:  # torch raises several types for truncated/corrupt files
         unsafe = re.search(r"Unsupported global: GLOBAL (\S+)", str(err))
         if unsafe:  # torch's message is a page long; one line says what matters
-            raise CheckpointError(f"checkpoint {path} refers to {unsafe.group(1)}, which a checkpoint never holds: "
-                                  "refusing to load it (a crafted or foreign file)") from None
-        raise CheckpointError(f"checkpoint {path} is truncated or not a checkpoint ({type(err).__name__}: "
-                              f"{_one_line(err)})") from None
+            raise CheckpointError(
+                f"checkpoint {path} refers to {unsafe.group(1)}, which a checkpoint never holds: "
+                "refusing to load it (a crafted or foreign file)"
+            ) from None
+        raise CheckpointError(
+            f"checkpoint {path} is truncated or not a checkpoint ({type(err).__name__}: "
+            f"{_one_line(err)})"
+        ) from None
     if not isinstance(payload, dict) or "format_version" not in payload:
         raise CheckpointError(f"{path} is not an icco-torchrl checkpoint")
     if payload["format_version"] != FORMAT_VERSION:
-        raise CheckpointError(f"{path} has checkpoint format {payload['format_version']}; this version of icco-torchrl "
-                              f"reads format {FORMAT_VERSION} (the networks changed): retrain, or evaluate it with the "
-                              "release that wrote it")
+        raise CheckpointError(
+            f"{path} has checkpoint format {payload['format_version']}; this version of icco-torchrl "
+            f"reads format {FORMAT_VERSION} (the networks changed): retrain, or evaluate it with the "
+            "release that wrote it"
+        )
     payload = _from_plain(payload)
     from icco_torchrl.training.config import METHOD_FIELDS_ADDED
+
     method = payload.get("cfg", {}).get("method")
-    if isinstance(method, dict):  # a field the checkpoint lacks was added later: it had the old behaviour
+    if isinstance(
+        method, dict
+    ):  # a field the checkpoint lacks was added later: it had the old behaviour
         for key, value in METHOD_FIELDS_ADDED.items():
             method.setdefault(key, value)
     return payload
@@ -159,12 +175,16 @@ def load_weights(loss, state_dict: dict, path: str | Path, method: str) -> None:
     missing, unexpected = sorted(set(expected) - set(given)), sorted(set(given) - set(expected))
     reshaped = sorted(k for k in set(expected) & set(given) if expected[k] != given[k])
     if missing or unexpected or reshaped:
-        raise CheckpointError(f"checkpoint {path} does not match the {method} networks: missing {missing[:4]}, "
-                              f"unexpected {unexpected[:4]}, other shapes {reshaped[:4]}")
+        raise CheckpointError(
+            f"checkpoint {path} does not match the {method} networks: missing {missing[:4]}, "
+            f"unexpected {unexpected[:4]}, other shapes {reshaped[:4]}"
+        )
     try:
         loss.load_state_dict(state_dict)
     except (RuntimeError, KeyError) as err:
-        raise CheckpointError(f"checkpoint {path} does not match the {method} networks: {err}") from None
+        raise CheckpointError(
+            f"checkpoint {path} does not match the {method} networks: {err}"
+        ) from None
 
 
 def check_compatible(ckpt: dict[str, Any], cfg, layout, path: str | Path) -> None:
@@ -177,13 +197,20 @@ def check_compatible(ckpt: dict[str, Any], cfg, layout, path: str | Path) -> Non
     cfg = cfg if isinstance(cfg, dict) else OmegaConf.to_container(cfg, resolve=True)
     # ``ckpt`` comes from load_checkpoint, which filled in the method fields added since it was written.
     saved_m, m = ckpt["cfg"]["method"], cfg["method"]
-    method = [f"method.{key}: checkpoint {saved_m.get(key)!r} vs config {m.get(key)!r}"
-              for key in sorted(set(saved_m) | set(m)) if key != "name" and saved_m.get(key) != m.get(key)]
+    method = [
+        f"method.{key}: checkpoint {saved_m.get(key)!r} vs config {m.get(key)!r}"
+        for key in sorted(set(saved_m) | set(m))
+        if key != "name" and saved_m.get(key) != m.get(key)
+    ]
     saved_layout = ckpt.get("layout") or {}
-    shape = [f"{key}: checkpoint {value} vs env {getattr(layout, key)}"
-             for key, value in saved_layout.items() if value != getattr(layout, key)]
-    problems = ([f"was trained with an incompatible config: {'; '.join(method)}"] if method else []) + \
-               ([f"was trained for another env layout: {'; '.join(shape)}"] if shape else [])
+    shape = [
+        f"{key}: checkpoint {value} vs env {getattr(layout, key)}"
+        for key, value in saved_layout.items()
+        if value != getattr(layout, key)
+    ]
+    problems = (
+        [f"was trained with an incompatible config: {'; '.join(method)}"] if method else []
+    ) + ([f"was trained for another env layout: {'; '.join(shape)}"] if shape else [])
     if problems:
         raise CheckpointError(f"checkpoint {path} " + ", and ".join(problems))
 
@@ -212,11 +239,18 @@ def _dump_buffer(buffer, folder: Path) -> None:
         raise ValueError(f"save_replay supports storages with ndim=1, got ndim={storage.ndim}")
     n = len(storage)
     if n:  # only the filled slots: a dump is sized by what it holds, not by the capacity
-        storage._storage[:n].cpu().memmap(prefix=folder / STORAGE_DIR)  # CPU: loadable on any machine
+        storage._storage[:n].cpu().memmap(
+            prefix=folder / STORAGE_DIR
+        )  # CPU: loadable on any machine
     files = sorted(f for f in folder.rglob("*") if f.is_file())
-    manifest = {"format": REPLAY_FORMAT, "segments": n, "capacity": storage.max_size,
-                "cursor": int(writer._cursor), "write_count": int(writer._write_count),
-                "files": {f.relative_to(folder).as_posix(): _file_digest(f) for f in files}}
+    manifest = {
+        "format": REPLAY_FORMAT,
+        "segments": n,
+        "capacity": storage.max_size,
+        "cursor": int(writer._cursor),
+        "write_count": int(writer._write_count),
+        "files": {f.relative_to(folder).as_posix(): _file_digest(f) for f in files},
+    }
     (folder / MANIFEST).write_text(json.dumps(manifest, indent=1))
 
 
@@ -245,8 +279,10 @@ def save_replay(buffer, path: str | Path) -> Path:
 
 
 def _damaged(path: Path, what: str) -> CheckpointError:
-    return CheckpointError(f"replay buffer dump {path} is damaged: {what}; delete {path} to resume with an "
-                           "empty buffer (the checkpoint itself is intact)")
+    return CheckpointError(
+        f"replay buffer dump {path} is damaged: {what}; delete {path} to resume with an "
+        "empty buffer (the checkpoint itself is intact)"
+    )
 
 
 def _read_manifest(path: Path) -> dict:
@@ -254,13 +290,19 @@ def _read_manifest(path: Path) -> dict:
     try:
         manifest = json.loads((path / MANIFEST).read_text())
     except FileNotFoundError:
-        raise _damaged(path, f"{MANIFEST} is missing (an interrupted dump, or one written by an older "
-                             "icco-torchrl)") from None
+        raise _damaged(
+            path,
+            f"{MANIFEST} is missing (an interrupted dump, or one written by an older icco-torchrl)",
+        ) from None
     except (OSError, ValueError) as err:
         raise _damaged(path, f"{MANIFEST} is unreadable ({type(err).__name__})") from None
     keys = {"format", "segments", "capacity", "cursor", "write_count", "files"}
-    if not isinstance(manifest, dict) or manifest.get("format") != REPLAY_FORMAT or not keys <= set(manifest) \
-            or not isinstance(manifest["files"], dict):
+    if (
+        not isinstance(manifest, dict)
+        or manifest.get("format") != REPLAY_FORMAT
+        or not keys <= set(manifest)
+        or not isinstance(manifest["files"], dict)
+    ):
         raise _damaged(path, f"{MANIFEST} is not a format-{REPLAY_FORMAT} replay manifest")
     root = path.resolve()
     for name, expected in manifest["files"].items():
@@ -289,7 +331,9 @@ def _restore_buffer(buffer, path: Path, manifest: dict) -> None:
     data = TensorDict.load_memmap(path / STORAGE_DIR, allow_pickle=False)
     if data.batch_size[0] != n:
         raise _damaged(path, f"{STORAGE_DIR} holds {data.batch_size[0]} segments, the manifest {n}")
-    if isinstance(buffer.storage.device, torch.device):  # indexed writes need data on the storage's device
+    if isinstance(
+        buffer.storage.device, torch.device
+    ):  # indexed writes need data on the storage's device
         data = data.to(buffer.storage.device)
     capacity = buffer.storage.max_size
     if manifest["capacity"] != capacity:  # train.buffer_segments changed: keep the newest, in order
@@ -320,6 +364,8 @@ def load_replay(buffer, path: str | Path) -> bool:
     except CheckpointError:
         raise
     except Exception as err:  # a foreign dump: one clear line, not a torch traceback
-        raise CheckpointError(f"replay buffer dump {path} is unreadable ({type(err).__name__}: {_one_line(err)}); "
-                              "delete it to resume with an empty buffer") from None
+        raise CheckpointError(
+            f"replay buffer dump {path} is unreadable ({type(err).__name__}: {_one_line(err)}); "
+            "delete it to resume with an empty buffer"
+        ) from None
     return True

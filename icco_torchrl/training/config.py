@@ -13,6 +13,7 @@ Hydra would report while composing.
 The env parameters (``env.params``) are :class:`ResourceCollectionEnv`'s keyword arguments,
 generated from its signature: their defaults and their documentation are the env's own.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -32,8 +33,14 @@ class ConfigError(ValueError):
     """A config value is missing, unknown, ill-typed or out of range."""
 
 
-def _field(default, *, choices: tuple | None = None, gt: float | None = None, ge: float | None = None,
-           le: float | None = None):
+def _field(
+    default,
+    *,
+    choices: tuple | None = None,
+    gt: float | None = None,
+    ge: float | None = None,
+    le: float | None = None,
+):
     """A dataclass field with its allowed values (checked by :func:`validate`)."""
     meta = {k: v for k, v in dict(choices=choices, gt=gt, ge=ge, le=le).items() if v is not None}
     if isinstance(default, list):
@@ -45,21 +52,33 @@ def _field(default, *, choices: tuple | None = None, gt: float | None = None, ge
 class MethodConfig:
     """``method``: which learner (presets ``conf/method/``: icco (these defaults), icco_wo_ce, qmix, qmix_full)."""
 
-    name: str = "icco"                                     # the method's name: run folders, tables
-    coordinator: bool = True                               # a coordinator g_phi(s, v) broadcasts z per robot
-    full_state: bool = False                               # agents also read the global state (QMIX (FULL))
-    ce_coef: float = _field(1e-4, ge=0)                    # weight of -log q_xi(z | future behaviour) (COPA: 1e-3; 1e-3 measured to cost the task here, experiments/recipe)
-    entropy_coef: float = _field(1e-4, ge=0)               # weight of -H(z | s, v) (COPA: 1e-4)
-    posterior: str = _field("product", choices=("product", "sum"))  # product of Gaussian factors | sum of log-likelihoods (COPA)
-    encoder: str = _field("attention", choices=("attention", "mlp"))  # local observation encoder: entity tokens | flat MLP
-    state_encoder: str = _field("relative", choices=("relative", "flat"))  # global-state encoder (coordinator, QMIX (FULL)): entities seen from each robot | absolute
-    z_init_logvar: float = _field(-5.0, ge=-10, le=0)      # initial log-variance bias of z, in COPA's clamp [-10, 0] (0 measured slower)
-    hidden: int = _field(64, gt=0)                         # width of encoders, GRU and heads
-    z_dim: int = _field(32, ge=0)                          # TACI size per robot (COPA: 128); 0 without a coordinator
-    period: int = _field(4, gt=0)                          # z is redrawn every `period` steps and held in between (T)
-    z_input: str = _field("head", choices=("head", "gru"))  # z joins the Q head's input (COPA) | the GRU's input
-    waypoint_features: bool = True                         # agents also read the nearest own waypoint and the path direction r_inst scores (modules/waypoint_features.py)
-    instruction_head: bool = False                         # a separate value head for the instruction reward, Q = Q_task + Q_inst (experiments/recipe; not kept)
+    name: str = "icco"  # the method's name: run folders, tables
+    coordinator: bool = True  # a coordinator g_phi(s, v) broadcasts z per robot
+    full_state: bool = False  # agents also read the global state (QMIX (FULL))
+    ce_coef: float = _field(
+        1e-4, ge=0
+    )  # weight of -log q_xi(z | future behaviour) (COPA: 1e-3; 1e-3 measured to cost the task here, experiments/recipe)
+    entropy_coef: float = _field(1e-4, ge=0)  # weight of -H(z | s, v) (COPA: 1e-4)
+    posterior: str = _field(
+        "product", choices=("product", "sum")
+    )  # product of Gaussian factors | sum of log-likelihoods (COPA)
+    encoder: str = _field(
+        "attention", choices=("attention", "mlp")
+    )  # local observation encoder: entity tokens | flat MLP
+    state_encoder: str = _field(
+        "relative", choices=("relative", "flat")
+    )  # global-state encoder (coordinator, QMIX (FULL)): entities seen from each robot | absolute
+    z_init_logvar: float = _field(
+        -5.0, ge=-10, le=0
+    )  # initial log-variance bias of z, in COPA's clamp [-10, 0] (0 measured slower)
+    hidden: int = _field(64, gt=0)  # width of encoders, GRU and heads
+    z_dim: int = _field(32, ge=0)  # TACI size per robot (COPA: 128); 0 without a coordinator
+    period: int = _field(4, gt=0)  # z is redrawn every `period` steps and held in between (T)
+    z_input: str = _field(
+        "head", choices=("head", "gru")
+    )  # z joins the Q head's input (COPA) | the GRU's input
+    waypoint_features: bool = True  # agents also read the nearest own waypoint and the path direction r_inst scores (modules/waypoint_features.py)
+    instruction_head: bool = False  # a separate value head for the instruction reward, Q = Q_task + Q_inst (experiments/recipe; not kept)
 
 
 # Method fields added after checkpoints had been written, with the value those older checkpoints
@@ -76,22 +95,31 @@ def _env_params_schema(name: str = "EnvParams", unset: bool = False) -> type:
     for arg, p in inspect.signature(ResourceCollectionEnv.__init__).parameters.items():
         if p.kind is p.KEYWORD_ONLY:
             kind = kinds[str(p.annotation)]
-            fields.append((arg, Optional[kind], dataclasses.field(default=None)) if unset
-                          else (arg, kind, dataclasses.field(default=p.default)))
+            fields.append(
+                (arg, Optional[kind], dataclasses.field(default=None))
+                if unset
+                else (arg, kind, dataclasses.field(default=p.default))
+            )
     schema = dataclasses.make_dataclass(name, fields)
     schema.__module__ = __name__  # pickled configs (submitit, Ray) refer to it here
     return schema
 
 
 EnvParams = _env_params_schema()
-EnvParams.__doc__ = "``env.params``: ResourceCollectionEnv's keyword arguments (see its docstring for each)."
+EnvParams.__doc__ = (
+    "``env.params``: ResourceCollectionEnv's keyword arguments (see its docstring for each)."
+)
 TrainEnvParams = _env_params_schema("TrainEnvParams", unset=True)
-TrainEnvParams.__doc__ = "``train.env_params``: env.params overrides for the training env only (None: as env.params)."
+TrainEnvParams.__doc__ = (
+    "``train.env_params``: env.params overrides for the training env only (None: as env.params)."
+)
 
 
 def set_env_params(params) -> dict:
     """The fields of a ``train.env_params`` node that are set (not None), as a plain dict."""
-    params = OmegaConf.to_container(params, resolve=True) if not isinstance(params, dict) else params
+    params = (
+        OmegaConf.to_container(params, resolve=True) if not isinstance(params, dict) else params
+    )
     return {k: v for k, v in params.items() if v is not None}
 
 
@@ -99,9 +127,11 @@ def set_env_params(params) -> dict:
 class EnvConfig:
     """``env``: the task (``conf/env/resource_collection.yaml``); reward weights come from the ``reward`` presets."""
 
-    name: str = "resource_collection"                      # the task
-    num_envs: int = _field(32, gt=0)                       # envs stepped together by the collector
-    params: EnvParams = field(default_factory=EnvParams)   # ResourceCollectionEnv's keyword arguments (its defaults)
+    name: str = "resource_collection"  # the task
+    num_envs: int = _field(32, gt=0)  # envs stepped together by the collector
+    params: EnvParams = field(
+        default_factory=EnvParams
+    )  # ResourceCollectionEnv's keyword arguments (its defaults)
 
 
 @dataclass
@@ -110,30 +140,56 @@ class TrainConfig:
     inst_only). Each lever of the default recipe was measured against the session-1 recipe
     (``experiments/recipe/README.md``)."""
 
-    total_frames: int = _field(1_000_000, gt=0)            # env steps (one step of one env) to collect
-    steps_per_batch: int = _field(16, gt=0)                # collector steps per env per batch (frames_per_batch = num_envs * this)
-    buffer_segments: int = _field(20_000, gt=0)            # replay capacity in segments of `method.period` steps
-    batch_segments: int = _field(128, gt=0)                # segments per gradient update (COPA: 512)
-    updates_per_batch: int = _field(8, ge=1)               # gradient updates per collector batch (~8 replayed transitions per new one)
-    warmup_segments: int = _field(512, ge=0)               # no updates until the buffer holds this many segments
-    lr: float = _field(1e-3, gt=0)                         # learning rate (COPA: RMSprop 3e-4; Adam 1e-3 learns the task ~2x faster here)
-    optimizer: str = _field("adam", choices=("adam", "rmsprop"))  # adam | rmsprop (alpha 0.99, eps 1e-5, COPA)
-    grad_clip: float = _field(10.0, ge=0)                  # global grad-norm clip (0 disables)
-    gamma: float = _field(0.99, ge=0, le=1)                # discount
-    td_lambda: float = _field(0.0, ge=0, le=1)             # TD(lambda) inside each replayed segment (0: one-step TD; 0.8 measured worse)
-    double_q: bool = True                                  # bootstrap with the online argmax (pymarl) instead of the target's
-    target_update: str = _field("hard", choices=("hard", "soft"))  # hard (copy every interval updates, COPA) | soft (Polyak, tau)
-    target_update_interval: int = _field(50, gt=0)         # updates between hard copies (COPA: 200)
-    tau: float = _field(0.005, gt=0, le=1)                 # Polyak rate of soft updates
-    eps_init: float = _field(1.0, ge=0, le=1)              # epsilon-greedy start
-    eps_end: float = _field(0.05, ge=0, le=1)              # epsilon-greedy floor
-    eps_decay_frames: int = _field(300_000, ge=0)          # exponential decay from eps_init to eps_end over these frames
-    eval_interval: int = _field(100_000, ge=0)             # frames between greedy evaluations (0: only at the end)
-    eval_envs: int = _field(16, gt=0)                      # evaluation episodes (parallel envs), the same ones every time
-    checkpoint_interval: int = _field(100_000, ge=0)       # frames between checkpoints (0: only at the end)
-    checkpoint_buffer: bool = True                         # also save the replay buffer (replay/, ~22 KB per segment) so resume keeps it
-    threads: int = _field(1, gt=0)                         # torch CPU threads (1 is the stable choice on shared machines)
-    explore_guide: Optional[str] = _field(None, choices=(None, *REFERENCE_POLICIES))  # exploratory actions from this reference policy instead of uniform draws (experiments/recipe)
+    total_frames: int = _field(1_000_000, gt=0)  # env steps (one step of one env) to collect
+    steps_per_batch: int = _field(
+        16, gt=0
+    )  # collector steps per env per batch (frames_per_batch = num_envs * this)
+    buffer_segments: int = _field(
+        20_000, gt=0
+    )  # replay capacity in segments of `method.period` steps
+    batch_segments: int = _field(128, gt=0)  # segments per gradient update (COPA: 512)
+    updates_per_batch: int = _field(
+        8, ge=1
+    )  # gradient updates per collector batch (~8 replayed transitions per new one)
+    warmup_segments: int = _field(512, ge=0)  # no updates until the buffer holds this many segments
+    lr: float = _field(
+        1e-3, gt=0
+    )  # learning rate (COPA: RMSprop 3e-4; Adam 1e-3 learns the task ~2x faster here)
+    optimizer: str = _field(
+        "adam", choices=("adam", "rmsprop")
+    )  # adam | rmsprop (alpha 0.99, eps 1e-5, COPA)
+    grad_clip: float = _field(10.0, ge=0)  # global grad-norm clip (0 disables)
+    gamma: float = _field(0.99, ge=0, le=1)  # discount
+    td_lambda: float = _field(
+        0.0, ge=0, le=1
+    )  # TD(lambda) inside each replayed segment (0: one-step TD; 0.8 measured worse)
+    double_q: bool = True  # bootstrap with the online argmax (pymarl) instead of the target's
+    target_update: str = _field(
+        "hard", choices=("hard", "soft")
+    )  # hard (copy every interval updates, COPA) | soft (Polyak, tau)
+    target_update_interval: int = _field(50, gt=0)  # updates between hard copies (COPA: 200)
+    tau: float = _field(0.005, gt=0, le=1)  # Polyak rate of soft updates
+    eps_init: float = _field(1.0, ge=0, le=1)  # epsilon-greedy start
+    eps_end: float = _field(0.05, ge=0, le=1)  # epsilon-greedy floor
+    eps_decay_frames: int = _field(
+        300_000, ge=0
+    )  # exponential decay from eps_init to eps_end over these frames
+    eval_interval: int = _field(
+        100_000, ge=0
+    )  # frames between greedy evaluations (0: only at the end)
+    eval_envs: int = _field(
+        16, gt=0
+    )  # evaluation episodes (parallel envs), the same ones every time
+    checkpoint_interval: int = _field(
+        100_000, ge=0
+    )  # frames between checkpoints (0: only at the end)
+    checkpoint_buffer: bool = (
+        True  # also save the replay buffer (replay/, ~22 KB per segment) so resume keeps it
+    )
+    threads: int = _field(1, gt=0)  # torch CPU threads (1 is the stable choice on shared machines)
+    explore_guide: Optional[str] = _field(
+        None, choices=(None, *REFERENCE_POLICIES)
+    )  # exploratory actions from this reference policy instead of uniform draws (experiments/recipe)
     # env.params overrides for the training env only (reward shaping, e.g. train.env_params.collect_reward=3.5):
     # the evaluations during training, `icco eval` and every restore use env.params, so shaping never
     # changes what is scored. May change at resume (a curriculum); replayed data keeps its old rewards.
@@ -144,18 +200,20 @@ class TrainConfig:
 class WandbConfig:
     """``logger.wandb``: optional; never needs a network or an account for ``offline``."""
 
-    mode: str = _field("disabled", choices=("disabled", "offline", "online"))  # disabled | offline (./wandb, syncable) | online
-    project: str = "icco-torchrl"                          # wandb project name
-    entity: Optional[str] = None                           # wandb entity (team/user); null: the default
-    group: Optional[str] = None                            # wandb group (e.g. a sweep name); null: the method name
+    mode: str = _field(
+        "disabled", choices=("disabled", "offline", "online")
+    )  # disabled | offline (./wandb, syncable) | online
+    project: str = "icco-torchrl"  # wandb project name
+    entity: Optional[str] = None  # wandb entity (team/user); null: the default
+    group: Optional[str] = None  # wandb group (e.g. a sweep name); null: the method name
 
 
 @dataclass
 class LoggerConfig:
     """``logger``: CSV files always, the progress bar and wandb on request."""
 
-    progress: bool = True                                  # tqdm progress bar with SPS, team reward and event counts
-    log_interval: int = _field(1, gt=0)                    # a train.csv row every this many collector batches
+    progress: bool = True  # tqdm progress bar with SPS, team reward and event counts
+    log_interval: int = _field(1, gt=0)  # a train.csv row every this many collector batches
     wandb: WandbConfig = field(default_factory=WandbConfig)
 
 
@@ -163,16 +221,28 @@ class LoggerConfig:
 class EvalConfig:
     """``eval``: ``icco eval`` and ``icco instruct`` (protocols, trials, outputs, reference rows)."""
 
-    protocol: str = _field("random_walk", choices=("random_walk", "quadrants"))  # training distribution | paper Fig. 4/5a
-    trials: int = _field(20, gt=0)                         # evaluation episodes run in parallel (one env each)
-    episodes: int = _field(1, gt=0)                        # repeats of the batch of trials
-    gif: bool = False                                      # write a GIF of trial 0
-    out_dir: Optional[str] = None                          # where results go; null: next to the checkpoint(s)
-    checkpoints: list[str] = _field([])                    # more checkpoints (paths or globs) to compare; one row per method
-    steps: int = _field(145, gt=0)                         # steps per segment (each quadrant, each `;`-separated instruction)
-    replan_every: Optional[int] = None                     # `icco instruct`: re-prompt every this many steps; null: once per instruction
-    references: list[str] = _field(list(REFERENCE_POLICIES))  # scripted reference rows beside the checkpoints ([]: none)
-    blend_radius: float = _field(1.75, ge=0)               # radius (m) of the blend reference: task within r, follow otherwise
+    protocol: str = _field(
+        "random_walk", choices=("random_walk", "quadrants")
+    )  # training distribution | paper Fig. 4/5a
+    trials: int = _field(20, gt=0)  # evaluation episodes run in parallel (one env each)
+    episodes: int = _field(1, gt=0)  # repeats of the batch of trials
+    gif: bool = False  # write a GIF of trial 0
+    out_dir: Optional[str] = None  # where results go; null: next to the checkpoint(s)
+    checkpoints: list[str] = _field(
+        []
+    )  # more checkpoints (paths or globs) to compare; one row per method
+    steps: int = _field(
+        145, gt=0
+    )  # steps per segment (each quadrant, each `;`-separated instruction)
+    replan_every: Optional[int] = (
+        None  # `icco instruct`: re-prompt every this many steps; null: once per instruction
+    )
+    references: list[str] = _field(
+        list(REFERENCE_POLICIES)
+    )  # scripted reference rows beside the checkpoints ([]: none)
+    blend_radius: float = _field(
+        1.75, ge=0
+    )  # radius (m) of the blend reference: task within r, follow otherwise
 
 
 @dataclass
@@ -183,18 +253,26 @@ class LLMConfig:
     environment variables, never from a config.
     """
 
-    backend: str = "offline"                               # offline | openai | ollama | any litellm model string
-    model: Optional[str] = "offline/rule-planner"          # litellm model string; null: the backend's default model
-    api_base: Optional[str] = None                         # provider URL; null: the provider's default
-    temperature: float = _field(0.0, ge=0)                 # sampling temperature sent with the request
-    timeout_s: float = _field(10.0, ge=0)                  # seconds per request before it counts as a failed attempt
-    deadline_s: float = _field(30.0, ge=0)                 # seconds for a whole plan (every attempt and pause)
-    fallback_on_error: bool = False                        # false: no reply at all stops the run in one line; true: plan with fallbacks
-    max_retries: int = _field(2, ge=0)                     # extra attempts after a bad reply or a provider error
-    backoff_s: float = _field(0.5, ge=0)                   # pause after a provider error, doubled per attempt
-    cache_dir: Optional[str] = None                        # cached replies (one JSON file per request); null disables
-    prompt: str = _field("plain", choices=("plain", "tap"))  # the paper's prompt | task-aligned (QMIX-TAP)
-    n_waypoints: int = _field(4, gt=0)                     # K waypoints per agent; must equal env.params.n_waypoints
+    backend: str = "offline"  # offline | openai | ollama | any litellm model string
+    model: Optional[str] = (
+        "offline/rule-planner"  # litellm model string; null: the backend's default model
+    )
+    api_base: Optional[str] = None  # provider URL; null: the provider's default
+    temperature: float = _field(0.0, ge=0)  # sampling temperature sent with the request
+    timeout_s: float = _field(
+        10.0, ge=0
+    )  # seconds per request before it counts as a failed attempt
+    deadline_s: float = _field(30.0, ge=0)  # seconds for a whole plan (every attempt and pause)
+    fallback_on_error: bool = (
+        False  # false: no reply at all stops the run in one line; true: plan with fallbacks
+    )
+    max_retries: int = _field(2, ge=0)  # extra attempts after a bad reply or a provider error
+    backoff_s: float = _field(0.5, ge=0)  # pause after a provider error, doubled per attempt
+    cache_dir: Optional[str] = None  # cached replies (one JSON file per request); null disables
+    prompt: str = _field(
+        "plain", choices=("plain", "tap")
+    )  # the paper's prompt | task-aligned (QMIX-TAP)
+    n_waypoints: int = _field(4, gt=0)  # K waypoints per agent; must equal env.params.n_waypoints
 
 
 @dataclass
@@ -218,10 +296,12 @@ class LiveConfig:
 class Config:
     """The root: ``icco train|eval|instruct|live|bridge`` compose ``conf/config.yaml``'s presets onto it."""
 
-    seed: int = 0                                          # seeds torch, the env generators and the replay sampler
-    device: str = "auto"                                   # auto (cuda if present) | cpu | cuda | cuda:1 ...
-    resume: Optional[str] = None                           # a checkpoint (.pt) to continue training from
-    checkpoint: Optional[str] = None                       # a checkpoint to evaluate (`icco eval`, `icco instruct`, `icco live`)
+    seed: int = 0  # seeds torch, the env generators and the replay sampler
+    device: str = "auto"  # auto (cuda if present) | cpu | cuda | cuda:1 ...
+    resume: Optional[str] = None  # a checkpoint (.pt) to continue training from
+    checkpoint: Optional[str] = (
+        None  # a checkpoint to evaluate (`icco eval`, `icco instruct`, `icco live`)
+    )
     method: MethodConfig = field(default_factory=MethodConfig)
     env: EnvConfig = field(default_factory=EnvConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
@@ -233,8 +313,12 @@ class Config:
 
 # Schema name -> dataclass in Hydra's ConfigStore; conf/config.yaml starts from "base_config" and each
 # group's presets from "base_<group>" (for a group, the preset's fields are merged over it).
-SCHEMAS = {"base_config": (None, Config), "base_method": ("method", MethodConfig), "base_env": ("env", EnvConfig),
-           "base_llm": ("llm", LLMConfig)}
+SCHEMAS = {
+    "base_config": (None, Config),
+    "base_method": ("method", MethodConfig),
+    "base_env": ("env", EnvConfig),
+    "base_llm": ("llm", LLMConfig),
+}
 
 
 def register_configs() -> None:
@@ -248,8 +332,15 @@ def register_configs() -> None:
 
 register_configs()
 
-_LIVE_POSITIVE = ("live.rate_hz", "live.timeout_s", "live.max_speed", "live.max_turn", "live.max_accel",
-                  "live.max_turn_accel", "live.robot_radius")
+_LIVE_POSITIVE = (
+    "live.rate_hz",
+    "live.timeout_s",
+    "live.max_speed",
+    "live.max_turn",
+    "live.max_accel",
+    "live.max_turn_accel",
+    "live.robot_radius",
+)
 
 
 def _field_error(err: OmegaConfBaseException) -> ConfigError:
@@ -262,16 +353,23 @@ def _check_fields(node, schema, prefix: str = "") -> None:
     """Choices and ranges declared on the dataclass fields (``_field``), recursively."""
     for f in dataclasses.fields(schema):
         value, key = node[f.name], f"{prefix}{f.name}"
-        if f.default_factory is not dataclasses.MISSING and dataclasses.is_dataclass(f.default_factory):
+        if f.default_factory is not dataclasses.MISSING and dataclasses.is_dataclass(
+            f.default_factory
+        ):
             _check_fields(value, f.default_factory, f"{key}.")
             continue
         meta = f.metadata
         if "choices" in meta and value not in meta["choices"]:
-            raise ConfigError(f"config field '{key}' must be one of {meta['choices']}, got {value!r}")
+            raise ConfigError(
+                f"config field '{key}' must be one of {meta['choices']}, got {value!r}"
+            )
         if value is None or isinstance(value, (str, bool)):
             continue
-        for rule, ok, word in (("gt", lambda v, b: v > b, ">"), ("ge", lambda v, b: v >= b, ">="),
-                               ("le", lambda v, b: v <= b, "<=")):
+        for rule, ok, word in (
+            ("gt", lambda v, b: v > b, ">"),
+            ("ge", lambda v, b: v >= b, ">="),
+            ("le", lambda v, b: v <= b, "<="),
+        ):
             if rule in meta and not ok(value, meta[rule]):
                 raise ConfigError(f"config field '{key}' must be {word} {meta[rule]}, got {value}")
 
@@ -288,35 +386,56 @@ def validate(cfg: DictConfig | dict) -> DictConfig:
     m, t = merged.method, merged.train
     # Rules between fields.
     if m.coordinator and m.z_dim < 1:
-        raise ConfigError("config field 'method.z_dim' must be >= 1 when method.coordinator is true")
+        raise ConfigError(
+            "config field 'method.z_dim' must be >= 1 when method.coordinator is true"
+        )
     if m.coordinator and m.full_state:
-        raise ConfigError("config fields 'method.coordinator' and 'method.full_state' are exclusive")
+        raise ConfigError(
+            "config fields 'method.coordinator' and 'method.full_state' are exclusive"
+        )
     if t.batch_segments > t.buffer_segments:
-        raise ConfigError(f"config field 'train.batch_segments' ({t.batch_segments}) exceeds "
-                          f"'train.buffer_segments' ({t.buffer_segments})")
+        raise ConfigError(
+            f"config field 'train.batch_segments' ({t.batch_segments}) exceeds "
+            f"'train.buffer_segments' ({t.buffer_segments})"
+        )
     if t.warmup_segments > t.buffer_segments:
-        raise ConfigError(f"config field 'train.warmup_segments' ({t.warmup_segments}) exceeds "
-                          f"'train.buffer_segments' ({t.buffer_segments}): training would never start")
+        raise ConfigError(
+            f"config field 'train.warmup_segments' ({t.warmup_segments}) exceeds "
+            f"'train.buffer_segments' ({t.buffer_segments}): training would never start"
+        )
     if not t.eps_end <= t.eps_init:
-        raise ConfigError("config fields 'train.eps_init'/'train.eps_end' need 0 <= eps_end <= eps_init <= 1")
+        raise ConfigError(
+            "config fields 'train.eps_init'/'train.eps_end' need 0 <= eps_end <= eps_init <= 1"
+        )
     if merged.llm.n_waypoints != merged.env.params.n_waypoints:
-        raise ConfigError(f"config field 'llm.n_waypoints' ({merged.llm.n_waypoints}) must equal "
-                          f"'env.params.n_waypoints' ({merged.env.params.n_waypoints})")
+        raise ConfigError(
+            f"config field 'llm.n_waypoints' ({merged.llm.n_waypoints}) must equal "
+            f"'env.params.n_waypoints' ({merged.env.params.n_waypoints})"
+        )
     for key in _LIVE_POSITIVE:
         if not OmegaConf.select(merged, key) > 0:
-            raise ConfigError(f"config field '{key}' must be > 0, got {OmegaConf.select(merged, key)}")
+            raise ConfigError(
+                f"config field '{key}' must be > 0, got {OmegaConf.select(merged, key)}"
+            )
     for key in ("port", "web_port"):
         if not 0 <= merged.live[key] <= 65535:
-            raise ConfigError(f"config field 'live.{key}' must be in [0, 65535], got {merged.live[key]}")
+            raise ConfigError(
+                f"config field 'live.{key}' must be in [0, 65535], got {merged.live[key]}"
+            )
     unknown = [name for name in merged.eval.references if name not in REFERENCE_POLICIES]
     if unknown:
-        raise ConfigError(f"config field 'eval.references' has unknown policies {unknown}; "
-                          f"choose from {list(REFERENCE_POLICIES)}")
+        raise ConfigError(
+            f"config field 'eval.references' has unknown policies {unknown}; "
+            f"choose from {list(REFERENCE_POLICIES)}"
+        )
     _check_env_params(merged.env.params)
     shaping = set_env_params(t.env_params)
     if shaping:
-        _check_env_params({**OmegaConf.to_container(merged.env.params, resolve=True), **shaping}, "train.env_params",
-                          only=list(shaping))
+        _check_env_params(
+            {**OmegaConf.to_container(merged.env.params, resolve=True), **shaping},
+            "train.env_params",
+            only=list(shaping),
+        )
     resolve_device(merged.device)
     return merged
 
@@ -325,15 +444,23 @@ def _check_env_params(params, prefix: str = "env.params", only=None) -> None:
     """Env parameters through the env's own checks (on a one-env instance), named by field as
     ``prefix.key``; ``only`` limits the names an error may blame (``train.env_params``' own keys,
     checked merged over ``env.params``)."""
-    params = OmegaConf.to_container(params, resolve=True) if not isinstance(params, dict) else params
+    params = (
+        OmegaConf.to_container(params, resolve=True) if not isinstance(params, dict) else params
+    )
     blame = list(params if only is None else only)
     known = {f.name for f in dataclasses.fields(EnvParams)}
     for key in blame:  # a key added with "+env.params.x=..." gets past the schema's struct flag
         if key not in known:
-            raise ConfigError(f"config field '{prefix}.{key}' is not a parameter of ResourceCollectionEnv "
-                              f"(known: {', '.join(sorted(known))})")
-    if params.get("spawn", "uniform") not in SPAWN_MODES:  # before the env's checks, which name another field first
-        raise ConfigError(f"config field '{prefix}.spawn' must be one of {SPAWN_MODES}, got {params['spawn']!r}")
+            raise ConfigError(
+                f"config field '{prefix}.{key}' is not a parameter of ResourceCollectionEnv "
+                f"(known: {', '.join(sorted(known))})"
+            )
+    if (
+        params.get("spawn", "uniform") not in SPAWN_MODES
+    ):  # before the env's checks, which name another field first
+        raise ConfigError(
+            f"config field '{prefix}.spawn' must be one of {SPAWN_MODES}, got {params['spawn']!r}"
+        )
     try:
         ResourceCollectionEnv(num_envs=1, **params)
     except (ValueError, TypeError) as err:
@@ -354,8 +481,12 @@ def check_command_line(overrides: list[str], config_name: str = "config") -> str
 
     from icco_torchrl.training.build import CONF_DIR
 
-    plain = [o for o in overrides if ("=" in o or o.startswith("~"))
-             and not o.startswith(("-", "hydra.", "hydra/", "+hydra", "~hydra"))]
+    plain = [
+        o
+        for o in overrides
+        if ("=" in o or o.startswith("~"))
+        and not o.startswith(("-", "hydra.", "hydra/", "+hydra", "~hydra"))
+    ]
     sweeps = {}
     if any(o in ("-m", "--multirun") for o in overrides):
         for i, item in enumerate(plain):
@@ -366,11 +497,16 @@ def check_command_line(overrides: list[str], config_name: str = "config") -> str
                 sweeps[i] = value.split(",")
 
     def pick(values: dict) -> list[str]:
-        return [item if i not in sweeps else f"{item.partition('=')[0]}={values[i]}"
-                for i, item in enumerate(plain) if not (i in sweeps and sweeps[i] is None)]
+        return [
+            item if i not in sweeps else f"{item.partition('=')[0]}={values[i]}"
+            for i, item in enumerate(plain)
+            if not (i in sweeps and sweeps[i] is None)
+        ]
 
     first = {i: options[0] for i, options in sweeps.items() if options}
-    variants = [pick(first)] + [pick({**first, i: v}) for i, options in sweeps.items() if options for v in options[1:]]
+    variants = [pick(first)] + [
+        pick({**first, i: v}) for i, options in sweeps.items() if options for v in options[1:]
+    ]
     for variant in variants:
         try:
             with initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
@@ -400,7 +536,9 @@ def resolve_device(name: str) -> torch.device:
         device = torch.device(name)
     except RuntimeError as err:
         raise ConfigError(f"config field 'device': {err}") from None
-    if device.type == "cuda" and (not torch.cuda.is_available() or (device.index or 0) >= torch.cuda.device_count()):
+    if device.type == "cuda" and (
+        not torch.cuda.is_available() or (device.index or 0) >= torch.cuda.device_count()
+    ):
         raise ConfigError(f"config field 'device' is {name!r} but no such CUDA device is available")
     if device.type not in ("cpu", "cuda"):
         raise ConfigError(f"config field 'device' must be auto, cpu or cuda[:i], got {name!r}")

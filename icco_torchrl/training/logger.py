@@ -5,6 +5,7 @@ a stream's columns are fixed by its first row, and a later row with other keys i
 rather than silently dropped data. ``timing`` holds wall-clock figures (SPS, timers) so the
 other streams are bit-identical between two runs with the same seed.
 """
+
 from __future__ import annotations
 
 import csv
@@ -36,8 +37,15 @@ def truncate_after(path: Path, frames: int) -> int:
 
 
 class RunLogger:
-    def __init__(self, run_dir: str | Path, cfg: DictConfig, *, total_frames: int, initial_frames: int = 0,
-                 truncate: bool = False):
+    def __init__(
+        self,
+        run_dir: str | Path,
+        cfg: DictConfig,
+        *,
+        total_frames: int,
+        initial_frames: int = 0,
+        truncate: bool = False,
+    ):
         self.run_dir = Path(run_dir)
         self.run_dir.mkdir(parents=True, exist_ok=True)
         if truncate:  # a resumed run: rows logged after its checkpoint are logged again
@@ -50,20 +58,30 @@ class RunLogger:
             os.environ.setdefault("WANDB_SILENT", "true")
             import wandb  # lazy: heavy import, optional at run time
 
-            self._wandb = wandb.init(mode=wb.mode, project=wb.project, entity=wb.entity,
-                                     group=wb.group or cfg.method.name, dir=str(self.run_dir),
-                                     name=f"{cfg.method.name}_seed{cfg.seed}",
-                                     config=OmegaConf.to_container(cfg, resolve=True))
+            self._wandb = wandb.init(
+                mode=wb.mode,
+                project=wb.project,
+                entity=wb.entity,
+                group=wb.group or cfg.method.name,
+                dir=str(self.run_dir),
+                name=f"{cfg.method.name}_seed{cfg.seed}",
+                config=OmegaConf.to_container(cfg, resolve=True),
+            )
         self._bar = None
         if cfg.logger.progress:
             from tqdm import tqdm
 
             # One throughput on the bar: the postfix's env-steps/s (collection + training, the SPS
             # of timing.csv); tqdm's own rate would also count evaluations and checkpoints.
-            self._bar = tqdm(total=total_frames, initial=initial_frames, unit="env steps", dynamic_ncols=True,
-                             desc=f"{cfg.method.name} seed {cfg.seed}",
-                             bar_format="{desc}: {percentage:3.0f}%|{bar}| {n_fmt}/{total_fmt} "
-                                        "[{elapsed}<{remaining}{postfix}]")
+            self._bar = tqdm(
+                total=total_frames,
+                initial=initial_frames,
+                unit="env steps",
+                dynamic_ncols=True,
+                desc=f"{cfg.method.name} seed {cfg.seed}",
+                bar_format="{desc}: {percentage:3.0f}%|{bar}| {n_fmt}/{total_fmt} "
+                "[{elapsed}<{remaining}{postfix}]",
+            )
 
     def log(self, stream: str, row: dict[str, float]) -> None:
         """Append ``row`` to ``<run_dir>/<stream>.csv`` (and to wandb as ``stream/key``)."""
@@ -84,14 +102,21 @@ class RunLogger:
         handle.flush()
         if self._wandb is not None:
             step = int(row.get("frames", 0))
-            self._wandb.log({f"{stream}/{k}": v for k, v in row.items() if k != "frames"}, step=step)
+            self._wandb.log(
+                {f"{stream}/{k}": v for k, v in row.items() if k != "frames"}, step=step
+            )
 
     def progress(self, frames: int, **postfix: float) -> None:
         if self._bar is None:
             return
         self._bar.update(frames - self._bar.n)
-        self._bar.set_postfix({k: (f"{v:.3g}" if isinstance(v, float) and math.isfinite(v) else v)
-                               for k, v in postfix.items()}, refresh=False)
+        self._bar.set_postfix(
+            {
+                k: (f"{v:.3g}" if isinstance(v, float) and math.isfinite(v) else v)
+                for k, v in postfix.items()
+            },
+            refresh=False,
+        )
 
     def print(self, message: str) -> None:
         """A line for the console that does not break the progress bar."""
@@ -110,7 +135,9 @@ class RunLogger:
             self._wandb.finish()
 
 
-def read_column(run_dir: str | Path, stream: str, column: str) -> tuple[np.ndarray, np.ndarray] | None:
+def read_column(
+    run_dir: str | Path, stream: str, column: str
+) -> tuple[np.ndarray, np.ndarray] | None:
     """``(frames, values)`` of a run's ``{stream}.csv`` (rows with an empty or NaN value skipped)."""
     path = Path(run_dir) / f"{stream}.csv"
     if not path.is_file():
@@ -119,7 +146,9 @@ def read_column(run_dir: str | Path, stream: str, column: str) -> tuple[np.ndarr
         reader = csv.DictReader(handle)
         if column not in (reader.fieldnames or []):
             raise ValueError(f"{path} has no column {column!r} (columns: {reader.fieldnames})")
-        pairs = [(float(r["frames"]), float(r[column])) for r in reader if r[column] not in ("", "nan")]
+        pairs = [
+            (float(r["frames"]), float(r[column])) for r in reader if r[column] not in ("", "nan")
+        ]
     if not pairs:
         return None
     frames, values = map(np.array, zip(*pairs))

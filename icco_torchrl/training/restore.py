@@ -1,4 +1,5 @@
 """Rebuild a trained policy from a checkpoint (through the one assembler), for evaluation, demos and language protocols."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -6,12 +7,23 @@ from pathlib import Path
 from omegaconf import OmegaConf
 
 from icco_torchrl.training.build import EVAL_SEED_OFFSET, Run, build
-from icco_torchrl.training.checkpoint import check_compatible, load_checkpoint, load_weights, save_checkpoint
+from icco_torchrl.training.checkpoint import (
+    check_compatible,
+    load_checkpoint,
+    load_weights,
+    save_checkpoint,
+)
 from icco_torchrl.training.config import resolve_device, validate
 
 
-def restore(path: str | Path, *, num_envs: int | None = None, device: str = "cpu", seed: int | None = None,
-            **env_overrides) -> Run:
+def restore(
+    path: str | Path,
+    *,
+    num_envs: int | None = None,
+    device: str = "cpu",
+    seed: int | None = None,
+    **env_overrides,
+) -> Run:
     """The checkpoint's :class:`~icco_torchrl.training.build.Run` with its weights loaded (``run.checkpoint``
     holds the file's contents; ``run["policy"]`` etc. as before).
 
@@ -22,11 +34,25 @@ def restore(path: str | Path, *, num_envs: int | None = None, device: str = "cpu
     ckpt = load_checkpoint(path)
     cfg = validate(OmegaConf.create(ckpt["cfg"]))
     cfg.device = str(resolve_device(device))
-    run = build(cfg, num_envs=num_envs, seed=cfg.seed + EVAL_SEED_OFFSET if seed is None else seed, **env_overrides)
+    run = build(
+        cfg,
+        num_envs=num_envs,
+        seed=cfg.seed + EVAL_SEED_OFFSET if seed is None else seed,
+        **env_overrides,
+    )
     check_compatible(ckpt, cfg, run.layout, path)
     weights = ckpt["loss"]
-    if ckpt.get("policy_only"):  # an exported policy (export_policy): the targets are the online weights
-        weights = {**weights, **{f"target_{k}": v for k, v in weights.items() if f"target_{k}" in run.loss.state_dict()}}
+    if ckpt.get(
+        "policy_only"
+    ):  # an exported policy (export_policy): the targets are the online weights
+        weights = {
+            **weights,
+            **{
+                f"target_{k}": v
+                for k, v in weights.items()
+                if f"target_{k}" in run.loss.state_dict()
+            },
+        }
     load_weights(run.loss, weights, path, cfg.method.name)
     run.checkpoint = ckpt
     return run

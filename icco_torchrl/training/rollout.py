@@ -1,4 +1,5 @@
 """Greedy evaluation episodes: the policy acts deterministically (argmax Q, coordinator mean)."""
+
 from __future__ import annotations
 
 import torch
@@ -9,11 +10,18 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from icco_torchrl.envs.resource_collection import EVENT_KEYS  # noqa: F401  (re-exported)
 
 
-def greedy_rollout(env: EnvBase, policy, steps: int, tensordict: TensorDictBase | None = None) -> TensorDictBase:
+def greedy_rollout(
+    env: EnvBase, policy, steps: int, tensordict: TensorDictBase | None = None
+) -> TensorDictBase:
     """``[num_envs, steps]`` rollout under deterministic exploration, without gradients."""
     with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
-        return env.rollout(steps, policy, break_when_any_done=False, auto_reset=tensordict is None,
-                           tensordict=tensordict)
+        return env.rollout(
+            steps,
+            policy,
+            break_when_any_done=False,
+            auto_reset=tensordict is None,
+            tensordict=tensordict,
+        )
 
 
 def episode_metrics(rollout: TensorDictBase) -> dict[str, torch.Tensor]:
@@ -26,7 +34,9 @@ def episode_metrics(rollout: TensorDictBase) -> dict[str, torch.Tensor]:
     return out
 
 
-def evaluate(env: EnvBase, policy, *, steps: int | None = None, seed: int | None = None) -> dict[str, float]:
+def evaluate(
+    env: EnvBase, policy, *, steps: int | None = None, seed: int | None = None
+) -> dict[str, float]:
     """Mean and std over the env batch of one greedy episode's totals (``reward``, ``reward_std``,
     ``task_reward``, ...). With ``seed`` the env is re-seeded first, so every call (a trained
     policy at each evaluation, the reference policies) faces the same initial configurations.

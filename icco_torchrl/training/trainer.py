@@ -3,6 +3,7 @@
 Every method (ICCO, ICCO w/o CE, QMIX, QMIX (FULL)) runs this one loop; they differ only in
 the ``method`` config group.
 """
+
 from __future__ import annotations
 
 import json
@@ -22,8 +23,15 @@ from icco_torchrl.envs.reference_policies import make_reference_policy, referenc
 from icco_torchrl.modules.policy import exploration_module
 from icco_torchrl.objectives import total_loss
 from icco_torchrl.training.build import VALIDATION_SEED_OFFSET, Run, build
-from icco_torchrl.training.checkpoint import (CheckpointError, check_compatible, load_checkpoint, load_replay,
-                                              load_weights, save_checkpoint, save_replay)
+from icco_torchrl.training.checkpoint import (
+    CheckpointError,
+    check_compatible,
+    load_checkpoint,
+    load_replay,
+    load_weights,
+    save_checkpoint,
+    save_replay,
+)
 from icco_torchrl.training.config import set_env_params, validate
 from icco_torchrl.training.logger import RunLogger
 from icco_torchrl.training.rollout import EVENT_KEYS, evaluate
@@ -32,11 +40,26 @@ REPLAY_DIR = "replay"  # the replay buffer dump beside checkpoint.pt (train.chec
 REFERENCES_FILE = "references.json"  # the reference policies' evaluation, beside eval.csv
 
 # What the loss reads; everything else the collector records is left out of the replay buffer.
-REPLAY_KEYS = [("agents", "observation"), "state", ("agents", "action"), ("agents", "prev_action"),
-               ("agents", "rnn_hidden"), ("agents", "z"), ("agents", "z_noise"), "step_count", "mask",
-               ("next", "agents", "observation"), ("next", "state"), ("next", "reward"), ("next", "done"),
-               ("next", "terminated"), ("next", "step_count")]
-EPISODE_COLUMNS = ["episode_reward"] + [f"episode_{k}" for k in EVENT_KEYS]  # train.csv: per finished episode
+REPLAY_KEYS = [
+    ("agents", "observation"),
+    "state",
+    ("agents", "action"),
+    ("agents", "prev_action"),
+    ("agents", "rnn_hidden"),
+    ("agents", "z"),
+    ("agents", "z_noise"),
+    "step_count",
+    "mask",
+    ("next", "agents", "observation"),
+    ("next", "state"),
+    ("next", "reward"),
+    ("next", "done"),
+    ("next", "terminated"),
+    ("next", "step_count"),
+]
+EPISODE_COLUMNS = ["episode_reward"] + [
+    f"episode_{k}" for k in EVENT_KEYS
+]  # train.csv: per finished episode
 
 
 def epsilon(frames: int, t: DictConfig) -> float:
@@ -44,7 +67,11 @@ def epsilon(frames: int, t: DictConfig) -> float:
     if t.eps_decay_frames == 0 or t.eps_init == 0:
         return t.eps_end
     frac = min(frames / t.eps_decay_frames, 1.0)
-    return max(t.eps_init * (t.eps_end / t.eps_init) ** frac, t.eps_end) if t.eps_end > 0 else t.eps_init * (1 - frac)
+    return (
+        max(t.eps_init * (t.eps_end / t.eps_init) ** frac, t.eps_end)
+        if t.eps_end > 0
+        else t.eps_init * (1 - frac)
+    )
 
 
 class EpisodeTracker:
@@ -55,8 +82,11 @@ class EpisodeTracker:
 
     def update(self, batch) -> torch.Tensor:
         nxt = batch.get("next")
-        step_values = torch.stack([nxt.get("reward").squeeze(-1)] + [nxt.get(("events", k)).float() for k in EVENT_KEYS], -1)
-        done = nxt.get("done").squeeze(-1)                                       # [B, L]
+        step_values = torch.stack(
+            [nxt.get("reward").squeeze(-1)] + [nxt.get(("events", k)).float() for k in EVENT_KEYS],
+            -1,
+        )
+        done = nxt.get("done").squeeze(-1)  # [B, L]
         finished = []
         for t in range(batch.shape[1]):  # L is small (steps_per_batch); envs are vectorised
             self.sums += step_values[:, t]
@@ -98,7 +128,11 @@ class GracefulInterrupt:
 
 
 def _rng_state(env) -> dict:
-    state = {"torch": torch.get_rng_state(), "env": env.base_env._rng.get_state(), "numpy": np.random.get_state()}
+    state = {
+        "torch": torch.get_rng_state(),
+        "env": env.base_env._rng.get_state(),
+        "numpy": np.random.get_state(),
+    }
     if torch.cuda.is_available():
         state["cuda"] = torch.cuda.get_rng_state_all()
     return state
@@ -125,17 +159,27 @@ def train(cfg: DictConfig, run_dir: str | Path) -> dict:
     """Train ``cfg.method`` and return the final evaluation metrics. Writes CSVs, checkpoints, a PNG."""
     # Setup: the checkpoint to resume (if any), seeds, the assembled run, the logger.
     resume = open_resume(cfg)
-    run_dir = Path(cfg.resume).resolve().parent if resume is not None else Path(run_dir)  # continue its folder
+    run_dir = (
+        Path(cfg.resume).resolve().parent if resume is not None else Path(run_dir)
+    )  # continue its folder
     torch.set_num_threads(cfg.train.threads)
     torch.manual_seed(cfg.seed)
     np.random.seed(cfg.seed)
     run = build(cfg, for_training=True)
-    logging.getLogger("torchrl").setLevel(logging.WARNING)  # its INFO lines (with colour codes) break the bar
+    logging.getLogger("torchrl").setLevel(
+        logging.WARNING
+    )  # its INFO lines (with colour codes) break the bar
     start = resume["frames"] if resume is not None else 0
     remaining = _remaining_frames(cfg, start)
     # The bar ends where the collector does; a resumed run's CSVs lose the rows written after its
     # checkpoint, so no frame is logged twice.
-    logger = RunLogger(run_dir, cfg, total_frames=start + remaining, initial_frames=start, truncate=resume is not None)
+    logger = RunLogger(
+        run_dir,
+        cfg,
+        total_frames=start + remaining,
+        initial_frames=start,
+        truncate=resume is not None,
+    )
     session = Session(run, cfg, run_dir, logger)
     # Resume (everything a checkpoint restores, in one place) or start (config and yardsticks).
     if resume is not None:
@@ -146,7 +190,9 @@ def train(cfg: DictConfig, run_dir: str | Path) -> dict:
     interrupted = session.loop(remaining)
     path = session.save()
     final = {}
-    if not interrupted and remaining > 0:  # a resumed run already at its budget has nothing new to evaluate
+    if (
+        not interrupted and remaining > 0
+    ):  # a resumed run already at its budget has nothing new to evaluate
         final = session.final_evaluation()
         plot_learning_curve(run_dir)
     logger.close()
@@ -161,15 +207,22 @@ def open_resume(cfg: DictConfig) -> dict | None:
         return None
     ckpt = load_checkpoint(cfg.resume)
     if ckpt.get("policy_only"):
-        raise CheckpointError(f"{cfg.resume} is an exported policy (no optimiser, targets or RNG state): "
-                              f"resume from the run's own checkpoint.pt")
+        raise CheckpointError(
+            f"{cfg.resume} is an exported policy (no optimiser, targets or RNG state): "
+            f"resume from the run's own checkpoint.pt"
+        )
     # The saved config through today's schema, so fields added since it was written compare as defaults.
     saved = OmegaConf.to_container(validate(OmegaConf.create(ckpt["cfg"])), resolve=True)
     check_resume_overrides(saved, OmegaConf.to_container(cfg, resolve=True), cfg.resume)
     before, now = set_env_params(saved["train"]["env_params"]), set_env_params(cfg.train.env_params)
-    if before != now:  # allowed (a shaping curriculum), and said: the replayed data has the old rewards
-        print(f"note: resume={cfg.resume} trains on train.env_params {now} instead of {before}; "
-              f"replayed transitions keep the rewards they were collected with", flush=True)
+    if (
+        before != now
+    ):  # allowed (a shaping curriculum), and said: the replayed data has the old rewards
+        print(
+            f"note: resume={cfg.resume} trains on train.env_params {now} instead of {before}; "
+            f"replayed transitions keep the rewards they were collected with",
+            flush=True,
+        )
     return ckpt
 
 
@@ -188,7 +241,9 @@ class Session:
         self.progress = Progress()
         self.explore = exploration_module(run.policy)
         self.explore.eps.fill_(epsilon(0, cfg.train))
-        self.eval_seed = cfg.seed + VALIDATION_SEED_OFFSET  # every evaluation faces the same initial configurations
+        self.eval_seed = (
+            cfg.seed + VALIDATION_SEED_OFFSET
+        )  # every evaluation faces the same initial configurations
         self.timers = {"collect": 0.0, "train": 0.0, "eval": 0.0}
         self.evaluated: list[dict] = []
 
@@ -198,13 +253,18 @@ class Session:
         OmegaConf.save(self.cfg, self.run_dir / "config.yaml")
         references = {}
         for name in self.cfg.eval.references:
-            ref = make_reference_policy(name, self.run.eval_env, radius=self.cfg.eval.blend_radius, seed=self.cfg.seed)
-            references[reference_label(name, self.cfg.eval.blend_radius)] = evaluate(self.run.eval_env, ref,
-                                                                                      seed=self.eval_seed)
+            ref = make_reference_policy(
+                name, self.run.eval_env, radius=self.cfg.eval.blend_radius, seed=self.cfg.seed
+            )
+            references[reference_label(name, self.cfg.eval.blend_radius)] = evaluate(
+                self.run.eval_env, ref, seed=self.eval_seed
+            )
         (self.run_dir / REFERENCES_FILE).write_text(json.dumps(references, indent=2))
         for label, m in references.items():
-            self.logger.print(f"[eval] {label}: reward={m['reward']:.2f}±{m['reward_std']:.2f} "
-                              f"task={m['task_reward']:.2f} pick={m['pick']:.2f} defense={m['defense']:.2f}")
+            self.logger.print(
+                f"[eval] {label}: reward={m['reward']:.2f}±{m['reward_std']:.2f} "
+                f"task={m['task_reward']:.2f} pick={m['pick']:.2f} defense={m['defense']:.2f}"
+            )
 
     def resume(self, ckpt: dict) -> None:
         """Everything a checkpoint restores: weights (after the one compatibility check), optimiser,
@@ -216,14 +276,18 @@ class Session:
         run.optim.load_state_dict(ckpt["optimizer"])
         run.updater.load_state_dict(ckpt["updater"])
         self.progress = Progress(ckpt["frames"], ckpt["updates"], ckpt["batches"])
-        self.explore.eps.fill_(epsilon(self.progress.frames, self.cfg.train))  # the schedule continues
+        self.explore.eps.fill_(
+            epsilon(self.progress.frames, self.cfg.train)
+        )  # the schedule continues
         _set_rng_state(ckpt["rng"], run.env)
         if ckpt.get("replay_segments"):
             if load_replay(run.buffer, self.run_dir / REPLAY_DIR):
                 self.logger.print(f"replay buffer restored: {len(run.buffer)} segments")
             else:
-                self.logger.print(f"no replay buffer dump in {self.run_dir}: resuming with an empty buffer "
-                                  f"(warm-up again)")
+                self.logger.print(
+                    f"no replay buffer dump in {self.run_dir}: resuming with an empty buffer "
+                    f"(warm-up again)"
+                )
 
     # ------------------------------------------------------------------ loop
     def loop(self, remaining: int) -> bool:
@@ -232,14 +296,26 @@ class Session:
             return False
         run, t, p = self.run, self.cfg.train, self.progress
         # No trajectory ids: segments are cut on step_count, and the ids cost a td update per step.
-        collector = Collector(run.env, run.policy, frames_per_batch=self.cfg.env.num_envs * t.steps_per_batch,
-                              total_frames=remaining, device=run.env.device, storing_device=run.env.device,
-                              auto_register_policy_transforms=False, track_traj_ids=False)
+        collector = Collector(
+            run.env,
+            run.policy,
+            frames_per_batch=self.cfg.env.num_envs * t.steps_per_batch,
+            total_frames=remaining,
+            device=run.env.device,
+            storing_device=run.env.device,
+            auto_register_policy_transforms=False,
+            track_traj_ids=False,
+        )
         tracker = EpisodeTracker(self.cfg.env.num_envs, run.env.device)
-        recent, episode_stats = [], {k: float("nan") for k in EPISODE_COLUMNS}  # episodes since the last row
+        recent, episode_stats = (
+            [],
+            {k: float("nan") for k in EPISODE_COLUMNS},
+        )  # episodes since the last row
         last_eval = last_ckpt = p.frames
         start_wall, start_frames = time.perf_counter(), p.frames
-        replay_keys = REPLAY_KEYS + ([("next", "events", "inst_reward")] if run.loss.split_instruction else [])
+        replay_keys = REPLAY_KEYS + (
+            [("next", "events", "inst_reward")] if run.loss.split_instruction else []
+        )
         stop = GracefulInterrupt()
         try:
             tick = time.perf_counter()
@@ -249,7 +325,9 @@ class Session:
                 p.batches += 1
                 self.explore.eps.fill_(epsilon(p.frames, t))
                 recent.append(tracker.update(batch))
-                run.buffer.extend(run.cutter(batch.select(*replay_keys, strict=False)))  # cut only what is replayed
+                run.buffer.extend(
+                    run.cutter(batch.select(*replay_keys, strict=False))
+                )  # cut only what is replayed
                 tick = time.perf_counter()
                 row = self.learn()
                 self.timers["train"] += time.perf_counter() - tick
@@ -257,22 +335,37 @@ class Session:
                     episode_stats = self.log_train(row, recent) or episode_stats
                     recent = []
                 sps = (p.frames - start_frames) / (time.perf_counter() - start_wall)
-                self.logger.log("timing", {"frames": p.frames, "sps": sps,
-                                           **{f"time_{k}": v for k, v in self.timers.items()}})
+                self.logger.log(
+                    "timing",
+                    {
+                        "frames": p.frames,
+                        "sps": sps,
+                        **{f"time_{k}": v for k, v in self.timers.items()},
+                    },
+                )
                 # On a fixed grid of frames (every interval crossed), so a resumed run evaluates and
                 # checkpoints at the same frames as an uninterrupted one.
                 if t.eval_interval and p.frames // t.eval_interval > last_eval // t.eval_interval:
                     self.evaluate()
                     last_eval = p.frames
-                if t.checkpoint_interval and p.frames // t.checkpoint_interval > last_ckpt // t.checkpoint_interval:
+                if (
+                    t.checkpoint_interval
+                    and p.frames // t.checkpoint_interval > last_ckpt // t.checkpoint_interval
+                ):
                     self.save()
                     last_ckpt = p.frames
-                self.logger.progress(p.frames, **{"env-steps/s": sps, "epsilon": float(self.explore.eps),
-                                                  "episode reward": episode_stats["episode_reward"],
-                                                  "picks": episode_stats["episode_pick"],
-                                                  "deliveries": episode_stats["episode_collect"],
-                                                  "defenses": episode_stats["episode_defense"],
-                                                  "invasions": episode_stats["episode_invasion"]})
+                self.logger.progress(
+                    p.frames,
+                    **{
+                        "env-steps/s": sps,
+                        "epsilon": float(self.explore.eps),
+                        "episode reward": episode_stats["episode_reward"],
+                        "picks": episode_stats["episode_pick"],
+                        "deliveries": episode_stats["episode_collect"],
+                        "defenses": episode_stats["episode_defense"],
+                        "invasions": episode_stats["episode_invasion"],
+                    },
+                )
                 if stop.requested:
                     break
                 tick = time.perf_counter()
@@ -282,8 +375,10 @@ class Session:
             stop.restore()
             collector.shutdown()
         if stop.requested:
-            self.logger.print(f"interrupted by {stop.signal_name or 'a signal'} at {p.frames} frames: "
-                              f"saving a checkpoint")
+            self.logger.print(
+                f"interrupted by {stop.signal_name or 'a signal'} at {p.frames} frames: "
+                f"saving a checkpoint"
+            )
         return stop.requested
 
     def learn(self) -> dict:
@@ -297,7 +392,9 @@ class Session:
             run.optim.zero_grad(set_to_none=True)
             total_loss(losses).backward()
             if t.grad_clip > 0:
-                losses["grad_norm"] = torch.nn.utils.clip_grad_norm_(run.loss.parameters(), t.grad_clip)
+                losses["grad_norm"] = torch.nn.utils.clip_grad_norm_(
+                    run.loss.parameters(), t.grad_clip
+                )
             run.optim.step()
             run.updater.step()
             self.progress.updates += 1
@@ -308,11 +405,22 @@ class Session:
         update) and the episodes that ended since the last row; returns their means."""
         p = self.progress
         episodes = torch.cat(recent) if recent else torch.zeros(0, len(EPISODE_COLUMNS))
-        stats = {n: (episodes[:, i].mean().item() if len(episodes) else float("nan"))
-                 for i, n in enumerate(EPISODE_COLUMNS)}
+        stats = {
+            n: (episodes[:, i].mean().item() if len(episodes) else float("nan"))
+            for i, n in enumerate(EPISODE_COLUMNS)
+        }
         metrics = {k: row.get(k, float("nan")) for k in (*self.run.loss.metric_keys, "grad_norm")}
-        self.logger.log("train", {"frames": p.frames, "updates": p.updates, "epsilon": float(self.explore.eps),
-                                  "episodes": len(episodes), **stats, **metrics})
+        self.logger.log(
+            "train",
+            {
+                "frames": p.frames,
+                "updates": p.updates,
+                "epsilon": float(self.explore.eps),
+                "episodes": len(episodes),
+                **stats,
+                **metrics,
+            },
+        )
         return stats if len(episodes) else None
 
     # ------------------------------------------------------------------ evaluation and checkpoints
@@ -323,10 +431,12 @@ class Session:
         self.timers["eval"] += time.perf_counter() - start
         self.logger.log("eval", {"frames": frames, **metrics})
         self.evaluated.append((frames, metrics))
-        self.logger.print(f"[eval] frames={frames} reward={metrics['reward']:.2f}±{metrics['reward_std']:.2f} "
-                          f"task={metrics['task_reward']:.2f} pick={metrics['pick']:.2f} "
-                          f"collect={metrics['collect']:.2f} defense={metrics['defense']:.2f} "
-                          f"invasion={metrics['invasion']:.2f}")
+        self.logger.print(
+            f"[eval] frames={frames} reward={metrics['reward']:.2f}±{metrics['reward_std']:.2f} "
+            f"task={metrics['task_reward']:.2f} pick={metrics['pick']:.2f} "
+            f"collect={metrics['collect']:.2f} defense={metrics['defense']:.2f} "
+            f"invasion={metrics['invasion']:.2f}"
+        )
         return metrics
 
     def final_evaluation(self) -> dict:
@@ -340,11 +450,22 @@ class Session:
         run, t, p = self.run, self.cfg.train, self.progress
         if t.checkpoint_buffer:
             save_replay(run.buffer, self.run_dir / REPLAY_DIR)
-        return save_checkpoint(self.run_dir / name, {
-            "cfg": OmegaConf.to_container(self.cfg, resolve=True), "layout": run.layout.__dict__,
-            "frames": p.frames, "updates": p.updates, "batches": p.batches, "loss": run.loss.state_dict(),
-            "optimizer": run.optim.state_dict(), "updater": run.updater.state_dict(), "rng": _rng_state(run.env),
-            "epsilon": float(self.explore.eps), "replay_segments": len(run.buffer) if t.checkpoint_buffer else 0})
+        return save_checkpoint(
+            self.run_dir / name,
+            {
+                "cfg": OmegaConf.to_container(self.cfg, resolve=True),
+                "layout": run.layout.__dict__,
+                "frames": p.frames,
+                "updates": p.updates,
+                "batches": p.batches,
+                "loss": run.loss.state_dict(),
+                "optimizer": run.optim.state_dict(),
+                "updater": run.updater.state_dict(),
+                "rng": _rng_state(run.env),
+                "epsilon": float(self.explore.eps),
+                "replay_segments": len(run.buffer) if t.checkpoint_buffer else 0,
+            },
+        )
 
 
 def saved_run_overrides(saved: dict, given: list[str]) -> list[str]:
@@ -360,7 +481,9 @@ def saved_run_overrides(saved: dict, given: list[str]) -> list[str]:
         if key not in keys and not isinstance(value, (dict, list)):
             out.append(f"{'++' if force else ''}{key}={_override_value(value)}")
 
-    if "method" not in keys:  # a method given on the command line brings its own fields (checked, not forced)
+    if (
+        "method" not in keys
+    ):  # a method given on the command line brings its own fields (checked, not forced)
         out.append(f"method={saved['method']['name']}")  # a group option: unquoted
         for k, v in saved["method"].items():
             if k != "name":
@@ -372,8 +495,12 @@ def saved_run_overrides(saved: dict, given: list[str]) -> list[str]:
             put(f"env.params.{k}", v, force=True)
     if "experiment" not in keys:
         for k, v in saved["train"].items():
-            if k == "env_params":  # one override per set field, so the command line may change one of them
-                for name, value in set_env_params(v if "train.env_params" not in keys else {}).items():
+            if (
+                k == "env_params"
+            ):  # one override per set field, so the command line may change one of them
+                for name, value in set_env_params(
+                    v if "train.env_params" not in keys else {}
+                ).items():
                     put(f"train.env_params.{name}", value, force=True)
             else:
                 put(f"train.{k}", v, force=True)
@@ -396,8 +523,14 @@ def check_resume_overrides(saved: dict, cfg: dict, path) -> None:
     streams belong to the old one), its env (the replay data came from it) and its exploration
     schedule (epsilon continues exactly). The budget, evaluation settings and the training-only
     ``train.env_params`` (a shaping curriculum) may change."""
-    fixed = [("seed",), ("env",), ("train", "eps_init"), ("train", "eps_end"), ("train", "eps_decay_frames"),
-             ("train", "steps_per_batch")]
+    fixed = [
+        ("seed",),
+        ("env",),
+        ("train", "eps_init"),
+        ("train", "eps_end"),
+        ("train", "eps_decay_frames"),
+        ("train", "steps_per_batch"),
+    ]
     diffs = []
     for keys in fixed:
         a, b = saved, cfg
@@ -406,19 +539,28 @@ def check_resume_overrides(saved: dict, cfg: dict, path) -> None:
         if a != b:
             diffs.append(f"{'.'.join(keys)} (checkpoint {a!r}, now {b!r})")
     if diffs:
-        raise CheckpointError(f"resume={path} cannot change " + "; ".join(diffs)
-                              + ": drop these overrides, or start a new run without resume=")
+        raise CheckpointError(
+            f"resume={path} cannot change "
+            + "; ".join(diffs)
+            + ": drop these overrides, or start a new run without resume="
+        )
 
 
-def finish_message(run_dir: Path, checkpoint: Path, frames: int, interrupted: bool, final: dict) -> str:
+def finish_message(
+    run_dir: Path, checkpoint: Path, frames: int, interrupted: bool, final: dict
+) -> str:
     """What a newcomer needs at the end: what happened, where the results are, what to run next."""
     lines = [f"{'stopped' if interrupted else 'done'}: {frames:,} env steps; run folder {run_dir}"]
     if final:
-        lines.append(f"  final greedy evaluation: team reward {final['reward']:.1f}, task reward "
-                     f"{final['task_reward']:.1f}, picks {final['pick']:.1f}, defenses {final['defense']:.1f} "
-                     f"(reference policies: {REFERENCES_FILE})")
-    lines += [f"  metrics: train.csv, eval.csv, timing.csv; figure: learning_curve.png",
-              f"  checkpoint: {checkpoint}"]
+        lines.append(
+            f"  final greedy evaluation: team reward {final['reward']:.1f}, task reward "
+            f"{final['task_reward']:.1f}, picks {final['pick']:.1f}, defenses {final['defense']:.1f} "
+            f"(reference policies: {REFERENCES_FILE})"
+        )
+    lines += [
+        "  metrics: train.csv, eval.csv, timing.csv; figure: learning_curve.png",
+        f"  checkpoint: {checkpoint}",
+    ]
     if interrupted:
         lines.append(f"  continue: icco train resume={checkpoint}")
     else:
@@ -442,14 +584,18 @@ def plot_learning_curve(run_dir: Path) -> Path | None:
     refs_file = run_dir / REFERENCES_FILE
     refs = json.loads(refs_file.read_text()) if refs_file.exists() else {}
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
-    for ax, key, title in ((axes[0], "reward", "team reward (task + instruction)"),
-                           (axes[1], "task_reward", "task reward (picks, deliveries, defenses, invasions)")):
+    for ax, key, title in (
+        (axes[0], "reward", "team reward (task + instruction)"),
+        (axes[1], "task_reward", "task reward (picks, deliveries, defenses, invasions)"),
+    ):
         column = read_column(run_dir, "eval", key)
         if column is None:
             continue
         (x, y), (_, s) = column, read_column(run_dir, "eval", f"{key}_std")
-        line, = ax.plot(x, y, marker="o", color="C0", label="trained policy, greedy")
-        ax.fill_between(x, y - s, y + s, color=line.get_color(), alpha=0.2, label="± std over episodes")
+        (line,) = ax.plot(x, y, marker="o", color="C0", label="trained policy, greedy")
+        ax.fill_between(
+            x, y - s, y + s, color=line.get_color(), alpha=0.2, label="± std over episodes"
+        )
         for i, (label, m) in enumerate(refs.items()):
             if key in m:
                 ax.axhline(m[key], color=f"C{i + 1}", ls="--", lw=1, label=label)
