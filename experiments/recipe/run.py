@@ -1,8 +1,8 @@
 """Training-recipe ablation: which levers make ICCO and QMIX (FULL) learn the task on a CPU.
 
-    python experiments/recipe/run.py                      # every lever, resumable, 2 runs side by side
+    python experiments/recipe/run.py                # every lever, resumable, 2 runs side by side
     python experiments/recipe/run.py --only rel_icco rel_qmix_full
-    python experiments/recipe/run.py --report-only        # rewrite results.md / results.json
+    python experiments/recipe/run.py --report-only  # rewrite results.md / results.json
 
 Each lever is one ``icco train`` run (seed 0, the calibrated reward, uniform spawns, random-walk
 instructions) in ``--out/<name>``; the table reports its last greedy evaluation (16 episodes of
@@ -23,8 +23,8 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 from jobs import train_runs  # noqa: E402  (experiments/jobs.py)
 
-# The session-1 budget with the first three levers of issue 7's probe (replay ratio 8 updates per
-# batch, a hard target copy every 50 updates, epsilon at its floor after 300k frames).
+# The first budget (2026-11-22) with the first three levers of issue 7's probe (replay ratio 8
+# updates per batch, a hard target copy every 50 updates, epsilon at its floor after 300k frames).
 PROBE = [
     "train.updates_per_batch=8",
     "train.target_update_interval=50",
@@ -33,10 +33,11 @@ PROBE = [
 WF_PATHS = [
     "method.waypoint_features=true",
     "env.params.waypoint_path_prob=0.5",
-]  # session 5's candidate levers
-# Levers measured before session 6 made waypoint features, paths and a consistency weight of 1e-4 the
-# defaults: they pin the defaults of their time (below), so each still trains what it measured.
-BEFORE_SESSION6 = {  # name: (lever, setting, method, overrides)
+]  # the candidate levers of the waypoint-features entry (2026-11-30)
+# Levers measured before waypoint features, paths and a consistency weight of 1e-4 became the
+# defaults (README.md, entry "2026-11-30, new defaults"): they pin the defaults of their time
+# (pre_waypoint_features below), so each still trains what it measured.
+PRE_WAYPOINT_FEATURES = {  # name: (lever, setting, method, overrides)
     "flat_icco": (
         "global-state encoder",
         "flat (absolute tokens)",
@@ -85,20 +86,16 @@ BEFORE_SESSION6 = {  # name: (lever, setting, method, overrides)
         "qmix_full",
         [*PROBE, "train.optimizer=adam", "train.lr=1e-3"],
     ),
-    # Session 4, at the defaults of conf/experiment/default.yaml (the recipe the rows above chose).
-    "instruction_head_icco": (
-        "value heads",
-        "separate instruction head",
-        "icco",
-        ["method.instruction_head=true"],
-    ),
+    # Longer training (2026-11-30), at the defaults of conf/experiment/default.yaml (the recipe
+    # the rows above chose).
     "guide_blend_icco": (
         "exploration",
         "guided by the blend (r=1.75 m)",
         "icco",
         ["train.explore_guide=blend"],
     ),
-    # Session 5: the agents read the nearest waypoint and the path direction r_inst scores.
+    # Waypoint features (2026-11-30): the agents read the nearest waypoint and the path direction
+    # r_inst scores.
     "waypoint_features_qmix_inst_only": (
         "waypoint features",
         "on, instruction reward only",
@@ -179,17 +176,12 @@ BEFORE_SESSION6 = {  # name: (lever, setting, method, overrides)
             "train.warmup_segments=2048",
         ],
     ),
-    "paths_z_gru_icco": (
-        "where z enters",
-        "GRU input (+ features, paths)",
-        "icco",
-        [*WF_PATHS, "method.z_input=gru"],
-    ),
 }
 
 
-def before_session6(method: str, overrides: list[str]) -> list[str]:
-    """``overrides`` on top of the defaults before session 6 (COPA's consistency weight for ICCO)."""
+def pre_waypoint_features(method: str, overrides: list[str]) -> list[str]:
+    """``overrides`` on the defaults before waypoint features and paths (COPA's consistency
+    weight for ICCO)."""
     return [
         "method.waypoint_features=false",
         "env.params.waypoint_path_prob=0",
@@ -199,11 +191,12 @@ def before_session6(method: str, overrides: list[str]) -> list[str]:
 
 
 LEVERS = {
-    name: (lever, setting, method, before_session6(method, overrides))
-    for name, (lever, setting, method, overrides) in BEFORE_SESSION6.items()
+    name: (lever, setting, method, pre_waypoint_features(method, overrides))
+    for name, (lever, setting, method, overrides) in PRE_WAYPOINT_FEATURES.items()
 }
 LEVERS.update(
-    {  # Session 6, at today's defaults; scored by the four-quadrant protocol at the calibrated reward.
+    {  # New defaults (2026-11-30), at today's defaults; scored by the four-quadrant protocol at the
+        # calibrated reward.
         "ce1e5_icco": ("consistency weight", "1e-5", "icco", ["method.ce_coef=0.00001"]),
         "entropy0_icco": ("entropy term", "off", "icco", ["method.entropy_coef=0"]),
         "guide_blend_qmix_full": (
@@ -212,8 +205,9 @@ LEVERS.update(
             "qmix_full",
             ["train.explore_guide=blend"],
         ),
-        # Delivery reward in the training env only (train.env_params; session 6 set env.params.collect_reward,
-        # which trains identically but also shapes the evaluations during training).
+        # Delivery reward in the training env only (train.env_params; the first screens set
+        # env.params.collect_reward, which trains identically but also shapes the evaluations
+        # during training).
         **{
             f"collect{c:g}_{m}".replace(".", ""): (
                 "delivery reward in training",
@@ -230,7 +224,8 @@ LEVERS.update(
             "qmix",
             ["train.env_params.collect_reward=5"],
         ),
-        # Session 7: the other two methods at 3.5; the paper's flat QMIX (FULL); network and z width.
+        # Training-env shaping (2026-12-01): the other two methods at 3.5; the paper's flat
+        # QMIX (FULL); network and z width.
         **{
             f"collect35_{m}": (
                 "delivery reward in training",
@@ -297,15 +292,16 @@ def summarize(out: Path, frames: int) -> list[dict]:
 
 def markdown(table: list[dict]) -> str:
     lines = [
-        "| lever | setting | method | frames | task reward | pick | defense | invasion | instruction reward "
-        "| team reward | wall (min) |",
+        "| lever | setting | method | frames | task reward | pick | defense | invasion "
+        "| instruction reward | team reward | wall (min) |",
         "|" + "---|" * 11,
     ]
     for r in table:
         lines.append(
-            f"| {r['lever']} | {r['setting']} | {r['method']} | {r['frames']:,} | {r['task_reward']:.1f} | "
-            f"{r['pick']:.1f} | {r['defense']:.1f} | {r['invasion']:.1f} | {r['inst_reward']:.1f} | "
-            f"{r['reward']:.1f} | {r.get('wall_min', float('nan')):.1f} |"
+            f"| {r['lever']} | {r['setting']} | {r['method']} | {r['frames']:,} | "
+            f"{r['task_reward']:.1f} | {r['pick']:.1f} | {r['defense']:.1f} | "
+            f"{r['invasion']:.1f} | {r['inst_reward']:.1f} | {r['reward']:.1f} | "
+            f"{r.get('wall_min', float('nan')):.1f} |"
         )
     refs = next((r["references"] for r in table if "references" in r), None)
     if refs:
@@ -313,7 +309,8 @@ def markdown(table: list[dict]) -> str:
             "",
             "Reference policies on the same evaluation episodes:",
             "",
-            "| policy | task reward | pick | defense | invasion | instruction reward | team reward |",
+            "| policy | task reward | pick | defense | invasion | instruction reward "
+            "| team reward |",
             "|---|---|---|---|---|---|---|",
         ]
         for k, m in refs.items():
