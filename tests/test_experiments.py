@@ -1,4 +1,5 @@
-"""The experiment scripts' run lists compose into valid configs (a typo there would only show after hours)."""
+"""The experiment scripts' run lists compose into valid configs (a typo there would only show
+after hours), and the README's count of the VMAS example's ICCO lines is the example's."""
 
 from __future__ import annotations
 
@@ -25,3 +26,25 @@ def test_every_recipe_lever_composes_and_trains_its_method():
         assert cfg.method.name == method, name
     shaped = compose_config(["method=qmix", *levers["collect35_qmix"][3]])
     assert shaped.train.env_params.collect_reward == 3.5 and shaped.env.params.collect_reward == 1.0
+
+
+def _icco_glue_lines(path: Path) -> int:
+    """Lines of the simple statements whose last line is marked ``# ICCO`` (as formatted)."""
+    import ast
+
+    text = path.read_text()
+    lines = text.splitlines()
+    counted = set()
+    for node in ast.walk(ast.parse(text)):
+        if isinstance(node, ast.stmt) and not hasattr(node, "body"):
+            if "# ICCO" in lines[node.end_lineno - 1]:
+                counted.update(range(node.lineno, node.end_lineno + 1))
+    return len(counted)
+
+
+def test_readme_states_the_vmas_example_glue():
+    import re
+
+    glue = _icco_glue_lines(ROOT / "examples" / "vmas_qmix.py")
+    stated = re.search(r"plus\s+(\d+)\s+lines\s+of\s+ICCO", (ROOT / "README.md").read_text())
+    assert stated and int(stated.group(1)) == glue, glue
