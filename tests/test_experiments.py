@@ -48,3 +48,9 @@ def test_readme_states_the_vmas_example_glue():
     glue = _icco_glue_lines(ROOT / "examples" / "vmas_qmix.py")
     stated = re.search(r"plus\s+(\d+)\s+lines\s+of\s+ICCO", (ROOT / "README.md").read_text())
     assert stated and int(stated.group(1)) == glue, glue
+
+
+def test_benchmarks_readme_is_rendered_from_the_results():
+    report = _load(ROOT / "benchmarks" / "report.py")
+    readme = (ROOT / "benchmarks" / "README.md").read_text()
+    assert readme == report.render(), "stale: run python benchmarks/report.py"

@@ -1,0 +1,206 @@
+"""Render ``benchmarks/README.md`` from ``benchmarks/README.template.md`` and ``results/*.json``.
+
+    python benchmarks/report.py          # after any benchmark has rewritten its JSON
+
+Every figure in the README is read from a results file here, so a number has one home: the JSON
+that the benchmark wrote. A file whose rows this script does not know is rendered column by
+column, so a benchmark may add fields without breaking the page.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from string import Template
+
+HERE = Path(__file__).resolve().parent
+RESULTS = HERE / "results"
+
+# What each end-to-end training config is (``train_throughput.py``'s ``--configs``).
+TRAIN_CONFIGS = {
+    "qmix": "our QMIX (recurrent entity-attention agents, segment replay, `ICCOLoss`)",
+    "icco": "our ICCO (coordinator + posterior on top of our QMIX)",
+    "torchrl_qmix": "TorchRL's QMIX example as written (`qmix_vdn.py`: `RewardSum`, "
+    "`MultiAgentMLP` 2×256 Tanh, `QMixer`, `QMixerLoss`, `SoftUpdate`, Adam, `Collector`)",
+    "torchrl_qmix_w64": "the same example with 64 cells (our networks' width)",
+}
+
+
+def load(name: str):
+    path = RESULTS / name
+    return json.loads(path.read_text()) if path.is_file() else None
+
+
+def fmt(value) -> str:
+    if isinstance(value, bool) or value is None:
+        return {True: "yes", False: "no", None: "–"}[value]
+    if isinstance(value, int):
+        return f"{value:,}"
+    if isinstance(value, float):
+        if abs(value) >= 1000:
+            return f"{value:,.0f}"
+        return f"{value:.2f}" if abs(value) < 10 else f"{value:.1f}"
+    if isinstance(value, list):
+        return ", ".join(fmt(v) for v in value)
+    return str(value)
+
+
+def table(rows: list[dict], columns: dict[str, str] | None = None) -> str:
+    """A Markdown table of ``rows``: ``columns`` maps keys to headers (default: every scalar)."""
+    if not rows:
+        return "(no rows)"
+    if columns is None or not all(k in rows[0] for k in columns):
+        keys = [k for k, v in rows[0].items() if not isinstance(v, dict)]
+        columns = {k: k for k in keys}
+    lines = ["| " + " | ".join(columns.values()) + " |", "|" + "---|" * len(columns)]
+    lines += ["| " + " | ".join(fmt(r.get(k)) for k in columns) + " |" for r in rows]
+    return "\n".join(lines)
+
+
+def machine(data: dict) -> str:
+    keys = ("torch", "python", "cpu_count", "cuda_device", "threads", "time")
+    bits = [f"{k} {fmt(data[k])}" for k in keys if data.get(k) is not None]
+    return "Measured with " + ", ".join(bits) + "." if bits else ""
+
+
+def env_section(name: str) -> str:
+    data = load(name)
+    if data is None:
+        return f"(not measured: no `results/{name}`)"
+    rows = table(
+        data.get("rows", []),
+        {
+            "api": "API",
+            "device": "device",
+            "num_envs": "envs",
+            "env_steps_per_s": "env steps / s",
+            "agent_steps_per_s": "agent steps / s",
+            "speedup_vs_pettingzoo": "× the PettingZoo view",
+        },
+    )
+    return f"{rows}\n\n{machine(data)} Source: [`results/{name}`](results/{name})."
+
+
+def loss_section() -> str:
+    data = load("loss_step.json")
+    if data is None:
+        return "(not measured: no `results/loss_step.json`)"
+    rows = table(
+        data.get("results", []),
+        {
+            "method": "method",
+            "device": "device",
+            "batch_segments": "segments",
+            "segment_len": "steps per segment",
+            "ms_per_update": "ms per update (median)",
+            "runs_ms": "runs (ms)",
+        },
+    )
+    src = "Source: [`results/loss_step.json`](results/loss_step.json)."
+    return f"{rows}\n\n{machine(data)} {src}"
+
+
+def train_section() -> str:
+    data = load("train_throughput.json")
+    if data is None:
+        return "(not measured: no `results/train_throughput.json`)"
+    rows = [
+        {**r, "what": TRAIN_CONFIGS.get(r.get("config"), r.get("config"))}
+        for r in data.get("results", [])
+    ]
+    columns = {
+        "what": "config",
+        "sps": "median env steps / s",
+        "ratio_vs_reference": "× TorchRL's example",
+        "sps_runs": "rounds",
+        "train_share": "share of time in training",
+        "peak_rss_mb": "peak RSS (MB)",
+    }
+    settings = data.get("settings", {})
+    shown = {k: v for k, v in settings.items() if not isinstance(v, (list, dict))}
+    text = table(rows, columns)
+    if shown:
+        text += "\n\nSettings: " + ", ".join(f"`{k}` {fmt(v)}" for k, v in shown.items()) + "."
+    src = "Source: [`results/train_throughput.json`](results/train_throughput.json)."
+    return f"{text}\n\n{src}"
+
+
+def train_gpu_section() -> str:
+    data = load("train_throughput_h200.json")
+    if data is None:
+        return "(not measured: no `results/train_throughput_h200.json`)"
+    rows = [{"device": k, **v} for k, v in data.get("runs", {}).items()]
+    text = table(
+        rows,
+        {
+            "device": "device",
+            "frames": "env steps",
+            "env_steps_per_s": "env steps / s",
+            "collect_s": "collection (s)",
+            "train_s": "updates (s)",
+        },
+    )
+    src = "[`results/train_throughput_h200.json`](results/train_throughput_h200.json)"
+    return (
+        f"{text}\n\n{data.get('what', '')} ({data.get('date', '')}; command: "
+        f"`{data.get('command', '')}`). Source: {src}."
+    )
+
+
+def live_section() -> str:
+    latency, clients = load("live_latency.json"), load("live_clients.json")
+    parts = []
+    if latency is not None:
+        names = {
+            "tick_at_10hz": "live-loop tick at 10 Hz (policy + step + bookkeeping)",
+            "offline_planner": "offline planner call (the first one imports litellm)",
+            "bridge_round_trip_50hz": "bridge round trip over loopback, 50 Hz control",
+            "bridge_state_to_command": "bridge: state datagram in to command out",
+        }
+        rows = [{"what": names.get(k, k), **v} for k, v in latency.items() if isinstance(v, dict)]
+        parts.append(
+            table(rows, {"what": "what", "median_ms": "median (ms)", "p99_ms": "p99 (ms)"})
+            + "\n\nSource: [`results/live_latency.json`](results/live_latency.json)."
+        )
+    if clients is not None:
+        parts.append(
+            f"Page clients of one loop at {fmt(clients.get('rate_hz'))} Hz, "
+            f"{fmt(clients.get('seconds'))} s per count; the most clients served (loop >= 95 % "
+            f"of its rate, slowest client >= 95 % of the ticks): "
+            f"**{fmt(clients.get('max_served'))}**.\n\n"
+            + table(
+                clients.get("rows", []),
+                {
+                    "clients": "clients",
+                    "loop_hz": "loop (Hz)",
+                    "tick_median_ms": "tick median (ms)",
+                    "tick_p99_ms": "tick p99 (ms)",
+                    "client_hz_min": "slowest client (Hz)",
+                    "client_hz_median": "median client (Hz)",
+                    "served": "served",
+                },
+            )
+            + "\n\nSource: [`results/live_clients.json`](results/live_clients.json)."
+        )
+    return "\n\n".join(parts) or "(not measured)"
+
+
+def render() -> str:
+    return Template((HERE / "README.template.md").read_text()).substitute(
+        env_cpu=env_section("env_throughput.json"),
+        env_gpu=env_section("env_throughput_h200.json"),
+        loss=loss_section(),
+        train=train_section(),
+        train_gpu=train_gpu_section(),
+        live=live_section(),
+    )
+
+
+def main() -> int:
+    (HERE / "README.md").write_text(render())
+    print(f"wrote {HERE / 'README.md'}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
