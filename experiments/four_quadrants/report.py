@@ -152,8 +152,8 @@ def comparison(summary: list[dict], missing: list[str]) -> str:
     if missing:
         lines.append(f"- Missing from this comparison (no checkpoint): {', '.join(missing)}.")
     lines.append(
-        "- Our environment is a re-implementation (geometry scaled from COPA, see the task section of the main README), so absolute "
-        "rewards differ from the paper's; the ordering is what to compare."
+        "- Our environment is a re-implementation (geometry scaled from COPA, see docs/task.md), "
+        "so absolute rewards differ from the paper's; the ordering is what to compare."
     )
     return "\n".join(lines)
 
