@@ -13,6 +13,7 @@ from torch import nn
 
 from icco_torchrl.modules.coordinator import Coordinator, gaussian_entropy
 from icco_torchrl.objectives import ICCOLoss, NonFiniteLossError, make_target_updater, total_loss
+from icco_torchrl.objectives.inputs import read_sequences
 from icco_torchrl.training.build import build_components, compose_config
 from icco_torchrl.training.segments import SegmentCutter
 
@@ -460,93 +461,100 @@ def test_target_updater_rejects_bad_arguments():
         make_target_updater(loss, "polyak")
 
 
-def test_coordinator_on_two_states_equals_every_state(icco):
-    """Segments cut at broadcasts only broadcast again at their end: the short path is exact."""
-    parts, _, seg = icco
+def _z_on_every_state(loss, x, fresh):
+    """z for the L+1 inputs written out step by step: a draw at each broadcast, held otherwise."""
+    T, (S, L) = loss.period, x["step_count"].shape
+    with loss.coordinator_params.to_module(loss.coordinator, preserve_module_state=False):
+        loc, scale = loss.coordinator.module.distribution(x["state_seq"])
+    noise = torch.cat([x["z_noise"], fresh.unsqueeze(1)], 1)
+    z = [
+        torch.where(
+            (x["step_count"][:, 0] % T == 0)[:, None, None],
+            loc[:, 0] + scale[:, 0] * noise[:, 0],
+            x["z"][:, 0],
+        )
+    ]
+    for j in range(1, L + 1):
+        new = (x["next_step_count"][:, j - 1] % T == 0)[:, None, None]
+        z.append(torch.where(new, loc[:, j] + scale[:, j] * noise[:, j], z[-1]))
+    return torch.stack(z, 1)
+
+
+@pytest.mark.parametrize("cut_key,length", [("step_count", 4), ("step_count", 16), ("cut_at", 4)])
+def test_z_on_the_broadcast_inputs_equals_every_input(icco, cut_key, length):
+    """The coordinator runs only where some row broadcasts: the same z as on every input, for
+    items of one broadcast, of four, and items that start mid-period (every even step)."""
+    parts, ro, _ = icco
     loss = parts["loss"]
-    x = loss._read(seg)
-    noise = torch.randn_like(x["z_noise"])
-    full = loss._z_sequences(x, loss.coordinator_params, x["z_noise"][:, 0], noise, every_step=True)
-    short = loss._z_sequences(
-        x, loss.coordinator_params, x["z_noise"][:, 0], noise, every_step=False
-    )
-    for a, b in zip(full, short):
-        torch.testing.assert_close(a, b)
-    # a segment that starts mid-period broadcasts inside: the default takes the all-states path
-    ro = _rollout_segments(parts)[0]
-    ro["cut_at"] = (
-        ro["step_count"] * 2
-    )  # segments of 4 steps at every even step: half start mid-period
-    mixed = loss._read(SegmentCutter(length=4, step_key="cut_at")(ro))
-    assert (mixed["next_step_count"][:, :-1] % loss.period == 0).any()
-    noise = torch.randn_like(mixed["z_noise"])
-    auto = loss._z_sequences(mixed, loss.coordinator_params, mixed["z_noise"][:, 0], noise)
-    full = loss._z_sequences(
-        mixed, loss.coordinator_params, mixed["z_noise"][:, 0], noise, every_step=True
-    )
-    for a, b in zip(auto, full):
-        torch.testing.assert_close(a, b)
+    ro = ro.clone()
+    ro["cut_at"] = ro["step_count"] * 2
+    x = read_sequences(loss, SegmentCutter(length=length, step_key=cut_key)(ro))
+    fresh = torch.randn_like(x["z_noise"][:, 0])
+    z, _, _ = loss._z_sequence(x, loss.coordinator_params, fresh)
+    torch.testing.assert_close(z, _z_on_every_state(loss, x, fresh))
 
 
 @pytest.mark.parametrize("method", ["icco", "qmix_full"])
-def test_online_pass_with_a_separate_bootstrap_step_equals_one_sequence(method):
+@pytest.mark.parametrize("burn_in", [0, 3])
+def test_online_pass_in_pieces_equals_one_sequence(method, burn_in):
+    """Burn-in, learned steps and the bootstrap input run as pieces from one another's hidden
+    state: the same Q-values as one L+1 sequence."""
     parts = build_components(
         compose_config([f"method={method}", "env.params.max_steps=10"]), num_envs=4
     )
-    _, seg = _rollout_segments(parts, steps=20)
+    _, seg = _rollout_segments(parts, steps=24)
+    seg = SegmentCutter(length=8)(_rollout_segments(parts, steps=24)[0])
     loss = parts["loss"]
-    x = loss._read(seg)
+    loss.burn_in = burn_in
+    x = read_sequences(loss, seg)
     z = None
     if loss.has_coordinator:
-        z, _, _ = loss._z_sequences(
-            x, loss.coordinator_params, x["z_noise"][:, 0], torch.randn_like(x["z_noise"])
-        )
+        z, _, _ = loss._z_sequence(x, loss.coordinator_params, torch.randn_like(x["z_noise"][:, 0]))
     with torch.no_grad():
-        full = loss._q_sequence(loss.agent_params, x, z)  # [S, T+1, N, A]
+        full = loss._q_sequence(loss.agent_params, x, z)  # [S, L+1, N, A]
         q, q_boot = loss._q_online(x, z)
-    T = seg.shape[1]
-    torch.testing.assert_close(q, full[:, :T], atol=1e-6, rtol=0)
-    torch.testing.assert_close(q_boot, full[:, T], atol=1e-6, rtol=0)
-    assert (
-        q.requires_grad is False
-    )  # computed under no_grad here; in forward the first T steps carry grad
+    L = seg.shape[1]
+    torch.testing.assert_close(q, full[:, :L], atol=1e-6, rtol=0)
+    torch.testing.assert_close(q_boot, full[:, L], atol=1e-6, rtol=0)
     loss.double_q = False
     q_single, none = loss._q_online(x, z)
     assert none is None
-    torch.testing.assert_close(q_single, full[:, :T], atol=1e-6, rtol=0)
+    torch.testing.assert_close(q_single, full[:, :L], atol=1e-6, rtol=0)
 
 
 # ============================================================================ recurrent replay
 @pytest.mark.parametrize("method", ["icco", "qmix_full"])
-def test_replay_reproduces_collection_action_values(method):
-    cfg = compose_config(
-        [f"method={method}", "env.params.max_steps=10"]
-    )  # episode ends inside segments
+@pytest.mark.parametrize("length", [4, 16])
+def test_replay_reproduces_collection_action_values(method, length):
+    """Replayed with the collection weights, every step of an item, across its broadcasts and
+    across an episode end, has the Q-values and z the policy acted on."""
+    cfg = compose_config([f"method={method}", "env.params.max_steps=10"])  # ends inside items
     parts = build_components(cfg, num_envs=6)
-    ro, seg = _rollout_segments(parts, steps=30)
+    ro, _ = _rollout_segments(parts, steps=48)
+    seg = SegmentCutter(length=length)(ro)
     assert (~seg["mask"]).any() and (seg["step_count"][:, 0] == 0).any()
     loss = parts["loss"]
-    x = loss._read(seg)
+    x = read_sequences(loss, seg)
+    valid = seg["mask"]
     with torch.no_grad():
         z_seq = None
         if loss.has_coordinator:
-            z_seq, _, _ = loss._z_sequences(
-                x, loss.coordinator_params, x["z_noise"][:, 0], torch.randn_like(x["z_noise"])
-            )
+            fresh = torch.randn_like(x["z_noise"][:, 0])
+            z_seq, _, _ = loss._z_sequence(x, loss.coordinator_params, fresh)
             torch.testing.assert_close(
-                z_seq[:, :-1][seg["mask"]], seg["agents", "z"][seg["mask"]], atol=1e-5, rtol=0
+                z_seq[:, :-1][valid], seg["agents", "z"][valid], atol=1e-5, rtol=0
             )
+            broadcasts = (seg["step_count"].squeeze(-1) % loss.period == 0) & valid
+            assert broadcasts.sum(1).max() == min(length // loss.period, 3)  # 3 in a 10-step episode
         q = loss._q_sequence(loss.agent_params, x, z_seq)
-    T = seg.shape[1]
-    valid = seg["mask"]
+    L = seg.shape[1]
     torch.testing.assert_close(
-        q[:, :T][valid], seg["agents", "action_value"][valid], atol=1e-5, rtol=0
+        q[:, :L][valid], seg["agents", "action_value"][valid], atol=1e-5, rtol=0
     )
     # forward itself: its q_taken / q_tot summaries are the collection values of the taken actions
     out = loss(seg)
-    chosen = (
-        seg["agents", "action_value"].gather(-1, seg["agents", "action"].unsqueeze(-1)).squeeze(-1)
-    )
+    action = seg["agents", "action"].unsqueeze(-1)
+    chosen = seg["agents", "action_value"].gather(-1, action).squeeze(-1)
     assert out["q_taken"].item() == pytest.approx(chosen[valid].mean().item(), abs=1e-5)
     with torch.no_grad():
         q_tot = loss.mixer.module(chosen.unsqueeze(-1), seg["state"]).squeeze(-1)
@@ -721,57 +729,3 @@ def test_loss_rejects_bad_coefficients(icco):
         ICCOLoss(
             parts["agent"], parts["mixer"], parts["coordinator"], parts["posterior"], ce_coef=-1.0
         )
-
-
-# ============================================================================ split instruction head
-def test_split_instruction_head_with_a_silent_instruction_part_is_the_joint_loss():
-    """Instruction head zeroed and no instruction reward: the split loss is the joint loss of an
-    agent whose single head is the task head (same TD loss and trunk gradients; zero inst loss)."""
-    base = ["method=qmix", "env.params.inst_reward_scale=0"]
-    split = build_components(compose_config([*base, "method.instruction_head=true"]), num_envs=6)
-    joint = build_components(compose_config(base), num_envs=6)
-    A = split["agent"].module.n_actions
-    state = split["loss"].state_dict()
-    with torch.no_grad():
-        for name, value in state.items():
-            if "head.2." in name:
-                value[A:] = 0.0  # the instruction head says nothing
-        split["loss"].load_state_dict(state)
-        joint["loss"].load_state_dict(
-            {n: (v[:A] if "head.2." in n else v) for n, v in state.items()}
-        )
-    ro, seg = _rollout_segments(joint, steps=24)
-    assert seg["next", "events", "inst_reward"].abs().max() == 0
-    out_split, out_joint = split["loss"](seg), joint["loss"](seg)
-    assert out_split["loss_td"].item() == pytest.approx(out_joint["loss_td"].item(), rel=1e-5)
-    assert out_split["loss_td_inst"].item() == 0.0 and out_split["q_inst"].item() == 0.0
-    total_loss(out_split).backward()
-    total_loss(out_joint).backward()
-    trunk = [n for n, _ in joint["loss"].named_parameters() if "gru" in n]
-    for (name, p_split), (_, p_joint) in zip(
-        split["loss"].named_parameters(), joint["loss"].named_parameters()
-    ):
-        if name in trunk:
-            torch.testing.assert_close(p_split.grad, p_joint.grad, atol=1e-6, rtol=1e-4)
-    assert trunk
-
-
-def test_split_instruction_head_learns_each_reward_on_its_own_head():
-    """The two TD targets: task reward for the mixed task head, the scaled instruction reward for
-    the summed instruction head; acting uses their sum."""
-    parts = build_components(
-        compose_config(["method=qmix", "method.instruction_head=true"]), num_envs=6
-    )
-    net, loss = parts["agent"].module, parts["loss"]
-    assert net.value_heads == 2 and loss.split_instruction
-    ro, seg = _rollout_segments(parts, steps=24)
-    q = ro["agents", "action_value"]
-    assert q.shape[-1] == net.n_actions  # the policy acts on Q_task + Q_inst
-    assert seg["next", "events", "inst_reward"].abs().sum() > 0
-    out = loss(seg)
-    assert set(loss.metric_keys) <= set(out.keys()) and out["loss_td_inst"].item() > 0
-    with pytest.raises(ValueError, match="two value heads"):
-        from icco_torchrl.objectives import ICCOLoss as Loss
-
-        joint = build_components(compose_config(["method=qmix"]), num_envs=2)
-        Loss(joint["agent"], joint["mixer"], split_instruction=True)

@@ -24,8 +24,6 @@ from icco_torchrl.modules.relative import STATE_ENCODERS, RelativeStateEncoder
 from icco_torchrl.modules.tdmodule import TensorModule
 from icco_torchrl.modules.waypoint_features import PATH_FEATURES, path_features
 
-Z_INPUTS = ("head", "gru")
-
 if TYPE_CHECKING:
     from icco_torchrl.envs.layout import ObsLayout
 
@@ -63,15 +61,13 @@ class RecurrentQNet(nn.Module):
         hidden: width of the encoder, the GRU and the Q head.
         z_dim: width of the coordinator's z the Q head reads (0: no coordinator).
         full_state: the agent also reads the global state (QMIX (FULL)).
-        encoder: ``"attention"`` (needs a layout; the default with one) or ``"mlp"`` (the default without).
-        state_encoder: with ``full_state``: ``"flat"`` (state joins the own features) or ``"relative"``.
-        value_heads: 1, or 2 for a task head and an instruction head (``sequence``/``step`` return
-            ``[..., 2 * n_actions]``, task first; the policy path, ``forward``, returns their sum:
-            Q = Q_task + Q_inst, see :class:`~icco_torchrl.objectives.ICCOLoss`'s ``split_instruction``).
+        encoder: ``"attention"`` (needs a layout; the default with one) or ``"mlp"`` (the
+            default without).
+        state_encoder: with ``full_state``: ``"flat"`` (state joins the own features) or
+            ``"relative"``.
         waypoint_features: append the nearest own waypoint and the unit direction to the next one
-            (:func:`~icco_torchrl.modules.waypoint_features.path_features`) to the own features; needs a layout.
-        z_input: where ``z`` enters: ``"head"`` (COPA's player: the Q head reads ``[GRU output; z]``) or
-            ``"gru"`` (z joins the GRU's input, so the recurrent core can relate it to the robot's motion).
+            (:func:`~icco_torchrl.modules.waypoint_features.path_features`) to the own features;
+            needs a layout.
     """
 
     def __init__(
@@ -86,13 +82,9 @@ class RecurrentQNet(nn.Module):
         full_state: bool = False,
         encoder: str | None = None,
         state_encoder: str = "flat",
-        value_heads: int = 1,
         waypoint_features: bool = False,
-        z_input: str = "head",
     ):
         super().__init__()
-        if z_input not in Z_INPUTS:
-            raise ValueError(f"z_input must be one of {Z_INPUTS}, got {z_input!r}")
         if state_encoder not in STATE_ENCODERS:
             raise ValueError(
                 f"state_encoder must be one of {STATE_ENCODERS}, got {state_encoder!r}"
@@ -101,15 +93,12 @@ class RecurrentQNet(nn.Module):
             raise ValueError(
                 f"n_actions must be a positive integer (the env's action count), got {n_actions!r}"
             )
-        if value_heads not in (1, 2):
-            raise ValueError(f"value_heads must be 1 or 2, got {value_heads!r}")
         self.hidden, self.z_dim, self.full_state, self.n_actions = (
             hidden,
             z_dim,
             full_state,
             n_actions,
         )
-        self.value_heads = value_heads
         if waypoint_features and layout is None:
             raise ValueError(
                 "waypoint_features reads the own waypoints of a structured observation: it needs a layout"
@@ -154,11 +143,9 @@ class RecurrentQNet(nn.Module):
         nn.init.uniform_(self.embed.bias, -bound, bound)
         nn.init.uniform_(self.prev_action_embed.weight, -bound, bound)
         self.gru = nn.GRU(hidden, hidden, batch_first=True)
-        self.z_in_gru = z_input == "gru" and z_dim > 0
-        self.z_embed = nn.Linear(z_dim, hidden, bias=False) if self.z_in_gru else None
-        head_in = hidden + (z_dim if not self.z_in_gru else 0)
+        head_in = hidden + z_dim  # COPA's player: the Q head reads [GRU output; z]
         self.head = nn.Sequential(
-            nn.Linear(head_in, hidden), nn.ReLU(), nn.Linear(hidden, value_heads * n_actions)
+            nn.Linear(head_in, hidden), nn.ReLU(), nn.Linear(hidden, n_actions)
         )
 
     def _path(self, obs):
@@ -168,8 +155,6 @@ class RecurrentQNet(nn.Module):
     def _features(self, obs, prev_action, state, z=None):
         x = self._encode(obs, state)
         x = self.embed(x) + self.prev_action_embed(prev_action.long())
-        if self.z_in_gru:
-            x = x + self.z_embed(z)
         return torch.relu(x)
 
     def _encode(self, obs, state):
@@ -185,7 +170,7 @@ class RecurrentQNet(nn.Module):
         return self.encoder(obs)
 
     def _q(self, h, z):
-        return self.head(torch.cat([h, z], -1) if self.z_dim and not self.z_in_gru else h)
+        return self.head(torch.cat([h, z], -1) if self.z_dim else h)
 
     def forward(self, obs, prev_action, hidden, step_count=None, z=None, state=None, is_init=None):
         """One step for ``[B, N, ...]`` inputs; the hidden state restarts at zero where an episode starts
@@ -201,13 +186,7 @@ class RecurrentQNet(nn.Module):
             q, h = self.sequence(obs, prev_action, h0, z=z, state=state, return_hidden="all")
         else:
             q, h = self.step(obs, prev_action, keep_hidden(hidden, is_init, step_count), z, state)
-        return self.combine(q), h
-
-    def combine(self, q: torch.Tensor) -> torch.Tensor:
-        """The acting Q ``[..., A]`` from the heads' output (the sum of task and instruction heads)."""
-        if self.value_heads == 1:
-            return q
-        return q[..., : self.n_actions] + q[..., self.n_actions :]
+        return q, h
 
     def step(self, obs, prev_action, hidden, z=None, state=None):
         """One step from ``hidden`` as given (no restart): Q ``[B, N, A]`` and the new hidden state."""
@@ -252,9 +231,7 @@ def make_agent(
     full_state: bool = False,
     encoder: str | None = None,
     state_encoder: str = "flat",
-    value_heads: int = 1,
     waypoint_features: bool = False,
-    z_input: str = "head",
     obs_key=("agents", "observation"),
     state_key="state",
     action_key=("agents", "action"),
@@ -281,9 +258,7 @@ def make_agent(
         full_state=full_state,
         encoder=encoder,
         state_encoder=state_encoder,
-        value_heads=value_heads,
         waypoint_features=waypoint_features,
-        z_input=z_input,
     )
     in_keys = {
         "obs": obs_key,

@@ -3,8 +3,15 @@
 from torchrl.objectives import HardUpdate, SoftUpdate
 
 from icco_torchrl.objectives.icco_loss import ICCOLoss, NonFiniteLossError, total_loss
+from icco_torchrl.objectives.returns import lambda_returns
 
-__all__ = ["ICCOLoss", "NonFiniteLossError", "make_target_updater", "total_loss"]
+__all__ = [
+    "ICCOLoss",
+    "NonFiniteLossError",
+    "lambda_returns",
+    "make_target_updater",
+    "total_loss",
+]
 
 
 def make_target_updater(

@@ -19,6 +19,7 @@ from torchrl.envs import TransformedEnv
 
 from icco_torchrl.envs import ResourceCollectionEnv
 from icco_torchrl.envs.layout import ObsLayout
+from icco_torchrl.envs.shaping import PotentialShaping
 from icco_torchrl.modules import make_agent, make_coordinator, make_mixer, make_posterior
 from icco_torchrl.modules.policy import make_policy, make_primer
 from icco_torchrl.objectives import ICCOLoss, make_target_updater
@@ -69,9 +70,11 @@ def make_env(
     num_envs: int | None = None,
     seed: int | None = None,
     device: torch.device | str = "cpu",
+    shaping=None,
     **overrides,
 ) -> TransformedEnv:
-    """The batched env with the primer that carries the policy's recurrent state."""
+    """The batched env with the primer that carries the policy's recurrent state, and with
+    ``shaping`` (a ``train.shaping`` node) its potential-based reward shaping."""
     params = {**OmegaConf.to_container(cfg.env.params, resolve=True), **overrides}
     base = ResourceCollectionEnv(
         num_envs=num_envs or cfg.env.num_envs,
@@ -80,7 +83,7 @@ def make_env(
         **params,
     )
     m = cfg.method
-    return TransformedEnv(
+    env = TransformedEnv(
         base,
         make_primer(
             base.n_agents,
@@ -90,6 +93,12 @@ def make_env(
             n_actions=action_count(base),
         ),
     )
+    if shaping is not None and shaping.potentials:
+        potentials = list(shaping.potentials)
+        env.append_transform(
+            PotentialShaping.for_env(base, potentials, shaping.weight, cfg.train.gamma)
+        )
+    return env
 
 
 def action_count(env) -> int:
@@ -110,9 +119,7 @@ def make_modules(cfg: DictConfig, layout, device, *, n_actions: int) -> dict:
             full_state=m.full_state,
             encoder=m.encoder,
             state_encoder=m.state_encoder,
-            value_heads=2 if m.instruction_head else 1,
             waypoint_features=m.waypoint_features,
-            z_input=m.z_input,
         ),
         "mixer": make_mixer(layout.state_dim, layout.n_agents, device=device),
         "coordinator": None,
@@ -147,10 +154,10 @@ def make_loss(cfg: DictConfig, mods: dict) -> ICCOLoss:
         mods["posterior"],
         gamma=t.gamma,
         td_lambda=t.td_lambda,
+        burn_in=t.burn_in,
         double_q=t.double_q,
         ce_coef=m.ce_coef if m.coordinator else 0.0,
         entropy_coef=m.entropy_coef if m.coordinator else 0.0,
-        split_instruction=m.instruction_head,
     )
 
 
@@ -203,14 +210,17 @@ def build(
 ) -> Run:
     """Assemble ``cfg`` on ``device`` (default ``cfg.device``). ``num_envs``, ``seed`` and
     ``env_overrides`` change the env (an evaluation env, say); ``for_training`` applies
-    ``train.env_params`` to the training env and adds the evaluation env (``train.eval_envs`` envs,
+    ``train.env_params`` and ``train.shaping`` to the training env and adds the evaluation env (``train.eval_envs`` envs,
     seed + VALIDATION_SEED_OFFSET, ``env.params`` without them), optimiser, target updater and
     replay buffer. Objects are made in a fixed order, so a seed gives the same weights every time."""
     device = resolve_device(cfg.device if device is None else str(device))
     t = cfg.train
     if for_training:  # training-only env parameters (reward shaping); evaluations keep env.params
         env_overrides = {**set_env_params(t.env_params), **env_overrides}
-    env = make_env(cfg, num_envs=num_envs, seed=seed, device=device, **env_overrides)
+    shaping = t.shaping if for_training else None
+    env = make_env(
+        cfg, num_envs=num_envs, seed=seed, device=device, shaping=shaping, **env_overrides
+    )
     eval_env = (
         make_env(cfg, num_envs=t.eval_envs, seed=cfg.seed + VALIDATION_SEED_OFFSET, device=device)
         if for_training
@@ -219,9 +229,7 @@ def build(
     layout = env.base_env.layout
     mods = make_modules(cfg, layout, device, n_actions=action_count(env))
     guide = None
-    if for_training and t.get(
-        "explore_guide"
-    ):  # exploration from a scripted policy (experiments/recipe)
+    if for_training and t.get("explore_guide"):  # exploration from a scripted policy
         from icco_torchrl.envs.reference_policies import make_reference_policy
 
         guide = make_reference_policy(
@@ -243,7 +251,7 @@ def build(
         **mods,
         policy=policy,
         loss=loss,
-        cutter=SegmentCutter(length=cfg.method.period),
+        cutter=SegmentCutter(length=t.sequence_length),
         eval_env=eval_env,
     )
     if for_training:

@@ -153,14 +153,22 @@ def load_checkpoint(path: str | Path, map_location="cpu") -> dict[str, Any]:
             "release that wrote it"
         )
     payload = _from_plain(payload)
-    from icco_torchrl.training.config import METHOD_FIELDS_ADDED
+    from icco_torchrl.training.config import (
+        METHOD_FIELDS_ADDED,
+        METHOD_FIELDS_REMOVED,
+        REMOVED_AT,
+    )
 
     method = payload.get("cfg", {}).get("method")
-    if isinstance(
-        method, dict
-    ):  # a field the checkpoint lacks was added later: it had the old behaviour
-        for key, value in METHOD_FIELDS_ADDED.items():
+    if isinstance(method, dict):
+        for key, value in METHOD_FIELDS_ADDED.items():  # added later: it had the old behaviour
             method.setdefault(key, value)
+        for key, value in METHOD_FIELDS_REMOVED.items():  # dropped options: only one value loads
+            if method.pop(key, value) != value:
+                raise CheckpointError(
+                    f"{path} was trained with method.{key}, an option removed from icco-torchrl; "
+                    f"evaluate it at commit {REMOVED_AT}"
+                )
     return payload
 
 

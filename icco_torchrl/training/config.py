@@ -50,41 +50,47 @@ def _field(
 
 @dataclass
 class MethodConfig:
-    """``method``: which learner (presets ``conf/method/``: icco (these defaults), icco_wo_ce, qmix, qmix_full)."""
+    """``method``: which learner. The methods are the presets in ``conf/method/`` (ICCO is these
+    defaults); their names and labels come from :mod:`icco_torchrl.methods`."""
 
-    name: str = "icco"  # the method's name: run folders, tables
-    coordinator: bool = True  # a coordinator g_phi(s, v) broadcasts z per robot
-    full_state: bool = False  # agents also read the global state (QMIX (FULL))
-    ce_coef: float = _field(
-        1e-4, ge=0
-    )  # weight of -log q_xi(z | future behaviour) (COPA: 1e-3; 1e-3 measured to cost the task here, experiments/recipe)
-    entropy_coef: float = _field(1e-4, ge=0)  # weight of -H(z | s, v) (COPA: 1e-4)
-    posterior: str = _field(
-        "product", choices=("product", "sum")
-    )  # product of Gaussian factors | sum of log-likelihoods (COPA)
-    encoder: str = _field(
-        "attention", choices=("attention", "mlp")
-    )  # local observation encoder: entity tokens | flat MLP
-    state_encoder: str = _field(
-        "relative", choices=("relative", "flat")
-    )  # global-state encoder (coordinator, QMIX (FULL)): entities seen from each robot | absolute
-    z_init_logvar: float = _field(
-        -5.0, ge=-10, le=0
-    )  # initial log-variance bias of z, in COPA's clamp [-10, 0] (0 measured slower)
-    hidden: int = _field(64, gt=0)  # width of encoders, GRU and heads
-    z_dim: int = _field(32, ge=0)  # TACI size per robot (COPA: 128); 0 without a coordinator
-    period: int = _field(4, gt=0)  # z is redrawn every `period` steps and held in between (T)
-    z_input: str = _field(
-        "head", choices=("head", "gru")
-    )  # z joins the Q head's input (COPA) | the GRU's input
-    waypoint_features: bool = True  # agents also read the nearest own waypoint and the path direction r_inst scores (modules/waypoint_features.py)
-    instruction_head: bool = False  # a separate value head for the instruction reward, Q = Q_task + Q_inst (experiments/recipe; not kept)
+    # The method's name: run folders, tables.
+    name: str = "icco"
+    # A coordinator g_phi(s, v) broadcasts z per robot.
+    coordinator: bool = True
+    # Agents also read the global state (QMIX (FULL)).
+    full_state: bool = False
+    # Weight of -log q_xi(z | future behaviour). COPA: 1e-3, measured to cost the task here
+    # (experiments/recipe).
+    ce_coef: float = _field(1e-4, ge=0)
+    # Weight of -H(z | s, v) (COPA: 1e-4).
+    entropy_coef: float = _field(1e-4, ge=0)
+    # The posterior's factors: product of Gaussians | sum of log-likelihoods (COPA).
+    posterior: str = _field("product", choices=("product", "sum"))
+    # Local observation encoder: entity tokens | flat MLP.
+    encoder: str = _field("attention", choices=("attention", "mlp"))
+    # Global-state encoder (coordinator, QMIX (FULL)): entities seen from each robot | absolute.
+    state_encoder: str = _field("relative", choices=("relative", "flat"))
+    # Initial log-variance bias of z, in COPA's clamp [-10, 0] (0 measured slower).
+    z_init_logvar: float = _field(-5.0, ge=-10, le=0)
+    # Width of encoders, GRU and heads.
+    hidden: int = _field(64, gt=0)
+    # TACI size per robot (COPA: 128); 0 without a coordinator.
+    z_dim: int = _field(32, ge=0)
+    # z is redrawn every `period` steps and held in between (T).
+    period: int = _field(4, gt=0)
+    # Agents also read the nearest own waypoint and the path direction r_inst scores
+    # (modules/waypoint_features.py).
+    waypoint_features: bool = True
 
 
 # Method fields added after checkpoints had been written, with the value those older checkpoints
 # were trained with (not today's default, which may differ): load_checkpoint fills them in, so an
 # older checkpoint (the demo policy, a committed result) restores the networks it was trained with.
-METHOD_FIELDS_ADDED = {"instruction_head": False, "waypoint_features": False, "z_input": "head"}
+METHOD_FIELDS_ADDED = {"waypoint_features": False}
+# Options measured and dropped from the library, with the only value it still builds: a checkpoint
+# trained with another value is refused in one line naming the commit that can load it.
+METHOD_FIELDS_REMOVED = {"instruction_head": False, "z_input": "head"}
+REMOVED_AT = "396580d"
 
 
 def _env_params_schema(name: str = "EnvParams", unset: bool = False) -> type:
@@ -135,65 +141,81 @@ class EnvConfig:
 
 
 @dataclass
-class TrainConfig:
-    """``train``: budget and optimisation (presets ``conf/experiment/``: default (these), smoke, paper, repro_cpu,
-    inst_only). Each lever of the default recipe was measured against the session-1 recipe
-    (``experiments/recipe/README.md``)."""
+class ShapingConfig:
+    """``train.shaping``: potential-based reward shaping of the training env only,
+    ``F = gamma * Phi(s') - Phi(s)`` (Ng et al. 1999), so it cannot change which policies are
+    optimal. ``Phi`` is ``weight`` times the sum of the named potentials
+    (:mod:`icco_torchrl.envs.shaping`)."""
 
-    total_frames: int = _field(1_000_000, gt=0)  # env steps (one step of one env) to collect
-    steps_per_batch: int = _field(
-        16, gt=0
-    )  # collector steps per env per batch (frames_per_batch = num_envs * this)
-    buffer_segments: int = _field(
-        20_000, gt=0
-    )  # replay capacity in segments of `method.period` steps
-    batch_segments: int = _field(128, gt=0)  # segments per gradient update (COPA: 512)
-    updates_per_batch: int = _field(
-        8, ge=1
-    )  # gradient updates per collector batch (~8 replayed transitions per new one)
-    warmup_segments: int = _field(512, ge=0)  # no updates until the buffer holds this many segments
-    lr: float = _field(
-        1e-3, gt=0
-    )  # learning rate (COPA: RMSprop 3e-4; Adam 1e-3 learns the task ~2x faster here)
-    optimizer: str = _field(
-        "adam", choices=("adam", "rmsprop")
-    )  # adam | rmsprop (alpha 0.99, eps 1e-5, COPA)
-    grad_clip: float = _field(10.0, ge=0)  # global grad-norm clip (0 disables)
-    gamma: float = _field(0.99, ge=0, le=1)  # discount
-    td_lambda: float = _field(
-        0.0, ge=0, le=1
-    )  # TD(lambda) inside each replayed segment (0: one-step TD; 0.8 measured worse)
-    double_q: bool = True  # bootstrap with the online argmax (pymarl) instead of the target's
-    target_update: str = _field(
-        "hard", choices=("hard", "soft")
-    )  # hard (copy every interval updates, COPA) | soft (Polyak, tau)
-    target_update_interval: int = _field(50, gt=0)  # updates between hard copies (COPA: 200)
-    tau: float = _field(0.005, gt=0, le=1)  # Polyak rate of soft updates
-    eps_init: float = _field(1.0, ge=0, le=1)  # epsilon-greedy start
-    eps_end: float = _field(0.05, ge=0, le=1)  # epsilon-greedy floor
-    eps_decay_frames: int = _field(
-        300_000, ge=0
-    )  # exponential decay from eps_init to eps_end over these frames
-    eval_interval: int = _field(
-        100_000, ge=0
-    )  # frames between greedy evaluations (0: only at the end)
-    eval_envs: int = _field(
-        16, gt=0
-    )  # evaluation episodes (parallel envs), the same ones every time
-    checkpoint_interval: int = _field(
-        100_000, ge=0
-    )  # frames between checkpoints (0: only at the end)
-    checkpoint_buffer: bool = (
-        True  # also save the replay buffer (replay/, ~22 KB per segment) so resume keeps it
-    )
-    threads: int = _field(1, gt=0)  # torch CPU threads (1 is the stable choice on shared machines)
-    explore_guide: Optional[str] = _field(
-        None, choices=(None, *REFERENCE_POLICIES)
-    )  # exploratory actions from this reference policy instead of uniform draws (experiments/recipe)
-    # env.params overrides for the training env only (reward shaping, e.g. train.env_params.collect_reward=3.5):
-    # the evaluations during training, `icco eval` and every restore use env.params, so shaping never
-    # changes what is scored. May change at resume (a curriculum); replayed data keeps its old rewards.
+    # Potentials to sum: collect (a robot's distance left in its delivery cycle) | defend (a free
+    # robot's distance to the nearest active invader). []: no shaping.
+    potentials: list[str] = _field([])
+    # Scale of Phi, in reward units per metre.
+    weight: float = _field(0.3, ge=0)
+
+
+@dataclass
+class TrainConfig:
+    """``train``: budget and optimisation (presets ``conf/experiment/``: default (these), smoke,
+    paper, repro_cpu, inst_only). Each lever was measured (``experiments/recipe/README.md``)."""
+
+    # Env steps (one step of one env) to collect.
+    total_frames: int = _field(1_000_000, gt=0)
+    # Collector steps per env per batch (frames_per_batch = num_envs * this).
+    steps_per_batch: int = _field(16, gt=0)
+    # Length L of a replayed sequence, a multiple of method.period (L = period: one broadcast).
+    sequence_length: int = _field(4, gt=0)
+    # Leading steps of each sequence that only warm up the GRU from its stored state (no loss).
+    burn_in: int = _field(0, ge=0)
+    # Replay capacity in sequences of `sequence_length` steps.
+    buffer_segments: int = _field(20_000, gt=0)
+    # Sequences per gradient update (COPA: 512 of 4 steps).
+    batch_segments: int = _field(128, gt=0)
+    # Gradient updates per collector batch (~8 replayed transitions per new one).
+    updates_per_batch: int = _field(8, ge=1)
+    # No updates until the buffer holds this many sequences.
+    warmup_segments: int = _field(512, ge=0)
+    # Learning rate (COPA: RMSprop 3e-4; Adam 1e-3 learns the task ~2x faster here).
+    lr: float = _field(1e-3, gt=0)
+    # adam | rmsprop (alpha 0.99, eps 1e-5, COPA).
+    optimizer: str = _field("adam", choices=("adam", "rmsprop"))
+    # Global grad-norm clip (0 disables).
+    grad_clip: float = _field(10.0, ge=0)
+    # Discount.
+    gamma: float = _field(0.99, ge=0, le=1)
+    # Lambda of the lambda-return over each replayed sequence (0: one-step targets).
+    td_lambda: float = _field(0.0, ge=0, le=1)
+    # Bootstrap with the online argmax (pymarl) instead of the target's.
+    double_q: bool = True
+    # hard (copy every interval updates, COPA) | soft (Polyak, tau).
+    target_update: str = _field("hard", choices=("hard", "soft"))
+    # Updates between hard copies (COPA: 200).
+    target_update_interval: int = _field(50, gt=0)
+    # Polyak rate of soft updates.
+    tau: float = _field(0.005, gt=0, le=1)
+    # Epsilon-greedy start and floor.
+    eps_init: float = _field(1.0, ge=0, le=1)
+    eps_end: float = _field(0.05, ge=0, le=1)
+    # Exponential decay from eps_init to eps_end over these frames.
+    eps_decay_frames: int = _field(300_000, ge=0)
+    # Frames between greedy evaluations (0: only at the end).
+    eval_interval: int = _field(100_000, ge=0)
+    # Evaluation episodes (parallel envs), the same ones every time.
+    eval_envs: int = _field(16, gt=0)
+    # Frames between checkpoints (0: only at the end).
+    checkpoint_interval: int = _field(100_000, ge=0)
+    # Also save the replay buffer (replay/, ~22 KB per 4 steps) so resume keeps it.
+    checkpoint_buffer: bool = True
+    # torch CPU threads (1 is the stable choice on shared machines).
+    threads: int = _field(1, gt=0)
+    # Exploratory actions from this reference policy instead of uniform draws (experiments/recipe).
+    explore_guide: Optional[str] = _field(None, choices=(None, *REFERENCE_POLICIES))
+    # env.params overrides for the training env only (e.g. train.env_params.collect_reward=3.5):
+    # the evaluations during training, `icco eval` and every restore use env.params, so they never
+    # change what is scored. May change at resume (a curriculum); replayed data keeps old rewards.
     env_params: TrainEnvParams = field(default_factory=TrainEnvParams)
+    # Potential-based shaping of the training env only (never in an evaluation).
+    shaping: ShapingConfig = field(default_factory=ShapingConfig)
 
 
 @dataclass
@@ -277,19 +299,35 @@ class LLMConfig:
 
 @dataclass
 class LiveConfig:
+    """``live``: ``icco live`` (a team on a web page) and ``icco bridge`` (robots over
+    JSON-over-UDP); see ``icco_torchrl/live/``."""
+
+    # Address the page and the bridge listen on (anything but loopback lets other machines steer).
     host: str = "127.0.0.1"
-    port: int = 8765
-    web_port: int = 8000
+    # UDP port of the bridge (0 = any free port).
+    port: int = _field(8765, ge=0, le=65535)
+    # HTTP/WebSocket port of the live page (0 = any free port).
+    web_port: int = _field(8000, ge=0, le=65535)
+    # `icco bridge`: also serve the live page (watch the fleet, type instructions).
     web: bool = False
-    rate_hz: float = 10.0
-    timeout_s: float = 0.5
+    # Ticks per second (10 = real time at dt 0.1 s); the page's speed control scales it.
+    rate_hz: float = _field(10.0, gt=0)
+    # A robot without a pose for this long (s) is sent a stop command.
+    timeout_s: float = _field(0.5, gt=0)
+    # Also run the simulated fleet (unicycles with noise and latency) in this process.
     fleet: bool = False
-    seconds: Optional[float] = None
-    max_speed: float = 0.5
-    max_turn: float = 2.0
-    max_accel: float = 1.0
-    max_turn_accel: float = 4.0
-    robot_radius: float = 0.15
+    # Stop after this many seconds (the page then shows "run ended"); null: until Ctrl-C / SIGTERM.
+    seconds: Optional[float] = _field(None, gt=0)
+    # Robot limits for the DWA controller: forward speed, m/s.
+    max_speed: float = _field(0.5, gt=0)
+    # Turn rate, rad/s.
+    max_turn: float = _field(2.0, gt=0)
+    # Forward acceleration, m/s^2.
+    max_accel: float = _field(1.0, gt=0)
+    # Turn acceleration, rad/s^2.
+    max_turn_accel: float = _field(4.0, gt=0)
+    # Robot radius, m: robots keep twice this apart.
+    robot_radius: float = _field(0.15, gt=0)
 
 
 @dataclass
@@ -332,16 +370,6 @@ def register_configs() -> None:
 
 register_configs()
 
-_LIVE_POSITIVE = (
-    "live.rate_hz",
-    "live.timeout_s",
-    "live.max_speed",
-    "live.max_turn",
-    "live.max_accel",
-    "live.max_turn_accel",
-    "live.robot_radius",
-)
-
 
 def _field_error(err: OmegaConfBaseException) -> ConfigError:
     key = getattr(err, "full_key", None) or "?"
@@ -374,6 +402,24 @@ def _check_fields(node, schema, prefix: str = "") -> None:
                 raise ConfigError(f"config field '{key}' must be {word} {meta[rule]}, got {value}")
 
 
+def _check_shaping(shaping, params) -> None:
+    """Known potentials, each computable from the env's state (what it needs is there)."""
+    from icco_torchrl.envs.shaping import POTENTIALS, missing_for
+
+    for name in shaping.potentials:
+        if name not in POTENTIALS:
+            raise ConfigError(
+                f"config field 'train.shaping.potentials' has unknown potential {name!r}; "
+                f"choose from {list(POTENTIALS)}"
+            )
+        lack = missing_for(name, n_resources=params.n_resources, n_invaders=params.n_invaders)
+        if lack:
+            raise ConfigError(
+                f"config field 'train.shaping.potentials': {name!r} needs {lack} in the env's "
+                f"state (env.params)"
+            )
+
+
 def validate(cfg: DictConfig | dict) -> DictConfig:
     """Merge ``cfg`` into the schema and check every field and the rules between fields; raises
     ``ConfigError`` naming the field. A config Hydra composed is already typed; a saved one (a
@@ -403,6 +449,17 @@ def validate(cfg: DictConfig | dict) -> DictConfig:
             f"config field 'train.warmup_segments' ({t.warmup_segments}) exceeds "
             f"'train.buffer_segments' ({t.buffer_segments}): training would never start"
         )
+    if t.sequence_length % m.period:
+        raise ConfigError(
+            f"config field 'train.sequence_length' ({t.sequence_length}) must be a multiple of "
+            f"'method.period' ({m.period})"
+        )
+    if t.burn_in >= t.sequence_length:
+        raise ConfigError(
+            f"config field 'train.burn_in' ({t.burn_in}) must be less than "
+            f"'train.sequence_length' ({t.sequence_length})"
+        )
+    _check_shaping(t.shaping, merged.env.params)
     if not t.eps_end <= t.eps_init:
         raise ConfigError(
             "config fields 'train.eps_init'/'train.eps_end' need 0 <= eps_end <= eps_init <= 1"
@@ -412,16 +469,6 @@ def validate(cfg: DictConfig | dict) -> DictConfig:
             f"config field 'llm.n_waypoints' ({merged.llm.n_waypoints}) must equal "
             f"'env.params.n_waypoints' ({merged.env.params.n_waypoints})"
         )
-    for key in _LIVE_POSITIVE:
-        if not OmegaConf.select(merged, key) > 0:
-            raise ConfigError(
-                f"config field '{key}' must be > 0, got {OmegaConf.select(merged, key)}"
-            )
-    for key in ("port", "web_port"):
-        if not 0 <= merged.live[key] <= 65535:
-            raise ConfigError(
-                f"config field 'live.{key}' must be in [0, 65535], got {merged.live[key]}"
-            )
     unknown = [name for name in merged.eval.references if name not in REFERENCE_POLICIES]
     if unknown:
         raise ConfigError(

@@ -313,9 +313,6 @@ class Session:
         )  # episodes since the last row
         last_eval = last_ckpt = p.frames
         start_wall, start_frames = time.perf_counter(), p.frames
-        replay_keys = REPLAY_KEYS + (
-            [("next", "events", "inst_reward")] if run.loss.split_instruction else []
-        )
         stop = GracefulInterrupt()
         try:
             tick = time.perf_counter()
@@ -326,7 +323,7 @@ class Session:
                 self.explore.eps.fill_(epsilon(p.frames, t))
                 recent.append(tracker.update(batch))
                 run.buffer.extend(
-                    run.cutter(batch.select(*replay_keys, strict=False))
+                    run.cutter(batch.select(*REPLAY_KEYS, strict=False))
                 )  # cut only what is replayed
                 tick = time.perf_counter()
                 row = self.learn()
