@@ -171,6 +171,7 @@ PRE_WAYPOINT_FEATURES = {  # name: (lever, setting, method, overrides)
         [
             *WF_PATHS,
             "method.period=1",
+            "train.sequence_length=1",  # items of one period, as when this was measured
             "train.batch_segments=512",
             "train.buffer_segments=80000",
             "train.warmup_segments=2048",
