@@ -27,7 +27,7 @@ def _run(command: str) -> None:
     from hydra.core.hydra_config import HydraConfig
     from omegaconf import DictConfig
 
-    from icco_torchrl.training.build import CONF_DIR
+    from icco_torchrl.paths import CONF_DIR
     from icco_torchrl.training.checkpoint import CheckpointError
     from icco_torchrl.training.config import ConfigError, validate
 
@@ -147,7 +147,7 @@ def unknown_group_option(overrides: list[str]) -> str | None:
     ``conf/`` (method, env, reward, experiment, llm) before Hydra starts. Multirun lists
     (``method=icco,qmix``) are checked item by item.
     """
-    from icco_torchrl.training.build import CONF_DIR
+    from icco_torchrl.paths import CONF_DIR
 
     for item in overrides:
         key, sep, value = item.partition("=")

@@ -11,9 +11,9 @@ from conftest import run_cli
 from omegaconf import OmegaConf
 
 from icco_torchrl.envs import ResourceCollectionEnv
+from icco_torchrl.paths import CONF_DIR
 from icco_torchrl.training import config as config_module
-from icco_torchrl.training.build import CONF_DIR, compose_config
-from icco_torchrl.training.config import Config, EnvParams, check_command_line
+from icco_torchrl.training.config import Config, EnvParams, check_command_line, compose_config
 
 PACKAGES = {
     "method": "method",
@@ -72,7 +72,8 @@ def test_every_schema_field_is_commented():
                 if isinstance(item, ast.AnnAssign) and not isinstance(
                     item.annotation, ast.Constant
                 ):
-                    text = lines[item.lineno - 1]
+                    # a trailing comment, or one on the line above the field
+                    text = lines[item.lineno - 1] + lines[item.lineno - 2].strip()[:1]
                     nested = (
                         isinstance(item.value, ast.Call)
                         and getattr(item.value.func, "id", "") == "field"

@@ -62,7 +62,7 @@ def test_wheel_installs_and_trains_from_outside_the_repo(tmp_path):
         "LITELLM_LOCAL_MODEL_COST_MAP": "True",
     }
     where = subprocess.run(
-        [sys.executable, "-c", "from icco_torchrl.training.build import CONF_DIR; print(CONF_DIR)"],
+        [sys.executable, "-c", "from icco_torchrl.paths import CONF_DIR; print(CONF_DIR)"],
         cwd=outside,
         env=env,
         capture_output=True,

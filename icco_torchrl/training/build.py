@@ -9,7 +9,6 @@ posterior), agents reading their local view or the global state, CE weights.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 
 import torch
 from omegaconf import DictConfig, OmegaConf
@@ -23,29 +22,9 @@ from icco_torchrl.envs.shaping import PotentialShaping
 from icco_torchrl.modules import make_agent, make_coordinator, make_mixer, make_posterior
 from icco_torchrl.modules.policy import make_policy, make_primer
 from icco_torchrl.objectives import ICCOLoss, make_target_updater
-from icco_torchrl.training.config import resolve_device, set_env_params, validate
+from icco_torchrl.training.config import compose_config, resolve_device, set_env_params
 from icco_torchrl.training.segments import SegmentCutter
 
-
-def _conf_dir() -> Path:
-    """The Hydra config tree: ``conf/`` of a source checkout, else the copy a wheel installs as
-    ``icco_torchrl/conf`` (pyproject maps the top-level folder into the package)."""
-    checkout = Path(__file__).resolve().parents[2] / "conf"
-    if (checkout / "config.yaml").is_file():
-        return checkout
-    return Path(__file__).resolve().parents[1] / "conf"
-
-
-CONF_DIR = _conf_dir()
-# The methods (conf/method/*.yaml) and the paper's names for them.
-METHODS = ("icco", "icco_wo_ce", "qmix", "qmix_full")  # the paper's methods
-METHOD_LABELS = {
-    "icco": "ICCO",
-    "icco_wo_ce": "ICCO w/o CE",
-    "qmix": "QMIX",
-    "qmix_full": "QMIX (FULL)",
-    "qmix_full_flat": "QMIX (FULL, flat)",
-}  # + the paper's own QMIX (FULL), a flat state vector
 # Env seeds relative to cfg.seed: training uses the seed itself, the evaluations during training
 # seed + VALIDATION_SEED_OFFSET, evaluations of a trained policy (icco eval/instruct, restore) seed +
 # EVAL_SEED_OFFSET, so none replays another's episodes; evaluation episode e draws its reference
@@ -53,15 +32,6 @@ METHOD_LABELS = {
 VALIDATION_SEED_OFFSET = 10_000
 EVAL_SEED_OFFSET = 20_000
 EPISODE_SEED_STRIDE = 1_000
-
-
-def compose_config(overrides: list[str] | None = None, config_name: str = "config") -> DictConfig:
-    """The validated config from ``conf/`` with Hydra-style overrides (for scripts and tests)."""
-    from hydra import compose, initialize_config_dir
-
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
-        cfg = compose(config_name=config_name, overrides=list(overrides or []))
-    return validate(cfg)
 
 
 def make_env(

@@ -27,6 +27,7 @@ from omegaconf.errors import OmegaConfBaseException
 
 from icco_torchrl.envs.reference_policies import REFERENCE_POLICIES
 from icco_torchrl.envs.resource_collection import SPAWN_MODES, ResourceCollectionEnv
+from icco_torchrl.paths import CONF_DIR
 
 
 class ConfigError(ValueError):
@@ -131,13 +132,15 @@ def set_env_params(params) -> dict:
 
 @dataclass
 class EnvConfig:
-    """``env``: the task (``conf/env/resource_collection.yaml``); reward weights come from the ``reward`` presets."""
+    """``env``: the task (``conf/env/resource_collection.yaml``); reward weights come from the
+    ``reward`` presets."""
 
-    name: str = "resource_collection"  # the task
-    num_envs: int = _field(32, gt=0)  # envs stepped together by the collector
-    params: EnvParams = field(
-        default_factory=EnvParams
-    )  # ResourceCollectionEnv's keyword arguments (its defaults)
+    # The task.
+    name: str = "resource_collection"
+    # Envs stepped together by the collector.
+    num_envs: int = _field(32, gt=0)
+    # ResourceCollectionEnv's keyword arguments (its defaults).
+    params: EnvParams = field(default_factory=EnvParams)
 
 
 @dataclass
@@ -193,8 +196,9 @@ class TrainConfig:
     target_update_interval: int = _field(50, gt=0)
     # Polyak rate of soft updates.
     tau: float = _field(0.005, gt=0, le=1)
-    # Epsilon-greedy start and floor.
+    # Epsilon-greedy start.
     eps_init: float = _field(1.0, ge=0, le=1)
+    # Epsilon-greedy floor.
     eps_end: float = _field(0.05, ge=0, le=1)
     # Exponential decay from eps_init to eps_end over these frames.
     eps_decay_frames: int = _field(300_000, ge=0)
@@ -222,20 +226,24 @@ class TrainConfig:
 class WandbConfig:
     """``logger.wandb``: optional; never needs a network or an account for ``offline``."""
 
-    mode: str = _field(
-        "disabled", choices=("disabled", "offline", "online")
-    )  # disabled | offline (./wandb, syncable) | online
-    project: str = "icco-torchrl"  # wandb project name
-    entity: Optional[str] = None  # wandb entity (team/user); null: the default
-    group: Optional[str] = None  # wandb group (e.g. a sweep name); null: the method name
+    # disabled | offline (./wandb, syncable) | online
+    mode: str = _field("disabled", choices=("disabled", "offline", "online"))
+    # wandb project name.
+    project: str = "icco-torchrl"
+    # wandb entity (team/user); null: the default.
+    entity: Optional[str] = None
+    # wandb group (e.g. a sweep name); null: the method name.
+    group: Optional[str] = None
 
 
 @dataclass
 class LoggerConfig:
     """``logger``: CSV files always, the progress bar and wandb on request."""
 
-    progress: bool = True  # tqdm progress bar with SPS, team reward and event counts
-    log_interval: int = _field(1, gt=0)  # a train.csv row every this many collector batches
+    # tqdm progress bar with SPS, team reward and event counts.
+    progress: bool = True
+    # A train.csv row every this many collector batches.
+    log_interval: int = _field(1, gt=0)
     wandb: WandbConfig = field(default_factory=WandbConfig)
 
 
@@ -243,58 +251,61 @@ class LoggerConfig:
 class EvalConfig:
     """``eval``: ``icco eval`` and ``icco instruct`` (protocols, trials, outputs, reference rows)."""
 
-    protocol: str = _field(
-        "random_walk", choices=("random_walk", "quadrants")
-    )  # training distribution | paper Fig. 4/5a
-    trials: int = _field(20, gt=0)  # evaluation episodes run in parallel (one env each)
-    episodes: int = _field(1, gt=0)  # repeats of the batch of trials
-    gif: bool = False  # write a GIF of trial 0
-    out_dir: Optional[str] = None  # where results go; null: next to the checkpoint(s)
-    checkpoints: list[str] = _field(
-        []
-    )  # more checkpoints (paths or globs) to compare; one row per method
-    steps: int = _field(
-        145, gt=0
-    )  # steps per segment (each quadrant, each `;`-separated instruction)
-    replan_every: Optional[int] = (
-        None  # `icco instruct`: re-prompt every this many steps; null: once per instruction
-    )
-    references: list[str] = _field(
-        list(REFERENCE_POLICIES)
-    )  # scripted reference rows beside the checkpoints ([]: none)
-    blend_radius: float = _field(
-        1.75, ge=0
-    )  # radius (m) of the blend reference: task within r, follow otherwise
+    # Training distribution | paper Fig. 4/5a.
+    protocol: str = _field("random_walk", choices=("random_walk", "quadrants"))
+    # Evaluation episodes run in parallel (one env each).
+    trials: int = _field(20, gt=0)
+    # Repeats of the batch of trials.
+    episodes: int = _field(1, gt=0)
+    # Write a GIF of trial 0.
+    gif: bool = False
+    # Where results go; null: next to the checkpoint(s).
+    out_dir: Optional[str] = None
+    # More checkpoints (paths or globs) to compare; one row per method.
+    checkpoints: list[str] = _field([])
+    # Steps per segment (each quadrant, each `;`-separated instruction).
+    steps: int = _field(145, gt=0)
+    # `icco instruct`: re-prompt every this many steps; null: once per instruction.
+    replan_every: Optional[int] = None
+    # Scripted reference rows beside the checkpoints ([]: none).
+    references: list[str] = _field(list(REFERENCE_POLICIES))
+    # Radius (m) of the blend reference: task within r, follow otherwise.
+    blend_radius: float = _field(1.75, ge=0)
 
 
 @dataclass
 class LLMConfig:
-    """``llm``: the language backend of ``icco instruct`` (presets ``conf/llm/``: offline (these), openai, ollama).
+    """``llm``: the language backend of ``icco instruct`` (presets ``conf/llm/``: offline (these),
+    openai, ollama).
 
     Consumed by :meth:`icco_torchrl.instructions.LLMPlanner.from_config`. API keys come only from
     environment variables, never from a config.
     """
 
-    backend: str = "offline"  # offline | openai | ollama | any litellm model string
-    model: Optional[str] = (
-        "offline/rule-planner"  # litellm model string; null: the backend's default model
-    )
-    api_base: Optional[str] = None  # provider URL; null: the provider's default
-    temperature: float = _field(0.0, ge=0)  # sampling temperature sent with the request
-    timeout_s: float = _field(
-        10.0, ge=0
-    )  # seconds per request before it counts as a failed attempt
-    deadline_s: float = _field(30.0, ge=0)  # seconds for a whole plan (every attempt and pause)
-    fallback_on_error: bool = (
-        False  # false: no reply at all stops the run in one line; true: plan with fallbacks
-    )
-    max_retries: int = _field(2, ge=0)  # extra attempts after a bad reply or a provider error
-    backoff_s: float = _field(0.5, ge=0)  # pause after a provider error, doubled per attempt
-    cache_dir: Optional[str] = None  # cached replies (one JSON file per request); null disables
-    prompt: str = _field(
-        "plain", choices=("plain", "tap")
-    )  # the paper's prompt | task-aligned (QMIX-TAP)
-    n_waypoints: int = _field(4, gt=0)  # K waypoints per agent; must equal env.params.n_waypoints
+    # offline | openai | ollama | any litellm model string.
+    backend: str = "offline"
+    # litellm model string; null: the backend's default model.
+    model: Optional[str] = "offline/rule-planner"
+    # Provider URL; null: the provider's default.
+    api_base: Optional[str] = None
+    # Sampling temperature sent with the request.
+    temperature: float = _field(0.0, ge=0)
+    # Seconds per request before it counts as a failed attempt.
+    timeout_s: float = _field(10.0, ge=0)
+    # Seconds for a whole plan (every attempt and pause).
+    deadline_s: float = _field(30.0, ge=0)
+    # false: no reply at all stops the run in one line; true: plan with fallbacks.
+    fallback_on_error: bool = False
+    # Extra attempts after a bad reply or a provider error.
+    max_retries: int = _field(2, ge=0)
+    # Pause after a provider error, doubled per attempt.
+    backoff_s: float = _field(0.5, ge=0)
+    # Cached replies (one JSON file per request); null disables.
+    cache_dir: Optional[str] = None
+    # The paper's prompt | task-aligned (QMIX-TAP).
+    prompt: str = _field("plain", choices=("plain", "tap"))
+    # K waypoints per agent; must equal env.params.n_waypoints.
+    n_waypoints: int = _field(4, gt=0)
 
 
 @dataclass
@@ -332,14 +343,17 @@ class LiveConfig:
 
 @dataclass
 class Config:
-    """The root: ``icco train|eval|instruct|live|bridge`` compose ``conf/config.yaml``'s presets onto it."""
+    """The root: ``icco train|eval|instruct|live|bridge`` compose ``conf/config.yaml``'s presets
+    onto it."""
 
-    seed: int = 0  # seeds torch, the env generators and the replay sampler
-    device: str = "auto"  # auto (cuda if present) | cpu | cuda | cuda:1 ...
-    resume: Optional[str] = None  # a checkpoint (.pt) to continue training from
-    checkpoint: Optional[str] = (
-        None  # a checkpoint to evaluate (`icco eval`, `icco instruct`, `icco live`)
-    )
+    # Seeds torch, the env generators and the replay sampler.
+    seed: int = 0
+    # auto (cuda if present) | cpu | cuda | cuda:1 ...
+    device: str = "auto"
+    # A checkpoint (.pt) to continue training from.
+    resume: Optional[str] = None
+    # A checkpoint to evaluate (`icco eval`, `icco instruct`, `icco live`).
+    checkpoint: Optional[str] = None
     method: MethodConfig = field(default_factory=MethodConfig)
     env: EnvConfig = field(default_factory=EnvConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
@@ -515,6 +529,15 @@ def _check_env_params(params, prefix: str = "env.params", only=None) -> None:
         raise ConfigError(f"config field '{prefix}{'.' + name if name else ''}': {err}") from None
 
 
+def compose_config(overrides: list[str] | None = None, config_name: str = "config") -> DictConfig:
+    """The validated config from ``conf/`` with Hydra-style overrides (for scripts and tests)."""
+    from hydra import compose, initialize_config_dir
+
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
+        cfg = compose(config_name=config_name, overrides=list(overrides or []))
+    return validate(cfg)
+
+
 def check_command_line(overrides: list[str], config_name: str = "config") -> str | None:
     """The one-line error of the config an ``icco`` command line composes, or None when it is good.
 
@@ -525,8 +548,6 @@ def check_command_line(overrides: list[str], config_name: str = "config") -> str
     """
     from hydra import compose, initialize_config_dir
     from hydra.errors import HydraException
-
-    from icco_torchrl.training.build import CONF_DIR
 
     plain = [
         o
