@@ -16,8 +16,9 @@ from pathlib import Path
 
 import torch
 
+from icco_torchrl import methods
 from icco_torchrl.objectives import total_loss
-from icco_torchrl.training.build import METHODS, build, compose_config
+from icco_torchrl.training.build import build, compose_config
 
 
 def time_updates(method: str, batch: int, steps: int, runs: int, device: str) -> dict:
@@ -66,7 +67,7 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=5)
     parser.add_argument("--runs", type=int, default=3)
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
-    parser.add_argument("--methods", nargs="+", default=list(METHODS))
+    parser.add_argument("--methods", nargs="+", default=list(methods.names()))
     parser.add_argument("--out", default="benchmarks/results/loss_step.json")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)

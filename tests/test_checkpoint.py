@@ -97,7 +97,7 @@ def test_a_checkpoint_round_trips_and_loads_weights_only(tmp_path):
     }
     assert (
         loaded["cfg"]["method"]["waypoint_features"] is False
-        and loaded["cfg"]["method"]["z_input"] == "head"
+        and "z_input" not in loaded["cfg"]["method"]  # a removed option, at its one value
     )
     assert loaded["frames"] == 2048 and loaded["epsilon"] == 0.25
     assert loaded["scalars"] == [1.5, 3]
@@ -123,12 +123,7 @@ def test_a_checkpoint_round_trips_and_loads_weights_only(tmp_path):
 def test_a_method_field_the_checkpoint_has_is_kept(tmp_path):
     payload = {"cfg": {"method": {"name": "icco", "waypoint_features": True}}, "loss": {}}
     loaded = load_checkpoint(save_checkpoint(tmp_path / "checkpoint.pt", payload))
-    assert loaded["cfg"]["method"] == {
-        "name": "icco",
-        "waypoint_features": True,
-        "instruction_head": False,
-        "z_input": "head",
-    }
+    assert loaded["cfg"]["method"] == {"name": "icco", "waypoint_features": True}
 
 
 def test_a_checkpoint_written_before_weights_only_loading_still_loads(tmp_path):

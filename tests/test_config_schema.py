@@ -10,6 +10,7 @@ import yaml
 from conftest import run_cli
 from omegaconf import OmegaConf
 
+from icco_torchrl import methods
 from icco_torchrl.envs import ResourceCollectionEnv
 from icco_torchrl.paths import CONF_DIR
 from icco_torchrl.training import config as config_module
@@ -144,3 +145,15 @@ def test_a_pickled_config_validates_again():
     cfg = compose_config(["method=qmix"])
     again = validate(pickle.loads(pickle.dumps(cfg)))
     assert OmegaConf.to_container(again) == OmegaConf.to_container(cfg)
+
+
+def test_the_method_registry_is_the_presets_of_conf_method():
+    names = methods.names()
+    assert names == tuple(sorted(p.stem for p in (CONF_DIR / "method").glob("*.yaml")))
+    for name in names:  # each preset names itself and has a label of its own
+        assert compose_config([f"method={name}"]).method.name == name
+    labels = [methods.label(name) for name in names]
+    assert len(set(labels)) == len(labels) and all(labels)
+    assert [methods.result_name(text) for text in labels] == list(names)
+    assert methods.result_name("QMIX-TAP w/o TR") == "qmix_tap_wo_tr"
+    assert methods.result_name("not a method") is None

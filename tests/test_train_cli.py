@@ -14,6 +14,7 @@ import pytest
 import torch
 from conftest import run_cli
 
+from icco_torchrl import methods
 from icco_torchrl.training.build import compose_config
 from icco_torchrl.training.checkpoint import FORMAT_VERSION, CheckpointError, load_checkpoint
 
@@ -25,7 +26,7 @@ def read_csv(path):
         return list(csv.DictReader(handle))
 
 
-@pytest.mark.parametrize("method", ["icco", "icco_wo_ce", "qmix", "qmix_full", "qmix_full_flat"])
+@pytest.mark.parametrize("method", methods.names())
 def test_every_method_trains_end_to_end(tmp_path, method):
     run_cli("train", f"method={method}", *SMOKE, f"hydra.run.dir={tmp_path}")
     rows = read_csv(tmp_path / "train.csv")

@@ -25,13 +25,14 @@ from pathlib import Path
 import torch
 from omegaconf import OmegaConf
 
+from icco_torchrl import methods
 from icco_torchrl.envs.reference_policies import (
     BlendPolicy,
     lookahead,
     make_reference_policy,
     steer,
 )
-from icco_torchrl.training.build import EVAL_SEED_OFFSET, METHOD_LABELS, compose_config
+from icco_torchrl.training.build import EVAL_SEED_OFFSET, compose_config
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
@@ -171,7 +172,7 @@ def main() -> None:
     trained = {
         k: v
         for k, v in json.loads(trained_path.read_text())["methods"].items()
-        if k in METHOD_LABELS
+        if k in methods.names()
     }  # the methods, not the reference rows
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "frontier.json").write_text(

@@ -21,9 +21,10 @@ import sys
 from pathlib import Path
 from string import Template
 
+from icco_torchrl import methods
+from icco_torchrl.envs.reference_policies import REFERENCE_POLICIES
 from icco_torchrl.evaluation.metrics import (
     EPISODE,
-    METHOD_LABELS,
     learning_curves,
     markdown_table,
     result_name,
@@ -32,13 +33,12 @@ from icco_torchrl.evaluation.metrics import (
     write_json,
 )
 from icco_torchrl.evaluation.plots import plot_curves
-from icco_torchrl.training.build import METHODS
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 from aggregate import find_runs  # noqa: E402  (experiments/aggregate.py, a sibling script)
 
-EXPECTED = [METHOD_LABELS[m] for m in METHODS]
+EXPECTED = [methods.label(name) for name in methods.names()]
 COLUMNS = (
     "reward",
     "task_reward",
@@ -100,11 +100,7 @@ def budget_section(runs: dict[str, list[Path]], info: dict) -> tuple[str, bool]:
 def comparison(summary: list[dict], missing: list[str]) -> str:
     """Statements of the paper's findings, each checked against these numbers."""
     every = {r["method"]: r for r in summary if r["segment"] == EPISODE}
-    refs = {
-        name: r
-        for name, r in every.items()
-        if result_name(name) in ("random", "follower", "heuristic", "blend")
-    }
+    refs = {name: r for name, r in every.items() if result_name(name) in REFERENCE_POLICIES}
     rows = {name: r for name, r in every.items() if name not in refs}
     if "ICCO" not in rows or len(rows) < 2:
         return "Not enough methods were evaluated to compare (ICCO and at least one baseline are needed)."
@@ -136,7 +132,7 @@ def comparison(summary: list[dict], missing: list[str]) -> str:
         f"- **Paper: all methods follow the quadrant (ICCO approximately).** Fraction of robot-steps "
         f"inside the instructed quadrant: {follow}."
     )
-    flat = rows.get(METHOD_LABELS["qmix_full_flat"])
+    flat = rows.get(methods.label("qmix_full_flat"))
     if flat is not None:
         gap, spread = (
             icco["reward"] - flat["reward"],

@@ -1,6 +1,6 @@
 """Four-quadrant experiment (paper Sec. V-B, Fig. 4 and 5a): train, evaluate, report.
 
-    python experiments/four_quadrants/run.py                       # default budget, 4 methods (+ the flat QMIX (FULL)) x 3 seeds
+    python experiments/four_quadrants/run.py           # default budget, every method x 3 seeds
     python experiments/four_quadrants/run.py --budget experiment=paper device=cuda
     python experiments/four_quadrants/run.py --smoke               # seconds-long end-to-end check
 
@@ -28,7 +28,8 @@ from pathlib import Path
 
 import torch
 
-from icco_torchrl.training.build import METHOD_LABELS, METHODS, compose_config
+from icco_torchrl import methods
+from icco_torchrl.training.build import compose_config
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from jobs import train_runs  # noqa: E402  (experiments/jobs.py, a sibling script)
@@ -104,9 +105,9 @@ def main(argv=None) -> None:
     parser.add_argument(
         "--methods",
         nargs="+",
-        default=[*METHODS, "qmix_full_flat"],
-        choices=list(METHOD_LABELS),
-        help="default: the paper's four and its flat QMIX (FULL)",
+        default=list(methods.names()),
+        choices=methods.names(),
+        help="default: every method (conf/method/)",
     )
     parser.add_argument("--seeds", nargs="+", type=int, default=list(SEEDS))
     parser.add_argument(

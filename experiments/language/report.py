@@ -21,9 +21,10 @@ from string import Template
 
 import numpy as np
 
+from icco_torchrl import methods
+from icco_torchrl.envs.reference_policies import REFERENCE_POLICIES
 from icco_torchrl.evaluation.metrics import (
     EPISODE,
-    METHOD_LABELS,
     METRICS,
     markdown_table,
     result_name,
@@ -41,7 +42,6 @@ PAPER_TABLE2 = {
     "ICCO": (5.6, 3.7, 10.5),
 }
 COUNTS = ("pick", "collect", "defense")
-REFERENCE_NAMES = ("random", "follower", "heuristic", "blend")
 SMOKE_FRAMES = 100_000
 
 
@@ -72,7 +72,7 @@ def table2(rows: list[dict]) -> tuple[str, dict]:
         lines.append(f"| {method} | {len(segs)} | {cells} | {paper} |")
     # The scripted reference policies, driven by the same task-aligned plans (extra rows, not in the paper).
     for method in dict.fromkeys(
-        r["method"] for r in rows if result_name(r["method"]) in REFERENCE_NAMES
+        r["method"] for r in rows if result_name(r["method"]) in REFERENCE_POLICIES
     ):
         segs = [r for r in rows if r["method"] == method and r["segment"] != EPISODE]
         values = {k: np.array([float(r[k]) for r in segs]) for k in COUNTS}
@@ -100,7 +100,7 @@ def comparison(fig5b: list[dict], means: dict) -> str:
                 f"{icco['collect']:.1f} vs {full['collect']:.1f}, defenses {icco['defense']:.1f} vs "
                 f"{full['defense']:.1f} (ICCO vs QMIX (FULL))."
             )
-        flat = METHOD_LABELS["qmix_full_flat"]
+        flat = methods.label("qmix_full_flat")
         if (
             flat,
             EPISODE,

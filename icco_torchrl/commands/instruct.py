@@ -23,6 +23,7 @@ from pathlib import Path
 
 from omegaconf import DictConfig
 
+from icco_torchrl import methods
 from icco_torchrl.commands import clean_errors
 from icco_torchrl.evaluation.runner import (
     default_out_dir,
@@ -87,7 +88,7 @@ def run_instruct(cfg: DictConfig, run_dir: str | Path, instruction: str) -> floa
                 strict=offline,
             ),
             gif_stem=out_dir / "instruct" if cfg.eval.gif else None,
-            label_suffix="-TAP" if planner.prompt == "tap" else "",
+            label_suffix=methods.TAP if planner.prompt == "tap" else "",
         )
         return write_report(
             result,

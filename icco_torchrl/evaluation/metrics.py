@@ -18,9 +18,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from icco_torchrl import methods
+from icco_torchrl.envs.reference_policies import REFERENCE_POLICIES
 from icco_torchrl.envs.resource_collection import EVENTS
 from icco_torchrl.envs.waypoints import QUADRANT_SIGNS
-from icco_torchrl.training.build import METHOD_LABELS  # noqa: F401  (re-exported)
 from icco_torchrl.training.logger import read_column  # noqa: F401  (re-exported: the CSV streams' reader)
 
 # Summed over steps: team reward, its instruction part, its task part, and the event counts.
@@ -34,14 +35,13 @@ TASK_REWARDS = ("pick_reward", "collect_reward", "defense_reward", "invasion_pen
 
 
 def method_label(cfg: Mapping, suffix: str = "") -> str:
-    """The paper's name for a trained configuration, ``suffix`` appended (e.g. "-TAP"); agents
-    trained on the instruction reward alone (every task reward zero, ``experiment=inst_only``)
-    get " w/o TR", as in "QMIX-TAP w/o TR"."""
-    name = cfg["method"]["name"]
-    label = METHOD_LABELS.get(name, name) + suffix
+    """The table label of a trained configuration (its method's, :mod:`icco_torchrl.methods`),
+    ``suffix`` appended (e.g. "-TAP"); agents trained on the instruction reward alone (every task
+    reward zero, ``experiment=inst_only``) get " w/o TR", as in "QMIX-TAP w/o TR"."""
+    label = methods.label(cfg["method"]["name"]) + suffix
     params = cfg["env"]["params"]
     if all(float(params.get(key, 1.0)) == 0.0 for key in TASK_REWARDS):
-        label += " w/o TR"
+        label += methods.WITHOUT_TASK_REWARD
     return label
 
 
@@ -184,19 +184,6 @@ def write_json(payload, path: str | Path) -> Path:
     return path
 
 
-# results.json names of the methods and reference policies (labels as the tables print them).
-RESULT_NAMES = {
-    "ICCO": "icco",
-    "ICCO w/o CE": "icco_wo_ce",
-    "QMIX": "qmix",
-    "QMIX (FULL)": "qmix_full",
-    "QMIX (FULL, flat)": "qmix_full_flat",
-    "QMIX-TAP": "qmix_tap",
-    "QMIX-TAP w/o TR": "qmix_tap_wo_tr",
-    "random": "random",
-    "follower": "follower",
-    "heuristic": "heuristic",
-}
 RESULT_METRICS = (
     "reward",
     "task_reward",
@@ -210,8 +197,11 @@ RESULT_METRICS = (
 
 
 def result_name(label: str) -> str | None:
-    """The results.json key of a table label (``blend (r=...)`` -> ``blend``), None if unknown."""
-    return "blend" if label.startswith("blend") else RESULT_NAMES.get(label)
+    """The results.json key of a table label: a method's (:func:`icco_torchrl.methods.result_name`)
+    or a reference policy's (``blend (r=...)`` -> ``blend``); None if unknown."""
+    if label in REFERENCE_POLICIES:
+        return label
+    return "blend" if label.startswith("blend") else methods.result_name(label)
 
 
 def results_json(
@@ -234,9 +224,7 @@ def results_json(
         if row["segment"] != segment or name is None:
             continue
         entry = {
-            "seeds": row["seeds"]
-            if name not in ("random", "follower", "heuristic", "blend")
-            else 0,
+            "seeds": row["seeds"] if name not in REFERENCE_POLICIES else 0,
             "frames": int((frames or {}).get(row["method"], 0)),
         }
         if name == "blend":

@@ -197,7 +197,7 @@ def load_weights(loss, state_dict: dict, path: str | Path, method: str) -> None:
 
 def check_compatible(ckpt: dict[str, Any], cfg, layout, path: str | Path) -> None:
     """The one check that a checkpoint's weights fit what ``cfg`` builds for an env of ``layout``: the
-    method's fields (its name aside: sizes, encoders, coordinator) and the observation layout (robot,
+    method's fields (its name and label aside: sizes, encoders, coordinator) and the observation layout (robot,
     resource, invader and waypoint counts) must be the checkpoint's. Used by ``resume=`` and by
     :func:`~icco_torchrl.training.restore.restore`; raises one ``CheckpointError`` naming every difference."""
     from omegaconf import OmegaConf
@@ -208,7 +208,7 @@ def check_compatible(ckpt: dict[str, Any], cfg, layout, path: str | Path) -> Non
     method = [
         f"method.{key}: checkpoint {saved_m.get(key)!r} vs config {m.get(key)!r}"
         for key in sorted(set(saved_m) | set(m))
-        if key != "name" and saved_m.get(key) != m.get(key)
+        if key not in ("name", "label") and saved_m.get(key) != m.get(key)
     ]
     saved_layout = ckpt.get("layout") or {}
     shape = [

@@ -54,8 +54,10 @@ class MethodConfig:
     """``method``: which learner. The methods are the presets in ``conf/method/`` (ICCO is these
     defaults); their names and labels come from :mod:`icco_torchrl.methods`."""
 
-    # The method's name: run folders, tables.
+    # The method's name: its preset file, run folders, results.json keys.
     name: str = "icco"
+    # What tables and figures print (each preset sets its own; empty: the name).
+    label: str = ""
     # A coordinator g_phi(s, v) broadcasts z per robot.
     coordinator: bool = True
     # Agents also read the global state (QMIX (FULL)).

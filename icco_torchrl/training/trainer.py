@@ -1,7 +1,7 @@
 """Training, in TorchRL's order: config -> env -> modules -> collector -> buffer -> loss -> loop -> eval.
 
-Every method (ICCO, ICCO w/o CE, QMIX, QMIX (FULL)) runs this one loop; they differ only in
-the ``method`` config group.
+Every method (a preset of ``conf/method/``, :mod:`icco_torchrl.methods`) runs this one loop;
+they differ only in the ``method`` config group.
 """
 
 from __future__ import annotations
@@ -322,9 +322,9 @@ class Session:
                 p.batches += 1
                 self.explore.eps.fill_(epsilon(p.frames, t))
                 recent.append(tracker.update(batch))
-                run.buffer.extend(
-                    run.cutter(batch.select(*REPLAY_KEYS, strict=False))
-                )  # cut only what is replayed
+                items = run.cutter(batch.select(*REPLAY_KEYS, strict=False))  # only what is replayed
+                if items.shape[0]:  # items longer than a batch complete in a later one
+                    run.buffer.extend(items)
                 tick = time.perf_counter()
                 row = self.learn()
                 self.timers["train"] += time.perf_counter() - tick
