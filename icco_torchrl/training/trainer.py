@@ -34,7 +34,6 @@ from icco_torchrl.training.checkpoint import (
 )
 from icco_torchrl.training.config import set_env_params, validate
 from icco_torchrl.training.logger import RunLogger
-from icco_torchrl.training.rollout import EVENT_KEYS, evaluate
 
 REPLAY_DIR = "replay"  # the replay buffer dump beside checkpoint.pt (train.checkpoint_buffer)
 REFERENCES_FILE = "references.json"  # the reference policies' evaluation, beside eval.csv
