@@ -7,10 +7,9 @@ import numpy as np
 import pytest
 import torch
 
-from icco_torchrl.envs import ResourceCollectionEnv
+from icco_torchrl.envs import FixedSource, QuadrantSource, RandomWalkSource, ResourceCollectionEnv
 from icco_torchrl.evaluation.metrics import ADDITIVE, EPISODE, markdown_table, summarize
 from icco_torchrl.evaluation.protocols import quadrant_schedule, run_schedule
-from icco_torchrl.instructions import FixedSource, QuadrantSource, RandomWalkSource
 
 TRIALS, STEPS = 6, 30
 

@@ -12,8 +12,8 @@ from icco_torchrl.envs.reference_policies import (
     HeuristicPolicy,
     make_reference_policy,
 )
+from icco_torchrl.evaluation import episode_metrics
 from icco_torchrl.training.build import compose_config, make_env
-from icco_torchrl.training.rollout import episode_metrics
 
 EPISODES = 96
 
@@ -117,7 +117,7 @@ def test_reference_policies_drive_the_training_env_and_are_deterministic():
 
 
 def test_seeded_evaluations_replay_the_same_episodes():
-    from icco_torchrl.training.rollout import evaluate
+    from icco_torchrl.evaluation import evaluate
 
     cfg = compose_config(["experiment=smoke"])
     env = make_env(cfg, num_envs=4, seed=1)

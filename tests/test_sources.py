@@ -4,9 +4,8 @@ random-walk source reproduces the env's training convention, fixed waypoints are
 import pytest
 import torch
 
-from icco_torchrl.envs import ResourceCollectionEnv
-from icco_torchrl.instructions import FixedSource, QuadrantSource, RandomWalkSource
-from icco_torchrl.instructions.sources import QUADRANT_SIGNS
+from icco_torchrl.envs import FixedSource, QuadrantSource, RandomWalkSource, ResourceCollectionEnv
+from icco_torchrl.envs.waypoints import QUADRANT_SIGNS
 
 
 def drive(env, source, steps, seed=0):

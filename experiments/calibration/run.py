@@ -25,8 +25,8 @@ import torch
 
 from icco_torchrl.envs import EVENTS, ResourceCollectionEnv
 from icco_torchrl.envs.reference_policies import make_reference_policy
+from icco_torchrl.evaluation import episode_metrics
 from icco_torchrl.training.build import EVAL_SEED_OFFSET
-from icco_torchrl.training.rollout import episode_metrics
 
 RADII = (0.0, 0.25, 0.5, 0.65, 0.8, 1.0, 1.25, 1.5, 1.75, 2.0, 2.5, 3.0, 4.0, math.inf)
 SCALES = (0.1, 0.15, 0.2, 0.25, 0.3, 0.35, 0.4, 0.5, 0.6, 0.8, 1.0, 1.3)

@@ -1,4 +1,5 @@
-"""Environments: the batched TorchRL task, its PettingZoo view and rendering."""
+"""Environments: the batched TorchRL task, its waypoint sources (random walk, quadrant reference,
+fixed waypoints), its PettingZoo view and rendering."""
 
 from icco_torchrl.envs.resource_collection import (
     EVENT_KEYS,
@@ -7,12 +8,22 @@ from icco_torchrl.envs.resource_collection import (
     ObsLayout,
     ResourceCollectionEnv,
 )
+from icco_torchrl.envs.waypoints import (
+    FixedSource,
+    InstructionSource,
+    QuadrantSource,
+    RandomWalkSource,
+)
 
 __all__ = [
     "EVENTS",
     "EVENT_KEYS",
     "N_ACTIONS",
+    "FixedSource",
+    "InstructionSource",
     "ObsLayout",
+    "QuadrantSource",
+    "RandomWalkSource",
     "ResourceCollectionEnv",
     "parallel_env",
 ]

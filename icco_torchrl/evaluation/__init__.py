@@ -1,5 +1,5 @@
 """Evaluation: greedy rollouts, protocols (random walk, quadrants, instruction schedules), figures."""
 
-from icco_torchrl.training.rollout import EVENT_KEYS, episode_metrics, evaluate, greedy_rollout
+from icco_torchrl.evaluation.rollout import EVENT_KEYS, episode_metrics, evaluate, greedy_rollout
 
 __all__ = ["EVENT_KEYS", "episode_metrics", "evaluate", "greedy_rollout"]

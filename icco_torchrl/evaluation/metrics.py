@@ -3,7 +3,7 @@
 Counts and rewards are summed over a segment's steps, so a trial's segments add up to its
 episode; distances and fractions are averaged over steps, so the episode value is the
 step-weighted mean of its segments'. Standard deviations are over trials (population std,
-as in :func:`icco_torchrl.training.rollout.evaluate`).
+as in :func:`icco_torchrl.evaluation.rollout.evaluate`).
 """
 
 from __future__ import annotations

@@ -1,7 +1,8 @@
-"""Language instructions as a waypoint source: :class:`LLMSource` plans an instruction into waypoints.
+"""Language instructions as a waypoint source: :class:`LLMSource` plans an instruction into
+waypoints.
 
 The other sources (random walk, quadrant reference, fixed waypoints) and their base class live
-in :mod:`icco_torchrl.envs.waypoints` and are re-exported here (their former home).
+in :mod:`icco_torchrl.envs.waypoints` and are exported from :mod:`icco_torchrl.envs`.
 """
 
 from __future__ import annotations
@@ -11,10 +12,7 @@ import copy
 import numpy as np
 import torch
 
-from icco_torchrl.envs.waypoints import (
-    InstructionSource,  # noqa: F401 (re-exported)
-    base_env,
-)
+from icco_torchrl.envs.waypoints import InstructionSource, base_env
 from icco_torchrl.instructions.llm import PROMPTS, LLMPlanner
 
 

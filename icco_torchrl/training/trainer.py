@@ -19,7 +19,9 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from torchrl.collectors import Collector
 
+from icco_torchrl.envs import EVENT_KEYS
 from icco_torchrl.envs.reference_policies import make_reference_policy, reference_label
+from icco_torchrl.evaluation.rollout import evaluate
 from icco_torchrl.modules.policy import exploration_module
 from icco_torchrl.objectives import total_loss
 from icco_torchrl.training.build import VALIDATION_SEED_OFFSET, Run, build
@@ -321,7 +323,9 @@ class Session:
                 p.batches += 1
                 self.explore.eps.fill_(epsilon(p.frames, t))
                 recent.append(tracker.update(batch))
-                items = run.cutter(batch.select(*REPLAY_KEYS, strict=False))  # only what is replayed
+                items = run.cutter(
+                    batch.select(*REPLAY_KEYS, strict=False)
+                )  # only what is replayed
                 if items.shape[0]:  # items longer than a batch complete in a later one
                     run.buffer.extend(items)
                 tick = time.perf_counter()

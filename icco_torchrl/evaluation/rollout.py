@@ -7,7 +7,7 @@ from tensordict import TensorDictBase
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from icco_torchrl.envs.resource_collection import EVENT_KEYS  # noqa: F401  (re-exported)
+from icco_torchrl.envs.resource_collection import EVENT_KEYS
 
 
 def greedy_rollout(
