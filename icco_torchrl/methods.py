@@ -33,7 +33,7 @@ def names() -> tuple[str, ...]:
 
 @cache
 def labels() -> dict[str, str]:
-    """``{name: label}`` of every method, read from its composed preset (once per process)."""
+    """``{name: label}`` of every method, read from its preset composed alone (once per process)."""
     from hydra import compose, initialize_config_dir
 
     from icco_torchrl.training.config import register_configs
@@ -41,8 +41,7 @@ def labels() -> dict[str, str]:
     register_configs()
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
         return {
-            name: compose("config", overrides=[f"method={name}"]).method.label or name
-            for name in names()
+            name: compose(config_name=f"method/{name}").method.label or name for name in names()
         }
 
 

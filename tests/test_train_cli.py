@@ -406,14 +406,17 @@ def test_training_env_params_survive_a_resume_and_may_change_there(tmp_path):
 
 
 def test_resume_continues_in_the_checkpoint_folder():
-    from icco_torchrl.cli import _resume_folder
+    from icco_torchrl.commands.train import prepare_train
 
-    assert _resume_folder(["resume=/a/b/checkpoint.pt"]) == [
+    def overrides(*args):
+        return prepare_train("train", list(args))[0]
+
+    assert overrides("resume=/a/b/checkpoint.pt") == [
         "resume=/a/b/checkpoint.pt",
         "hydra.run.dir=/a/b",
     ]
-    assert _resume_folder(["resume=x.pt", "hydra.run.dir=D"]) == ["resume=x.pt", "hydra.run.dir=D"]
-    assert _resume_folder(["seed=1"]) == ["seed=1"]
+    assert overrides("resume=x.pt", "hydra.run.dir=D") == ["resume=x.pt", "hydra.run.dir=D"]
+    assert overrides("seed=1") == ["seed=1"]
 
 
 @pytest.mark.parametrize(

@@ -1,17 +1,59 @@
-"""The ``icco`` commands that combine several layers: thin functions over library calls.
+"""The ``icco`` commands, one module each; :mod:`icco_torchrl.cli` only dispatches to them.
 
-``icco eval`` (:mod:`.evaluate`) and ``icco instruct`` (:mod:`.instruct`) sit above both
+A :class:`Command` says how its arguments become Hydra overrides (``prepare``) and what it runs
+on the validated config (``run``). ``icco train`` (:mod:`.train`) runs the trainer; ``icco eval``
+(:mod:`.evaluate`) and ``icco instruct`` (:mod:`.instruct`) sit above both
 :mod:`icco_torchrl.evaluation` and :mod:`icco_torchrl.instructions`, which do not import each
-other; :func:`clean_errors` turns bad input into one line and exit code 2.
+other; ``icco live`` and ``icco bridge`` (:mod:`.live`) start :mod:`icco_torchrl.live`.
+:func:`clean_errors` turns bad input into one line and exit code 2.
 """
 
 from __future__ import annotations
 
 import sys
+import tempfile
+from collections.abc import Callable
 from contextlib import contextmanager
+from dataclasses import dataclass
+from importlib import import_module
 
 from icco_torchrl.training.checkpoint import CheckpointError
 from icco_torchrl.training.config import ConfigError
+
+# Command name -> the module of this package that defines it (as NAME.upper(): TRAIN, EVAL...).
+MODULES = {
+    "train": "train",
+    "eval": "evaluate",
+    "instruct": "instruct",
+    "live": "live",
+    "bridge": "live",
+}
+
+
+def results_beside_checkpoint(command: str, args: list[str]) -> tuple[list[str], dict]:
+    """The default ``prepare``: the arguments are overrides, and Hydra's own files go to a
+    temporary folder (results are written next to the checkpoint, not under ``runs/``)."""
+    folder = f"{tempfile.gettempdir()}/icco_{command}/${{now:%Y%m%d-%H%M%S-%f}}"
+    return [f"hydra.run.dir={folder}", *args], {}
+
+
+@dataclass(frozen=True)
+class Command:
+    """One ``icco`` command.
+
+    ``prepare(command, args)`` turns its command-line arguments into Hydra overrides and the
+    keyword options of ``run`` (raising ``ValueError`` with a one-line message for bad
+    arguments); ``run(cfg, run_dir, **options)`` does the work on the config Hydra composed and
+    :func:`~icco_torchrl.training.config.validate` checked, and returns the sweep's objective.
+    """
+
+    run: Callable[..., float | None]
+    prepare: Callable[[str, list[str]], tuple[list[str], dict]] = results_beside_checkpoint
+
+
+def find(command: str) -> Command:
+    """The :class:`Command` named ``command`` (its module is imported only now)."""
+    return getattr(import_module(f"{__name__}.{MODULES[command]}"), command.upper())
 
 
 @contextmanager

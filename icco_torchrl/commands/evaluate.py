@@ -13,7 +13,7 @@ from pathlib import Path
 
 from omegaconf import DictConfig
 
-from icco_torchrl.commands import clean_errors
+from icco_torchrl.commands import Command, clean_errors
 from icco_torchrl.evaluation.runner import (
     PROTOCOL_TITLES,
     default_out_dir,
@@ -45,3 +45,6 @@ def run_eval(cfg: DictConfig, run_dir: str | Path) -> float:
         return write_report(
             result, cfg, name=name, out_dir=out_dir, title=PROTOCOL_TITLES[name], traj_segments=[0]
         )
+
+
+EVAL = Command(run=run_eval)

@@ -24,7 +24,7 @@ from pathlib import Path
 from omegaconf import DictConfig
 
 from icco_torchrl import methods
-from icco_torchrl.commands import clean_errors
+from icco_torchrl.commands import Command, clean_errors, results_beside_checkpoint
 from icco_torchrl.evaluation.runner import (
     default_out_dir,
     evaluate_checkpoints,
@@ -104,3 +104,17 @@ def run_instruct(cfg: DictConfig, run_dir: str | Path, instruction: str) -> floa
                 replan_every=cfg.eval.replan_every,
             ),
         )
+
+
+def prepare_instruct(command: str, args: list[str]) -> tuple[list[str], dict]:
+    """The instruction text comes first, then the overrides; it reaches :func:`run_instruct` as
+    an option of the command."""
+    if not args or "=" in args[0] or args[0].startswith("-"):
+        raise ValueError(
+            'give the instruction first, e.g. icco instruct "Go right" checkpoint=PATH'
+        )
+    overrides, options = results_beside_checkpoint(command, args[1:])
+    return overrides, {**options, "instruction": args[0]}
+
+
+INSTRUCT = Command(run=run_instruct, prepare=prepare_instruct)

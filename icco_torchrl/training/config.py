@@ -584,11 +584,11 @@ def check_command_line(overrides: list[str], config_name: str = "config") -> str
         except ConfigError as err:
             return str(err)
         except (HydraException, OmegaConfBaseException) as err:
-            return _compose_error(err)
+            return compose_error(err)
     return None
 
 
-def _compose_error(err: BaseException) -> str:
+def compose_error(err: BaseException) -> str:
     """One line from Hydra's composition error: the field and what is wrong with it."""
     cause = err
     while cause is not None and not isinstance(cause, OmegaConfBaseException):

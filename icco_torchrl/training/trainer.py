@@ -468,56 +468,6 @@ class Session:
         )
 
 
-def saved_run_overrides(saved: dict, given: list[str]) -> list[str]:
-    """Overrides that make ``icco train resume=PATH`` continue the run as it was last saved: its
-    method (and every method field), seed, env and ``train`` settings from the checkpoint's config
-    ``saved``, except those the command line ``given`` sets itself (``train.X=``, or ``experiment=``
-    for all of ``train``). Without them a resume composes the defaults: another budget (a 3M-frame
-    run "done" at the default 1M), or a seed or method that the compatibility checks then refuse."""
-    keys = {g.split("=", 1)[0].lstrip("+~") for g in given if "=" in g}
-    out = []
-
-    def put(key, value, force=False):
-        if key not in keys and not isinstance(value, (dict, list)):
-            out.append(f"{'++' if force else ''}{key}={_override_value(value)}")
-
-    if (
-        "method" not in keys
-    ):  # a method given on the command line brings its own fields (checked, not forced)
-        out.append(f"method={saved['method']['name']}")  # a group option: unquoted
-        for k, v in saved["method"].items():
-            if k != "name":
-                put(f"method.{k}", v, force=True)
-    put("seed", saved["seed"])
-    if not keys & {"env", "reward"}:
-        put("env.num_envs", saved["env"]["num_envs"])
-        for k, v in saved["env"].get("params", {}).items():
-            put(f"env.params.{k}", v, force=True)
-    if "experiment" not in keys:
-        for k, v in saved["train"].items():
-            if (
-                k == "env_params"
-            ):  # one override per set field, so the command line may change one of them
-                for name, value in set_env_params(
-                    v if "train.env_params" not in keys else {}
-                ).items():
-                    put(f"train.env_params.{name}", value, force=True)
-            else:
-                put(f"train.{k}", v, force=True)
-    return out
-
-
-def _override_value(value) -> str:
-    """A config value as Hydra's override grammar reads it back."""
-    if value is None:
-        return "null"
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, str):
-        return "'" + value.replace("\\", "\\\\").replace("'", "\\'") + "'"
-    return repr(value)
-
-
 def check_resume_overrides(saved: dict, cfg: dict, path) -> None:
     """Refuse, by name, overrides that a resumed run cannot honour: its seed (the restored RNG
     streams belong to the old one), its env (the replay data came from it) and its exploration

@@ -1,0 +1,97 @@
+"""``icco train [overrides]``: train ``method`` and evaluate it (:mod:`icco_torchrl.training`).
+
+    icco train                                   ICCO on the default budget (CPU, offline)
+    icco train method=qmix experiment=smoke      another method, a seconds-long run
+    icco train -m method=icco,qmix seed=0,1,2    a Hydra multirun sweep
+    icco train resume=runs/icco/.../checkpoint.pt
+
+``resume=PATH`` continues the run as it was last saved, in the checkpoint's folder
+(:func:`prepare_train`); the trainer then refuses what a resumed run cannot honour.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from omegaconf import DictConfig
+
+from icco_torchrl.commands import Command
+from icco_torchrl.training.config import set_env_params
+
+
+def prepare_train(command: str, args: list[str]) -> tuple[list[str], dict]:
+    """``resume=PATH`` continues the run as it was last saved, in the checkpoint's folder: the
+    run's own method, seed, env and ``train`` settings come first (:func:`saved_run_overrides`;
+    this command line's overrides win; a ``method=`` given picks that method's own fields), and
+    Hydra's run folder is set to the checkpoint's (unless given), so a resume never leaves an
+    empty ``runs/<method>/seed*_<time>/`` behind."""
+    resume = next((a.split("=", 1)[1] for a in args if a.startswith("resume=")), None)
+    if not resume or resume == "null" or any(a.startswith(("-m", "--multirun")) for a in args):
+        return args, {}
+    from icco_torchrl.training.checkpoint import CheckpointError, load_checkpoint
+
+    try:
+        saved = saved_run_overrides(load_checkpoint(resume)["cfg"], args)
+    except (CheckpointError, KeyError, TypeError):
+        saved = []  # the trainer reports a missing or damaged checkpoint in one line
+    if any(a.startswith("hydra.run.dir=") for a in args):
+        return [*saved, *args], {}
+    return [*saved, *args, f"hydra.run.dir={Path(resume).resolve().parent}"], {}
+
+
+def saved_run_overrides(saved: dict, given: list[str]) -> list[str]:
+    """Overrides that make ``icco train resume=PATH`` continue the run as it was last saved: its
+    method (and every method field), seed, env and ``train`` settings from the checkpoint's
+    config ``saved``, except those the command line ``given`` sets itself (``train.X=``, or
+    ``experiment=`` for all of ``train``). Without them a resume composes the defaults: another
+    budget (a 3M-frame run "done" at the default 1M), or a seed or method that the compatibility
+    checks then refuse."""
+    keys = {g.split("=", 1)[0].lstrip("+~") for g in given if "=" in g}
+    out = []
+
+    def put(key, value, force=False):
+        if key not in keys and not isinstance(value, (dict, list)):
+            out.append(f"{'++' if force else ''}{key}={_override_value(value)}")
+
+    # A method given on the command line brings its own fields (checked, not forced).
+    if "method" not in keys:
+        out.append(f"method={saved['method']['name']}")  # a group option: unquoted
+        for k, v in saved["method"].items():
+            if k != "name":
+                put(f"method.{k}", v, force=True)
+    put("seed", saved["seed"])
+    if not keys & {"env", "reward"}:
+        put("env.num_envs", saved["env"]["num_envs"])
+        for k, v in saved["env"].get("params", {}).items():
+            put(f"env.params.{k}", v, force=True)
+    if "experiment" not in keys:
+        for k, v in saved["train"].items():
+            if k == "env_params":  # one override per set field, so the command line may change one
+                given_env_params = "train.env_params" in keys
+                for name, value in set_env_params(v if not given_env_params else {}).items():
+                    put(f"train.env_params.{name}", value, force=True)
+            else:
+                put(f"train.{k}", v, force=True)
+    return out
+
+
+def _override_value(value) -> str:
+    """A config value as Hydra's override grammar reads it back."""
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return "'" + value.replace("\\", "\\\\").replace("'", "\\'") + "'"
+    return repr(value)
+
+
+def run_train(cfg: DictConfig, run_dir: str | Path) -> float | None:
+    """The final greedy evaluation's team reward (a sweep's objective); None when the run was
+    stopped early or had nothing left to train."""
+    from icco_torchrl.training.trainer import train
+
+    return train(cfg, run_dir).get("reward")
+
+
+TRAIN = Command(run=run_train, prepare=prepare_train)
