@@ -100,7 +100,8 @@ def main() -> None:
     path = Path(__file__).with_name("results") / "live_clients.json"
     path.write_text(json.dumps(result, indent=2) + "\n")
     print(
-        f"one live loop at {RATE:g} Hz served up to {result['max_served']} WebSocket clients; wrote {path}"
+        f"one live loop at {RATE:g} Hz served up to {result['max_served']} WebSocket clients; "
+        f"wrote {path}"
     )
 
 

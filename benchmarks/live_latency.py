@@ -1,6 +1,6 @@
 """Latency of driving a team live: live-loop ticks, offline planner calls, bridge round trips.
 
-    python benchmarks/live_latency.py            # ~30 s; writes benchmarks/results/live_latency.json
+    python benchmarks/live_latency.py     # ~30 s; writes benchmarks/results/live_latency.json
 
 The networks are ICCO's at the default sizes, untrained (a trained policy costs the same). One
 torch thread. Tick = policy + env step + bookkeeping, run at 10 Hz; planner = the offline rule
@@ -66,7 +66,7 @@ def main() -> None:
     client = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     client.settimeout(2.0)
     rtt = []
-    for k in range(100):
+    for _ in range(100):
         msg = {
             "type": "state",
             "robots": [

@@ -32,6 +32,9 @@ class RobotLimits:
                 raise ValueError(f"robot limit {name} must be a positive number, got {value!r}")
 
 
+DEFAULT_LIMITS = RobotLimits()
+
+
 def dwa_command(
     pose,
     velocity,
@@ -43,7 +46,8 @@ def dwa_command(
     horizon: float = 1.0,
     samples: int = 11,
 ) -> tuple[float, float]:
-    """``(v, w)`` for a robot at ``pose`` (x, y, theta) moving at ``velocity`` (v, w) toward ``target`` (x, y).
+    """``(v, w)`` for a robot at ``pose`` (x, y, theta) moving at ``velocity`` (v, w) toward
+    ``target`` (x, y).
 
     ``others`` [M, 2] are the other robots' positions (kept ``2 * radius`` away); ``dt`` is the
     control period (the window's size is ``accel * dt``).

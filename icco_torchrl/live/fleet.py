@@ -17,7 +17,7 @@ from collections import deque
 
 import numpy as np
 
-from icco_torchrl.live.dwa import RobotLimits
+from icco_torchrl.live.dwa import DEFAULT_LIMITS, RobotLimits
 
 
 class SimulatedFleet:
@@ -30,7 +30,7 @@ class SimulatedFleet:
         rate_hz: float = 20.0,
         latency: float = 0.05,
         noise: float = 0.005,
-        limits: RobotLimits = RobotLimits(),
+        limits: RobotLimits = DEFAULT_LIMITS,
         field_size: float = 6.5,
         seed: int = 0,
     ):
