@@ -1,4 +1,5 @@
-"""The live loop: it ticks in real time, takes instructions without blocking, reports what it does."""
+"""The live loop: it ticks in real time, takes instructions without blocking, reports what it
+does; the live settings' ranges."""
 
 from __future__ import annotations
 
@@ -9,8 +10,10 @@ import pytest
 
 from icco_torchrl.instructions import LLMPlanner
 from icco_torchrl.live import LiveLoop
+from icco_torchrl.live.loop import MAX_INSTRUCTION, planner_reading
 from icco_torchrl.modules.policy import make_policy
 from icco_torchrl.training.build import build_components, compose_config, make_env
+from icco_torchrl.training.config import ConfigError, validate
 
 
 def team(method="icco", planner=None):
@@ -83,6 +86,22 @@ def test_an_unknown_instruction_is_reported_and_the_last_plan_kept():
     assert np.allclose(loop.tick().waypoints, planned)
     with pytest.raises(ValueError, match="non-empty"):
         loop.instruct("   ")
+    with pytest.raises(ValueError, match=f"too long: {MAX_INSTRUCTION + 1} characters"):
+        loop.instruct("x" * (MAX_INSTRUCTION + 1))
+    # The status says how the planner read an instruction it understood.
+    seen = []
+    loop.on_status = seen.append
+    loop.instruct("flank the intruder")
+    assert loop.wait_for_plan(30).reading == "defend home"
+    assert [s.state for s in seen] == ["thinking", "used"] and seen[-1] is loop.status
+
+
+def test_the_planner_reading_is_its_replys_movement_strategy():
+    reply = '{"movement_strategy": "Rule planner (not an LLM): gather at the centre.", "a": 1}'
+    assert planner_reading(reply) == "gather at the centre"
+    assert planner_reading('Sure! {"movement_strategy": "  sweep   east  "}') == "sweep east"
+    assert planner_reading('{"movement_strategy": "' + "a" * 500 + '"}').endswith("...")
+    assert planner_reading('{"agent_0": []}') is None and planner_reading(None) is None
 
 
 def test_a_newer_instruction_supersedes_one_still_being_planned():
@@ -103,3 +122,20 @@ def test_run_keeps_its_rate_and_refuses_a_batched_env():
     cfg = compose_config(["method=qmix", "experiment=smoke"])
     with pytest.raises(ValueError, match="num_envs=1"):
         LiveLoop(make_env(cfg, num_envs=2, waypoint_mode="external"), None)
+
+
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        ({"rate_hz": 0}, "'live.rate_hz' must be > 0"),
+        ({"timeout_s": -1}, "'live.timeout_s' must be > 0"),
+        ({"robot_radius": 0}, "'live.robot_radius' must be > 0"),
+        ({"seconds": 0}, "'live.seconds' must be > 0"),
+        ({"port": -1}, "'live.port' must be >= 0"),
+        ({"web_port": 70000}, "'live.web_port' must be <= 65535"),
+    ],
+)
+def test_live_settings_are_range_checked_from_their_fields(override, message):
+    with pytest.raises(ConfigError, match=message):
+        validate({"live": override})
+    assert validate({"live": {"seconds": None, "port": 0}}).live.port == 0

@@ -4,12 +4,15 @@ real headless browser (Chromium through the DevTools protocol)."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
+import queue
 import shutil
 import socket
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -39,7 +42,8 @@ class Tab:
 
     def __init__(self, session, url):
         self.session, self.url = session, url
-        self.ticks, self.errors, self.hello = [], [], None
+        self.ticks, self.errors, self.planner, self.hello = [], [], [], None
+        self.oks, self.end, self.frames = 0, None, []
 
     async def __aenter__(self):
         self.ws = await self.session.ws_connect(self.url)
@@ -48,18 +52,25 @@ class Tab:
 
     async def _read(self):
         async for msg in self.ws:
+            self.frames.append(msg.data)
             data = json.loads(msg.data)
             if data["type"] == "hello":
                 self.hello = data
             elif data["type"] == "tick":
                 self.ticks.append(data)
+            elif data["type"] == "planner":
+                self.planner.append(data)
+            elif data["type"] == "ok":
+                self.oks += 1
+            elif data["type"] == "end":
+                self.end = data
             else:
                 self.errors.append(data["message"])
 
     async def send(self, **request):
         await self.ws.send_str(json.dumps(request))
 
-    async def until(self, predicate, timeout=10.0):
+    async def until(self, predicate, timeout=20.0):
         end = time.monotonic() + timeout
         while not predicate():
             assert time.monotonic() < end, "timed out waiting for the live page"
@@ -96,15 +107,21 @@ def test_two_tabs_watch_one_loop_and_either_can_instruct(served):
                 assert a.ticks[-1]["clients"] == 2
                 await b.send(type="instruct", text="Go right")
                 for tab in (a, b):  # both tabs see the plan arrive, and the waypoints move right
-                    await tab.until(lambda t=tab: t.ticks[-1]["planner"]["state"] == "used")
+                    await tab.until(lambda t=tab: t.planner[-1]["state"] == "used")
+                    await tab.until(lambda t=tab: (np.asarray(t.ticks[-1]["waypoints"]) > 1).any())
                 wp = np.asarray(a.ticks[-1]["waypoints"])
-                assert (wp[:, -1, 0] > 1).all() and a.ticks[-1]["planner"][
-                    "instruction"
-                ] == "Go right"  # paths end right
+                assert (wp[:, -1, 0] > 1).all()  # paths end right
+                assert a.planner[-1]["instruction"] == "Go right" and b.oks == 1 and a.oks == 0
+                assert a.planner[-1]["reading"].startswith("line at the right side")
                 ticks = [t["tick"] for t in a.ticks]
-                assert ticks == sorted(ticks) and len(set(ticks)) == len(
-                    ticks
-                )  # newest only, in order
+                assert ticks == sorted(ticks) and len(set(ticks)) == len(ticks)  # newest, in order
+                # The instruction is sent once per change of the planner's state, never per tick.
+                n = len(a.ticks)
+                await a.until(lambda: len(a.ticks) > n + 5)
+                with_text = [f for f in a.frames if "Go right" in f]
+                states = [json.loads(f)["state"] for f in with_text]  # thinking (may be
+                assert states[-1] == "used" and len(states) <= 2  # superseded before it is sent)
+                assert all("planner" not in t for t in a.ticks)
             assert a.errors == [] and b.errors == []
 
     asyncio.run(scenario())
@@ -117,7 +134,8 @@ def test_bad_requests_get_one_line_errors_and_the_team_keeps_its_plan(served):
         async with aiohttp.ClientSession() as session:
             async with Tab(session, url + "/ws") as a, Tab(session, url + "/ws") as b:
                 await a.send(type="instruct", text="Go right")
-                await a.until(lambda: a.ticks and a.ticks[-1]["planner"]["state"] == "used")
+                await a.until(lambda: a.planner and a.planner[-1]["state"] == "used")
+                await a.until(lambda: (np.asarray(a.ticks[-1]["waypoints"]) > 1).any())
                 planned = np.asarray(a.ticks[-1]["waypoints"])
                 await a.send(type="instruct", text="   ")
                 await a.ws.send_str("not json")
@@ -132,12 +150,20 @@ def test_bad_requests_get_one_line_errors_and_the_team_keeps_its_plan(served):
                 assert (
                     all("\n" not in e for e in a.errors) and b.errors == []
                 )  # only the sender hears of it
-                await a.send(
-                    type="instruct", text="make me a sandwich"
-                )  # not understood by the planner
-                await a.until(lambda: a.ticks[-1]["planner"]["state"] == "fell back")
-                assert a.ticks[-1]["planner"]["error"]
+                # An instruction over the limit is refused with a message; the tab stays
+                # connected and is heard afterwards.
+                limit = a.hello["max_instruction"]
+                await a.send(type="instruct", text="go right " * (limit // 9 + 1))
+                await a.until(lambda: len(a.errors) == 5)
+                assert f"at most {limit}" in a.errors[4] and "too long" in a.errors[4]
+                await a.send(type="instruct", text="make me a sandwich")  # not understood
+                await a.until(lambda: a.planner[-1]["state"] == "fell back")
+                assert a.planner[-1]["error"] and a.planner[-1]["reading"] is None
                 assert np.allclose(a.ticks[-1]["waypoints"], planned)
+                # The planner's reading of an instruction it maps to something else.
+                await a.send(type="instruct", text="flank the intruder")
+                await a.until(lambda: a.planner[-1]["state"] == "used")
+                assert a.planner[-1]["reading"] == "defend home" and not a.ws.closed
 
     asyncio.run(scenario())
 
@@ -176,6 +202,29 @@ def test_pause_step_speed_reset_and_a_vanished_tab_never_stop_the_loop(served):
 
     asyncio.run(scenario())
     assert server.stats["connections"] == 2
+
+
+def test_when_live_seconds_run_out_every_tab_is_told_the_run_ended():
+    loop = smoke_team()
+    server, started = LiveServer(loop, rate_hz=50.0), queue.Queue()
+    thread = threading.Thread(
+        target=server.serve, kwargs={"max_seconds": 1.5, "on_start": started.put}, daemon=True
+    )
+    thread.start()
+    host, port = started.get(timeout=30)
+
+    async def scenario():
+        async with aiohttp.ClientSession() as session:
+            async with Tab(session, f"http://{host}:{port}/ws") as tab:
+                await tab.until(lambda: tab.end is not None)
+                assert tab.end["reason"] == "live.seconds=1.5 ran out"
+                assert tab.end["ticks"] == loop.ticks >= tab.ticks[-1]["tick"]
+                await tab.until(lambda: tab.ws.closed)
+                assert tab.ws.close_code == 1000  # a normal close, not a dropped connection
+
+    asyncio.run(scenario())
+    thread.join(10)
+    assert not thread.is_alive()
 
 
 def test_a_busy_port_is_one_line_naming_it():
@@ -245,8 +294,9 @@ class DevTools:
             await asyncio.sleep(0.05)
 
 
-@pytest.fixture
+@pytest.fixture(scope="module")
 def browser():
+    """One headless Chromium for the module's browser tests; yields its DevTools port."""
     exe = _chromium()
     if exe is None:
         pytest.skip("no Chromium installed (apt-get install chromium; .ci/run installs it)")
@@ -282,60 +332,179 @@ def browser():
     shutil.rmtree(profile, ignore_errors=True)
 
 
+def _lab(color: str) -> np.ndarray:
+    """CIE L*a*b* (D65) of a ``#rrggbb`` or ``rgb(r, g, b)`` colour."""
+    if color.startswith("#"):
+        rgb = np.array([int(color[i : i + 2], 16) for i in (1, 3, 5)]) / 255
+    else:
+        rgb = np.array([float(v) for v in color[color.index("(") + 1 : -1].split(",")[:3]]) / 255
+    rgb = np.where(rgb > 0.04045, ((rgb + 0.055) / 1.055) ** 2.4, rgb / 12.92)
+    m = np.array([[0.4124, 0.3576, 0.1805], [0.2126, 0.7152, 0.0722], [0.0193, 0.1192, 0.9505]])
+    xyz = m @ rgb / np.array([0.95047, 1.0, 1.08883])
+    f = np.where(xyz > 0.008856, np.cbrt(xyz), 7.787 * xyz + 16 / 116)
+    return np.array([116 * f[1] - 16, 500 * (f[0] - f[1]), 200 * (f[1] - f[2])])
+
+
+def _delta_e(a: str, b: str) -> float:
+    """CIE76 colour difference: about 2.3 is just noticeable, above 50 another colour family."""
+    return float(np.linalg.norm(_lab(a) - _lab(b)))
+
+
+@contextlib.asynccontextmanager
+async def _page(session, browser, url):
+    """The browser's page, opened at ``url``, driven through :class:`DevTools`."""
+    async with session.get(f"http://127.0.0.1:{browser}/json/list") as r:
+        page = next(t for t in await r.json() if t["type"] == "page")
+    async with session.ws_connect(page["webSocketDebuggerUrl"], max_msg_size=0) as ws:
+        tools = DevTools(ws)
+        await tools.call("Page.navigate", url=url + "/")
+        await tools.until("window.icco && icco.connected && icco.ticks > 5")
+        yield tools
+
+
+async def _type_and_send(tools, text):
+    """A person clicks the box, types ``text`` and presses Send."""
+    await tools.js("document.getElementById('instruction').value = ''")
+    await tools.js("document.getElementById('instruction').focus()")
+    await tools.call("Input.insertText", text=text)
+    await tools.js("document.getElementById('send').click()")
+
+
+def _text(element_id):
+    return f"document.getElementById('{element_id}').textContent"
+
+
 def test_the_page_in_a_real_browser_go_right_moves_waypoints_and_robots(served, browser):
+    """What a first-time user meets: a legend, colours that are told apart, the planner's
+    reading, a stated instruction limit, errors that clear, and a run that ends cleanly."""
     loop = LiveLoop.from_checkpoint(DEMO, planner=LLMPlanner(), seed=1)
     server, url = served(loop, rate_hz=40.0, policy="demo_icco.pt")
 
     async def scenario():
-        async with aiohttp.ClientSession() as session:
-            async with session.get(f"http://127.0.0.1:{browser}/json/list") as r:
-                page = next(t for t in await r.json() if t["type"] == "page")
-            async with session.ws_connect(page["webSocketDebuggerUrl"], max_msg_size=0) as ws:
-                tools = DevTools(ws)
-                await tools.call("Page.navigate", url=url + "/")
-                await tools.until("window.icco && icco.connected && icco.ticks > 5")
-                assert await tools.js(
-                    "document.getElementById('policy').textContent.includes('demo_icco.pt')"
-                )
-                before = await tools.js(
-                    "icco.state.waypoints.flat().reduce((s, w) => s + w[0], 0) / 12"
-                )
-                # A person clicks the box, types and presses Send.
-                await tools.js("document.getElementById('instruction').focus()")
-                await tools.call("Input.insertText", text="Go right")
-                await tools.js("document.getElementById('send').click()")
-                await tools.until("icco.state.planner.state === 'used'")
-                assert "Go right" in await tools.js(
-                    "document.getElementById('planner').textContent"
-                )
-                after = await tools.js(
-                    "icco.state.waypoints.flat().reduce((s, w) => s + w[0], 0) / 12"
-                )
-                assert after > before + 0.3  # the waypoints moved right
-                assert await tools.js(
-                    "icco.state.waypoints.every(path => path[path.length - 1][0] > 1)"
-                )
-                start = await tools.js("icco.state.tick")
-                # Within 60 ticks every robot is in the right half of the field.
-                await tools.until("icco.state.positions.every(p => p[0] > 0)", timeout=10)
-                assert await tools.js("icco.state.tick") - start <= 60
-                # The panel shows the running counts; an empty instruction is reported in the page.
-                assert await tools.js("document.getElementById('tick').textContent.length > 0")
-                await tools.js("document.getElementById('instruction').value = '   '")
-                await tools.js("document.getElementById('send').click()")
-                assert "type an instruction" in await tools.js(
-                    "document.getElementById('message').textContent"
-                )
-                # The field is drawn: some pixels are neither white nor transparent.
-                drawn = await tools.js(
-                    "(() => { const c = document.getElementById('field'); const d = "
-                    "c.getContext('2d').getImageData(0, 0, c.width, c.height).data; let n = 0; "
-                    "for (let i = 0; i < d.length; i += 4) if (d[i+3] && (d[i] < 200)) n++; "
-                    "return n; })()"
-                )
-                assert drawn > 500
+        async with aiohttp.ClientSession() as session, _page(session, browser, url) as tools:
+            assert await tools.js("document.title") == "icco live"
+            assert "demo_icco.pt" in await tools.js(_text("policy"))
+            # The legend names every robot and each thing on the field, in the drawn colours.
+            legend = await tools.js(_text("legend"))
+            for name in ("robot 0", "robot 1", "robot 2", "resource", "home", "invader"):
+                assert name in legend
+            colors = await tools.js("icco.colors")
+            swatches = await tools.js(
+                "[...document.querySelectorAll('#legend li')].slice(0, 3)"
+                ".map(li => getComputedStyle(li.querySelector('.sw')).backgroundColor)"
+            )
+            robots = colors["robots"][:3]
+            assert all(_delta_e(a, b) < 1 for a, b in zip(swatches, robots, strict=True))
+            for robot in colors["robots"]:  # no robot colour is a resource's, home's or invader's
+                for thing in ("resource", "invader", "home", "homeEdge"):
+                    assert _delta_e(robot, colors[thing]) > 50, (robot, thing)
+            assert min(_delta_e(a, b) for a in robots for b in robots if a != b) > 40
+            # The instruction limit is stated, and a longer instruction gets a message; the
+            # connection stays up (no new socket) and the next instruction is heard.
+            assert await tools.js(
+                "document.querySelector('#instruct-form + div').textContent.trim()"
+                ".startsWith('at most 200 characters')"
+            )
+            await tools.js("icco.wsBefore = icco.ws")
+            long = "go right, " * 7000  # 70 000 characters: over the WebSocket's 64 KiB frame
+            await _type_and_send(tools, long)
+            message = await tools.js(_text("message"))
+            assert f"too long: {len(long.strip())} characters, at most 200" in message
+            await tools.until("document.getElementById('count').className === 'over'")
+            # The planner's reading of an instruction it maps to something else is shown.
+            await _type_and_send(tools, "flank the intruder")
+            await tools.until("icco.planner && icco.planner.state === 'used'")
+            assert await tools.js(_text("reading")) == "read as: defend home"
+            assert await tools.js("icco.ws === icco.wsBefore && icco.connected")
+            assert await tools.js(_text("message")) == ""  # the success cleared the error
+            # A server-side error is shown, then cleared by the next request that succeeds.
+            await tools.js("icco.send({type: 'speed', value: 3})")
+            await tools.until("document.getElementById('message').className === 'error'")
+            assert "speed must be one of" in await tools.js(_text("message"))
+            before = await tools.js(
+                "icco.state.waypoints.flat().reduce((s, w) => s + w[0], 0) / 12"
+            )
+            await _type_and_send(tools, "Go right")
+            await tools.until("icco.planner.instruction === 'Go right'")
+            await tools.until("icco.planner.state === 'used'")
+            await tools.until("document.getElementById('message').textContent === ''")
+            assert "Go right" in await tools.js(_text("planner"))
+            assert (await tools.js(_text("reading"))).startswith("read as: line at the right")
+            await tools.until("icco.state.waypoints.every(path => path[path.length - 1][0] > 1)")
+            after = await tools.js("icco.state.waypoints.flat().reduce((s, w) => s + w[0], 0) / 12")
+            assert after > before + 0.3  # the waypoints moved right
+            start = await tools.js("icco.state.tick")
+            # Within 60 ticks every robot is in the right half of the field.
+            await tools.until("icco.state.positions.every(p => p[0] > 0)", timeout=10)
+            assert await tools.js("icco.state.tick") - start <= 60
+            # The panel shows the running counts; an empty instruction is reported in the page.
+            assert await tools.js("document.getElementById('tick').textContent.length > 0")
+            await tools.js("document.getElementById('instruction').value = '   '")
+            await tools.js("document.getElementById('send').click()")
+            assert "type an instruction" in await tools.js(_text("message"))
+            # The field is drawn: some pixels are neither white nor transparent.
+            drawn = await tools.js(
+                "(() => { const c = document.getElementById('field'); const d = "
+                "c.getContext('2d').getImageData(0, 0, c.width, c.height).data; let n = 0; "
+                "for (let i = 0; i < d.length; i += 4) if (d[i+3] && (d[i] < 200)) n++; "
+                "return n; })()"
+            )
+            assert drawn > 500
+            # The run ends: the page says so, why, turns its controls off and stops retrying.
+            await asyncio.to_thread(server.close, reason="live.seconds=30 ran out")
+            await tools.until("icco.ended !== null")
+            assert await tools.js(_text("connection")) == "run ended"
+            assert "live.seconds=30 ran out" in await tools.js(_text("ended-reason"))
+            assert await tools.js("!document.getElementById('ended').hidden")
+            assert await tools.js("document.getElementById('send').disabled")
+            await asyncio.sleep(1.5)  # a retrying page would have opened a new socket by now
+            assert await tools.js("icco.ws === icco.wsBefore && !icco.connected")
 
     asyncio.run(scenario())
+    assert server.stats["connections"] == 1
+
+
+def test_the_page_in_a_real_browser_shows_a_bridge_driven_fleet(served, browser):
+    from conftest import bridge_with_fleet
+
+    from icco_torchrl.envs import ResourceCollectionEnv
+    from icco_torchrl.envs.reference_policies import make_reference_policy
+    from icco_torchrl.live.bridge import Bridge
+    from icco_torchrl.live.fleet import SimulatedFleet
+
+    env = ResourceCollectionEnv(num_envs=1, seed=0, waypoint_mode="external", max_steps=10**6)
+    loop = LiveLoop(env, make_reference_policy("follower", env), LLMPlanner())
+    server, url = served(loop, drive=False, policy="follower")
+    bridge = Bridge(loop, rate_hz=20, timeout=0.5)
+    server.watch(bridge)
+    fleet = SimulatedFleet(bridge.address, rate_hz=20, latency=0.02, seed=1)
+
+    async def scenario():
+        async with aiohttp.ClientSession() as session, _page(session, browser, url) as tools:
+            assert (await tools.js("document.title")).startswith("icco bridge")
+            assert (await tools.js(_text("title"))).startswith("icco bridge")
+            assert await tools.js("document.getElementById('team-panel').hidden")
+            assert not await tools.js("document.getElementById('fleet-panel').hidden")
+            await tools.until("document.querySelectorAll('#fleet tr.moving').length === 3")
+            rows = await tools.js(
+                "[...document.querySelectorAll('#fleet tr')].map(r => r.innerText)"
+            )
+            assert [r.split()[:3] for r in rows] == [["robot", str(i), "moving"] for i in range(3)]
+            summary = await tools.js(_text("fleet-summary"))
+            assert "3 of 3 robots moving" in summary and "0 malformed" in summary
+            assert int(summary.split(" commands")[0].rsplit(" ", 1)[-1]) > 0
+            fleet.silence(2)  # robot 2 drops off the network: its row says it is stopped
+            await tools.until("document.querySelectorAll('#fleet tr.stopped').length === 1")
+            assert "stopped: no pose for" in await tools.js(
+                "document.querySelectorAll('#fleet tr')[2].innerText"
+            )
+            assert "2 of 3 robots moving" in await tools.js(_text("fleet-summary"))
+            await asyncio.to_thread(server.close, reason="the bridge stopped")
+            await tools.until("icco.ended !== null")
+            assert "the bridge stopped" in await tools.js(_text("ended-reason"))
+
+    with bridge_with_fleet(bridge, fleet, 30.0):
+        asyncio.run(scenario())
 
 
 def test_the_page_watches_a_bridge_driven_fleet_and_relays_instructions(served):
@@ -350,27 +519,37 @@ def test_the_page_watches_a_bridge_driven_fleet_and_relays_instructions(served):
     loop = LiveLoop(env, make_reference_policy("follower", env), LLMPlanner())
     server, url = served(loop, drive=False)
     bridge = Bridge(loop, rate_hz=20, timeout=0.5)
-    bridge.on_command = lambda _: server.publish(loop.snapshot())
+    server.watch(bridge)
     fleet = SimulatedFleet(bridge.address, rate_hz=20, latency=0.02, seed=1)
 
     async def scenario():
         async with aiohttp.ClientSession() as session:
             async with Tab(session, url + "/ws") as tab:
                 await tab.until(lambda: tab.hello and len(tab.ticks) > 5)
-                assert tab.hello["drive"] is False
+                assert tab.hello["drive"] is False and tab.hello["mode"] == "bridge"
                 shown, real = np.asarray(tab.ticks[-1]["positions"]), fleet.poses[:, :2]
                 assert np.abs(shown - real).max() < 0.5  # the page shows the robots where they are
+                # The fleet as the bridge sees it: every robot driven, the counts going up.
+                f = tab.ticks[-1]["fleet"]
+                assert [r["id"] for r in f["robots"]] == [0, 1, 2] and f["malformed"] == 0
+                assert not any(r["stopped"] for r in f["robots"]) and f["commands"] > 3
+                assert all(r["age_s"] < 0.5 and len(r["pose"]) == 3 for r in f["robots"])
                 await tab.send(type="pause")
                 await tab.until(lambda: tab.errors)
                 assert "driven by the bridge" in tab.errors[0]
                 await tab.send(type="instruct", text="Go right")
-                await tab.until(lambda: tab.ticks[-1]["planner"]["state"] == "used")
+                await tab.until(lambda: tab.planner[-1]["state"] == "used")
                 x0 = np.mean(tab.ticks[-1]["positions"], axis=0)[0]
                 await tab.until(
                     lambda: np.mean(tab.ticks[-1]["positions"], axis=0)[0] > x0 + 0.5, timeout=7
                 )
+                fleet.silence(1)  # robot 1 drops off the network: the page says it is stopped
+                await tab.until(lambda: tab.ticks[-1]["fleet"]["robots"][1]["stopped"])
+                robots = tab.ticks[-1]["fleet"]["robots"]
+                assert robots[1]["reason"] == "stale" and robots[1]["age_s"] > 0.5
+                assert tab.ticks[-1]["fleet"]["stale_stops"] == 1 and not robots[0]["stopped"]
 
-    with bridge_with_fleet(bridge, fleet, 8.0):
+    with bridge_with_fleet(bridge, fleet, 30.0):  # stopped on leaving
         asyncio.run(scenario())
 
 

@@ -28,7 +28,7 @@ import time
 
 import numpy as np
 
-from icco_torchrl.live.dwa import RobotLimits, dwa_command
+from icco_torchrl.live.dwa import DEFAULT_LIMITS, RobotLimits, dwa_command
 from icco_torchrl.live.loop import LiveLoop
 
 log = logging.getLogger("icco.bridge")
@@ -82,7 +82,8 @@ def _finite(value) -> bool:
 
 
 class Bridge:
-    """Serve one team over UDP (see the module docstring); :meth:`serve` runs until ``stop`` is set."""
+    """Serve one team over UDP (see the module docstring); :meth:`serve` runs until ``stop`` is
+    set."""
 
     def __init__(
         self,
@@ -92,7 +93,7 @@ class Bridge:
         port: int = 0,
         rate_hz: float = 10.0,
         timeout: float = 0.5,
-        limits: RobotLimits = RobotLimits(),
+        limits: RobotLimits = DEFAULT_LIMITS,
     ):
         if not rate_hz > 0 or not timeout > 0:
             raise ValueError(f"rate_hz and timeout must be > 0, got {rate_hz!r} and {timeout!r}")
@@ -124,6 +125,7 @@ class Bridge:
             "latency_ms": [],
         }
         self._received_at = None
+        self._last: dict[int, dict] = {}  # each robot's entry in the last command message
         self.on_command = None  # called with each command message (e.g. the live page)
 
     def handle(self, data: bytes, sender) -> None:
@@ -209,6 +211,7 @@ class Bridge:
                 }
             )
         message = {"type": "command", "time": time.time(), "robots": robots}
+        self._last = {r["id"]: r for r in robots}
         self.sock.sendto(json.dumps(message).encode(), self.reply_to)
         self.stats["commands"] += 1
         if self._received_at is not None:
@@ -218,8 +221,42 @@ class Bridge:
             self.on_command(message)
         return message
 
+    def fleet(self) -> dict:
+        """The fleet as the bridge sees it, for the live page: each robot's last pose, how old it
+        is, its last command and whether it is stopped (and why); the message counts."""
+        now = time.monotonic()
+        robots = []
+        for i in range(self.n):
+            seen = bool(np.isfinite(self.seen[i]))
+            last = self._last.get(i, {"stopped": True, "reason": "no command yet"})
+            robots.append(
+                {
+                    "id": i,
+                    "pose": np.round(self.poses[i], 3).tolist() if seen else None,
+                    "age_s": round(float(now - self.seen[i]), 3) if seen else None,
+                    "v": float(self.command[i, 0]),
+                    "w": float(self.command[i, 1]),
+                    "stopped": bool(last["stopped"]),
+                    "reason": last["reason"],
+                }
+            )
+        s = self.stats
+        latency = s["latency_ms"][-50:]
+        return {
+            "robots": robots,
+            "address": f"udp {self.address[0]}:{self.address[1]}",
+            "rate_hz": self.rate_hz,
+            "timeout_s": self.timeout,
+            "messages": s["messages"],
+            "commands": s["commands"],
+            "malformed": s["malformed"],
+            "stale_stops": s["stale_stops"],
+            "latency_ms": float(np.median(latency)) if latency else None,
+        }
+
     def serve(self, stop: threading.Event, max_seconds: float | None = None) -> None:
-        """Receive datagrams and send commands at ``rate_hz`` until ``stop`` is set (or ``max_seconds``)."""
+        """Receive datagrams and send commands at ``rate_hz`` until ``stop`` is set (or
+        ``max_seconds`` pass)."""
         period = 1.0 / self.rate_hz
         end = None if max_seconds is None else time.monotonic() + max_seconds
         next_tick = time.monotonic() + period

@@ -1,12 +1,13 @@
 """``icco live`` (a trained team on a web page) and ``icco bridge`` (commanding robots over UDP).
 
-    icco live                                                           # the demo policy at http://127.0.0.1:8000/
+    icco live                                       # the demo policy at http://127.0.0.1:8000/
     icco live checkpoint=runs/icco/.../checkpoint.pt live.web_port=8080
-    icco bridge checkpoint=runs/icco/.../checkpoint.pt                  # wait for a motion-capture stream
-    icco bridge checkpoint=... live.fleet=true live.web=true            # simulated fleet, watched in the page
+    icco bridge checkpoint=runs/icco/.../checkpoint.pt  # wait for a motion-capture stream
+    icco bridge live.fleet=true live.web=true        # a simulated fleet, watched in the page
 
 Both print where they listen, then a summary when stopped (Ctrl-C, SIGTERM or ``live.seconds``).
-Settings: the ``live`` section of ``conf/config.yaml``.
+Settings: ``live.*`` (:class:`~icco_torchrl.training.config.LiveConfig`: defaults, ranges and
+what each one means).
 """
 
 from __future__ import annotations
@@ -40,7 +41,8 @@ def _checkpoint(cfg: DictConfig, command: str) -> Path:
             f"no checkpoint= given and no demo policy at {DEMO_POLICY}: give checkpoint=PATH"
         )
     print(
-        f"icco {command}: no checkpoint= given: using the demo policy {DEMO_POLICY} (see assets/README.md)"
+        f"icco {command}: no checkpoint= given: using the demo policy {DEMO_POLICY} "
+        "(see assets/README.md)"
     )
     return DEMO_POLICY
 
@@ -48,8 +50,8 @@ def _checkpoint(cfg: DictConfig, command: str) -> Path:
 def _warn_if_exposed(host: str) -> None:
     if host not in LOOPBACK:
         print(
-            f"warning: live.host={host} is reachable from other machines; anyone who can reach it can "
-            f"watch and steer the team",
+            f"warning: live.host={host} is reachable from other machines; anyone who can reach "
+            "it can watch and steer the team",
             file=sys.stderr,
         )
 
@@ -90,16 +92,16 @@ def run_live(cfg: DictConfig) -> float:
 
     def started(address):
         print(
-            f"icco live: open http://{address[0]}:{address[1]}/ ({checkpoint.name} at {live.rate_hz:g} Hz, "
-            f"any number of tabs); Ctrl-C stops",
+            f"icco live: open http://{address[0]}:{address[1]}/ ({checkpoint.name} at "
+            f"{live.rate_hz:g} Hz, any number of tabs); Ctrl-C stops",
             flush=True,
         )
 
     server.serve(stop, max_seconds=live.seconds, on_start=started)
     lat = server.stats["latency_ms"]
     print(
-        f"icco live: {loop.ticks} ticks, {server.stats['connections']} page connections, median tick "
-        f"{np.median(lat) if lat else float('nan'):.1f} ms; totals {_totals(loop)}",
+        f"icco live: {loop.ticks} ticks, {server.stats['connections']} page connections, "
+        f"median tick {np.median(lat) if lat else float('nan'):.1f} ms; totals {_totals(loop)}",
         flush=True,
     )
     return float(loop.ticks)
@@ -152,7 +154,7 @@ def run_bridge(cfg: DictConfig) -> float:
         except OSError:
             bridge.close()
             raise
-        bridge.on_command = lambda _: page.publish(loop.snapshot())
+        page.watch(bridge)
         print(f"icco bridge: watch it at http://{address[0]}:{address[1]}/", flush=True)
     stop = _stop_on_signals()
     threads = []
@@ -168,9 +170,10 @@ def run_bridge(cfg: DictConfig) -> float:
         threads.append(
             threading.Thread(target=fleet.run, args=(stop, live.seconds or 1e9), daemon=True)
         )
+    source = "with the simulated fleet" if live.fleet else "waiting for state messages"
     print(
-        f"icco bridge: listening on udp {bridge.address[0]}:{bridge.address[1]} at {live.rate_hz:g} Hz "
-        f"({'with the simulated fleet' if live.fleet else 'waiting for state messages'}); Ctrl-C stops",
+        f"icco bridge: listening on udp {bridge.address[0]}:{bridge.address[1]} at "
+        f"{live.rate_hz:g} Hz ({source}); Ctrl-C stops",
         flush=True,
     )
     for t in threads:
@@ -178,17 +181,20 @@ def run_bridge(cfg: DictConfig) -> float:
     try:
         bridge.serve(stop, max_seconds=live.seconds)
     finally:
+        stopped = stop.is_set()
         stop.set()
         for t in threads:
             t.join(timeout=5)
         bridge.close()
         if page is not None:
-            page.close()
+            ran_out = not stopped and live.seconds is not None
+            page.close(reason=f"live.seconds={live.seconds:g} ran out" if ran_out else None)
     s = bridge.stats
     latency = np.median(s["latency_ms"]) if s["latency_ms"] else float("nan")
     print(
-        f"icco bridge: {s['messages']} messages, {s['commands']} commands, {s['malformed']} malformed, "
-        f"{s['stale_stops']} stale-robot stops; median state-to-command latency {latency:.1f} ms",
+        f"icco bridge: {s['messages']} messages, {s['commands']} commands, {s['malformed']} "
+        f"malformed, {s['stale_stops']} stale-robot stops; median state-to-command latency "
+        f"{latency:.1f} ms",
         flush=True,
     )
     return float(s["commands"])

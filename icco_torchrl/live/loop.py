@@ -1,4 +1,5 @@
-"""The live loop: one team, a trained policy, instructions at any moment (what a live page and a robot bridge drive).
+"""The live loop: one team, a trained policy, instructions at any moment (what a live page and a
+robot bridge drive).
 
 :class:`LiveLoop` holds an env of one team (``num_envs=1``, external waypoints), a greedy
 policy (argmax Q, the coordinator's mean) and a planner (the offline rule planner or any
@@ -12,6 +13,7 @@ env step per ``env.dt`` seconds). No web code here: a page or a bridge drives th
 
 from __future__ import annotations
 
+import re
 import threading
 import time
 from dataclasses import asdict, dataclass, field
@@ -22,7 +24,13 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
 from icco_torchrl.envs import EVENTS  # the env owns the event names
 from icco_torchrl.envs.resource_collection import _ACTION_DIRS
-from icco_torchrl.instructions.sources import base_env
+from icco_torchrl.envs.waypoints import base_env
+from icco_torchrl.instructions.llm import last_json_object
+
+MAX_INSTRUCTION = 200  # characters: longer instructions are refused with a message
+MAX_READING = 300  # characters of the planner's reading kept for display
+# The offline rule planner labels its strategy; the reading is what follows the label.
+_RULE_LABEL = re.compile(r"^Rule planner \(not an LLM\):\s*")
 
 
 def _np(tensor: torch.Tensor) -> np.ndarray:
@@ -33,13 +41,26 @@ def _np(tensor: torch.Tensor) -> np.ndarray:
 @dataclass
 class PlannerStatus:
     """What the planner is doing: ``idle``, ``thinking``, ``used`` (a plan is driving the team) or
-    ``fell back`` (the team keeps its previous waypoints; ``error`` says why)."""
+    ``fell back`` (the team keeps its previous waypoints; ``error`` says why). ``reading`` is how
+    the planner read the instruction (its reply's ``movement_strategy``, e.g. "defend home")."""
 
     state: str = "idle"
     instruction: str | None = None
     error: str | None = None
     latency_s: float | None = None
     requests: int = 0
+    reading: str | None = None
+
+
+def planner_reading(raw: str | None) -> str | None:
+    """The planner's reading of an instruction: the ``movement_strategy`` of its JSON reply
+    (without the offline rule planner's label), or None when the reply has none."""
+    reply = last_json_object(raw) if raw else None
+    strategy = reply.get("movement_strategy") if reply else None
+    if not isinstance(strategy, str) or not strategy.strip():
+        return None
+    reading = _RULE_LABEL.sub("", " ".join(strategy.split())).rstrip(".")
+    return reading if len(reading) <= MAX_READING else reading[: MAX_READING - 3] + "..."
 
 
 @dataclass
@@ -74,17 +95,21 @@ class LiveLoop:
         policy: maps the root TensorDict to one with the action (a restored trained policy, or a
             reference policy); run greedily.
         planner: an :class:`~icco_torchrl.instructions.LLMPlanner`, or None (instructions refused).
+
+    ``on_status``, when set, is called with the new :class:`PlannerStatus` each time it changes
+    (from the thread that changed it: the caller's, or the planner's thread).
     """
 
     def __init__(self, env, policy, planner=None):
         raw = base_env(env)
         if raw.num_envs != 1 or raw.waypoint_mode != "external":
             raise ValueError(
-                "LiveLoop drives one team with external waypoints: build the env with num_envs=1 and "
-                "waypoint_mode='external' (LiveLoop.from_checkpoint does)"
+                "LiveLoop drives one team with external waypoints: build the env with num_envs=1 "
+                "and waypoint_mode='external' (LiveLoop.from_checkpoint does)"
             )
         self.env, self.raw, self.policy, self.planner = env, raw, policy, planner
         self.status = PlannerStatus()
+        self.on_status = None
         self.totals = {k: 0.0 for k in (*EVENTS, "inst_reward", "reward")}
         self.ticks = 0
         self._lock = threading.Lock()  # one tick or plan hand-over at a time
@@ -119,7 +144,8 @@ class LiveLoop:
 
     # ------------------------------------------------------------------ instructions
     def instruct(self, instruction: str) -> None:
-        """Plan ``instruction`` in the background from the robots' current positions; returns at once.
+        """Plan ``instruction`` in the background from the robots' current positions; returns at
+        once.
 
         An instruction given while another is being planned replaces it (the older plan is
         dropped when it arrives). Unknown instructions fall back in the planner: the status says
@@ -127,6 +153,11 @@ class LiveLoop:
         """
         if not isinstance(instruction, str) or not instruction.strip():
             raise ValueError(f"an instruction must be a non-empty string, got {instruction!r}")
+        if len(instruction.strip()) > MAX_INSTRUCTION:
+            raise ValueError(
+                f"instruction too long: {len(instruction.strip())} characters, at most "
+                f"{MAX_INSTRUCTION} (the team keeps its last plan)"
+            )
         if self.planner is None:
             raise ValueError(
                 "this live loop has no planner: give one (LLMPlanner) to take instructions"
@@ -137,7 +168,9 @@ class LiveLoop:
             previous = self.raw.waypoints[0].cpu().numpy().copy()
             resources = self.raw.res_pos[0].cpu().numpy().copy()
             invader = self.raw.inv_pos[0][self.raw.inv_active[0]].cpu().numpy().copy()
-            self.status = PlannerStatus("thinking", instruction, requests=self.status.requests + 1)
+            self._set_status(
+                PlannerStatus("thinking", instruction, requests=self.status.requests + 1)
+            )
         thread = threading.Thread(
             target=self._plan,
             args=(instruction, positions, previous, resources, invader),
@@ -154,9 +187,8 @@ class LiveLoop:
                 instruction, positions, previous=previous, resources=resources, invader=invader
             )
             ok, error, waypoints = result.ok, result.error, result.waypoints
-        except (
-            Exception
-        ) as err:  # an unreachable model must not stop the team: report, keep the plan
+            reading = planner_reading(getattr(result, "raw", None)) if ok else None
+        except Exception as err:  # an unreachable model must not stop the team: report, keep plan
             ok, error, waypoints = False, f"{type(err).__name__}: {err}".splitlines()[0], None
         with self._lock:
             if (
@@ -165,15 +197,22 @@ class LiveLoop:
             ):
                 return  # superseded by a newer instruction
             latency = time.perf_counter() - start
+            requests = self.status.requests
             if ok:
                 self._pending = np.asarray(waypoints, dtype=np.float32)
-                self.status = PlannerStatus(
-                    "used", instruction, None, latency, self.status.requests
+                self._set_status(
+                    PlannerStatus("used", instruction, None, latency, requests, reading)
                 )
             else:
-                self.status = PlannerStatus(
-                    "fell back", instruction, error or "no plan", latency, self.status.requests
+                self._set_status(
+                    PlannerStatus("fell back", instruction, error or "no plan", latency, requests)
                 )
+
+    def _set_status(self, status: PlannerStatus) -> None:
+        """Replace the planner status (under the lock) and tell ``on_status``."""
+        self.status = status
+        if self.on_status is not None:
+            self.on_status(status)
 
     def wait_for_plan(self, timeout: float | None = None) -> PlannerStatus:
         """Block until the current planning request is answered (tests, scripted demos)."""
@@ -226,30 +265,32 @@ class LiveLoop:
         )
 
     def snapshot(self) -> TickState:
-        """The team's current state without stepping it (what a display shows between ticks, or after
-        :meth:`act_on` when the robots are real); no events."""
+        """The team's current state without stepping it (what a display shows between ticks, or
+        after :meth:`act_on` when the robots are real); no events."""
         with self._lock:
             return self._state(self.td.get(("agents", "z"), None), {})
 
     def reset(self) -> TickState:
-        """A new episode (new resources, invader and robot positions), the running totals set to zero
-        and any plan still being computed dropped; the planner's request count is kept."""
+        """A new episode (new resources, invader and robot positions), the running totals set to
+        zero and any plan still being computed dropped; the planner's request count is kept."""
         with self._lock, torch.no_grad():
             self.td = self.env.reset()
             self._pending, self._thread = None, None
             self.totals = {k: 0.0 for k in self.totals}
-            self.status = PlannerStatus(requests=self.status.requests)
+            self._set_status(PlannerStatus(requests=self.status.requests))
             return self._state(None, {})
 
     def act_on(
         self, positions, *, velocities=None, resources=None, invader=None
     ) -> tuple[np.ndarray, np.ndarray]:
-        """The policy's move for robots measured from outside (motion capture), without stepping the env.
+        """The policy's move for robots measured from outside (motion capture), without stepping
+        the env.
 
         The env's state is overwritten by the measurements: ``positions`` [N, 2], ``velocities``
-        [N, 2] (m/s; zero when not given), ``resources`` [R, 2] and ``invader`` [I', 2] (active ones;
-        kept from the last call when None). The observation is rebuilt, the policy runs greedily,
-        and its recurrent state, previous action and step counter carry over to the next call.
+        [N, 2] (m/s; zero when not given), ``resources`` [R, 2] and ``invader`` [I', 2] (active
+        ones; kept from the last call when None). The observation is rebuilt, the policy runs
+        greedily, and its recurrent state, previous action and step counter carry over to the next
+        call.
         Returns ``(actions [N], targets [N, 2])``: each robot's discrete move and the point one move
         (``max_speed * dt``) away in that direction, which a controller (DWA) then drives to.
         """
@@ -312,8 +353,8 @@ class LiveLoop:
         on_tick=None,
         stop: threading.Event | None = None,
     ) -> list[float]:
-        """``ticks`` ticks at ``rate_hz`` (default: real time, ``1 / env.dt``); ``on_tick(state)`` is
-        called after each. Returns the tick latencies (ms). Late ticks are not made up for."""
+        """``ticks`` ticks at ``rate_hz`` (default: real time, ``1 / env.dt``); ``on_tick(state)``
+        is called after each. Returns the tick latencies (ms). Late ticks are not made up for."""
         rate = rate_hz or 1.0 / self.raw.dt
         if not rate > 0:
             raise ValueError(f"rate_hz must be > 0, got {rate_hz!r}")

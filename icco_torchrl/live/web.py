@@ -8,15 +8,26 @@ event loop never waits on the policy) or only shows one that something else driv
 
 WebSocket protocol (JSON text frames):
 
-* server -> page, once on connect: ``{"type": "hello", "field_size", "home_radius", "vision_radius",
-  "n_agents", "dt", "rate_hz", "speed", "paused", "drive", "policy", "planner"}``;
-* server -> page, every tick: ``{"type": "tick", ...}`` with :class:`~icco_torchrl.live.loop.TickState`'s
-  fields plus ``paused``, ``speed`` and ``clients``; a slow tab gets the latest tick only (older
+* server -> page, once on connect: ``{"type": "hello", "mode", "field_size", "home_radius",
+  "vision_radius", "n_agents", "dt", "rate_hz", "speed", "paused", "drive", "policy", "planner",
+  "max_instruction", "max_message", ...}``; ``mode`` is ``"live"`` (this server drives the team)
+  or ``"bridge"`` (robots driven by the bridge);
+* server -> page, every tick: ``{"type": "tick", ...}`` with
+  :class:`~icco_torchrl.live.loop.TickState`'s fields (but ``planner``) plus ``paused``,
+  ``speed``, ``clients`` and, in bridge mode, ``fleet``
+  (:meth:`~icco_torchrl.live.bridge.Bridge.fleet`); a slow tab gets the latest tick only (older
   ones are dropped for it, never queued), so it can neither fall behind nor slow the others;
-* server -> page, to the sender only: ``{"type": "error", "message": ...}`` for a bad request;
+* server -> page, on connect and each time it changes (never repeated in ticks):
+  ``{"type": "planner", ...}`` with :class:`~icco_torchrl.live.loop.PlannerStatus`'s fields;
+* server -> page, to the sender only: ``{"type": "ok"}`` for each request applied, or
+  ``{"type": "error", "message": ...}`` for a bad one (an instruction over ``max_instruction``
+  characters among them: the connection stays up);
+* server -> page, once when the run ends (``live.seconds`` ran out, Ctrl-C, the bridge stopped):
+  ``{"type": "end", "reason", "ticks"}``, then the server closes the connection (code 1000);
 * page -> server: ``{"type": "instruct", "text": "Go right"}``, ``{"type": "pause"}``,
   ``{"type": "resume"}``, ``{"type": "step"}`` (one tick while paused), ``{"type": "reset"}``,
-  ``{"type": "speed", "value": x}`` with x in ``SPEEDS``.
+  ``{"type": "speed", "value": x}`` with x in ``SPEEDS``. A request over ``max_message`` bytes
+  closes the connection (code 1009); the page never sends one.
 
 A tab that disconnects or errs is dropped; the loop keeps ticking with no tab at all.
 """
@@ -29,26 +40,34 @@ import logging
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import asdict
 from pathlib import Path
 
 from aiohttp import WSMsgType, web
 
-from icco_torchrl.live.loop import LiveLoop
+from icco_torchrl.live.loop import MAX_INSTRUCTION, LiveLoop
 
 log = logging.getLogger("icco.live")
 PAGE = Path(__file__).with_name("static") / "live.html"
+OK = {"type": "ok"}
 SPEEDS = (0.25, 0.5, 1.0, 2.0, 4.0, 8.0)
 CONTROLS = ("pause", "resume", "step", "reset", "speed")
+MAX_MESSAGE = 64 * 1024  # bytes of one page request; a larger one closes the connection (1009)
 
 
 class _Client:
-    """One browser tab: the latest frame waiting to be sent (older ones are replaced)."""
+    """One browser tab: replies to its requests (all sent, in order), the latest planner status
+    and the latest tick frame (older ones of these two are replaced)."""
 
     def __init__(self, ws: web.WebSocketResponse):
         self.ws = ws
+        self.replies: list[str] = []
+        self.status: str | None = None
         self.frame: str | None = None
         self.ready = asyncio.Event()
         self.sent = self.dropped = 0
+        self.writer: asyncio.Task | None = None
+        self.closing = False  # the run ended: send what is queued, then close
 
     def offer(self, frame: str) -> None:
         if self.frame is not None:
@@ -56,10 +75,24 @@ class _Client:
         self.frame = frame
         self.ready.set()
 
+    def offer_status(self, frame: str) -> None:
+        self.status = frame
+        self.ready.set()
+
+    def reply(self, frame: str) -> None:
+        self.replies.append(frame)
+        self.ready.set()
+
+    def take(self) -> list[str]:
+        """The frames to send now: replies first, then the planner status, then the tick."""
+        frames = [*self.replies, self.status, self.frame]
+        self.replies, self.status, self.frame = [], None, None
+        return [f for f in frames if f is not None]
+
 
 class LiveServer:
     """Serve ``loop`` to browser tabs (module docstring). ``drive=False``: show a loop that
-    another owner ticks (pause/step/reset/speed are then refused with a message)."""
+    another owner ticks, the bridge (pause/step/reset/speed are then refused with a message)."""
 
     def __init__(
         self,
@@ -100,10 +133,14 @@ class LiveServer:
         self._drive_task: asyncio.Task | None = None
         self._thread: threading.Thread | None = None
         self._closed = threading.Event()
+        self._status_frame = self._planner_frame(loop.status)
+        self.end_reason = "the run was stopped"
+        self._fleet: dict | None = None  # the bridge's fleet as last published
 
     # ------------------------------------------------------------------ lifecycle
     async def start(self) -> tuple[str, int]:
-        """Bind and start serving (and ticking when ``drive``); raises ``OSError`` naming the port."""
+        """Bind and start serving (and ticking when ``drive``); raises ``OSError`` naming the
+        port."""
         app = web.Application()
         app.router.add_get("/", self._page)
         app.router.add_get("/ws", self._socket)
@@ -120,20 +157,30 @@ class LiveServer:
             ) from None
         self._aio = asyncio.get_running_loop()
         self.address = tuple(self._runner.addresses[0][:2])  # the bound port when port=0
+        self._status_frame = self._planner_frame(self.loop.status)
+        self.loop.on_status = self._status_changed
         if self.drive:
             self._ticker = ThreadPoolExecutor(1, thread_name_prefix="icco-live-tick")
             self._drive_task = asyncio.create_task(self._drive())
         return self.address
 
     async def stop(self) -> None:
+        """Stop ticking, tell every tab the run ended (``end_reason``) and close the connections."""
         if self._drive_task is not None:
             self._drive_task.cancel()
             try:
                 await self._drive_task
             except asyncio.CancelledError:
                 pass
+            # A tick already handed to the worker thread finishes: the end frame counts it.
+            await asyncio.get_running_loop().run_in_executor(self._ticker, lambda: None)
+        if self.loop.on_status == self._status_changed:
+            self.loop.on_status = None
+        end = json.dumps({"type": "end", "reason": self.end_reason, "ticks": self.loop.ticks})
         for client in list(self.clients):
-            await client.ws.close()
+            client.reply(end)
+            client.closing = True
+        await asyncio.gather(*(self._close(c) for c in list(self.clients)))
         if self._runner is not None:
             await self._runner.cleanup()
         if self._ticker is not None:
@@ -142,7 +189,8 @@ class LiveServer:
     def serve(
         self, stop: threading.Event | None = None, max_seconds: float | None = None, on_start=None
     ) -> None:
-        """Serve in this thread until ``stop`` is set or ``max_seconds`` pass (``icco live``)."""
+        """Serve in this thread until ``stop`` is set or ``max_seconds`` pass (``icco live``);
+        the tabs are then told the run ended, and why."""
 
         async def main():
             address = await self.start()
@@ -150,9 +198,10 @@ class LiveServer:
                 on_start(address)
             end = None if max_seconds is None else time.monotonic() + max_seconds
             try:
-                while not (stop is not None and stop.is_set()) and (
-                    end is None or time.monotonic() < end
-                ):
+                while not (stop is not None and stop.is_set()):
+                    if end is not None and time.monotonic() >= end:
+                        self.end_reason = f"live.seconds={max_seconds:g} ran out"
+                        break
                     await asyncio.sleep(0.05)
             finally:
                 await self.stop()
@@ -186,8 +235,10 @@ class LiveServer:
             raise failure[0]
         return self.address
 
-    def close(self, timeout: float = 10.0) -> None:
-        """Stop a server started with :meth:`start_in_thread`."""
+    def close(self, timeout: float = 10.0, reason: str | None = None) -> None:
+        """Stop a server started with :meth:`start_in_thread`; the tabs are told ``reason``."""
+        if reason is not None:
+            self.end_reason = reason
         self._closed.set()
         if self._thread is not None:
             self._thread.join(timeout)
@@ -216,13 +267,24 @@ class LiveServer:
                 next_time, pause = time.perf_counter(), 0
             await asyncio.sleep(pause)
 
-    def publish(self, state) -> None:
-        """Show ``state`` (a ``TickState`` or its dict) to every tab; callable from any thread."""
+    def publish(self, state, fleet: dict | None = None) -> None:
+        """Show ``state`` (a ``TickState`` or its dict) to every tab, with the bridge's ``fleet``
+        (:meth:`~icco_torchrl.live.bridge.Bridge.fleet`) when given; callable from any thread."""
+        payload = state.to_dict() if hasattr(state, "to_dict") else dict(state)
+        if fleet is not None:
+            payload["fleet"] = self._fleet = fleet
+        self._soon(self._broadcast, payload)
+
+    def watch(self, bridge) -> None:
+        """Show ``bridge``'s robots: the team and the fleet's state after each of its commands."""
+        bridge.on_command = lambda _: self.publish(self.loop.snapshot(), fleet=bridge.fleet())
+
+    def _soon(self, fn, *args) -> None:
+        """Run ``fn(*args)`` on the server's event loop (from any thread), unless it has closed."""
         if self._aio is None or self._closed.is_set():
             return
-        payload = state.to_dict() if hasattr(state, "to_dict") else dict(state)
         try:
-            self._aio.call_soon_threadsafe(self._broadcast, payload)
+            self._aio.call_soon_threadsafe(fn, *args)
         except RuntimeError:  # the event loop has just closed
             pass
 
@@ -233,6 +295,7 @@ class LiveServer:
             client.offer(frame)
 
     def _tick_frame(self, payload: dict) -> str:
+        payload = {k: v for k, v in payload.items() if k != "planner"}  # sent once, on change
         return json.dumps(
             {
                 "type": "tick",
@@ -243,10 +306,24 @@ class LiveServer:
             }
         )
 
+    @staticmethod
+    def _planner_frame(status) -> str:
+        return json.dumps({"type": "planner", **asdict(status)})
+
+    def _status_changed(self, status) -> None:
+        """The loop's planner status changed (any thread): every tab hears of it, once."""
+        self._soon(self._broadcast_status, self._planner_frame(status))
+
+    def _broadcast_status(self, frame: str) -> None:
+        self._status_frame = frame
+        for client in self.clients:
+            client.offer_status(frame)
+
     def _hello(self) -> dict:
         raw = self.loop.raw
         return {
             "type": "hello",
+            "mode": "live" if self.drive else "bridge",
             "field_size": raw.field_size,
             "home_radius": raw.home_radius,
             "vision_radius": raw.vision_radius,
@@ -262,6 +339,8 @@ class LiveServer:
             "speeds": list(SPEEDS),
             "policy": self.policy,
             "planner": self.planner,
+            "max_instruction": MAX_INSTRUCTION,
+            "max_message": MAX_MESSAGE,
         }
 
     # ------------------------------------------------------------------ HTTP and WebSocket handlers
@@ -269,28 +348,31 @@ class LiveServer:
         return web.FileResponse(PAGE, headers={"Cache-Control": "no-store"})
 
     async def _socket(self, request: web.Request) -> web.WebSocketResponse:
-        ws = web.WebSocketResponse(heartbeat=10.0, max_msg_size=64 * 1024)
+        ws = web.WebSocketResponse(heartbeat=10.0, max_msg_size=MAX_MESSAGE)
         await ws.prepare(request)
         client = _Client(ws)
         self.clients.add(client)
         self.stats["connections"] += 1
-        writer = asyncio.create_task(self._write(client))
+        client.writer = asyncio.create_task(self._write(client))
         try:
-            await ws.send_str(json.dumps(self._hello()))
+            client.reply(json.dumps(self._hello()))
+            client.offer_status(self._status_frame)
             if not self.drive or self.paused:  # show the team at once, even before the next tick
-                client.offer(self._tick_frame(self.loop.snapshot().to_dict()))
+                state = self.loop.snapshot().to_dict()
+                client.offer(self._tick_frame({**state, "fleet": self._fleet}))
             async for msg in ws:
-                if msg.type != WSMsgType.TEXT:
+                if msg.type != WSMsgType.TEXT or client.closing:
                     continue
                 error = self.handle(msg.data)
                 if error:
                     self.stats["errors"] += 1
-                    await ws.send_str(json.dumps({"type": "error", "message": error}))
+                client.reply(json.dumps({"type": "error", "message": error} if error else OK))
         except (ConnectionError, RuntimeError, asyncio.CancelledError):
             pass  # a tab that went away: the loop goes on
         finally:
             self.clients.discard(client)
-            writer.cancel()
+            if not client.closing:
+                client.writer.cancel()
             self.stats["frames"] += client.sent
             self.stats["dropped"] += client.dropped
         return ws
@@ -300,12 +382,21 @@ class LiveServer:
             while not client.ws.closed:
                 await client.ready.wait()
                 client.ready.clear()
-                frame, client.frame = client.frame, None
-                if frame is not None:
+                for frame in client.take():
                     await client.ws.send_str(frame)
                     client.sent += 1
+                if client.closing and not client.replies:
+                    break
         except (ConnectionError, RuntimeError):
             pass
+
+    async def _close(self, client: _Client) -> None:
+        """Send what ``client`` still has queued (the end frame), then close its connection."""
+        try:
+            await asyncio.wait_for(client.writer, 2.0)
+        except (asyncio.TimeoutError, asyncio.CancelledError, ConnectionError, RuntimeError):
+            pass
+        await client.ws.close(code=1000, message=b"run ended")
 
     def handle(self, text: str) -> str | None:
         """Apply one page request; returns an error message for the sender, or None."""
@@ -326,7 +417,10 @@ class LiveServer:
         if kind not in CONTROLS:
             return f"unknown request type {kind!r}; expected instruct, {', '.join(CONTROLS)}"
         if not self.drive:
-            return "this page shows robots driven by the bridge: pause, step, reset and speed are not available"
+            return (
+                "this page shows robots driven by the bridge: pause, step, reset and speed are "
+                "not available"
+            )
         if kind == "pause":
             self.paused = True
         elif kind == "resume":
@@ -347,7 +441,8 @@ class LiveServer:
         return None
 
     def _show(self, state_fn) -> None:
-        """Run ``state_fn`` (reset or snapshot) in tick order, never mid-tick, and show its state."""
+        """Run ``state_fn`` (reset or snapshot) in tick order, never mid-tick, and show its
+        state."""
 
         def run_and_show():
             state = state_fn()
