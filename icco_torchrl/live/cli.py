@@ -63,6 +63,14 @@ def _stop_on_signals() -> threading.Event:
     return stop
 
 
+def _warm_planner() -> None:
+    """Import the planner's backend (litellm: seconds) in the background once the page is up, so
+    that a person's first instruction does not wait for it."""
+    from icco_torchrl.instructions.llm import _litellm
+
+    threading.Thread(target=_litellm, daemon=True, name="icco-planner-import").start()
+
+
 def _planner_label(cfg: DictConfig) -> str:
     return (
         str(cfg.llm.get("model") or cfg.llm.get("backend") or "offline") if cfg.llm else "offline"
@@ -96,6 +104,7 @@ def run_live(cfg: DictConfig) -> float:
             f"{live.rate_hz:g} Hz, any number of tabs); Ctrl-C stops",
             flush=True,
         )
+        _warm_planner()
 
     server.serve(stop, max_seconds=live.seconds, on_start=started)
     lat = server.stats["latency_ms"]
@@ -156,6 +165,7 @@ def run_bridge(cfg: DictConfig) -> float:
             raise
         page.watch(bridge)
         print(f"icco bridge: watch it at http://{address[0]}:{address[1]}/", flush=True)
+        _warm_planner()
     stop = _stop_on_signals()
     threads = []
     if live.fleet:
