@@ -450,6 +450,12 @@ def test_the_page_in_a_real_browser_go_right_moves_waypoints_and_robots(served, 
                 "return n; })()"
             )
             assert drawn > 500
+            # A request over the WebSocket limit (not one the page sends) closes the socket with
+            # 1009: the page says so and reconnects.
+            await tools.js("icco.ws.send('x'.repeat(icco.hello.max_message + 1))")
+            await tools.until("document.getElementById('message').textContent.includes('large')")
+            await tools.until("icco.connected && icco.ws !== icco.wsBefore")
+            await tools.js("icco.wsBefore = icco.ws")
             # The run ends: the page says so, why, turns its controls off and stops retrying.
             await asyncio.to_thread(server.close, reason="live.seconds=30 ran out")
             await tools.until("icco.ended !== null")
@@ -461,7 +467,7 @@ def test_the_page_in_a_real_browser_go_right_moves_waypoints_and_robots(served, 
             assert await tools.js("icco.ws === icco.wsBefore && !icco.connected")
 
     asyncio.run(scenario())
-    assert server.stats["connections"] == 1
+    assert server.stats["connections"] == 2
 
 
 def test_the_page_in_a_real_browser_shows_a_bridge_driven_fleet(served, browser):
