@@ -1,20 +1,31 @@
 """End-to-end training SPS (env steps per second, learning included) and peak RSS.
 
-Side by side, same frame budget, same collector batch, same updates per batch and the same
-number of transitions per update:
+Two suites, each run side by side (round-robin, one subprocess per run, median reported):
 
-- ``icco`` and ``qmix``: this project's pipeline (``icco train``'s loop, recurrent agents, segments);
+``--suite recipes`` (ICCO's training recipes at the reproduction's replay ratio: 8 replayed
+transitions per collected one, 512 transitions per update or the same total per batch):
+
+- ``icco_4step``: the recipe before sequence replay (4-step items, 128 per update, 8 updates per
+  collector batch of 32 envs x 16 steps, one-step targets);
+- ``icco_seq16``: 16-step items, 32 per update, 8 updates, lambda 0.6;
+- ``icco_seq16_wide``: 16-step items, 128 per update, 2 updates (fewer, larger updates);
+- ``icco_seq16_xwide``: 16-step items, 256 per update, 1 update (pymarl2's shape: one large
+  update per rollout);
+- ``icco_seq16_wide_envs64``: ``icco_seq16_wide`` with 64 envs per collector batch, 4 updates.
+
+``--suite reference`` (same frame budget, collector batch, updates per batch and transitions per
+update):
+
+- ``icco`` and ``qmix``: this project's pipeline (``icco train``'s loop, recurrent agents);
 - ``torchrl_qmix``: TorchRL's reference QMIX recipe, ``sota-implementations/multiagent/qmix_vdn.py``
   as written (env wrapped with ``RewardSum``; feed-forward ``MultiAgentMLP``, depth 2, 256 cells,
   Tanh, shared parameters + ``QMixer`` (embed 32) + ``QMixerLoss`` (TD(0)) + ``SoftUpdate``
-  (tau 0.005) + Adam + ``Collector``) on our env, with our budget (frames, collector batch,
-  updates per batch, transitions per update: ``batch_segments * 4``);
+  (tau 0.005) + Adam + ``Collector``) on our env, with our budget;
 - ``torchrl_qmix_w64``: the same recipe with 64 cells, the width of our networks.
 
-Each config runs in its own subprocess so peak RSS is its own; ``--repeats`` runs the configs
-round-robin (the machines are shared and noisy) and reports the median SPS. Writes
-``benchmarks/results/train_throughput.json``.
+Writes ``benchmarks/results/train_throughput_recipes.json`` or ``train_throughput.json``.
 
+    python benchmarks/train_throughput.py --suite recipes --frames 60000 --repeats 3
     python benchmarks/train_throughput.py --frames 30000 --threads 1 --repeats 5
 """
 
@@ -32,22 +43,52 @@ from pathlib import Path
 
 import torch
 
-SUPERVISOR_ARGS = ("config", "configs", "out", "repeats")
+SUPERVISOR_ARGS = ("config", "configs", "out", "repeats", "suite")
+SEQ16 = ["train.sequence_length=16", "train.buffer_segments=5000", "train.td_lambda=0.6"]
+RECIPES = {  # name: overrides (each sets its own batch shape; the replay ratio is 8 for all)
+    "icco_4step": [
+        "train.sequence_length=4",
+        "train.batch_segments=128",
+        "train.updates_per_batch=8",
+        "train.buffer_segments=20000",
+        "train.td_lambda=0",
+    ],
+    "icco_seq16": [*SEQ16, "train.batch_segments=32", "train.updates_per_batch=8"],
+    "icco_seq16_wide": [*SEQ16, "train.batch_segments=128", "train.updates_per_batch=2"],
+    "icco_seq16_xwide": [*SEQ16, "train.batch_segments=256", "train.updates_per_batch=1"],
+    "icco_seq16_wide_envs64": [
+        *SEQ16,
+        "env.num_envs=64",
+        "train.batch_segments=128",
+        "train.updates_per_batch=4",
+    ],
+}
+SUITES = {
+    "recipes": list(RECIPES),
+    "reference": ["qmix", "torchrl_qmix", "torchrl_qmix_w64", "icco"],
+}
 
 
 def run_ours(method: str, args) -> dict:
     from icco_torchrl.training.build import compose_config
     from icco_torchrl.training.trainer import train
 
-    cfg = compose_config(
-        [
+    if method in RECIPES:  # a recipe sets its own batch shape
+        shape = ["method=icco", f"env.num_envs={args.num_envs}", *RECIPES[method]]
+    else:
+        shape = [
             f"method={method}",
-            f"device={args.device}",
             f"env.num_envs={args.num_envs}",
-            f"train.total_frames={args.frames}",
-            f"train.steps_per_batch={args.steps_per_batch}",
             f"train.updates_per_batch={args.updates}",
             f"train.batch_segments={args.batch_segments}",
+            "train.sequence_length=4",
+        ]
+    cfg = compose_config(
+        [
+            *shape,
+            f"device={args.device}",
+            f"train.total_frames={args.frames}",
+            f"train.steps_per_batch={args.steps_per_batch}",
             "train.warmup_segments=0",
             "train.eval_interval=0",
             "train.checkpoint_interval=0",
@@ -70,7 +111,8 @@ def run_ours(method: str, args) -> dict:
 
 
 def run_reference(args, num_cells: int) -> dict:
-    """TorchRL's multi-agent QMIX example (model, loss, target update, optimiser) on our env, our budget."""
+    """TorchRL's multi-agent QMIX example (model, loss, target update, optimiser) on our env and
+    budget."""
     from tensordict.nn import TensorDictModule
     from torchrl.collectors import Collector
     from torchrl.data import LazyTensorStorage, RandomSampler, TensorDictReplayBuffer
@@ -191,17 +233,19 @@ def main() -> None:
     )
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
-    parser.add_argument(
-        "--configs", nargs="+", default=["qmix", "torchrl_qmix", "torchrl_qmix_w64", "icco"]
-    )
+    parser.add_argument("--suite", choices=list(SUITES), default="reference")
+    parser.add_argument("--configs", nargs="+", help="default: the suite's configs")
     parser.add_argument(
         "--repeats", type=int, default=3, help="round-robin runs per config (median reported)"
     )
-    parser.add_argument("--out", default="benchmarks/results/train_throughput.json")
+    parser.add_argument("--out", help="default: benchmarks/results/train_throughput[_recipes].json")
     parser.add_argument("--config", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.config:
         return child(args)
+    args.configs = args.configs or SUITES[args.suite]
+    suffix = "_recipes" if args.suite == "recipes" else ""
+    args.out = args.out or f"benchmarks/results/train_throughput{suffix}.json"
     runs = {config: [] for config in args.configs}
     for repeat in range(args.repeats):
         for config in args.configs:
@@ -230,16 +274,16 @@ def main() -> None:
         }
         for config, results in runs.items()
     ]
-    ref = next((r["sps"] for r in rows if r["config"] == "torchrl_qmix"), None)
-    print(
-        f"{'config':<18} {'median SPS':>10} {'vs torchrl_qmix':>16} {'training share':>15} {'peak RSS MB':>12}  runs"
-    )
+    baseline = "icco_4step" if args.suite == "recipes" else "torchrl_qmix"
+    ref = next((r["sps"] for r in rows if r["config"] == baseline), None)
+    print(f"{'config':<24} {'median SPS':>10} {'vs ' + baseline:>18} {'training share':>15}  runs")
     for r in rows:
+        r["baseline"] = baseline
         r["ratio_vs_reference"] = r["sps"] / ref if ref else None
         ratio = f"{r['ratio_vs_reference']:.2f}x" if ref else "-"
         print(
-            f"{r['config']:<18} {r['sps']:>10.0f} {ratio:>16} {r['train_share']:>15.0%} {r['peak_rss_mb']:>12.0f}  "
-            f"{r['sps_runs']}"
+            f"{r['config']:<24} {r['sps']:>10.0f} {ratio:>18} {r['train_share']:>15.0%}  "
+            f"{r['sps_runs']} (peak RSS {r['peak_rss_mb']:.0f} MB)"
         )
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)

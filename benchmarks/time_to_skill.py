@@ -1,0 +1,159 @@
+"""Time to skill: frames and wall-clock until the greedy team reward first passes the follower's.
+
+    python benchmarks/time_to_skill.py                    # train the runs it needs, then report
+    python benchmarks/time_to_skill.py --report-only      # report from the runs already there
+
+For ICCO and QMIX (FULL), each at the old defaults (4-step items, one-step targets) and at
+today's defaults, two seeds each: ``icco train`` at the reproduction's budget
+(``experiment=repro_cpu``, one torch thread, two runs side by side) with a greedy evaluation
+every ``--eval-interval`` frames. A run's skill time is the first evaluation whose team reward
+passes the follower's on the same evaluation episodes (``references.json``, written by the run
+itself), read from its ``eval.csv``; the wall-clock is the run's own time (collection, learning,
+evaluations) up to that evaluation, from ``timing.csv``. "never" means not within the budget.
+
+Writes ``benchmarks/results/time_to_skill.json`` and ``time_to_skill.png`` (greedy team reward
+against frames, mean of the seeds, the follower's level dashed).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+from matplotlib.figure import Figure
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "experiments"))
+from jobs import train_runs  # noqa: E402  (experiments/jobs.py)
+
+RESULTS = ROOT / "benchmarks" / "results"
+BUDGET = ["experiment=repro_cpu", "train.checkpoint_buffer=false", "logger.progress=false"]
+# The recipe before sequence replay (what the reproduction of 2026-11-30 trained).
+OLD_DEFAULTS = [
+    "train.sequence_length=4",
+    "train.batch_segments=128",
+    "train.buffer_segments=20000",
+    "train.warmup_segments=512",
+    "train.td_lambda=0",
+    "train.shaping.potentials=[]",
+]
+RECIPES = {"old defaults": OLD_DEFAULTS, "new defaults": []}
+METHODS = {"icco": "ICCO", "qmix_full": "QMIX (FULL)"}
+SEEDS = (0, 1)
+
+
+def runs(out: Path) -> dict[tuple[str, str, int], Path]:
+    return {
+        (method, recipe, seed): out / f"{method}_{recipe.split()[0]}_seed{seed}"
+        for method in METHODS
+        for recipe in RECIPES
+        for seed in SEEDS
+    }
+
+
+def read_csv(path: Path) -> list[dict]:
+    return list(csv.DictReader(path.open())) if path.is_file() else []
+
+
+def skill_time(run: Path) -> dict | None:
+    """First evaluation past the follower: frames and the run's wall-clock up to it."""
+    evals, timing = read_csv(run / "eval.csv"), read_csv(run / "timing.csv")
+    refs = run / "references.json"
+    if not evals or not refs.is_file():
+        return None
+    follower = json.loads(refs.read_text())["follower"]["reward"]
+    curve = [(int(r["frames"]), float(r["reward"])) for r in evals]
+    out = {"follower": follower, "curve": curve, "frames": None, "wall_s": None}
+    for frames, reward in curve:
+        if reward > follower:
+            out["frames"] = frames
+            row = next((r for r in timing if int(r["frames"]) >= frames), None)
+            if row is not None:
+                out["wall_s"] = sum(
+                    float(row[k]) for k in ("time_collect", "time_train", "time_eval")
+                )
+            break
+    out["budget_frames"] = curve[-1][0]
+    return out
+
+
+def report(out: Path) -> dict:
+    rows = []
+    for (method, recipe, seed), run in runs(out).items():
+        result = skill_time(run)
+        if result is not None:
+            rows.append({"method": method, "recipe": recipe, "seed": seed, **result})
+    return {"budget": BUDGET, "old_defaults": OLD_DEFAULTS, "runs": rows}
+
+
+def plot(results: dict, path: Path) -> None:
+    fig = Figure(figsize=(7, 4))
+    ax = fig.subplots()
+    for (method, label), color in zip(METHODS.items(), ("#1f77b4", "#2ca02c")):
+        for recipe, style in zip(RECIPES, (":", "-")):
+            curves = [
+                r["curve"]
+                for r in results["runs"]
+                if (r["method"], r["recipe"]) == (method, recipe)
+            ]
+            if not curves:
+                continue
+            n = min(len(c) for c in curves)
+            frames = np.array([c[i][0] for i in range(n) for c in curves[:1]])
+            mean = np.array([[c[i][1] for i in range(n)] for c in curves]).mean(0)
+            ax.plot(
+                frames, mean, style, color=color, label=f"{label}, {recipe} ({len(curves)} seeds)"
+            )
+    followers = [r["follower"] for r in results["runs"]]
+    if followers:
+        ax.axhline(float(np.mean(followers)), color="k", ls="--", lw=1, label="follower (scripted)")
+    ax.set_xlabel("frames")
+    ax.set_ylabel("greedy team reward")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", type=Path, default=Path("multirun/time_to_skill"))
+    parser.add_argument("--frames", type=int, default=800_000)
+    parser.add_argument("--eval-interval", type=int, default=50_000)
+    parser.add_argument("--jobs", type=int, default=2)
+    parser.add_argument("--report-only", action="store_true")
+    args = parser.parse_args(argv)
+    out = args.out.resolve()
+    if not args.report_only:
+        train_runs(
+            {
+                run: (
+                    [
+                        f"method={method}",
+                        f"seed={seed}",
+                        *BUDGET,
+                        *RECIPES[recipe],
+                        f"train.total_frames={args.frames}",
+                        f"train.eval_interval={args.eval_interval}",
+                    ],
+                    args.frames,
+                )
+                for (method, recipe, seed), run in runs(out).items()
+            },
+            args.jobs,
+        )
+    results = report(out)
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    (RESULTS / "time_to_skill.json").write_text(json.dumps(results, indent=1) + "\n")
+    plot(results, RESULTS / "time_to_skill.png")
+    for r in results["runs"]:
+        frames = "never" if r["frames"] is None else f"{r['frames']:,}"
+        wall = "" if r["wall_s"] is None else f" ({r['wall_s'] / 60:.1f} min)"
+        print(f"{METHODS[r['method']]:<12} {r['recipe']:<13} seed {r['seed']}: {frames}{wall}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,180 @@
+"""Sequence-replay screens: which replay, target and shaping settings make ICCO beat both
+scripted ends (the follower and the heuristic) on the four-quadrant protocol.
+
+    python experiments/sequence_replay/run.py                      # every screen, resumable
+    python experiments/sequence_replay/run.py --only seq16_lam06   # one screen
+    python experiments/sequence_replay/run.py --report-only        # rewrite results.json, README
+
+A screen is the four-quadrant experiment (``experiments/four_quadrants/run.py``: train, then
+``icco eval eval.protocol=quadrants`` with the seeds pooled) for one method at the reproduction's
+budget plus the screen's overrides, two seeds, in ``--out/<screen>``; its report and
+``results.json`` go to ``screens/<screen>/``. This script then gathers every screen into the
+ablation table of ``README.md`` (rendered from ``results.json``), beside the reproduction's
+rows at the defaults of its time and the scripted reference policies of the same episodes.
+Two seeds make a screen, not a result: what is kept is then rerun by the reproduction.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import subprocess
+import sys
+from pathlib import Path
+from string import Template
+
+HERE = Path(__file__).resolve().parent
+FOUR_QUADRANTS = HERE.parent / "four_quadrants"
+BUDGET = ["experiment=repro_cpu", "train.checkpoint_buffer=false"]
+SEEDS = (0, 1)
+# 512 transitions per update, as the 4-step recipe (128 x 4), the replay ratio unchanged.
+SEQ16 = [
+    "train.sequence_length=16",
+    "train.batch_segments=32",
+    "train.buffer_segments=5000",
+    "train.warmup_segments=128",
+]
+SCREENS = {  # name: (lever, setting, method, overrides)
+    "seq16_lam06": (
+        "replay item, target",
+        "16 steps (4 broadcasts), lambda 0.6",
+        "icco",
+        [*SEQ16, "train.td_lambda=0.6"],
+    ),
+    "seq16_lam06_collect03": (
+        "shaping (with the above)",
+        "collect potential, weight 0.3",
+        "icco",
+        [
+            *SEQ16,
+            "train.td_lambda=0.6",
+            "train.shaping.potentials=[collect]",
+            "train.shaping.weight=0.3",
+        ],
+    ),
+}
+METRICS = ("reward", "task_reward", "inst_reward", "pick", "collect", "defense", "in_quadrant")
+REFERENCES = ("random", "follower", "heuristic", "blend")
+
+
+def run_screen(name: str, out: Path, jobs: int) -> None:
+    lever, setting, method, overrides = SCREENS[name]
+    folder = HERE / "screens" / name
+    folder.mkdir(parents=True, exist_ok=True)
+    command = [
+        sys.executable,
+        str(FOUR_QUADRANTS / "run.py"),
+        "--methods",
+        method,
+        "--seeds",
+        *map(str, SEEDS),
+        "--sweep",
+        str(out / name),
+        "--jobs",
+        str(jobs),
+        "--readme",
+        str(folder / "README.md"),
+        "--budget",
+        *BUDGET,
+        *overrides,
+    ]
+    print("$ " + " ".join(command), flush=True)
+    subprocess.run(command, check=True)
+
+
+def wall_minutes(sweep: Path) -> float | None:
+    """Mean wall time of a run of the sweep (collection, learning and evaluations), minutes."""
+    walls = []
+    for timing in sorted(sweep.glob("*_seed*/timing.csv")):
+        rows = list(csv.DictReader(timing.open()))
+        if rows:
+            walls.append(
+                sum(float(rows[-1][k]) for k in ("time_collect", "time_train", "time_eval"))
+            )
+    return sum(walls) / len(walls) / 60 if walls else None
+
+
+def gather(out: Path) -> dict:
+    """The ablation table: every screen with results, the baseline and the references."""
+    baseline = json.loads((FOUR_QUADRANTS / "results.json").read_text())["methods"]
+    rows = []
+    for name, (lever, setting, method, overrides) in SCREENS.items():
+        path = HERE / "screens" / name / "results.json"
+        if not path.is_file():
+            continue
+        result = json.loads(path.read_text())["methods"]
+        row = {"name": name, "lever": lever, "setting": setting, "method": method}
+        row.update({k: result[method][k] for k in ("seeds", "frames", *METRICS)})
+        row["wall_min"] = wall_minutes(out / name)
+        row["command"] = " ".join(["icco train", f"method={method}", *BUDGET, *overrides])
+        rows.append(row)
+        references = {k: result[k] for k in REFERENCES if k in result}
+    return {
+        "protocol": "four quadrants, calibrated reward, 20 trials per seed, seeds pooled",
+        "baseline": {m: baseline[m] for m in ("icco", "qmix_full") if m in baseline},
+        "screens": rows,
+        "references": references if rows else {},
+    }
+
+
+def _cell(metric: dict, digits: int = 1) -> str:
+    return f"{metric['mean']:.{digits}f} ± {metric['std']:.{digits}f}"
+
+
+def table(results: dict) -> str:
+    lines = [
+        "| lever | setting | method | seeds | team | task | picks | deliveries | defenses "
+        "| in quadrant | wall per run (min) |",
+        "|" + "---|" * 11,
+    ]
+
+    def line(lever, setting, method, r, wall):
+        wall = "-" if wall is None else f"{wall:.1f}"
+        lines.append(
+            f"| {lever} | {setting} | {method} | {r['seeds']} | {_cell(r['reward'])} | "
+            f"{_cell(r['task_reward'])} | {r['pick']['mean']:.1f} | {r['collect']['mean']:.1f} | "
+            f"{r['defense']['mean']:.1f} | {r['in_quadrant']['mean']:.2f} | {wall} |"
+        )
+
+    for method, r in results["baseline"].items():
+        line("baseline", "4-step items, one-step targets (the reproduction)", method, r, None)
+    for r in results["screens"]:
+        line(r["lever"], r["setting"], r["method"], r, r["wall_min"])
+    if results["references"]:
+        lines += [
+            "",
+            "| scripted policy | team | task | picks | deliveries | defenses | in quadrant |",
+        ]
+        lines.append("|" + "---|" * 7)
+        for name, r in results["references"].items():
+            lines.append(
+                f"| {name} | {_cell(r['reward'])} | {_cell(r['task_reward'])} | "
+                f"{r['pick']['mean']:.1f} | {r['collect']['mean']:.1f} | "
+                f"{r['defense']['mean']:.1f} | {r['in_quadrant']['mean']:.2f} |"
+            )
+    return "\n".join(lines)
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--out", type=Path, default=Path("multirun/sequence_replay"))
+    parser.add_argument("--only", nargs="+", choices=list(SCREENS))
+    parser.add_argument("--jobs", type=int, default=2, help="training runs side by side")
+    parser.add_argument("--report-only", action="store_true")
+    args = parser.parse_args(argv)
+    out = args.out.resolve()
+    if not args.report_only:
+        for name in args.only or list(SCREENS):
+            run_screen(name, out, args.jobs)
+    results = gather(out)
+    (HERE / "results.json").write_text(json.dumps(results, indent=1) + "\n")
+    text = Template((HERE / "README.template.md").read_text()).substitute(table=table(results))
+    (HERE / "README.md").write_text(text)
+    print(table(results))
+
+
+if __name__ == "__main__":
+    main()
