@@ -5,6 +5,7 @@
   path, and where each pick, delivery and defense happened.
 - :func:`plot_bars`: mean ± std of a metric per method, grouped by segment (Fig. 5a / 5b).
 - :func:`plot_curves`: learning curves, mean ± std across seeds.
+- :func:`plot_learning_curve`: one training run's greedy evaluations (its ``learning_curve.png``).
 
 Figures are built on ``matplotlib.figure.Figure`` (Agg canvas) rather than pyplot, so
 plotting never switches the backend or leaves figures open in the caller's process.
@@ -24,6 +25,7 @@ from icco_torchrl.envs.render import robot_color
 from icco_torchrl.envs.waypoints import QUADRANT_SIGNS
 from icco_torchrl.evaluation.metrics import EPISODE, Curve
 from icco_torchrl.evaluation.protocols import ScheduleRun
+from icco_torchrl.training.logger import read_column
 
 RESOURCE, INVADER, HOME, SHADE = "#daa520", "#c81e2d", "#c8d6e5", "#f4c7c3"
 METHOD_COLORS = (
@@ -237,3 +239,42 @@ def plot_curves(
     ax.legend(fontsize=8)
     fig.tight_layout()
     return save(fig, stem)
+
+
+def plot_learning_curve(
+    run_dir: str | Path, references: Mapping[str, Mapping[str, float]] | None = None
+) -> Path | None:
+    """``learning_curve.png`` of a training run: its greedy evaluations (``eval.csv``: team reward
+    and task reward, ± std over episodes) against frames, with the ``references`` (the reference
+    policies' metrics by label) as horizontal lines. None when the run has no evaluation yet."""
+    run_dir = Path(run_dir)
+    evaluation = read_column(run_dir, "eval", "reward")
+    if evaluation is None:
+        return None
+    refs = references or {}
+    fig = Figure(figsize=(11, 4))
+    axes = fig.subplots(1, 2)
+    for ax, key, title in (
+        (axes[0], "reward", "team reward (task + instruction)"),
+        (axes[1], "task_reward", "task reward (picks, deliveries, defenses, invasions)"),
+    ):
+        column = read_column(run_dir, "eval", key)
+        if column is None:
+            continue
+        (x, y), (_, s) = column, read_column(run_dir, "eval", f"{key}_std")
+        (line,) = ax.plot(x, y, marker="o", color="C0", label="trained policy, greedy")
+        ax.fill_between(
+            x, y - s, y + s, color=line.get_color(), alpha=0.2, label="± std over episodes"
+        )
+        for i, (label, m) in enumerate(refs.items()):
+            if key in m:
+                ax.axhline(m[key], color=f"C{i + 1}", ls="--", lw=1, label=label)
+        ax.set_title(title, fontsize=10)
+        ax.set_xlabel("env steps")
+        ax.set_ylabel("per 145-step episode (team total)")
+        ax.grid(alpha=0.3)
+    axes[1].legend(fontsize=8, loc="best")
+    fig.tight_layout()
+    out = run_dir / "learning_curve.png"
+    fig.savefig(out, dpi=120)
+    return out

@@ -9,7 +9,6 @@ from __future__ import annotations
 import json
 import logging
 import math
-import signal
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,6 +20,7 @@ from torchrl.collectors import Collector
 
 from icco_torchrl.envs import EVENT_KEYS
 from icco_torchrl.envs.reference_policies import make_reference_policy, reference_label
+from icco_torchrl.evaluation.plots import plot_learning_curve
 from icco_torchrl.evaluation.rollout import evaluate
 from icco_torchrl.modules.policy import exploration_module
 from icco_torchrl.objectives import total_loss
@@ -35,7 +35,9 @@ from icco_torchrl.training.checkpoint import (
     save_replay,
 )
 from icco_torchrl.training.config import set_env_params, validate
+from icco_torchrl.training.interrupt import GracefulInterrupt
 from icco_torchrl.training.logger import RunLogger
+from icco_torchrl.training.rng import rng_state, set_rng_state
 
 REPLAY_DIR = "replay"  # the replay buffer dump beside checkpoint.pt (train.checkpoint_buffer)
 REFERENCES_FILE = "references.json"  # the reference policies' evaluation, beside eval.csv
@@ -97,56 +99,6 @@ class EpisodeTracker:
         return torch.cat(finished) if finished else self.sums.new_zeros(0, self.sums.shape[1])
 
 
-class GracefulInterrupt:
-    """The first Ctrl-C (SIGINT) or SIGTERM (what Slurm, ``timeout``, docker and submitit send
-    before a kill) asks the loop to stop after the current batch and save a checkpoint; a second
-    one raises at once.
-
-    Stopping between batches, not inside the collector or an update, keeps every object in a
-    state that can be checkpointed.
-    """
-
-    SIGNALS = (signal.SIGINT, signal.SIGTERM)
-
-    def __init__(self):
-        self.requested, self.signal_name = False, None
-        self._previous = {}
-        try:
-            for sig in self.SIGNALS:
-                self._previous[sig] = signal.signal(sig, self._handle)
-        except ValueError:  # not the main thread: keep Python's default behaviour
-            self._previous = {}
-
-    def _handle(self, signum, frame):
-        if self.requested:
-            raise KeyboardInterrupt
-        self.requested, self.signal_name = True, signal.Signals(signum).name
-
-    def restore(self) -> None:
-        for sig, previous in self._previous.items():
-            signal.signal(sig, previous)
-        self._previous = {}
-
-
-def _rng_state(env) -> dict:
-    state = {
-        "torch": torch.get_rng_state(),
-        "env": env.base_env._rng.get_state(),
-        "numpy": np.random.get_state(),
-    }
-    if torch.cuda.is_available():
-        state["cuda"] = torch.cuda.get_rng_state_all()
-    return state
-
-
-def _set_rng_state(state: dict, env) -> None:
-    torch.set_rng_state(state["torch"])
-    env.base_env._rng.set_state(state["env"])
-    np.random.set_state(state["numpy"])
-    if "cuda" in state and torch.cuda.is_available():
-        torch.cuda.set_rng_state_all(state["cuda"])
-
-
 @dataclass
 class Progress:
     """Where a run stands: env steps collected, gradient updates, collector batches."""
@@ -157,74 +109,26 @@ class Progress:
 
 
 def train(cfg: DictConfig, run_dir: str | Path) -> dict:
-    """Train ``cfg.method`` and return the final evaluation metrics. Writes CSVs, checkpoints, a PNG."""
-    # Setup: the checkpoint to resume (if any), seeds, the assembled run, the logger.
-    resume = open_resume(cfg)
-    run_dir = (
-        Path(cfg.resume).resolve().parent if resume is not None else Path(run_dir)
-    )  # continue its folder
+    """Train ``cfg.method`` (a config :func:`~icco_torchrl.training.config.validate` checked) and
+    return the final evaluation metrics; writes CSVs, checkpoints and ``learning_curve.png`` to
+    ``run_dir`` (with ``resume=``, to the checkpoint's folder)."""
+    run_dir = Path(cfg.resume).resolve().parent if cfg.resume else Path(run_dir)
+    seed_process(cfg)
+    training = TrainingRun(build(cfg, for_training=True), cfg, run_dir)
+    if cfg.resume:
+        training.resume(cfg.resume)
+    else:
+        training.start()
+    interrupted = training.loop(training.remaining)
+    return training.finish(interrupted)
+
+
+def seed_process(cfg: DictConfig) -> None:
+    """Threads and the global seeds, before anything is built."""
     torch.set_num_threads(cfg.train.threads)
     torch.manual_seed(cfg.seed)
     np.random.seed(cfg.seed)
-    run = build(cfg, for_training=True)
-    logging.getLogger("torchrl").setLevel(
-        logging.WARNING
-    )  # its INFO lines (with colour codes) break the bar
-    start = resume["frames"] if resume is not None else 0
-    remaining = _remaining_frames(cfg, start)
-    # The bar ends where the collector does; a resumed run's CSVs lose the rows written after its
-    # checkpoint, so no frame is logged twice.
-    logger = RunLogger(
-        run_dir,
-        cfg,
-        total_frames=start + remaining,
-        initial_frames=start,
-        truncate=resume is not None,
-    )
-    session = Session(run, cfg, run_dir, logger)
-    # Resume (everything a checkpoint restores, in one place) or start (config and yardsticks).
-    if resume is not None:
-        session.resume(resume)
-    else:
-        session.start()
-    # Loop, then finish: a last checkpoint, the final evaluation and the figure.
-    interrupted = session.loop(remaining)
-    path = session.save()
-    final = {}
-    if (
-        not interrupted and remaining > 0
-    ):  # a resumed run already at its budget has nothing new to evaluate
-        final = session.final_evaluation()
-        plot_learning_curve(run_dir)
-    logger.close()
-    print(finish_message(run_dir, path, session.progress.frames, interrupted, final), flush=True)
-    return final
-
-
-def open_resume(cfg: DictConfig) -> dict | None:
-    """The checkpoint of ``resume=`` (None without one), refused in one line when it is an exported
-    policy or when the command line changes what a resumed run cannot honour."""
-    if not cfg.resume:
-        return None
-    ckpt = load_checkpoint(cfg.resume)
-    if ckpt.get("policy_only"):
-        raise CheckpointError(
-            f"{cfg.resume} is an exported policy (no optimiser, targets or RNG state): "
-            f"resume from the run's own checkpoint.pt"
-        )
-    # The saved config through today's schema, so fields added since it was written compare as defaults.
-    saved = OmegaConf.to_container(validate(OmegaConf.create(ckpt["cfg"])), resolve=True)
-    check_resume_overrides(saved, OmegaConf.to_container(cfg, resolve=True), cfg.resume)
-    before, now = set_env_params(saved["train"]["env_params"]), set_env_params(cfg.train.env_params)
-    if (
-        before != now
-    ):  # allowed (a shaping curriculum), and said: the replayed data has the old rewards
-        print(
-            f"note: resume={cfg.resume} trains on train.env_params {now} instead of {before}; "
-            f"replayed transitions keep the rewards they were collected with",
-            flush=True,
-        )
-    return ckpt
+    logging.getLogger("torchrl").setLevel(logging.WARNING)  # its INFO lines break the bar
 
 
 def _remaining_frames(cfg: DictConfig, frames: int) -> int:
@@ -233,24 +137,28 @@ def _remaining_frames(cfg: DictConfig, frames: int) -> int:
     return math.ceil(max(cfg.train.total_frames - frames, 0) / per_batch) * per_batch
 
 
-class Session:
-    """One training run's moving parts around the assembled :class:`~icco_torchrl.training.build.Run`:
-    progress counters, timers, the evaluations and the checkpoints."""
+class TrainingRun:
+    """One training run's moving parts around the assembled
+    :class:`~icco_torchrl.training.build.Run`: progress counters, timers, the logger, the
+    evaluations and the checkpoints."""
 
-    def __init__(self, run: Run, cfg: DictConfig, run_dir: Path, logger: RunLogger):
-        self.run, self.cfg, self.run_dir, self.logger = run, cfg, run_dir, logger
+    def __init__(self, run: Run, cfg: DictConfig, run_dir: Path):
+        self.run, self.cfg, self.run_dir = run, cfg, run_dir
         self.progress = Progress()
         self.explore = exploration_module(run.policy)
         self.explore.eps.fill_(epsilon(0, cfg.train))
-        self.eval_seed = (
-            cfg.seed + VALIDATION_SEED_OFFSET
-        )  # every evaluation faces the same initial configurations
+        # Every evaluation faces the same initial configurations.
+        self.eval_seed = cfg.seed + VALIDATION_SEED_OFFSET
         self.timers = {"collect": 0.0, "train": 0.0, "eval": 0.0}
         self.evaluated: list[dict] = []
+        self.logger: RunLogger | None = None
+        self.remaining = 0  # frames this process trains (set by start or resume)
 
     # ------------------------------------------------------------------ start / resume
     def start(self) -> None:
-        """A new run: its config, and the reference policies on the very episodes every evaluation plays."""
+        """A new run: its config, its logs, and the reference policies on the very episodes every
+        evaluation plays."""
+        self._open_logs(0, resumed=False)
         OmegaConf.save(self.cfg, self.run_dir / "config.yaml")
         references = {}
         for name in self.cfg.eval.references:
@@ -267,20 +175,38 @@ class Session:
                 f"task={m['task_reward']:.2f} pick={m['pick']:.2f} defense={m['defense']:.2f}"
             )
 
-    def resume(self, ckpt: dict) -> None:
-        """Everything a checkpoint restores: weights (after the one compatibility check), optimiser,
-        target updater, counters, exploration rate, RNG streams and the replay buffer. The run keeps
-        its ``config.yaml``."""
-        run, path = self.run, self.cfg.resume
-        check_compatible(ckpt, self.cfg, run.layout, path)
+    def resume(self, path: str | Path) -> None:
+        """Continue the run saved at ``path``, in one step: load the checkpoint, check that this
+        config can continue it (:func:`check_resumable`), restore everything it holds. The run
+        keeps its ``config.yaml``."""
+        ckpt = load_checkpoint(path)
+        check_resumable(ckpt, self.cfg, self.run.layout, path)
+        self._open_logs(ckpt["frames"], resumed=True)
+        self._restore(ckpt, path)
+
+    def _open_logs(self, start: int, resumed: bool) -> None:
+        """The logger, its bar ending where the collector will; a resumed run's CSVs lose the rows
+        written after its checkpoint, so no frame is logged twice."""
+        self.remaining = _remaining_frames(self.cfg, start)
+        self.logger = RunLogger(
+            self.run_dir,
+            self.cfg,
+            total_frames=start + self.remaining,
+            initial_frames=start,
+            truncate=resumed,
+        )
+
+    def _restore(self, ckpt: dict, path: str | Path) -> None:
+        """Weights, optimiser, target updater, counters, exploration rate, RNG streams and the
+        replay buffer of a checked checkpoint."""
+        run = self.run
         load_weights(run.loss, ckpt["loss"], path, self.cfg.method.name)
         run.optim.load_state_dict(ckpt["optimizer"])
         run.updater.load_state_dict(ckpt["updater"])
         self.progress = Progress(ckpt["frames"], ckpt["updates"], ckpt["batches"])
-        self.explore.eps.fill_(
-            epsilon(self.progress.frames, self.cfg.train)
-        )  # the schedule continues
-        _set_rng_state(ckpt["rng"], run.env)
+        # The schedule continues.
+        self.explore.eps.fill_(epsilon(self.progress.frames, self.cfg.train))
+        set_rng_state(ckpt["rng"], run.env)
         if ckpt.get("replay_segments"):
             if load_replay(run.buffer, self.run_dir / REPLAY_DIR):
                 self.logger.print(f"replay buffer restored: {len(run.buffer)} segments")
@@ -445,6 +371,21 @@ class Session:
             return self.evaluated[-1][1]
         return self.evaluate()
 
+    def finish(self, interrupted: bool) -> dict:
+        """A last checkpoint; unless the run was stopped or had nothing left to train, the final
+        evaluation and the learning curve; then the closing message. Returns the final metrics."""
+        path = self.save()
+        final = {}
+        if not interrupted and self.remaining > 0:
+            final = self.final_evaluation()
+            refs_file = self.run_dir / REFERENCES_FILE
+            refs = json.loads(refs_file.read_text()) if refs_file.exists() else {}
+            plot_learning_curve(self.run_dir, refs)
+        self.logger.close()
+        message = finish_message(self.run_dir, path, self.progress.frames, interrupted, final)
+        print(message, flush=True)
+        return final
+
     def save(self, name: str = "checkpoint.pt") -> Path:
         """The checkpoint (and, with ``train.checkpoint_buffer``, the replay dump it refers to, first)."""
         run, t, p = self.run, self.cfg.train, self.progress
@@ -461,10 +402,34 @@ class Session:
                 "loss": run.loss.state_dict(),
                 "optimizer": run.optim.state_dict(),
                 "updater": run.updater.state_dict(),
-                "rng": _rng_state(run.env),
+                "rng": rng_state(run.env),
                 "epsilon": float(self.explore.eps),
                 "replay_segments": len(run.buffer) if t.checkpoint_buffer else 0,
             },
+        )
+
+
+def check_resumable(ckpt: dict, cfg: DictConfig, layout, path: str | Path) -> None:
+    """Refuse, in one line, a checkpoint this config cannot continue: an exported policy, a
+    command line that changes what a resumed run cannot honour (:func:`check_resume_overrides`)
+    or networks and env layout that differ (``check_compatible``). A new ``train.env_params`` is
+    allowed (a shaping curriculum), and said: the replayed data keeps the old rewards."""
+    if ckpt.get("policy_only"):
+        raise CheckpointError(
+            f"{path} is an exported policy (no optimiser, targets or RNG state): "
+            f"resume from the run's own checkpoint.pt"
+        )
+    # The saved config through today's schema, so fields added since it was written compare as
+    # defaults.
+    saved = OmegaConf.to_container(validate(OmegaConf.create(ckpt["cfg"])), resolve=True)
+    check_resume_overrides(saved, OmegaConf.to_container(cfg, resolve=True), path)
+    check_compatible(ckpt, cfg, layout, path)
+    before, now = set_env_params(saved["train"]["env_params"]), set_env_params(cfg.train.env_params)
+    if before != now:
+        print(
+            f"note: resume={path} trains on train.env_params {now} instead of {before}; "
+            f"replayed transitions keep the rewards they were collected with",
+            flush=True,
         )
 
 
@@ -516,46 +481,3 @@ def finish_message(
     else:
         lines.append(f"  next: icco eval checkpoint={checkpoint} eval.protocol=quadrants")
     return "\n".join(lines)
-
-
-def plot_learning_curve(run_dir: Path) -> Path | None:
-    """``learning_curve.png``: greedy evaluation (team reward and task reward) against frames,
-    with the reference policies of ``references.json`` as horizontal lines."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from icco_torchrl.training.logger import read_column
-
-    evaluation = read_column(run_dir, "eval", "reward")
-    if evaluation is None:
-        return None
-    refs_file = run_dir / REFERENCES_FILE
-    refs = json.loads(refs_file.read_text()) if refs_file.exists() else {}
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
-    for ax, key, title in (
-        (axes[0], "reward", "team reward (task + instruction)"),
-        (axes[1], "task_reward", "task reward (picks, deliveries, defenses, invasions)"),
-    ):
-        column = read_column(run_dir, "eval", key)
-        if column is None:
-            continue
-        (x, y), (_, s) = column, read_column(run_dir, "eval", f"{key}_std")
-        (line,) = ax.plot(x, y, marker="o", color="C0", label="trained policy, greedy")
-        ax.fill_between(
-            x, y - s, y + s, color=line.get_color(), alpha=0.2, label="± std over episodes"
-        )
-        for i, (label, m) in enumerate(refs.items()):
-            if key in m:
-                ax.axhline(m[key], color=f"C{i + 1}", ls="--", lw=1, label=label)
-        ax.set_title(title, fontsize=10)
-        ax.set_xlabel("env steps")
-        ax.set_ylabel("per 145-step episode (team total)")
-        ax.grid(alpha=0.3)
-    axes[1].legend(fontsize=8, loc="best")
-    fig.tight_layout()
-    out = run_dir / "learning_curve.png"
-    fig.savefig(out, dpi=120)
-    plt.close(fig)
-    return out
