@@ -28,6 +28,24 @@ def test_every_recipe_lever_composes_and_trains_its_method():
     assert shaped.train.env_params.collect_reward == 3.5 and shaped.env.params.collect_reward == 1.0
 
 
+def test_every_sequence_replay_screen_and_benchmark_recipe_composes():
+    screens = _load(ROOT / "experiments" / "sequence_replay" / "run.py")
+    for name, (_, _, method, overrides) in screens.SCREENS.items():
+        cfg = compose_config([f"method={method}", *screens.BUDGET, *overrides])
+        t = cfg.train
+        replayed = t.updates_per_batch * t.batch_segments * t.sequence_length
+        assert replayed == 8 * cfg.env.num_envs * t.steps_per_batch, name  # the replay ratio
+    recipes = _load(ROOT / "benchmarks" / "train_throughput.py").RECIPES
+    for name, overrides in recipes.items():
+        t = compose_config(["method=icco", *overrides]).train
+        frames = 32 * t.steps_per_batch if "envs64" not in name else 64 * t.steps_per_batch
+        replayed = t.updates_per_batch * t.batch_segments * t.sequence_length
+        assert replayed == 8 * frames, name  # 8 replayed transitions per collected one
+    skill = _load(ROOT / "benchmarks" / "time_to_skill.py")
+    for overrides in skill.RECIPES.values():
+        compose_config(["method=icco", *skill.BUDGET, *overrides])
+
+
 def _icco_glue_lines(path: Path) -> int:
     """Lines of the simple statements whose last line is marked ``# ICCO`` (as formatted)."""
     import ast

@@ -28,7 +28,8 @@ HERE = Path(__file__).resolve().parent
 FOUR_QUADRANTS = HERE.parent / "four_quadrants"
 BUDGET = ["experiment=repro_cpu", "train.checkpoint_buffer=false"]
 SEEDS = (0, 1)
-# 512 transitions per update, as the 4-step recipe (128 x 4), the replay ratio unchanged.
+# 512 transitions per update, as the 4-step recipe (128 x 4): the replay ratio (8 replayed
+# transitions per collected one) is unchanged; the wide screen keeps it with fewer updates.
 SEQ16 = [
     "train.sequence_length=16",
     "train.batch_segments=32",
@@ -52,6 +53,12 @@ SCREENS = {  # name: (lever, setting, method, overrides)
             "train.shaping.potentials=[collect]",
             "train.shaping.weight=0.3",
         ],
+    ),
+    "seq16_lam06_wide": (
+        "fewer, larger updates (with the first)",
+        "128 items (2048 transitions) per update, 2 updates per batch",
+        "icco",
+        [*SEQ16, "train.td_lambda=0.6", "train.batch_segments=128", "train.updates_per_batch=2"],
     ),
 }
 METRICS = ("reward", "task_reward", "inst_reward", "pick", "collect", "defense", "in_quadrant")
