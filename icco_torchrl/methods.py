@@ -34,12 +34,20 @@ def names() -> tuple[str, ...]:
 @cache
 def labels() -> dict[str, str]:
     """``{name: label}`` of every method, read from its preset composed alone (once per process)."""
+    from contextlib import nullcontext
+
     from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
 
     from icco_torchrl.training.config import register_configs
 
     register_configs()
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
+    # Inside a running ``icco`` command Hydra is already set up on conf/: compose there.
+    inside_app = GlobalHydra.instance().is_initialized()
+    context = (
+        nullcontext() if inside_app else initialize_config_dir(str(CONF_DIR), version_base=None)
+    )
+    with context:
         return {
             name: compose(config_name=f"method/{name}").method.label or name for name in names()
         }
