@@ -78,7 +78,8 @@ def bench(variants: dict, sizes, steps: int, rounds: int) -> None:
             best = min(c for _, c in ts) * 1e3
             line.append(
                 f"{name}: {ms:7.3f} ms/step (cpu {cpu:7.3f}, best {best:7.3f}) "
-                f"{num_envs / ms * 1e3 / 1e6:6.3f} M env-steps/s (best {num_envs / best * 1e3 / 1e6:5.3f})"
+                f"{num_envs / ms * 1e3 / 1e6:6.3f} M env-steps/s (best "
+                f"{num_envs / best * 1e3 / 1e6:5.3f})"
             )
         print(" | ".join(line) + f"  (setup {setup:.1f}s)", flush=True)
 

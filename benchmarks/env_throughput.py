@@ -29,7 +29,7 @@ DEFAULT_OUT = os.path.join(os.path.dirname(__file__), "results", "env_throughput
 
 
 def _median_rate(run, runs: int, run_seconds: float, sync=lambda: None) -> float:
-    """Median steps/s of ``runs`` timed calls of ``run(n)``, with n calibrated to ``run_seconds``."""
+    """Median steps/s of ``runs`` timed calls of ``run(n)``, n calibrated to ``run_seconds``."""
     n = 2
     while True:  # warm-up doubles as calibration
         sync()
@@ -133,7 +133,8 @@ def main(argv=None) -> dict:
             )
 
     print(
-        f"{'api':<11}{'num_envs':>9} {'device':<7}{'env-steps/s':>14}{'agent-steps/s':>15}{'speedup':>10}"
+        f"{'api':<11}{'num_envs':>9} "
+        f"{'device':<7}{'env-steps/s':>14}{'agent-steps/s':>15}{'speedup':>10}"
     )
     for r in rows:
         print(

@@ -76,7 +76,8 @@ def main() -> None:
     print(f"{'method':<12} {'device':<6} {'batch':>6} {'ms/update':>10}")
     for r in rows:
         print(
-            f"{r['method']:<12} {r['device']:<6} {r['batch_segments']:>6} {r['ms_per_update']:>10.1f}"
+            f"{r['method']:<12} {r['device']:<6} {r['batch_segments']:>6} "
+            f"{r['ms_per_update']:>10.1f}"
         )
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)

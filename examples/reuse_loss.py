@@ -186,7 +186,7 @@ class RendezvousEnv(EnvBase):
 def make_env(
     num_envs: int, n_agents: int, hidden: int, z_dim: int, seed: int, max_steps: int = 20
 ) -> TransformedEnv:
-    """The env plus the primer that carries the policy's GRU state, previous move and z under "robots"."""
+    """The env plus the primer carrying the policy's GRU state, previous move and z ("robots")."""
     base = RendezvousEnv(num_envs=num_envs, n_agents=n_agents, max_steps=max_steps, seed=seed)
     return TransformedEnv(
         base, make_primer(n_agents, hidden, z_dim, group=GROUP, n_actions=len(MOVES))
@@ -233,7 +233,8 @@ def build(
     mixer = make_mixer(
         state_dim, n_agents, local_value_key=(GROUP, "chosen_action_value"), state_key="world"
     )
-    # The posterior has no keys of its own: ICCOLoss passes it what it read through its (renamed) keys.
+    # The posterior has no keys of its own: ICCOLoss passes it what it read through its (renamed)
+    # keys.
     posterior = make_posterior(
         n_actions=n_actions,
         n_agents=n_agents,
@@ -271,7 +272,7 @@ def build(
 def evaluate(
     policy, *, n_agents: int, hidden: int, z_dim: int, seed: int, episodes: int = 16
 ) -> float:
-    """Mean episode return of the greedy policy (coordinator mean, no epsilon) on fixed start positions."""
+    """Mean episode return of the greedy policy (coordinator mean, no epsilon) on fixed starts."""
     env = make_env(episodes, n_agents, hidden, z_dim, seed=10_000 + seed)
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         ro = env.rollout(env.base_env.max_steps, policy, break_when_any_done=False)
@@ -295,7 +296,7 @@ def main(
     eval_episodes: int = 16,
     verbose: bool = False,
 ) -> dict:
-    """Train ICCO on rendezvous; returns losses, greedy returns before/after and what the loss read."""
+    """Train ICCO on rendezvous: losses, greedy returns before/after and what the loss read."""
     start = time.perf_counter()
     parts = build(num_envs=num_envs, n_agents=n_agents, hidden=hidden, z_dim=z_dim, seed=seed)
     env, policy, loss, cutter = parts["env"], parts["policy"], parts["loss"], parts["cutter"]
@@ -338,7 +339,8 @@ def main(
         history.append({k: v.item() for k, v in losses.items()})
         if verbose and len(history) % 25 == 0:
             print(
-                f"frames {frames:>7d}  loss_td {history[-1]['loss_td']:.4f}  eps {float(explore.eps):.2f}"
+                f"frames {frames:>7d}  loss_td {history[-1]['loss_td']:.4f}  eps "
+                f"{float(explore.eps):.2f}"
             )
     collector.shutdown()
 

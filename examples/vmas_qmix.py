@@ -1,4 +1,5 @@
-"""ICCOLoss on VMAS "navigation", written as TorchRL's ``sota-implementations/multiagent/qmix_vdn.py``.
+"""ICCOLoss on VMAS "navigation", written as TorchRL's
+``sota-implementations/multiagent/qmix_vdn.py``.
 
 The script keeps that file's structure (env and test env, policy, mixer, collector, replay buffer,
 loss, target updater, loop, greedy evaluation) and its choices (shared parameters, QMIX mixer on
@@ -21,7 +22,8 @@ mixer through its keys, and builds the episode mask from ``done``.
 
 Results (``--iters 100``: 600k env steps, 2,400 updates of 1,000 transitions (250 segments of 4)
 each, the same for every learner; greedy return per agent over 100-step episodes on 200 evaluation
-episodes, mean ± std over seeds 0, 1, 2; one CPU thread on a shared 2-core machine, 200-520 s per run):
+episodes, mean ± std over seeds 0, 1, 2; one CPU thread on a shared 2-core machine, 200-520 s per
+run):
 
     ==================================  ===================  =====================
     learner                             greedy return        per seed
@@ -69,7 +71,8 @@ from icco_torchrl.objectives import ICCOLoss, total_loss
 from icco_torchrl.training.segments import SegmentCutter
 
 METHODS = ("qmix", "icco_qmix", "icco")
-# qmix_vdn.yaml's values, with a CPU-sized budget (its own: 60k frames x 500 iterations, 45 epochs of 4096).
+# qmix_vdn.yaml's values, with a CPU-sized budget (its own: 60k frames x 500 iterations, 45 epochs
+# of 4096).
 DEFAULTS = dict(
     seed=0,
     max_steps=100,
@@ -133,11 +136,11 @@ def train(method: str = "icco", **overrides) -> dict:
     )
     n_actions = env.full_action_spec["agents", "action"].space.n
     z_dim = cfg["z_dim"] if method == "icco" else 0  # ICCO
-    carry = lambda: Compose(
+    carry = lambda: Compose(  # noqa: E731  (a transform factory: one per env)
         StepCounter(),
         InitTracker(),
         make_primer(env.n_agents, cfg["hidden"], z_dim, device=device, n_actions=n_actions),
-    )  # noqa: E731, E501  # ICCO
+    )  # ICCO
     env, env_test = (
         (env.append_transform(carry()), TransformedEnv(env_test, carry()))
         if icco
@@ -207,7 +210,7 @@ def train(method: str = "icco", **overrides) -> dict:
             )
             if z_dim
             else (None, None)
-        )  # noqa: E501  # ICCO
+        )  # ICCO
         qnet = qnet_explore = make_policy(
             module,
             env.full_action_spec_unbatched,
@@ -261,7 +264,7 @@ def train(method: str = "icco", **overrides) -> dict:
     optim = torch.optim.Adam(loss_module.parameters(), cfg["lr"])
 
     def evaluate(policy) -> float:
-        """Greedy return per agent over one episode of every test env (``policy=None``: random actions)."""
+        """Greedy return per agent over one episode of each test env (``policy=None``: random)."""
         env_test.set_seed(
             cfg["seed"] + 1
         )  # the same start positions for every evaluation and learner
@@ -282,7 +285,7 @@ def train(method: str = "icco", **overrides) -> dict:
         "before": evaluate(qnet),
     }
     losses = []
-    for i, tensordict_data in enumerate(collector):
+    for tensordict_data in collector:
         # Remove agent dimension from reward (since it is shared in QMIX/VDN)
         tensordict_data.set(
             ("next", "reward"), tensordict_data.get(("next", env.reward_key)).mean(-2)

@@ -23,7 +23,7 @@ from icco_torchrl.evaluation.plots import plot_curves
 
 
 def find_runs(roots, stream: str = "eval") -> dict[str, list[Path]]:
-    """``{method label: [run folder, ...]}`` of the runs under ``roots`` that have ``stream``.csv."""
+    """``{method label: [run folder, ...]}`` of the runs under ``roots`` with ``stream``.csv."""
     runs: dict[str, list[Path]] = {}
     for root in map(Path, roots):
         for config in sorted(root.rglob("config.yaml")):
@@ -83,8 +83,8 @@ def main(argv=None) -> int:
     ]
     for label, curve in curves.items():
         print(
-            f"{label}: {curve.mean[-1]:.2f} ± {curve.std[-1]:.2f} at {int(curve.frames[-1])} frames "
-            f"({len(curve.runs)} seeds)"
+            f"{label}: {curve.mean[-1]:.2f} ± {curve.std[-1]:.2f} at {int(curve.frames[-1])} "
+            f"frames ({len(curve.runs)} seeds)"
         )
     print("wrote " + ", ".join(map(str, paths)))
     return 0

@@ -72,7 +72,8 @@ def train_runs(runs: dict[Path, tuple[list[str], int]], jobs: int = 2) -> None:
             running.remove(item)
             run, proc = item
             print(
-                f"{run.name}: {'done' if proc.returncode == 0 else f'FAILED (exit {proc.returncode})'}",
+                f"{run.name}: "
+                f"{'done' if proc.returncode == 0 else f'FAILED (exit {proc.returncode})'}",
                 flush=True,
             )
             if proc.returncode:

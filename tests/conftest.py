@@ -1,4 +1,4 @@
-"""Shared test helpers: one CPU thread (stable on shared 2-core machines), a CLI runner, bridge + fleet threads."""
+"""Shared test helpers: one CPU thread (stable on shared machines), a CLI runner, bridge + fleet."""
 
 from __future__ import annotations
 
@@ -35,7 +35,8 @@ def run_cli(
     )
     if check and proc.returncode != 0:
         raise AssertionError(
-            f"icco {' '.join(args)} failed ({proc.returncode}):\n{proc.stdout[-3000:]}\n{proc.stderr[-5000:]}"
+            f"icco {' '.join(args)} failed "
+            f"({proc.returncode}):\n{proc.stdout[-3000:]}\n{proc.stderr[-5000:]}"
         )
     return proc
 

@@ -1,4 +1,5 @@
-"""A fake OpenAI-compatible chat endpoint on 127.0.0.1, for tests of unreachable or broken providers.
+"""A fake OpenAI-compatible chat endpoint on 127.0.0.1, for tests of unreachable or broken
+providers.
 
 Modes: ``"ok"`` answers ``reply``; ``"401"`` refuses the key; ``"hang"`` accepts the request and
 never answers (until the server stops). :func:`closed_port` gives a port nobody listens on.

@@ -226,7 +226,7 @@ def test_vdn_mixer_sums_the_agents():
 
 
 def test_a_torchrl_network_plugs_in_as_the_agent():
-    """TorchRL's MultiAgentMLP (no GRU, no prev_action): called through its keys on [S, T+1] inputs."""
+    """TorchRL's MultiAgentMLP (no GRU, no prev_action), called through its keys on [S, T+1]."""
     torch.manual_seed(0)
     mlp = MultiAgentMLP(
         n_agent_inputs=F,
@@ -256,7 +256,7 @@ def test_a_torchrl_network_plugs_in_as_the_agent():
 
 
 def test_generic_path_equals_the_sequence_path():
-    """The same RecurrentQNet called through its keys (as any TorchRL network) gives the same loss."""
+    """The same RecurrentQNet called through its keys (as any TorchRL network): the same loss."""
     agent = flat_agent()
     td = segments()
     td["agents", "rnn_hidden"][:, 0] = 0  # an episode start (is_init at step 0) stores a zero state
@@ -269,7 +269,7 @@ def test_generic_path_equals_the_sequence_path():
 
 
 def test_state_of_any_trailing_shape_is_flattened():
-    """VMAS has no global state: TorchRL's QMIX example mixes on the stacked observations [.., N, F]."""
+    """VMAS has no global state: TorchRL's QMIX example mixes stacked observations [.., N, F]."""
     key = ("agents", "observation")
     td = segments(with_z=True)
     torch.manual_seed(0)

@@ -1,4 +1,4 @@
-"""Checkpoints and replay dumps that lose nothing: weights-only loading, checked dumps, no temp leftovers."""
+"""Checkpoints and replay dumps that lose nothing: weights-only loads, checked dumps, no temps."""
 
 from __future__ import annotations
 
@@ -88,7 +88,8 @@ def test_a_checkpoint_round_trips_and_loads_weights_only(tmp_path):
 
     loaded = load_checkpoint(path)
     assert loaded["format_version"] == FORMAT_VERSION
-    # method fields added after the checkpoint was written come back with the value it was trained with
+    # method fields added after the checkpoint was written come back with the value it was trained
+    # with
     from icco_torchrl.training.config import METHOD_FIELDS_ADDED
 
     assert loaded["cfg"] == {

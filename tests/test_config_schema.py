@@ -1,5 +1,6 @@
 """Typed configs (issue 11, part 3): the schema holds every default with its comment, the YAML files
-only presets that differ from it, and a bad value on the command line is one line naming the field."""
+only presets that differ from it, and a bad value on the command line is one line naming the
+field."""
 
 import ast
 import dataclasses

@@ -40,7 +40,7 @@ def icco(*args: str) -> int:
 
 
 def smoke_checkpoints(tmp_path_factory, methods) -> dict[str, Path]:
-    """``{method: checkpoint}``, trained once per test session (in parallel) and shared by modules."""
+    """``{method: checkpoint}``, trained once per test run (in parallel), shared by modules."""
     root = tmp_path_factory.getbasetemp() / "smoke_checkpoints"
     root.mkdir(exist_ok=True)
     env = {**os.environ, "OMP_NUM_THREADS": "1", "WANDB_MODE": "disabled"}

@@ -48,7 +48,8 @@ def test_rendezvous_env_specs_and_dynamics():
     check_env_specs(ex.make_env(3, 3, hidden=8, z_dim=4, seed=0))
     assert env.reward_keys == ["team_reward"] and env.action_keys == [("robots", "move")]
     td = env.reset()
-    # hand-made scene: robots at (0,0), (0.3,0), (0,0.4); robot 0 moves +x, robot 1 stays, robot 2 moves -y
+    # hand-made scene: robots at (0,0), (0.3,0), (0,0.4); robot 0 moves +x, robot 1 stays, robot 2
+    # moves -y
     env.pos = torch.tensor([[0.0, 0.0], [0.3, 0.0], [0.0, 0.4]]).expand(3, 3, 2).clone()
     td["robots", "move"] = torch.tensor([2, 0, 3]).expand(3, 3).clone()
     out = env.step(td)["next"]

@@ -55,7 +55,8 @@ def offline_handler(litellm: Any) -> Any:
 
 
 class Scripted:
-    """A custom provider whose replies the test sets (for replies ``mock_response`` cannot express)."""
+    """A custom provider whose replies the test sets (for replies ``mock_response`` cannot
+    express)."""
 
     def __init__(self, litellm: Any) -> None:
         from litellm import CustomLLM
@@ -196,8 +197,8 @@ def test_other_directions() -> None:
 
 @pytest.mark.parametrize(
     ("instruction", "signs"),
-    [("go to quadrant 1", (1, 1)), ("go to quadrant 2", (-1, 1)), ("move into the third quadrant", (-1, -1)),
-     ("quadrant IV", (1, -1))],
+    [("go to quadrant 1", (1, 1)), ("go to quadrant 2", (-1, 1)),
+     ("move into the third quadrant", (-1, -1)), ("quadrant IV", (1, -1))],
 )  # fmt: skip
 def test_quadrants_follow_the_maths_convention(instruction: str, signs: tuple[int, int]) -> None:
     end = final(instruction, starts(5))
@@ -264,15 +265,32 @@ def test_offline_results_are_clipped_to_the_field() -> None:
 def test_prompts_follow_the_paper() -> None:
     pos = starts(4)
     plain = build_messages("Go right", pos)[-1]["content"]
-    for text in ("+x is right", "+y is up", "STRICTLY COMPLY with the following order", "Movement Strategy",
-                 "Trajectory Generation", "POSITIONS_JSON", '"Go right"', "[-3.25, 3.25]"):  # fmt: skip
+    for text in (
+        "+x is right",
+        "+y is up",
+        "STRICTLY COMPLY with the following order",
+        "Movement Strategy",
+        "Trajectory Generation",
+        "POSITIONS_JSON",
+        '"Go right"',
+        "[-3.25, 3.25]",
+    ):
         assert text in plain
     assert "+5" not in plain and "invader" not in plain
     tap = build_messages(
         "Go right", pos, prompt="tap", resources=[[1.0, 2.0]], invader=[[3.0, 0.0]]
     )[-1]["content"]
-    for text in ("collect resources", "defend home", "+5", "+1", "+4", "-4", "RESOURCES_JSON: [[1.0, 2.0]]",
-                 "INVADER_JSON: [[3.0, 0.0]]", "STRICTLY COMPLY"):  # fmt: skip
+    for text in (
+        "collect resources",
+        "defend home",
+        "+5",
+        "+1",
+        "+4",
+        "-4",
+        "RESOURCES_JSON: [[1.0, 2.0]]",
+        "INVADER_JSON: [[3.0, 0.0]]",
+        "STRICTLY COMPLY",
+    ):
         assert text in tap
 
 
@@ -304,8 +322,11 @@ def test_last_json_object_skips_prose_and_takes_the_last_object() -> None:
 
 def test_custom_provider_round_trip(litellm: Any) -> None:
     pos = starts(6)
-    response = litellm.completion(model=DEFAULT_MODEL, messages=build_messages("Gather center", pos),
-                                  response_format=response_format(3, K))  # fmt: skip
+    response = litellm.completion(
+        model=DEFAULT_MODEL,
+        messages=build_messages("Gather center", pos),
+        response_format=response_format(3, K),
+    )
     raw = response.choices[0].message.content
     assert "not an LLM" in json.loads(raw)["movement_strategy"]
     waypoints = parse_reply(raw, 3, K, 2 * HALF)
@@ -549,7 +570,8 @@ def remote(url: str, **settings: Any) -> LLMPlanner:
 
 @contextlib.contextmanager
 def provider(case: str):
-    """``(url, server or None)`` of a provider that refuses connections, hangs, or refuses the key."""
+    """``(url, server or None)`` of a provider that refuses connections, hangs, or refuses the
+    key."""
     if case == "refused":
         yield f"http://127.0.0.1:{closed_port()}/v1", None
         return

@@ -1,4 +1,5 @@
-"""Behaviour of ICCO's networks: posterior maths, entropy, mixer, encoders, recurrent agent, coordinator.
+"""Behaviour of ICCO's networks: posterior maths, entropy, mixer, encoders, recurrent agent,
+coordinator.
 
 Every numeric check compares against either a hand computation on explicit numbers or an
 independent implementation (``torch.distributions``); every structural check (masking,
@@ -57,7 +58,8 @@ def _factors():
 
 def test_product_of_gaussians_hand_computation():
     z, loc, scale, mask = _factors()
-    # dim 0: N(0,1) x N(2,1) -> precision 2, mean 1, var 1/2; z=0.5: -0.5*0.25/0.5 - 0.5*log(2pi*0.5)
+    # dim 0: N(0,1) x N(2,1) -> precision 2, mean 1, var 1/2;
+    # z=0.5: -0.5*0.25/0.5 - 0.5*log(2pi*0.5)
     d0 = -0.25 - 0.5 * math.log(math.pi)
     # dim 1: N(1,1) x N(1,4) -> precision 1.25, mean 1, var 0.8; z=1: -0.5*log(2pi*0.8)
     d1 = -0.5 * math.log(2 * math.pi * 0.8)
@@ -73,8 +75,8 @@ def test_product_of_gaussians_hand_computation():
 
 def test_sum_of_log_likelihoods_hand_computation():
     z, loc, scale, mask = _factors()
-    # factor 0: dim0 N(0.5;0,1) = -0.125-c, dim1 N(1;1,1) = -c ; factor 1: dim0 N(0.5;2,1) = -1.125-c,
-    # dim1 N(1;1,2) = -log 2 - c ; c = 0.5 log 2pi
+    # factor 0: dim0 N(0.5;0,1) = -0.125-c, dim1 N(1;1,1) = -c ;
+    # factor 1: dim0 N(0.5;2,1) = -1.125-c, dim1 N(1;1,2) = -log 2 - c ; c = 0.5 log 2pi
     hand = -0.125 - 1.125 - math.log(2.0) - 4 * 0.5 * LOG_2PI
     out = combine_log_prob(z, loc, scale, mask, "sum")
     assert out.item() == pytest.approx(hand, abs=1e-5)
@@ -257,15 +259,10 @@ def _agent_inputs(g, B=2, L=6):
 
 
 @pytest.mark.parametrize(
-    "encoder,full_state,z_dim,z_input",
-    [
-        ("attention", False, 4, "head"),
-        ("mlp", True, 0, "head"),
-        ("attention", True, 4, "head"),
-        ("attention", False, 4, "gru"),
-    ],
+    "encoder,full_state,z_dim",
+    [("attention", False, 4), ("mlp", True, 0), ("attention", True, 4)],
 )
-def test_agent_one_step_forward_equals_sequence(encoder, full_state, z_dim, z_input):
+def test_agent_one_step_forward_equals_sequence(encoder, full_state, z_dim):
     torch.manual_seed(0)
     net = RecurrentQNet(
         LAYOUT,
@@ -274,7 +271,6 @@ def test_agent_one_step_forward_equals_sequence(encoder, full_state, z_dim, z_in
         z_dim=z_dim,
         full_state=full_state,
         encoder=encoder,
-        z_input=z_input,
     )
     obs, prev, z, state, h0 = _agent_inputs(torch.Generator().manual_seed(5))
     z = z if z_dim else None
@@ -322,7 +318,7 @@ def test_agent_hidden_restarts_at_step_zero():
     torch.testing.assert_close(q1, seq[:, 1], atol=1e-5, rtol=1e-5)
 
 
-# ---------------------------------------------------------------------------- coordinator in rollouts
+# ------------------------------------------------------------------ coordinator in rollouts
 @pytest.fixture(scope="module")
 def icco_short_episodes():
     torch.manual_seed(0)
@@ -531,7 +527,8 @@ def test_path_features_give_the_direction_the_instruction_reward_scores():
     nearest = rel[torch.arange(64), rel.norm(dim=-1).argmin(-1)]
     torch.testing.assert_close(f[:, :2], nearest)
     torch.testing.assert_close(f[:, 2:].norm(dim=-1), torch.ones(64))
-    # e_cossim of the env's reward (dist_coef 0) is the cosine of the displacement with the feature direction
+    # e_cossim of the env's reward (dist_coef 0) is the cosine of the displacement with the feature
+    # direction
     zero = torch.zeros(64, 2)
     r = instruction_reward(
         rel.permute(1, 2, 0).unsqueeze(0), zero.t().unsqueeze(0), disp.t().unsqueeze(0), 1.0, 0.0
@@ -591,17 +588,13 @@ def test_agent_reads_waypoint_features(full_state, state_encoder):
         RecurrentQNet(None, n_actions=5, obs_dim=8, waypoint_features=True)
 
 
-def test_z_into_the_gru_reaches_later_steps_through_the_recurrent_state():
-    # z at the GRU input: changing z at step 0 alone changes Q at step 1 (carried by the hidden
-    # state); at the head (COPA) it cannot
+def test_z_reaches_the_q_head_of_its_own_step_only():
+    # z joins the Q head (COPA), not the GRU: changing z at step 0 alone changes Q at step 0 only
     obs, prev, z, state, h0 = _agent_inputs(torch.Generator().manual_seed(5))
     other = z.clone()
     other[:, 0] += 1.0
-    for z_input, carried in (("gru", True), ("head", False)):
-        torch.manual_seed(0)
-        net = RecurrentQNet(LAYOUT, n_actions=5, hidden=16, z_dim=4, z_input=z_input)
-        q, q_other = net.sequence(obs, prev, h0, z=z), net.sequence(obs, prev, h0, z=other)
-        assert not torch.allclose(q[:, 0], q_other[:, 0])
-        assert torch.allclose(q[:, 1], q_other[:, 1]) != carried
-    with pytest.raises(ValueError, match="z_input"):
-        RecurrentQNet(LAYOUT, n_actions=5, hidden=16, z_dim=4, z_input="tail")
+    torch.manual_seed(0)
+    net = RecurrentQNet(LAYOUT, n_actions=5, hidden=16, z_dim=4)
+    q, q_other = net.sequence(obs, prev, h0, z=z), net.sequence(obs, prev, h0, z=other)
+    assert not torch.allclose(q[:, 0], q_other[:, 0])
+    assert torch.allclose(q[:, 1], q_other[:, 1])

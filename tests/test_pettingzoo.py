@@ -101,7 +101,7 @@ def test_same_dynamics_as_the_batched_env():
     batched = ResourceCollectionEnv(num_envs=1, seed=seed)
     td = batched.reset()
     rng = np.random.default_rng(0)
-    for t in range(batched.max_steps):
+    for _ in range(batched.max_steps):
         expected = td["agents", "observation"][0].numpy()
         np.testing.assert_array_equal(
             np.stack([obs[f"agent_{i}"] for i in range(n_agents)]), expected

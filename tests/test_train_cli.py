@@ -347,7 +347,8 @@ def test_a_bare_resume_continues_the_run_with_its_own_method_seed_and_budget(tmp
 
 
 def test_a_resume_into_a_given_folder_keeps_the_runs_method_fields(tmp_path):
-    # a non-default method field (and the smoke budget) must survive a resume that names its run folder
+    # a non-default method field (and the smoke budget) must survive a resume that names its run
+    # folder
     run_cli(
         "train",
         *SMOKE,

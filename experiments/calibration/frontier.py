@@ -12,7 +12,7 @@ steps, calibrated reward). This traces what two families of scripted policies re
 
 Trained teams (``../four_quadrants/results.json``) are drawn on the same plane.
 
-    python experiments/calibration/frontier.py        # ~1 min on one core; results/frontier.{json,png}
+    python experiments/calibration/frontier.py   # ~1 min on one core; results/frontier.{json,png}
 """
 
 from __future__ import annotations
@@ -166,7 +166,8 @@ def main() -> None:
         if r["task_reward"] >= bars["task"] and r["in_quadrant"] >= bars["in_quadrant"]
     ]
     print(
-        f"bars: task >= {bars['task']:.1f} and in quadrant >= 0.70; met by {len(both)} of {len(rows)} policies"
+        f"bars: task >= {bars['task']:.1f} and in quadrant >= 0.70; met by {len(both)} of "
+        f"{len(rows)} policies"
     )
     trained_path = HERE.parent / "four_quadrants" / "results.json"
     trained = {

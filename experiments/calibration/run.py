@@ -115,7 +115,7 @@ def quadrant_references(scale: float, trials: int, seed: int, spawn: str) -> lis
         ("blend", r) for r in QUAD_RADII
     ]:
         mean = quadrant_means(
-            lambda env: make_reference_policy(name, env, radius=r),
+            lambda env, name=name, r=r: make_reference_policy(name, env, radius=r),
             trials,
             env_seed=seed,
             schedule_seed=seed,
@@ -185,7 +185,8 @@ def main() -> None:
     rows = blend_family(args.episodes, args.seed, args.spawn)
     calib = choose_scale(rows)
     print(
-        f"four-quadrant protocol at scale {calib['chosen']['scale']} ({args.quadrant_trials} trials x 580 steps):"
+        f"four-quadrant protocol at scale {calib['chosen']['scale']} ({args.quadrant_trials} "
+        "trials x 580 steps):"
     )
     quad = quadrant_references(
         calib["chosen"]["scale"], args.quadrant_trials, args.seed + EVAL_SEED_OFFSET, args.spawn

@@ -53,6 +53,10 @@ COLUMNS = (
 SMOKE_FRAMES = 100_000  # below this a run has learned nothing worth comparing
 
 
+def _mean(xs: list[float]) -> float:
+    return sum(xs) / len(xs) if xs else math.nan
+
+
 def _last_row(path: Path) -> dict | None:
     if not path.is_file():
         return None
@@ -68,7 +72,7 @@ def _duration(seconds: float | None) -> str:
 
 
 def budget_section(runs: dict[str, list[Path]], info: dict) -> tuple[str, bool]:
-    """A table of frames, wall time and SPS per method, then the machine; and whether it is a smoke budget."""
+    """Frames, wall time and SPS per method, then the machine; and whether it is a smoke budget."""
     lines = [
         "| method | runs | env steps per run | training wall time per run | env steps / s |",
         "|---|---|---|---|---|",
@@ -80,9 +84,9 @@ def budget_section(runs: dict[str, list[Path]], info: dict) -> tuple[str, bool]:
         wall = [sum(float(r[k]) for k in r if k.startswith("time_")) for r in timing]
         sps = [float(r["sps"]) for r in timing]
         smoke |= bool(frames) and max(frames) < SMOKE_FRAMES
-        mean = lambda xs: sum(xs) / len(xs) if xs else math.nan
         lines.append(
-            f"| {label} | {len(dirs)} | {mean(frames):,.0f} | {mean(wall) / 60:.1f} min | {mean(sps):,.0f} |"
+            f"| {label} | {len(dirs)} | {_mean(frames):,.0f} | {_mean(wall) / 60:.1f} min | "
+            f"{_mean(sps):,.0f} |"
         )
     m = info.get("machine", {})
     lines += [
@@ -91,8 +95,9 @@ def budget_section(runs: dict[str, list[Path]], info: dict) -> tuple[str, bool]:
         f"{info.get('seeds', '?')}. Training wall time summed over run.py invocations (parallel "
         f"invocations add up): {_duration(info.get('train_wall_s'))}; "
         f"{_duration(info.get('eval_wall_s'))} evaluation.",
-        f"Machine: {m.get('cpu', '?')} ({m.get('cores', '?')} cores), GPU: {m.get('gpu') or 'none'}, "
-        f"torch {m.get('torch', '?')}, Python {m.get('python', '?')}, {m.get('platform', '?')}.",
+        f"Machine: {m.get('cpu', '?')} ({m.get('cores', '?')} cores), GPU: "
+        f"{m.get('gpu') or 'none'}, torch {m.get('torch', '?')}, Python {m.get('python', '?')}, "
+        f"{m.get('platform', '?')}.",
     ]
     return "\n".join(lines), smoke or bool(info.get("smoke"))
 
@@ -103,7 +108,10 @@ def comparison(summary: list[dict], missing: list[str]) -> str:
     refs = {name: r for name, r in every.items() if result_name(name) in REFERENCE_POLICIES}
     rows = {name: r for name, r in every.items() if name not in refs}
     if "ICCO" not in rows or len(rows) < 2:
-        return "Not enough methods were evaluated to compare (ICCO and at least one baseline are needed)."
+        return (
+            "Not enough methods were evaluated to compare (ICCO and at least one baseline are "
+            "needed)."
+        )
     ranked = sorted(rows.values(), key=lambda r: r["reward"], reverse=True)
     order = " > ".join(f"{r['method']} ({r['reward']:.1f})" for r in ranked)
     icco, others = rows["ICCO"], [r for r in ranked if r["method"] != "ICCO"]
@@ -111,16 +119,17 @@ def comparison(summary: list[dict], missing: list[str]) -> str:
     gap = icco["reward"] - best_other["reward"]
     spread = math.hypot(icco["reward_std"], best_other["reward_std"])
     verdict = ("reproduced" if gap > 0 else "not reproduced") + (
-        f": the gap to {best_other['method']} ({gap:+.1f}) is {'larger' if abs(gap) > spread else 'smaller'} "
-        f"than the trial-to-trial spread ({spread:.1f})"
+        f": the gap to {best_other['method']} ({gap:+.1f}) is "
+        f"{'larger' if abs(gap) > spread else 'smaller'} than the trial-to-trial spread "
+        f"({spread:.1f})"
     )
     lines = [f"- **Paper: ICCO gets the highest reward.** Here the ranking is {order}; {verdict}."]
     parts = []
     for metric in ("collect", "defense"):
         others_mean = sum(r[metric] for r in others) / len(others)
         parts.append(
-            f"{metric} ICCO {icco[metric]:.1f} ± {icco[f'{metric}_std']:.1f} vs {others_mean:.1f} for the "
-            f"baselines on average ({'more' if icco[metric] > others_mean else 'not more'})"
+            f"{metric} ICCO {icco[metric]:.1f} ± {icco[f'{metric}_std']:.1f} vs {others_mean:.1f} "
+            f"for the baselines on average ({'more' if icco[metric] > others_mean else 'not more'})"
         )
     lines.append(
         "- **Paper: the baselines fail at collecting and defending; ICCO does both.** Per episode: "
@@ -129,8 +138,8 @@ def comparison(summary: list[dict], missing: list[str]) -> str:
     )
     follow = ", ".join(f"{r['method']} {r['in_quadrant']:.2f}" for r in ranked)
     lines.append(
-        f"- **Paper: all methods follow the quadrant (ICCO approximately).** Fraction of robot-steps "
-        f"inside the instructed quadrant: {follow}."
+        "- **Paper: all methods follow the quadrant (ICCO approximately).** Fraction of "
+        f"robot-steps inside the instructed quadrant: {follow}."
     )
     flat = rows.get(methods.label("qmix_full_flat"))
     if flat is not None:
@@ -139,10 +148,11 @@ def comparison(summary: list[dict], missing: list[str]) -> str:
             math.hypot(icco["reward_std"], flat["reward_std"]),
         )
         lines.append(
-            f"- **Against the paper's QMIX (FULL)** (the global state as one flat vector; `qmix_full` reads "
-            f"it as relative entity tokens): ICCO {icco['reward']:.1f} vs {flat['reward']:.1f}, "
-            f"{'ahead' if gap > 0 else 'behind'} by {abs(gap):.1f}, "
-            f"{'more' if abs(gap) > spread else 'less'} than the trial-to-trial spread ({spread:.1f})."
+            "- **Against the paper's QMIX (FULL)** (the global state as one flat vector; "
+            f"`qmix_full` reads it as relative entity tokens): ICCO {icco['reward']:.1f} vs "
+            f"{flat['reward']:.1f}, {'ahead' if gap > 0 else 'behind'} by {abs(gap):.1f}, "
+            f"{'more' if abs(gap) > spread else 'less'} than the trial-to-trial spread "
+            f"({spread:.1f})."
         )
     lines += criteria(rows, refs)
     if missing:
@@ -161,8 +171,9 @@ def criteria(rows: dict, refs: dict) -> list[str]:
     if heuristic is None or rnd is None:
         return ["- Reference policies missing: issue 7's criteria not checked."]
     lines = [
-        "- **Issue 7's bar** (task reward >= 50 % of the heuristic's, picks and defenses >= 3x random's, "
-        ">= 70 % of robot-steps in the instructed quadrant; ICCO's team reward >= the best blend's):"
+        "- **Issue 7's bar** (task reward >= 50 % of the heuristic's, picks and defenses >= 3x "
+        "random's, >= 70 % of robot-steps in the instructed quadrant; ICCO's team reward >= the "
+        "best blend's):"
     ]
     for name in ("ICCO", "QMIX (FULL)"):
         if name not in rows:
@@ -206,7 +217,8 @@ def main(argv=None) -> int:
     results = args.sweep / "eval_quadrants" / "quadrants.json"
     if not results.is_file():
         print(
-            f"report.py: {results} not found: run experiments/four_quadrants/run.py (or icco eval) first",
+            f"report.py: {results} not found: run experiments/four_quadrants/run.py (or icco eval) "
+            "first",
             file=sys.stderr,
         )
         return 2

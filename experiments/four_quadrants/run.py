@@ -54,7 +54,8 @@ def icco(*args: str) -> None:
 
 
 def train(sweep: Path, methods, seeds, budget, jobs: int = 2) -> None:
-    """Bring every ``method x seed`` run in ``sweep`` to its budget (see ``experiments/jobs.py``)."""
+    """Bring every ``method x seed`` run in ``sweep`` to its budget (see
+    ``experiments/jobs.py``)."""
     totals = {m: compose_config([f"method={m}", *budget]).train.total_frames for m in methods}
     train_runs(
         {

@@ -70,7 +70,8 @@ def table2(rows: list[dict]) -> tuple[str, dict]:
         means[method] = tuple(values[k].mean() for k in COUNTS)
         cells = " | ".join(f"{values[k].mean():.1f} ± {values[k].std():.1f}" for k in COUNTS)
         lines.append(f"| {method} | {len(segs)} | {cells} | {paper} |")
-    # The scripted reference policies, driven by the same task-aligned plans (extra rows, not in the paper).
+    # The scripted reference policies, driven by the same task-aligned plans (extra rows, not in the
+    # paper).
     for method in dict.fromkeys(
         r["method"] for r in rows if result_name(r["method"]) in REFERENCE_POLICIES
     ):
@@ -88,17 +89,19 @@ def comparison(fig5b: list[dict], means: dict) -> str:
         segments = [s for (m, s) in cell if m == "ICCO" and s != EPISODE]
         wins = [s for s in segments if cell["ICCO", s]["reward"] > cell["QMIX (FULL)", s]["reward"]]
         lines.append(
-            f"- **Paper: ICCO gets more reward than QMIX (FULL) for every instruction.** Here ICCO is ahead "
-            f"on {len(wins)} of {len(segments)} instructions ({', '.join(wins) or 'none'}); whole episode "
-            f"{cell['ICCO', EPISODE]['reward']:.1f} vs {cell['QMIX (FULL)', EPISODE]['reward']:.1f}."
+            "- **Paper: ICCO gets more reward than QMIX (FULL) for every instruction.** Here ICCO "
+            f"is ahead on {len(wins)} of {len(segments)} instructions "
+            f"({', '.join(wins) or 'none'}); whole episode {cell['ICCO', EPISODE]['reward']:.1f} "
+            f"vs {cell['QMIX (FULL)', EPISODE]['reward']:.1f}."
         )
         if ("ICCO", "Gather center") in cell:
             icco, full = cell["ICCO", "Gather center"], cell["QMIX (FULL)", "Gather center"]
             lines.append(
-                f"- **Paper: in Gather Center ICCO gathers and also collects/defends better.** Here: distance to "
-                f"the waypoints {icco['waypoint_dist']:.2f} vs {full['waypoint_dist']:.2f} m, deliveries "
-                f"{icco['collect']:.1f} vs {full['collect']:.1f}, defenses {icco['defense']:.1f} vs "
-                f"{full['defense']:.1f} (ICCO vs QMIX (FULL))."
+                "- **Paper: in Gather Center ICCO gathers and also collects/defends better.** "
+                f"Here: distance to the waypoints {icco['waypoint_dist']:.2f} vs "
+                f"{full['waypoint_dist']:.2f} m, deliveries {icco['collect']:.1f} vs "
+                f"{full['collect']:.1f}, defenses {icco['defense']:.1f} vs {full['defense']:.1f} "
+                "(ICCO vs QMIX (FULL))."
             )
         flat = methods.label("qmix_full_flat")
         if (
@@ -107,10 +110,10 @@ def comparison(fig5b: list[dict], means: dict) -> str:
         ) in cell:  # the paper's own QMIX (FULL): the global state as one flat vector
             wins = [s for s in segments if cell["ICCO", s]["reward"] > cell[flat, s]["reward"]]
             lines.append(
-                f"- **Against the paper's QMIX (FULL)** (one flat state vector; `qmix_full` reads relative "
-                f"entity tokens): ICCO is ahead on {len(wins)} of {len(segments)} instructions "
-                f"({', '.join(wins) or 'none'}); whole episode {cell['ICCO', EPISODE]['reward']:.1f} vs "
-                f"{cell[flat, EPISODE]['reward']:.1f}."
+                "- **Against the paper's QMIX (FULL)** (one flat state vector; `qmix_full` reads "
+                f"relative entity tokens): ICCO is ahead on {len(wins)} of {len(segments)} "
+                f"instructions ({', '.join(wins) or 'none'}); whole episode "
+                f"{cell['ICCO', EPISODE]['reward']:.1f} vs {cell[flat, EPISODE]['reward']:.1f}."
             )
     else:
         lines.append("- Fig. 5b: ICCO or QMIX (FULL) is missing; no comparison.")
@@ -121,16 +124,16 @@ def comparison(fig5b: list[dict], means: dict) -> str:
             holds = "holds" if icco > tap > wo_tr else "does not hold"
             verdicts.append(f"{name} {holds} ({icco:.1f} / {tap:.1f} / {wo_tr:.1f})")
         lines.append(
-            "- **Paper (Table II): ICCO > QMIX-TAP > QMIX-TAP w/o TR on picks, deliveries and defenses.** "
-            "Here the strict ordering: " + "; ".join(verdicts) + "."
+            "- **Paper (Table II): ICCO > QMIX-TAP > QMIX-TAP w/o TR on picks, deliveries and "
+            "defenses.** Here the strict ordering: " + "; ".join(verdicts) + "."
         )
     else:
         lines.append(
             f"- Table II: missing {', '.join(m for m in TABLE2 if m not in means)}; no comparison."
         )
     lines.append(
-        "- Our environment is a re-implementation and the default planner is a rule program, so absolute "
-        "numbers differ from the paper's; the orderings are what to compare."
+        "- Our environment is a re-implementation and the default planner is a rule program, so "
+        "absolute numbers differ from the paper's; the orderings are what to compare."
     )
     return "\n".join(lines)
 
@@ -157,8 +160,9 @@ def _frames(*payloads: dict) -> dict[str, int]:
 def language_results(
     fig5b: dict, fig5b_rows: list[dict], tap: dict, tap_rows: list[dict], steps: int
 ) -> dict:
-    """results.json: Fig. 5b (whole 4-instruction episode) and, under ``table2``, the per-instruction
-    means of Table II (ICCO with the plain prompt, QMIX-TAP and QMIX-TAP w/o TR with the task-aligned one)."""
+    """results.json: Fig. 5b (whole 4-instruction episode) and, under ``table2``, the
+    per-instruction means of Table II (ICCO with the plain prompt, QMIX-TAP and QMIX-TAP w/o TR with
+    the task-aligned one)."""
     n_segments = len(fig5b["segment_steps"])
     out = results_json(
         fig5b["summary"],
@@ -194,7 +198,7 @@ def language_results(
 
 
 def run_arguments(out: Path, llm: str | None) -> str:
-    """``run.py``'s arguments for this folder: its budget and seeds (``run.json``, when run.py wrote one)."""
+    """``run.py``'s arguments for this folder: budget and seeds (``run.json``, if written)."""
     saved = json.loads((out / "run.json").read_text()) if (out / "run.json").is_file() else {}
     words = ["--budget", *saved["budget"]] if saved.get("budget") else []
     words += ["--seeds", *map(str, saved["seeds"])] if saved.get("seeds") else []
@@ -213,7 +217,8 @@ def main(argv=None) -> int:
     for sub in ("fig5b", "table2_tap"):
         if not (args.out / sub / "instruct.json").is_file():
             print(
-                f"report.py: {args.out / sub / 'instruct.json'} not found: run experiments/language/run.py first",
+                f"report.py: {args.out / sub / 'instruct.json'} not found: run "
+                "experiments/language/run.py first",
                 file=sys.stderr,
             )
             return 2
@@ -237,8 +242,8 @@ def main(argv=None) -> int:
     ]
     text = Template((HERE / "README.template.md").read_text()).substitute(
         banner=(
-            "> **Smoke budget: these numbers only show that the pipeline runs end to end; the policies have "
-            "learned nothing. Re-run without `--smoke` for results.**"
+            "> **Smoke budget: these numbers only show that the pipeline runs end to end; the "
+            "policies have learned nothing. Re-run without `--smoke` for results.**"
             if smoke
             else ""
         ),
@@ -246,11 +251,12 @@ def main(argv=None) -> int:
         model=model,
         trials=fig5b["trials"],
         planner_note=(
-            "**Planner caveat.** The default planner is the offline rule program (not a language model): "
-            "it draws the four formations exactly, and under the task-aligned prompt it bends them toward "
-            "the task by a fixed rule (the robot nearest the invader's path intercepts it; a robot within "
-            "1.5 m of a resource passes through it on the way to its slot). A language model decides this "
-            "itself: run with `--llm openai` (or any litellm model) for the paper's setting."
+            "**Planner caveat.** The default planner is the offline rule program (not a language "
+            "model): it draws the four formations exactly, and under the task-aligned prompt it "
+            "bends them toward the task by a fixed rule (the robot nearest the invader's path "
+            "intercepts it; a robot within 1.5 m of a resource passes through it on the way to its "
+            "slot). A language model decides this itself: run with `--llm openai` (or any litellm "
+            "model) for the paper's setting."
             if offline
             else ""
         ),

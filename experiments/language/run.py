@@ -1,8 +1,10 @@
 """Language-instruction experiments (paper Sec. V-C/V-D: Fig. 5b, Fig. 6, Table II).
 
-    python experiments/language/run.py                 # offline rule planner, default budget
-    python experiments/language/run.py --llm openai    # GPT-4o through litellm (OPENAI_API_KEY), as the paper
-    python experiments/language/run.py --smoke         # seconds-long end-to-end check
+    python experiments/language/run.py               # offline rule planner, default budget
+    python experiments/language/run.py --llm openai  # GPT-4o via litellm, as the paper
+    python experiments/language/run.py --smoke       # seconds-long end-to-end check
+
+``--llm openai`` reads the key from ``OPENAI_API_KEY``.
 
 1. Agents: ICCO, QMIX and QMIX (FULL) from the four-quadrant sweep (``--sweep``; trained there
    if missing, resumable), and QMIX trained on the instruction reward alone (QMIX-TAP w/o TR:
@@ -151,7 +153,8 @@ def main(argv=None) -> None:
         args.llm,
         ["llm.prompt=tap", *replan],
     )
-    # What the report cannot read from the checkpoints: the command line that reproduces this folder.
+    # What the report cannot read from the checkpoints: the command line that reproduces this
+    # folder.
     (out / "run.json").write_text(
         json.dumps({"budget": args.budget or [], "seeds": args.seeds, "llm": args.llm})
     )

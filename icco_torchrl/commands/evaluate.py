@@ -1,7 +1,9 @@
 """``icco eval``: evaluate one or several checkpoints with a protocol and write the results.
 
     icco eval checkpoint=PATH [eval.protocol=random_walk|quadrants] [eval.trials=20] [eval.gif=true]
-    icco eval eval.checkpoints='[runs/icco/*/checkpoint.pt,runs/qmix/*/checkpoint.pt]' eval.protocol=quadrants
+    icco eval eval.checkpoints='[runs/icco/*/checkpoint.pt,runs/qmix/*/checkpoint.pt]'
+
+``eval.checkpoints`` (paths or globs) compares several checkpoints, one row per method.
 
 Outputs go to ``eval.out_dir`` or to ``eval_<protocol>/`` next to the checkpoint(s); what is
 measured and written: :mod:`icco_torchrl.evaluation.runner`.

@@ -52,7 +52,7 @@ def out_dir_name(instructions: list[str]) -> str:
 
 @contextmanager
 def _llm_errors():
-    """An unreachable model as the one-line error of ``clean_errors`` (which reports ValueErrors)."""
+    """An unreachable model as a ValueError, which ``clean_errors`` reports in one line."""
     try:
         yield
     except LLMUnavailable as err:

@@ -51,7 +51,7 @@ def sq_dist(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 
 
 def pair_sq_dist(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Squared distances ``[Na, Nb, B]`` from every point of ``a`` [Na, 2, B] to every point of ``b`` [Nb, 2, B]."""
+    """Squared distances ``[Na, Nb, B]`` between points ``a`` [Na, 2, B] and ``b`` [Nb, 2, B]."""
     return sq_dist(b.unsqueeze(0), a.unsqueeze(1))
 
 

@@ -1,4 +1,5 @@
-"""The observation layout contract between the resource-collection env and the networks that read it.
+"""The observation layout contract between the resource-collection env and the networks that read
+it.
 
 The env writes per-robot observations and a global state in this layout; the entity-attention
 and relative-state encoders of :mod:`icco_torchrl.modules` read it. It is a plain record of sizes

@@ -83,7 +83,8 @@ class ResourceCollectionParallelEnv(ParallelEnv):
         return self.action_spaces[agent]
 
     def reset(self, seed: int | None = None, options: dict | None = None):
-        """Start an episode; ``seed`` re-seeds the env exactly as ``ResourceCollectionEnv(seed=seed)``."""
+        """Start an episode; ``seed`` re-seeds the env exactly as
+        ``ResourceCollectionEnv(seed=seed)``."""
         if seed is not None:
             self._env.set_seed(seed)
         self._td = self._env.reset()
@@ -153,7 +154,7 @@ class ResourceCollectionParallelEnv(ParallelEnv):
 
 
 def _action_index(agent: str, value) -> int:
-    """``value`` as an action index; floats, strings, bools and out-of-range integers are refused."""
+    """``value`` as an action index; floats, strings, bools and out-of-range integers refused."""
     index = value
     if isinstance(index, (np.ndarray, torch.Tensor)) and index.ndim == 0:
         index = index.item()  # a 0-d array or tensor, e.g. np.asarray(space.sample()) or q.argmax()
@@ -188,7 +189,8 @@ def _flags(n: int) -> list[tuple[float, float]]:
 def space_bounds(
     env: ResourceCollectionEnv,
 ) -> tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]:
-    """``(low, high)`` of every observation feature and of every state feature, from ``env``'s parameters.
+    """``(low, high)`` of every observation feature and of every state feature, from ``env``'s
+    parameters.
 
     Robots stay within ``|x|, |y| <= |field_size/2 - agent_radius|`` (the wall); invaders and
     waypoints within the field; resources within the field or on home's rim (a candidate spawn

@@ -98,11 +98,12 @@ class ResourceCollectionEnv(EnvBase):
         waypoint_interval: steps between random-walk refreshes of the waypoints (4).
         waypoint_sigma: std (m) of each random-walk increment; about one robot step (0.19).
         waypoint_path_prob: with ``waypoint_mode="random_walk"``, the probability that a robot's
-            instruction for an episode is a *path*: a walk laid out independently of the robot, which
-            starts at a uniform point of the field and, at each refresh, continues from its own last
-            waypoint instead of restarting at the robot. The paper's walks (0, the default) always
-            start at the robot, so they never ask a robot to come back to an instruction it left (to
-            pick a resource, say), which every evaluation instruction does (a quadrant, "go right").
+            instruction for an episode is a *path*: a walk laid out independently of the robot,
+            which starts at a uniform point of the field and, at each refresh, continues from its
+            own last waypoint instead of restarting at the robot. The paper's walks (0, the default)
+            always start at the robot, so they never ask a robot to come back to an instruction it
+            left (to pick a resource, say), which every evaluation instruction does (a quadrant, "go
+            right").
         waypoint_mode: ``"random_walk"`` (training default: the env regenerates waypoints) or
             ``"external"`` (the env keeps whatever the caller wrote; see :meth:`write_waypoints`).
         pick_reward / collect_reward / defense_reward / invasion_penalty: event rewards
@@ -454,7 +455,8 @@ class ResourceCollectionEnv(EnvBase):
         return torch.stack([r * torch.cos(angle), r * torch.sin(angle)], -1)
 
     def _spawn_resources(self, res_pos: torch.Tensor, respawn: torch.Tensor) -> torch.Tensor:
-        """New positions ``[M, R, 2]`` for the slots in ``respawn`` [M, R], avoiding every other resource.
+        """New positions ``[M, R, 2]`` for the slots in ``respawn`` [M, R], avoiding every other
+        resource.
 
         Each slot draws a few candidates and keeps the first that overlaps no resource already
         in place. Slots respawning in the same env are placed in rounds (the k-th of each env in
@@ -659,8 +661,8 @@ class ResourceCollectionEnv(EnvBase):
         )
 
     def _refresh_waypoints(self, ids: torch.Tensor) -> None:
-        """New random-walk waypoints for the envs ``ids``: from the robots' positions, or for a robot
-        on a path (``waypoint_path_prob``), from its walk's last waypoint."""
+        """New random-walk waypoints for the envs ``ids``: from the robots' positions, or for a
+        robot on a path (``waypoint_path_prob``), from its walk's last waypoint."""
         start = self._pos
         if self.waypoint_path_prob > 0:
             start = torch.where(self._on_path, batch_last(self._wp[:, :, -1]), start)
@@ -670,7 +672,7 @@ class ResourceCollectionEnv(EnvBase):
             self._put(_wp=self._wp.index_copy(0, ids, self._random_walk(start[..., ids])))
 
     def _respawn_picked(self, picked: torch.Tensor) -> torch.Tensor:
-        """Resource positions after respawning the ``picked`` [R, B] ones (only envs with a pick)."""
+        """Resource positions after respawning the ``picked`` [R, B] ones (envs with a pick)."""
         res = self._res
         rows = any_(picked, 0).nonzero().squeeze(-1)
         if not rows.numel():

@@ -54,7 +54,7 @@ class InstructionSource(ABC):
 
     quadrant: int | None = None
 
-    def reset(self, env, td: TensorDictBase) -> None:
+    def reset(self, env, td: TensorDictBase) -> None:  # noqa: B027 (an optional hook)
         """The instruction starts now (episode or segment start); ``env`` is in its start state."""
 
     @abstractmethod
@@ -95,8 +95,8 @@ class _NoisySource(InstructionSource):
 
 
 class RandomWalkSource(_NoisySource):
-    """The training distribution: every ``interval`` steps, K waypoints
-    ``p + cumsum(eps)``, ``eps ~ N(0, sigma^2 I)``, from each robot's position, clipped to the field.
+    """The training distribution: every ``interval`` steps, K waypoints ``p + cumsum(eps)``,
+    ``eps ~ N(0, sigma^2 I)``, from each robot's position, clipped to the field.
 
     ``sigma`` and ``interval`` default to the env's own (0.19 m, 4 steps), so a policy sees
     exactly what it was trained on.

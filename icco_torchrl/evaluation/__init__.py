@@ -1,4 +1,4 @@
-"""Evaluation: greedy rollouts, protocols (random walk, quadrants, instruction schedules), figures."""
+"""Evaluation: greedy rollouts, protocols (random walk, quadrants, instructions), figures."""
 
 from icco_torchrl.evaluation.rollout import EVENT_KEYS, episode_metrics, evaluate, greedy_rollout
 

@@ -46,7 +46,7 @@ def method_label(cfg: Mapping, suffix: str = "") -> str:
 
 
 def step_values(env, nxt, waypoints: torch.Tensor, quadrant: int | None) -> dict[str, torch.Tensor]:
-    """This step's ``[B]`` values from the raw env (after the step) and its ``"next"`` TensorDict."""
+    """This step's ``[B]`` values from the raw env (after the step) and its ``"next"`` td."""
     reward = nxt.get("reward").reshape(-1).float()
     inst = nxt.get(("events", "inst_reward")).float()
     out = {"reward": reward, "task_reward": reward - inst, "inst_reward": inst}

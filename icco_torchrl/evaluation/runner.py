@@ -111,7 +111,7 @@ def _gif_recorder(total: int):
 
 @dataclass
 class Evaluation:
-    """Everything :func:`evaluate_checkpoints` measured, ready to be written by :func:`write_report`."""
+    """Everything :func:`evaluate_checkpoints` measured, ready for :func:`write_report`."""
 
     rows: list = field(default_factory=list)  # metrics rows of every checkpoint, trial and segment
     runs: dict = field(default_factory=dict)  # the first ScheduleRun of each method, for figures
@@ -300,8 +300,8 @@ PROTOCOL_TITLES = {
 
 
 def protocol_schedules(cfg: DictConfig) -> Callable[[int], Schedule]:
-    """``episode -> schedule`` of ``eval.protocol``: each episode draws its own reference walks (the env
-    draws its own initial states)."""
+    """``episode -> schedule`` of ``eval.protocol``: each episode draws its own reference walks (the
+    env draws its own initial states)."""
     if cfg.eval.protocol not in PROTOCOLS:
         raise ValueError(
             f"eval.protocol must be one of {sorted(PROTOCOLS)}, got {cfg.eval.protocol!r}"

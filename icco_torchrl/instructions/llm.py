@@ -101,13 +101,14 @@ _FINAL_STATUSES = (400, 401, 403, 404)
 
 
 def _is_final(exc: BaseException) -> bool:
-    """Whether a provider error is not worth retrying (bad key, no permission, unknown model or URL)."""
+    """Whether a provider error is final (bad key, no permission, unknown model or URL)."""
     return getattr(exc, "status_code", None) in _FINAL_STATUSES
 
 
 def _describe(exc: BaseException) -> str:
     """``Type: message (RootCause: message)`` on one line, cut short (provider messages can hold
-    whole JSON bodies). The root cause says what litellm's wrapper hides, e.g. "Connection refused"."""
+    whole JSON bodies). The root cause says what litellm's wrapper hides, e.g. "Connection
+    refused"."""
     root = exc
     for _ in range(10):  # the chain is short; the bound guards against cycles
         nxt = root.__cause__ or root.__context__
@@ -193,14 +194,23 @@ def build_messages(
     )
     resources, invader = _points(resources, "resources"), _points(invader, "invader")
     user = _template(prompt).substitute(
-        x_min=-half, x_max=half, y_min=-half, y_max=half,
+        x_min=-half,
+        x_max=half,
+        y_min=-half,
+        y_max=half,
         field_json=json.dumps({"x": [-half, half], "y": [-half, half], "home": [0.0, 0.0]}),
-        n_agents=len(positions), agent_lines=_listing("agent", positions), positions_json=_as_json(positions),
-        resource_lines=_listing("resource", resources), resources_json=_as_json(resources),
-        invader_lines=_listing("invader", invader), invader_json=_as_json(invader),
+        n_agents=len(positions),
+        agent_lines=_listing("agent", positions),
+        positions_json=_as_json(positions),
+        resource_lines=_listing("resource", resources),
+        resources_json=_as_json(resources),
+        invader_lines=_listing("invader", invader),
+        invader_json=_as_json(invader),
         instruction_json=json.dumps(instruction, ensure_ascii=False),
-        n_waypoints=n_waypoints, agent_keys=", ".join(f'"{k}"' for k in keys), example=example,
-    )  # fmt: skip
+        n_waypoints=n_waypoints,
+        agent_keys=", ".join(f'"{k}"' for k in keys),
+        example=example,
+    )
     return [
         {"role": "system", "content": _template("system").template.strip()},
         {"role": "user", "content": user},
@@ -385,8 +395,15 @@ class LLMPlanner:
         (tests); a sequence gives one entry per attempt, the last one repeating.
         """
         pos = _points(positions, "positions")
-        messages = build_messages(instruction, pos, prompt=self.prompt, n_waypoints=self.n_waypoints,
-                                  field_size=self.field_size, resources=resources, invader=invader)  # fmt: skip
+        messages = build_messages(
+            instruction,
+            pos,
+            prompt=self.prompt,
+            n_waypoints=self.n_waypoints,
+            field_size=self.field_size,
+            resources=resources,
+            invader=invader,
+        )
         fmt = response_format(len(pos), self.n_waypoints)
         key = cache_key(
             self.model, messages, {"response_format": fmt, "temperature": self.temperature}
@@ -445,28 +462,53 @@ class LLMPlanner:
                 self.cache.put(key, raw, model=self.model, messages=messages)
                 return PlanResult(waypoints.astype(np.float32), ok=True, attempts=attempt, raw=raw)
             self.stats["failures"] += 1
-            logger.warning("LLM %s attempt %d/%d for %r failed: %s; raw reply: %r", self.model, attempt,
-                           self.max_retries + 1, instruction, error, _shown(raw))  # fmt: skip
+            logger.warning(
+                "LLM %s attempt %d/%d for %r failed: %s; raw reply: %r",
+                self.model,
+                attempt,
+                self.max_retries + 1,
+                instruction,
+                error,
+                _shown(raw),
+            )
             if stop:
                 break
         if not answered and not self.fallback_on_error:
             raise LLMUnavailable(
-                f"LLM {self.model} at {self.api_base or 'its default URL'} gave no reply to {instruction!r} "
-                f"({attempts} attempt(s) in {time.monotonic() - start:.1f} s): {error}; check llm.api_base, the API "
-                "key and that the server is up, or set llm.fallback_on_error=true to run on fallback waypoints"
+                f"LLM {self.model} at {self.api_base or 'its default URL'} gave no reply to "
+                f"{instruction!r} ({attempts} attempt(s) in {time.monotonic() - start:.1f} s): "
+                f"{error}; check llm.api_base, the API key and that the server is up, or set "
+                "llm.fallback_on_error=true to run on fallback waypoints"
             )
         return self._fallback(instruction, pos, previous, attempts, error, raw)
 
-    def _complete(self, litellm: Any, messages: list[dict[str, str]], fmt: dict[str, Any], mock: Any,
-                  remaining: float) -> str | None:  # fmt: skip
+    def _complete(
+        self,
+        litellm: Any,
+        messages: list[dict[str, str]],
+        fmt: dict[str, Any],
+        mock: Any,
+        remaining: float,
+    ) -> str | None:
         extra = {} if mock is None else {"mock_response": mock}
         self.stats["backend_calls"] += 1
         # max_retries=0: plan()'s loop owns the retry budget, not the OpenAI client inside litellm.
-        # drop_params: a provider without JSON-schema support gets the prompt alone (we validate anyway).
-        response = _within(remaining, lambda: litellm.completion(
-            model=self.model, messages=messages, response_format=fmt, temperature=self.temperature,
-            timeout=min(self.timeout, remaining), api_base=self.api_base, max_retries=0, drop_params=True, **extra,
-        ))  # fmt: skip
+        # drop_params: a provider without JSON-schema support gets the prompt alone (we validate
+        # anyway).
+        response = _within(
+            remaining,
+            lambda: litellm.completion(
+                model=self.model,
+                messages=messages,
+                response_format=fmt,
+                temperature=self.temperature,
+                timeout=min(self.timeout, remaining),
+                api_base=self.api_base,
+                max_retries=0,
+                drop_params=True,
+                **extra,
+            ),
+        )
         return response.choices[0].message.content
 
     def _feedback(self, raw: str | None, error: str, n_agents: int) -> list[dict[str, str]]:
@@ -493,8 +535,14 @@ class LLMPlanner:
             np.float32
         )
         self.stats["fallbacks"] += 1
-        logger.warning("LLM %s gave no usable plan for %r after %d attempt(s) (%s); falling back to %s",
-                       self.model, instruction, attempts, error, fallback)  # fmt: skip
+        logger.warning(
+            "LLM %s gave no usable plan for %r after %d attempt(s) (%s); falling back to %s",
+            self.model,
+            instruction,
+            attempts,
+            error,
+            fallback,
+        )
         return PlanResult(
             waypoints, ok=False, attempts=attempts, fallback=fallback, error=error, raw=raw
         )
@@ -581,6 +629,8 @@ def plan_waypoints(
     planner = LLMPlanner(n_waypoints=n_waypoints, field_size=field_size, **settings)
     result = planner.plan(instruction, positions, **context)
     if backend == "offline" and not result.ok:
-        raise ValueError(f"the offline rule planner does not understand the instruction {instruction!r}: "
-                         f"{result.error}")  # fmt: skip
+        raise ValueError(
+            f"the offline rule planner does not understand the instruction {instruction!r}: "
+            f"{result.error}"
+        )
     return result.waypoints

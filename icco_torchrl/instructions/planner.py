@@ -308,7 +308,7 @@ def _intercept(position: np.ndarray, invader: np.ndarray) -> tuple[float, np.nda
 def _task_targets(
     intent: Intent, positions: np.ndarray, resources: np.ndarray, invader: np.ndarray
 ) -> np.ndarray:
-    """One agent intercepts the invader, the others take the nearest free resources, the rest guard home."""
+    """One agent intercepts the invader, others take nearest free resources, the rest guard home."""
     if intent.collect and not intent.defend and len(resources) == 0:
         raise UnknownInstruction("collecting needs resource positions: use the task-aligned prompt")
     targets = np.zeros_like(positions)
@@ -416,7 +416,8 @@ def _align_with_task(
                 resources[j] - positions[i]
             )
             notes.append(
-                f"agent_{i} picks the resource at ({resources[j][0]:.1f}, {resources[j][1]:.1f}) on the way"
+                f"agent_{i} picks the resource at ({resources[j][0]:.1f}, {resources[j][1]:.1f}) "
+                "on the way"
             )
     return waypoints, "; ".join(notes) or "no task detour needed"
 

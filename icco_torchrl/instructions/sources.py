@@ -131,8 +131,9 @@ def language_schedule(
     replan_every: int | None = None,
     strict: bool = False,
 ) -> list:
-    """One segment of ``steps`` steps per instruction, each an :class:`LLMSource` (a fresh one per call:
-    sources keep counters). The schedule format of :func:`~icco_torchrl.evaluation.protocols.run_schedule`."""
+    """One segment of ``steps`` steps per instruction, each an :class:`LLMSource` (a fresh one per
+    call: sources keep counters). The schedule format of
+    :func:`~icco_torchrl.evaluation.protocols.run_schedule`."""
     return [
         (text, LLMSource(planner, text, replan_every=replan_every, strict=strict), steps)
         for text in instructions

@@ -31,16 +31,17 @@ if TYPE_CHECKING:
 def keep_hidden(
     hidden: torch.Tensor, is_init: torch.Tensor | None, step_count: torch.Tensor | None
 ) -> torch.Tensor:
-    """``hidden [..., N, H]`` zeroed where an episode starts: TorchRL's ``is_init`` (``InitTracker``,
-    ``[..., 1]`` or per agent ``[..., N, 1]``), else ``step_count == 0`` (``[..., 1]``)."""
+    """``hidden [..., N, H]`` zeroed where an episode starts: TorchRL's ``is_init``
+    (``InitTracker``, ``[..., 1]`` or per agent ``[..., N, 1]``), else ``step_count == 0``
+    (``[..., 1]``)."""
     if is_init is not None:
         keep = ~is_init.bool()
     elif step_count is not None:
         keep = step_count != 0
     else:
         raise KeyError(
-            "the agent needs 'is_init' (TorchRL's InitTracker) or 'step_count' (StepCounter) to know "
-            "where episodes start"
+            "the agent needs 'is_init' (TorchRL's InitTracker) or 'step_count' (StepCounter) to "
+            "know where episodes start"
         )
     if keep.dim() < hidden.dim():
         keep = keep.unsqueeze(-1)
@@ -101,7 +102,8 @@ class RecurrentQNet(nn.Module):
         )
         if waypoint_features and layout is None:
             raise ValueError(
-                "waypoint_features reads the own waypoints of a structured observation: it needs a layout"
+                "waypoint_features reads the own waypoints of a structured observation: it needs a "
+                "layout"
             )
         self.waypoint_features = waypoint_features
         wf = PATH_FEATURES if waypoint_features else 0
@@ -109,11 +111,13 @@ class RecurrentQNet(nn.Module):
         if layout is None:  # a flat observation (any env): [obs; state] through an MLP
             if obs_dim is None:
                 raise ValueError(
-                    "RecurrentQNet needs a layout (structured observation) or obs_dim (flat observation)"
+                    "RecurrentQNet needs a layout (structured observation) or obs_dim (flat "
+                    "observation)"
                 )
             if (encoder or "mlp") != "mlp" or self.relative:
                 raise ValueError(
-                    "a flat observation (no layout) is read by encoder='mlp' with state_encoder='flat'"
+                    "a flat observation (no layout) is read by encoder='mlp' with "
+                    "state_encoder='flat'"
                 )
             if full_state and state_dim is None:
                 raise ValueError("full_state without a layout needs state_dim")
@@ -173,15 +177,18 @@ class RecurrentQNet(nn.Module):
         return self.head(torch.cat([h, z], -1) if self.z_dim else h)
 
     def forward(self, obs, prev_action, hidden, step_count=None, z=None, state=None, is_init=None):
-        """One step for ``[B, N, ...]`` inputs; the hidden state restarts at zero where an episode starts
-        (``is_init``, else ``step_count == 0``).
+        """One step for ``[B, N, ...]`` inputs; the hidden state restarts at zero where an episode
+        starts (``is_init``, else ``step_count == 0``).
 
-        Under TorchRL's ``set_recurrent_mode(True)`` the inputs are sequences ``[S, L, N, ...]``: one
-        GRU call from the hidden state of the first step; returns Q ``[S, L, N, A]`` and the hidden
-        state after every step ``[S, L, N, H]``.
+        Under TorchRL's ``set_recurrent_mode(True)`` the inputs are sequences ``[S, L, N, ...]``:
+        one GRU call from the hidden state of the first step; returns Q ``[S, L, N, A]`` and the
+        hidden state after every step ``[S, L, N, H]``.
         """
         if recurrent_mode():
-            first = lambda v: None if v is None else v[:, 0]
+
+            def first(v):
+                return None if v is None else v[:, 0]
+
             h0 = keep_hidden(hidden[:, 0], first(is_init), first(step_count))
             q, h = self.sequence(obs, prev_action, h0, z=z, state=state, return_hidden="all")
         else:
@@ -189,7 +196,7 @@ class RecurrentQNet(nn.Module):
         return q, h
 
     def step(self, obs, prev_action, hidden, z=None, state=None):
-        """One step from ``hidden`` as given (no restart): Q ``[B, N, A]`` and the new hidden state."""
+        """One step from ``hidden`` as given (no restart): Q ``[B, N, A]`` and the new hidden."""
         x = self._features(obs, prev_action, state, z)
         g = self.gru  # one step of the same nn.GRU, without its sequence-call overhead
         h = torch.gru_cell(
@@ -205,9 +212,9 @@ class RecurrentQNet(nn.Module):
     def sequence(
         self, obs, prev_action, hidden0, z=None, state=None, return_hidden: bool | str = False
     ):
-        """A segment in one GRU call: inputs ``[S, L, N, ...]``, ``hidden0 [S, N, H]`` -> Q ``[S, L, N, A]``
-        (and, with ``return_hidden``, the hidden state after the last step, ``[S, N, H]``, or with
-        ``return_hidden="all"`` after every step, ``[S, L, N, H]``)."""
+        """A segment in one GRU call: inputs ``[S, L, N, ...]``, ``hidden0 [S, N, H]`` ->
+        Q ``[S, L, N, A]`` (and, with ``return_hidden``, the hidden state after the last step,
+        ``[S, N, H]``, or with ``return_hidden="all"`` after every step, ``[S, L, N, H]``)."""
         x = self._features(obs, prev_action, state, z)
         S, L, N, H = x.shape
         out, h_last = self.gru(
@@ -240,8 +247,9 @@ def make_agent(
 ) -> TensorDictModule:
     """The agent as a TensorDictModule (see :class:`RecurrentQNet` for the sizes).
 
-    in:  ``obs_key``, ``(group, "prev_action")``, ``(group, "rnn_hidden")``, ``is_init_key`` (TorchRL's
-         ``InitTracker``) or, where absent, ``step_count_key``; [``(group, "z")``], [``state_key`` for full_state]
+    in:  ``obs_key``, ``(group, "prev_action")``, ``(group, "rnn_hidden")``, ``is_init_key``
+         (TorchRL's ``InitTracker``) or, where absent, ``step_count_key``; [``(group, "z")``],
+         [``state_key`` for full_state]
     out: ``(group, "action_value")``, ``("next", group, "rnn_hidden")``
 
     ``group`` is the action key's prefix. One step per call at collection; a whole sequence under

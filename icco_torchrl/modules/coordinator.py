@@ -78,7 +78,8 @@ class StateTokenEncoder(nn.Module):
 
 
 class Coordinator(nn.Module):
-    """Gaussian TACI per robot; ``forward`` is the rollout step (sample/hold), ``distribution`` the net.
+    """Gaussian TACI per robot; ``forward`` is the rollout step (sample/hold), ``distribution`` the
+    net.
 
     Sizes: a ``layout`` (the resource-collection state, any encoder), or ``n_agents`` and
     ``state_dim`` for any flat global state (``encoder="mlp"``, ``state_encoder="flat"``).
@@ -131,11 +132,13 @@ class Coordinator(nn.Module):
     def forward(self, state, step_count, z_prev, noise_prev):
         """Redraw z where ``step_count % period == 0`` (mean when exploration is deterministic).
 
-        ``step_count [B, 1]`` (TorchRL's ``StepCounter``); ``state [B, ...]``, trailing dims flattened.
+        ``step_count [B, 1]`` (TorchRL's ``StepCounter``); ``state [B, ...]``, trailing dims
+        flattened.
         """
         if step_count is None:
             raise KeyError(
-                "the coordinator needs 'step_count' (add TorchRL's StepCounter transform to the env)"
+                "the coordinator needs 'step_count' (add TorchRL's StepCounter transform to the "
+                "env)"
             )
         if state.dim() > step_count.dim():
             state = state.flatten(step_count.dim() - 1)
@@ -177,9 +180,10 @@ def make_coordinator(
 ) -> TensorDictModule:
     """The coordinator as a TensorDictModule for rollouts (see :class:`Coordinator` for the sizes).
 
-    in:  ``state_key`` (any trailing shape, flattened), ``step_count_key`` (TorchRL's ``StepCounter``),
-         ``(group, "z")`` and ``(group, "z_noise")`` (held values)
-    out: ``(group, "z")``, ``(group, "z_noise")`` (the distribution itself: ``module.distribution(state)``)
+    in:  ``state_key`` (any trailing shape, flattened), ``step_count_key`` (TorchRL's
+         ``StepCounter``), ``(group, "z")`` and ``(group, "z_noise")`` (held values)
+    out: ``(group, "z")``, ``(group, "z_noise")`` (the distribution itself:
+         ``module.distribution(state)``)
     """
     net = Coordinator(
         layout,

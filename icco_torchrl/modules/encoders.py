@@ -76,7 +76,7 @@ class MLPEncoder(nn.Module):
 def make_encoder(
     kind: str, *, own_dim: int, n_entities: int, entity_dim: int, hidden: int
 ) -> nn.Module:
-    """``kind`` is ``"attention"`` or ``"mlp"``; the input is ``own_dim + n_entities*entity_dim`` wide."""
+    """``kind``: ``"attention"`` or ``"mlp"``; input width ``own_dim + n_entities*entity_dim``."""
     if kind == "attention":
         return EntityAttentionEncoder(own_dim, n_entities, entity_dim, hidden)
     if kind == "mlp":

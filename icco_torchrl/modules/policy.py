@@ -28,8 +28,8 @@ def make_primer(
     *,
     n_actions: int,
 ) -> TensorDictPrimer:
-    """Zeros at reset for the per-robot GRU state, previous action (one of the env's ``n_actions``) and
-    (with a coordinator) z, under ``group``."""
+    """Zeros at reset for the per-robot GRU state, previous action (one of the env's ``n_actions``)
+    and (with a coordinator) z, under ``group``."""
     entries = dict(
         rnn_hidden=Unbounded((n_agents, hidden), device=device),
         prev_action=Categorical(n_actions, (n_agents,), dtype=torch.int64, device=device),
@@ -46,11 +46,11 @@ def make_primer(
 
 
 class GuidedEGreedyModule(EGreedyModule):
-    """Epsilon-greedy whose exploratory actions come from a ``guide`` policy (``td -> td`` writing the
-    same action key, e.g. a scripted reference policy) instead of uniform draws: with probability
-    ``eps`` each agent takes the guide's action. Off-policy Q-learning learns from any behaviour,
-    so the replay then holds the task events a random walk rarely meets. Greedy (DETERMINISTIC)
-    rollouts never call the guide."""
+    """Epsilon-greedy whose exploratory actions come from a ``guide`` policy (``td -> td`` writing
+    the same action key, e.g. a scripted reference policy) instead of uniform draws: with
+    probability ``eps`` each agent takes the guide's action. Off-policy Q-learning learns from any
+    behaviour, so the replay then holds the task events a random walk rarely meets. Greedy
+    (DETERMINISTIC) rollouts never call the guide."""
 
     def __init__(self, guide, **kwargs):
         super().__init__(**kwargs)

@@ -44,7 +44,8 @@ def diag_normal_log_prob(x, loc, scale):
 
 
 def combine_log_prob(z, loc, scale, mask, combine: str = "product"):
-    """log q(z) from factors ``loc/scale [S, K, N, Z]`` with ``mask [S, K]``; z ``[S, N, Z]`` -> ``[S, N]``.
+    """log q(z) from factors ``loc/scale [S, K, N, Z]`` with ``mask [S, K]``; z ``[S, N, Z]`` ->
+    ``[S, N]``.
 
     Every row must have at least one valid factor (the first, the broadcast step, always is).
     """
@@ -61,7 +62,8 @@ def combine_log_prob(z, loc, scale, mask, combine: str = "product"):
 
 
 class Posterior(nn.Module):
-    """Factors: global ``(state, joint action, robot id)`` at the broadcast step, local ``(o, a)`` after.
+    """Factors: global ``(state, joint action, robot id)`` at the broadcast step, local ``(o, a)``
+    after.
 
     Sizes: ``n_actions`` (the env's action count) and a ``layout``, or ``n_agents``, ``obs_dim`` and
     ``state_dim`` (flat observation and state of any env).
@@ -91,7 +93,8 @@ class Posterior(nn.Module):
         self.later = _gaussian_head(obs_dim + n_actions, hidden, z_dim)
 
     def factors(self, state, action, obs):
-        """Segment ``state [S, T, D]``, ``action [S, T, N]``, ``obs [S, T, N, F]`` -> loc, scale ``[S, T, N, Z]``.
+        """Segment ``state [S, T, D]``, ``action [S, T, N]``, ``obs [S, T, N, F]`` -> loc, scale
+        ``[S, T, N, Z]``.
 
         Factor 0 reads the global state and joint action of the broadcast step; factor k >= 1
         reads robot i's own observation and action at step k.
@@ -109,7 +112,8 @@ class Posterior(nn.Module):
         return _split(torch.cat([first, later], 1))
 
     def forward(self, z, state, action, obs, mask):
-        """log q(z | segment) ``[S, N]``; z ``[S, N, Z]`` (or ``[S, T, N, Z]``: its first step is scored).
+        """log q(z | segment) ``[S, N]``; z ``[S, N, Z]`` (or ``[S, T, N, Z]``: its first step is
+        scored).
 
         ``mask [S, T]`` marks the steps that belong to z's hold period (the broadcast step first).
         """
@@ -130,7 +134,8 @@ def make_posterior(
     obs_dim: int | None = None,
     state_dim: int | None = None,
 ) -> Posterior:
-    """The posterior for :class:`~icco_torchrl.objectives.ICCOLoss` (see :class:`Posterior` for the sizes).
+    """The posterior for :class:`~icco_torchrl.objectives.ICCOLoss` (see :class:`Posterior` for the
+    sizes).
 
     A plain module, not a TensorDictModule: it scores whole segments (z of the broadcast step,
     the segment's states, actions, observations and hold mask), which the loss reads through its

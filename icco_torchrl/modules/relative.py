@@ -84,7 +84,7 @@ def relative_tokens(state: torch.Tensor, layout: ObsLayout) -> torch.Tensor:
 
 
 class RelativeStateEncoder(nn.Module):
-    """Per-robot features ``[..., N, hidden]`` from the flat global state (see the module docstring)."""
+    """Per-robot features ``[..., N, hidden]`` from the flat global state (see the module doc)."""
 
     def __init__(self, layout: ObsLayout, hidden: int, extra_own: int = 0):
         super().__init__()

@@ -26,8 +26,8 @@ from icco_torchrl.training.config import compose_config, resolve_device, set_env
 from icco_torchrl.training.segments import SegmentCutter
 
 # Env seeds relative to cfg.seed: training uses the seed itself, the evaluations during training
-# seed + VALIDATION_SEED_OFFSET, evaluations of a trained policy (icco eval/instruct, restore) seed +
-# EVAL_SEED_OFFSET, so none replays another's episodes; evaluation episode e draws its reference
+# seed + VALIDATION_SEED_OFFSET, evaluations of a trained policy (icco eval/instruct, restore) seed
+# + EVAL_SEED_OFFSET, so none replays another's episodes; evaluation episode e draws its reference
 # walks with seed + EPISODE_SEED_STRIDE * e.
 VALIDATION_SEED_OFFSET = 10_000
 EVAL_SEED_OFFSET = 20_000
@@ -132,7 +132,7 @@ def make_loss(cfg: DictConfig, mods: dict) -> ICCOLoss:
 
 
 def make_optimizer(cfg: DictConfig, loss: ICCOLoss) -> torch.optim.Optimizer:
-    """``train.optimizer`` over every parameter of the loss (foreach: one multi-tensor kernel per step)."""
+    """``train.optimizer`` over the loss's parameters (foreach: one multi-tensor kernel a step)."""
     t = cfg.train
     if t.optimizer == "rmsprop":
         return torch.optim.RMSprop(loss.parameters(), lr=t.lr, alpha=0.99, eps=1e-5, foreach=True)
@@ -180,9 +180,10 @@ def build(
 ) -> Run:
     """Assemble ``cfg`` on ``device`` (default ``cfg.device``). ``num_envs``, ``seed`` and
     ``env_overrides`` change the env (an evaluation env, say); ``for_training`` applies
-    ``train.env_params`` and ``train.shaping`` to the training env and adds the evaluation env (``train.eval_envs`` envs,
-    seed + VALIDATION_SEED_OFFSET, ``env.params`` without them), optimiser, target updater and
-    replay buffer. Objects are made in a fixed order, so a seed gives the same weights every time."""
+    ``train.env_params`` and ``train.shaping`` to the training env and adds the evaluation env
+    (``train.eval_envs`` envs, seed + VALIDATION_SEED_OFFSET, ``env.params`` without them),
+    optimiser, target updater and replay buffer. Objects are made in a fixed order, so a seed gives
+    the same weights every time."""
     device = resolve_device(cfg.device if device is None else str(device))
     t = cfg.train
     if for_training:  # training-only env parameters (reward shaping); evaluations keep env.params
@@ -245,7 +246,7 @@ def build_components(
     device: str = "cpu",
     seed: int = 0,
 ) -> Run:
-    """:func:`build` for scripts and tests: the composed config of ``method`` when no ``cfg`` is given."""
+    """:func:`build` for scripts and tests: without ``cfg``, the composed config of ``method``."""
     if cfg is None:
         cfg = compose_config([f"method={method or 'icco'}", f"seed={seed}", f"device={device}"])
     return build(cfg, num_envs=num_envs)

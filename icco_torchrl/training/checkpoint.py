@@ -33,7 +33,8 @@ _NDARRAY = "__ndarray__"
 
 
 def _temp_pattern(name: str) -> re.Pattern:
-    """Names of the temp files/folders made by ``tempfile.mk*temp(prefix=f".{name}.", suffix=".tmp")``."""
+    """Names of the temp files/folders made by
+    ``tempfile.mk*temp(prefix=f".{name}.", suffix=".tmp")``."""
     return re.compile(rf"\.{re.escape(name)}\.[a-z0-9_]{{8}}\.tmp")
 
 
@@ -51,7 +52,7 @@ def _remove_stale_temps(path: Path) -> None:
 
 
 def _to_plain(obj):
-    """``obj`` with numpy arrays and scalars turned into tensors and Python scalars (weights-only loadable)."""
+    """``obj`` with numpy arrays and scalars as tensors and Python scalars (weights-only)."""
     if isinstance(obj, dict):
         return {k: _to_plain(v) for k, v in obj.items()}
     if type(obj) in (
@@ -148,9 +149,9 @@ def load_checkpoint(path: str | Path, map_location="cpu") -> dict[str, Any]:
         raise CheckpointError(f"{path} is not an icco-torchrl checkpoint")
     if payload["format_version"] != FORMAT_VERSION:
         raise CheckpointError(
-            f"{path} has checkpoint format {payload['format_version']}; this version of icco-torchrl "
-            f"reads format {FORMAT_VERSION} (the networks changed): retrain, or evaluate it with the "
-            "release that wrote it"
+            f"{path} has checkpoint format {payload['format_version']}; this version of "
+            f"icco-torchrl reads format {FORMAT_VERSION} (the networks changed): retrain, or "
+            "evaluate it with the release that wrote it"
         )
     payload = _from_plain(payload)
     from icco_torchrl.training.config import (
@@ -196,14 +197,16 @@ def load_weights(loss, state_dict: dict, path: str | Path, method: str) -> None:
 
 
 def check_compatible(ckpt: dict[str, Any], cfg, layout, path: str | Path) -> None:
-    """The one check that a checkpoint's weights fit what ``cfg`` builds for an env of ``layout``: the
-    method's fields (its name and label aside: sizes, encoders, coordinator) and the observation layout (robot,
-    resource, invader and waypoint counts) must be the checkpoint's. Used by ``resume=`` and by
-    :func:`~icco_torchrl.training.restore.restore`; raises one ``CheckpointError`` naming every difference."""
+    """The one check that a checkpoint's weights fit what ``cfg`` builds for an env of ``layout``:
+    the method's fields (its name and label aside: sizes, encoders, coordinator) and the observation
+    layout (robot, resource, invader and waypoint counts) must be the checkpoint's. Used by
+    ``resume=`` and by :func:`~icco_torchrl.training.restore.restore`; raises one
+    ``CheckpointError`` naming every difference."""
     from omegaconf import OmegaConf
 
     cfg = cfg if isinstance(cfg, dict) else OmegaConf.to_container(cfg, resolve=True)
-    # ``ckpt`` comes from load_checkpoint, which filled in the method fields added since it was written.
+    # ``ckpt`` comes from load_checkpoint, which filled in the method fields added since it was
+    # written.
     saved_m, m = ckpt["cfg"]["method"], cfg["method"]
     method = [
         f"method.{key}: checkpoint {saved_m.get(key)!r} vs config {m.get(key)!r}"
@@ -263,7 +266,8 @@ def _dump_buffer(buffer, folder: Path) -> None:
 
 
 def save_replay(buffer, path: str | Path) -> Path:
-    """Dump a TorchRL replay buffer (its filled segments and writer position) into the directory ``path``.
+    """Dump a TorchRL replay buffer (its filled segments and writer position) into the directory
+    ``path``.
 
     Written to a temporary directory first and swapped in, so an interrupted write leaves the
     previous dump (or ``.<name>.old`` during the swap) intact; temp directories of a writer

@@ -1,4 +1,5 @@
-"""One logger for a run: CSV files always, wandb when asked (offline by default in docs, never required).
+"""One logger for a run: CSV files always, wandb when asked (offline by default in docs, never
+required).
 
 Streams are CSV files in the run folder, one per kind of row (``train``, ``eval``, ``timing``):
 a stream's columns are fixed by its first row, and a later row with other keys is an error
@@ -138,7 +139,7 @@ class RunLogger:
 def read_column(
     run_dir: str | Path, stream: str, column: str
 ) -> tuple[np.ndarray, np.ndarray] | None:
-    """``(frames, values)`` of a run's ``{stream}.csv`` (rows with an empty or NaN value skipped)."""
+    """``(frames, values)`` of a run's ``{stream}.csv`` (empty or NaN values left out)."""
     path = Path(run_dir) / f"{stream}.csv"
     if not path.is_file():
         return None

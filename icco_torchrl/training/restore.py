@@ -1,4 +1,4 @@
-"""Rebuild a trained policy from a checkpoint (through the one assembler), for evaluation, demos and language protocols."""
+"""Rebuild a trained policy from a checkpoint (through the one assembler): evaluation, demos."""
 
 from __future__ import annotations
 
@@ -24,8 +24,8 @@ def restore(
     seed: int | None = None,
     **env_overrides,
 ) -> Run:
-    """The checkpoint's :class:`~icco_torchrl.training.build.Run` with its weights loaded (``run.checkpoint``
-    holds the file's contents; ``run["policy"]`` etc. as before).
+    """The checkpoint's :class:`~icco_torchrl.training.build.Run` with its weights loaded
+    (``run.checkpoint`` holds the file's contents; ``run["policy"]`` etc. as before).
 
     ``env_overrides`` change env parameters for evaluation (e.g. ``max_steps=580``,
     ``waypoint_mode="external"``); parameters that change the observation layout (robot,

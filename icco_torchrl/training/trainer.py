@@ -1,4 +1,5 @@
-"""Training, in TorchRL's order: config -> env -> modules -> collector -> buffer -> loss -> loop -> eval.
+"""Training, in TorchRL's order: config -> env -> modules -> collector -> buffer -> loss -> loop ->
+eval.
 
 Every method (a preset of ``conf/method/``, :mod:`icco_torchrl.methods`) runs this one loop;
 they differ only in the ``method`` config group.
@@ -218,7 +219,7 @@ class TrainingRun:
 
     # ------------------------------------------------------------------ loop
     def loop(self, remaining: int) -> bool:
-        """Collect and learn until ``remaining`` more frames are done; True when a signal stopped it."""
+        """Collect and learn ``remaining`` more frames; True when a signal stopped it."""
         if remaining <= 0:
             return False
         run, t, p = self.run, self.cfg.train, self.progress
@@ -387,7 +388,7 @@ class TrainingRun:
         return final
 
     def save(self, name: str = "checkpoint.pt") -> Path:
-        """The checkpoint (and, with ``train.checkpoint_buffer``, the replay dump it refers to, first)."""
+        """The checkpoint (with ``train.checkpoint_buffer``, the replay dump it names, first)."""
         run, t, p = self.run, self.cfg.train, self.progress
         if t.checkpoint_buffer:
             save_replay(run.buffer, self.run_dir / REPLAY_DIR)
@@ -469,8 +470,8 @@ def finish_message(
     if final:
         lines.append(
             f"  final greedy evaluation: team reward {final['reward']:.1f}, task reward "
-            f"{final['task_reward']:.1f}, picks {final['pick']:.1f}, defenses {final['defense']:.1f} "
-            f"(reference policies: {REFERENCES_FILE})"
+            f"{final['task_reward']:.1f}, picks {final['pick']:.1f}, defenses "
+            f"{final['defense']:.1f} (reference policies: {REFERENCES_FILE})"
         )
     lines += [
         "  metrics: train.csv, eval.csv, timing.csv; figure: learning_curve.png",
