@@ -97,8 +97,9 @@ REMOVED_AT = "396580d"
 
 
 def _env_params_schema(name: str = "EnvParams", unset: bool = False) -> type:
-    """``ResourceCollectionEnv``'s keyword arguments (defaults, types) as a dataclass: ``env.params``;
-    with ``unset`` every field is optional and None (``train.env_params``: None = as env.params)."""
+    """``ResourceCollectionEnv``'s keyword arguments (defaults, types) as a dataclass:
+    ``env.params``; with ``unset`` every field is optional and None (``train.env_params``: None = as
+    env.params)."""
     kinds = {"int": int, "float": float, "str": str, "bool": bool}
     fields = []
     for arg, p in inspect.signature(ResourceCollectionEnv.__init__).parameters.items():
@@ -251,7 +252,7 @@ class LoggerConfig:
 
 @dataclass
 class EvalConfig:
-    """``eval``: ``icco eval`` and ``icco instruct`` (protocols, trials, outputs, reference rows)."""
+    """``eval``: ``icco eval`` and ``icco instruct`` (protocols, trials, outputs, references)."""
 
     # Training distribution | paper Fig. 4/5a.
     protocol: str = _field("random_walk", choices=("random_walk", "quadrants"))
@@ -365,8 +366,8 @@ class Config:
     llm: LLMConfig = field(default_factory=LLMConfig)
 
 
-# Schema name -> dataclass in Hydra's ConfigStore; conf/config.yaml starts from "base_config" and each
-# group's presets from "base_<group>" (for a group, the preset's fields are merged over it).
+# Schema name -> dataclass in Hydra's ConfigStore; conf/config.yaml starts from "base_config" and
+# each group's presets from "base_<group>" (for a group, the preset's fields are merged over it).
 SCHEMAS = {
     "base_config": (None, Config),
     "base_method": ("method", MethodConfig),
@@ -376,7 +377,7 @@ SCHEMAS = {
 
 
 def register_configs() -> None:
-    """Register the schema in Hydra's ConfigStore (idempotent: the store keeps one entry per name)."""
+    """Register the schema in Hydra's ConfigStore (idempotent: one entry per name)."""
     from hydra.core.config_store import ConfigStore
 
     store = ConfigStore.instance()
