@@ -17,7 +17,9 @@ import numpy as np
 
 @dataclass(frozen=True)
 class RobotLimits:
-    """A unicycle's limits (SI units). Defaults: a small indoor robot (TurtleBot-like)."""
+    """A unicycle's limits (SI units). Defaults: a small indoor robot (TurtleBot-like); they are
+    also the defaults of ``live.max_speed`` ... ``live.robot_radius`` (``LiveConfig`` takes them
+    from here, so this module imports nothing from ``icco_torchrl.training``)."""
 
     max_speed: float = 0.5  # m/s, forward only
     max_turn: float = 2.0  # rad/s
