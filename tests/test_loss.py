@@ -67,7 +67,8 @@ def table_loss(online, target, *, gamma, double_q, td_lambda=0.0):
 
 
 def segment_batch(ids, actions, rewards, terminated=None, mask=None):
-    """Segments from observation ids ``[S, T+1, N]`` (step k reads ids[:, k], its next step ids[:, k+1])."""
+    """Segments from observation ids ``[S, T+1, N]`` (step k reads ids[:, k], its next step
+    ids[:, k+1])."""
     ids = torch.as_tensor(ids, dtype=torch.float32)
     S, T1, N = ids.shape
     T = T1 - 1
@@ -113,8 +114,10 @@ IDS = [[[0, 1], [2, 3], [4, 5]]]  # S=1, T=2, N=2
 ACTIONS = [[[1, 0], [0, 1]]]
 REWARDS = [[1.0, -3.0]]
 # chosen: step 0 = Qo[0][1] + Qo[1][0] = 5 ; step 1 = Qo[2][0] + Qo[3][1] = 1. gamma = 0.5.
-# double-Q: step 0 -> argmax Qo[2]=1, Qo[3]=0 -> Qt[2][1] + Qt[3][0] = 3 + 2 = 5 -> y0 = 1 + 2.5 = 3.5
-#           step 1 -> argmax Qo[4]=0, Qo[5]=1 -> Qt[4][0] + Qt[5][1] = 2 + 1 = 3 -> y1 = -3 + 1.5 = -1.5
+# double-Q: step 0 -> argmax Qo[2]=1, Qo[3]=0 -> Qt[2][1] + Qt[3][0] = 3 + 2 = 5
+#             -> y0 = 1 + 2.5 = 3.5
+#           step 1 -> argmax Qo[4]=0, Qo[5]=1 -> Qt[4][0] + Qt[5][1] = 2 + 1 = 3
+#             -> y1 = -3 + 1.5 = -1.5
 # max-Q:    step 0 -> 3 + 6 = 9 -> y0 = 5.5 ; step 1 -> 7 + 5 = 12 -> y1 = 3
 CASES = [
     # double_q, terminated, mask, expected loss_td
@@ -197,7 +200,7 @@ def _reference_td(ids, actions, rewards, terminated, mask, q_on, q_tg, gamma, do
                 continue
             chosen = sum(q_on[ids[s][k][i]][actions[s][k][i]] for i in range(len(ids[s][k])))
             boot = 0.0
-            for i, nid in enumerate(ids[s][k + 1]):
+            for nid in ids[s][k + 1]:
                 src = q_on[nid] if double_q else q_tg[nid]
                 a = max(range(len(src)), key=lambda j: src[j])
                 boot += q_tg[nid][a]
@@ -364,7 +367,8 @@ def test_target_update_after_forward_reaches_the_loss():
     batch = segment_batch(IDS, ACTIONS, REWARDS)
     assert loss(batch)["loss_td"].item() == pytest.approx(4.25)
     updater.step()  # target := online
-    # with Qt = Qo: y0 = 1 + 0.5 * (Qo[2][1] + Qo[3][0]) = 4.5, y1 = -3 + 0.5 * (Qo[4][0] + Qo[5][1]) = 0
+    # with Qt = Qo: y0 = 1 + 0.5 * (Qo[2][1] + Qo[3][0]) = 4.5,
+    #               y1 = -3 + 0.5 * (Qo[4][0] + Qo[5][1]) = 0
     assert loss(batch)["loss_td"].item() == pytest.approx(((5 - 4.5) ** 2 + (1 - 0) ** 2) / 2)
 
 
@@ -463,7 +467,7 @@ def test_target_updater_rejects_bad_arguments():
 
 def _z_on_every_state(loss, x, fresh):
     """z for the L+1 inputs written out step by step: a draw at each broadcast, held otherwise."""
-    T, (S, L) = loss.period, x["step_count"].shape
+    T, L = loss.period, x["step_count"].shape[1]
     with loss.coordinator_params.to_module(loss.coordinator, preserve_module_state=False):
         loc, scale = loss.coordinator.module.distribution(x["state_seq"])
     noise = torch.cat([x["z_noise"], fresh.unsqueeze(1)], 1)
@@ -545,7 +549,8 @@ def test_replay_reproduces_collection_action_values(method, length):
                 z_seq[:, :-1][valid], seg["agents", "z"][valid], atol=1e-5, rtol=0
             )
             broadcasts = (seg["step_count"].squeeze(-1) % loss.period == 0) & valid
-            assert broadcasts.sum(1).max() == min(length // loss.period, 3)  # 3 in a 10-step episode
+            # several inside one item (3 fit in a 10-step episode)
+            assert broadcasts.sum(1).max() == min(length // loss.period, 3)
         q = loss._q_sequence(loss.agent_params, x, z_seq)
     L = seg.shape[1]
     torch.testing.assert_close(
