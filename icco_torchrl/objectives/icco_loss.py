@@ -1,16 +1,9 @@
 """ICCOLoss: the QMIX TD loss conditioned on the coordinator's z, plus the consistency term.
 
-One loss covers every Q-learning method of the paper:
-
-=================  ===========================  ===============
-method             modules                      flags
-=================  ===========================  ===============
-ICCO               agent(z), coordinator,       ce_coef > 0
-                   mixer, posterior
-ICCO w/o CE        agent(z), coordinator, mixer ce_coef = 0
-QMIX               agent, mixer                 no coordinator
-QMIX (FULL)        agent(full_state), mixer     no coordinator
-=================  ===========================  ===============
+One loss covers every Q-learning method of the paper (the presets of ``conf/method/``, listed
+by :mod:`icco_torchrl.methods`): with a coordinator and ``ce_coef > 0`` it is ICCO, with
+``ce_coef = 0`` ICCO w/o CE; without a coordinator it is QMIX, on agents that read their local
+view (QMIX) or the global state as well (QMIX (FULL), in either state encoding).
 
 Input: replayed sequences ``[S, L]`` (TorchRL layout, time last) that start at a broadcast
 step (``step_count % period == 0``), as cut by
