@@ -5,6 +5,9 @@ TORCH_SPEC ?= torch==2.13.0
 PY         := $(VENV)/bin/python
 STAMP      := $(VENV)/.installed
 ARGS       ?=
+# Modules whose docstring examples run with the tests (the runnable Examples: of the loss).
+DOCTESTS   := icco_torchrl/objectives/icco_loss.py icco_torchrl/objectives/returns.py \
+              icco_torchrl/envs/shaping.py
 
 .PHONY: install test bench train eval sweep clean
 
@@ -20,7 +23,7 @@ $(STAMP): pyproject.toml
 test: $(STAMP)
 	$(VENV)/bin/ruff format --check .
 	$(VENV)/bin/ruff check .
-	OMP_NUM_THREADS=1 $(PY) -m pytest tests $(ARGS)
+	OMP_NUM_THREADS=1 $(PY) -m pytest tests $(DOCTESTS) --doctest-modules $(ARGS)
 
 bench: $(STAMP)
 	$(PY) benchmarks/env_throughput.py
