@@ -89,7 +89,7 @@ def _override_value(value) -> str:
 def run_train(cfg: DictConfig, run_dir: str | Path) -> float | None:
     """The final greedy evaluation's team reward (a sweep's objective); None when the run was
     stopped early or had nothing left to train."""
-    from icco_torchrl.training.trainer import train
+    from icco_torchrl.trainer import train
 
     return train(cfg, run_dir).get("reward")
 

@@ -14,18 +14,21 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from icco_torchrl.training.config import LiveConfig
+
+_LIVE = LiveConfig()  # the live.* settings hold the default limits
+
 
 @dataclass(frozen=True)
 class RobotLimits:
-    """A unicycle's limits (SI units). Defaults: a small indoor robot (TurtleBot-like); they are
-    also the defaults of ``live.max_speed`` ... ``live.robot_radius`` (``LiveConfig`` takes them
-    from here, so this module imports nothing from ``icco_torchrl.training``)."""
+    """A unicycle's limits (SI units). Defaults: ``live.max_speed`` ... ``live.robot_radius``
+    (:class:`~icco_torchrl.training.config.LiveConfig`, where they are documented)."""
 
-    max_speed: float = 0.5  # m/s, forward only
-    max_turn: float = 2.0  # rad/s
-    max_accel: float = 1.0  # m/s^2
-    max_turn_accel: float = 4.0  # rad/s^2
-    radius: float = 0.15  # m (the env's robot radius)
+    max_speed: float = _LIVE.max_speed  # m/s, forward only
+    max_turn: float = _LIVE.max_turn  # rad/s
+    max_accel: float = _LIVE.max_accel  # m/s^2
+    max_turn_accel: float = _LIVE.max_turn_accel  # rad/s^2
+    radius: float = _LIVE.robot_radius  # m
 
     def __post_init__(self):
         for name in ("max_speed", "max_turn", "max_accel", "max_turn_accel", "radius"):

@@ -27,7 +27,6 @@ from omegaconf.errors import OmegaConfBaseException
 
 from icco_torchrl.envs.reference_policies import REFERENCE_POLICIES
 from icco_torchrl.envs.resource_collection import SPAWN_MODES, ResourceCollectionEnv
-from icco_torchrl.live.dwa import DEFAULT_LIMITS
 from icco_torchrl.paths import CONF_DIR
 
 
@@ -333,17 +332,17 @@ class LiveConfig:
     fleet: bool = False
     # Stop after this many seconds (the page then shows "run ended"); null: until Ctrl-C / SIGTERM.
     seconds: Optional[float] = _field(None, gt=0)
-    # Robot limits for the DWA controller (defaults: RobotLimits' own, icco_torchrl/live/dwa.py):
-    # forward speed, m/s.
-    max_speed: float = _field(DEFAULT_LIMITS.max_speed, gt=0)
+    # Robot limits for the DWA controller (a small indoor robot, TurtleBot-like; also the
+    # defaults of icco_torchrl/live/dwa.py's RobotLimits): forward speed, m/s.
+    max_speed: float = _field(0.5, gt=0)
     # Turn rate, rad/s.
-    max_turn: float = _field(DEFAULT_LIMITS.max_turn, gt=0)
+    max_turn: float = _field(2.0, gt=0)
     # Forward acceleration, m/s^2.
-    max_accel: float = _field(DEFAULT_LIMITS.max_accel, gt=0)
+    max_accel: float = _field(1.0, gt=0)
     # Turn acceleration, rad/s^2.
-    max_turn_accel: float = _field(DEFAULT_LIMITS.max_turn_accel, gt=0)
-    # Robot radius, m: robots keep twice this apart.
-    robot_radius: float = _field(DEFAULT_LIMITS.radius, gt=0)
+    max_turn_accel: float = _field(4.0, gt=0)
+    # Robot radius, m (the env's robot radius): robots keep twice this apart.
+    robot_radius: float = _field(0.15, gt=0)
 
 
 @dataclass
