@@ -7,7 +7,7 @@ STAMP      := $(VENV)/.installed
 ARGS       ?=
 # Modules whose docstring examples run with the tests (the runnable Examples: of the loss).
 DOCTESTS   := icco_torchrl/objectives/icco_loss.py icco_torchrl/objectives/returns.py \
-              icco_torchrl/envs/shaping.py
+              icco_torchrl/envs/shaping.py icco_torchrl/modules/policy.py
 
 .PHONY: install test bench train eval sweep clean
 

@@ -21,9 +21,9 @@ import torch
 from torchrl.collectors import Collector
 
 from icco_torchrl.objectives import total_loss
+from icco_torchrl.trainer import REPLAY_KEYS
 from icco_torchrl.training.build import build
 from icco_torchrl.training.config import compose_config
-from icco_torchrl.trainer import REPLAY_KEYS
 
 RESULTS = Path(__file__).resolve().parent / "results"
 PHASES = ("collect", "cut", "extend", "sample", "forward", "backward", "optimiser", "metrics")

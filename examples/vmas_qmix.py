@@ -11,10 +11,10 @@ learner:
 * ``icco_qmix``: ``ICCOLoss`` without a coordinator (a recurrent QMIX) on the same mixer;
 * ``icco``: ``ICCOLoss`` with a coordinator broadcasting z every ``period`` steps and the CE term.
 
-ICCO needs five lines beyond TorchRL's structure, marked ``# ICCO``: the env transforms that carry
-the recurrent state (``StepCounter``, ``InitTracker`` and the primer: one line to make them, one to
-add them to both envs), the z size (0 without a coordinator), the coordinator and posterior, and the
-segment cutter in front of the replay buffer. Everything else is a different
+ICCO needs five statements beyond TorchRL's structure, marked ``# ICCO``: the env transforms that
+carry the recurrent state (``recurrent_transforms``: ``StepCounter``, ``InitTracker`` and the
+primer, added to both envs), the z size (0 without a coordinator), the coordinator and posterior,
+and the segment cutter in front of the replay buffer. Everything else is a different
 object in the same place (``make_agent``/``make_policy`` for ``MultiAgentMLP``/``QValueModule``,
 ``ICCOLoss`` for ``QMixerLoss``, segments of ``period`` steps as the buffer's items). The sizes come
 from the specs (18 observations, 9 actions); the loss reads TorchRL's keys, its ``is_init`` and the
@@ -57,7 +57,7 @@ from torchrl.collectors import Collector
 from torchrl.data import TensorDictReplayBuffer
 from torchrl.data.replay_buffers.samplers import SamplerWithoutReplacement
 from torchrl.data.replay_buffers.storages import LazyTensorStorage
-from torchrl.envs import Compose, InitTracker, RewardSum, StepCounter, TransformedEnv
+from torchrl.envs import RewardSum, TransformedEnv
 from torchrl.envs.libs.vmas import VmasEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import EGreedyModule, QValueModule, SafeSequential
@@ -66,7 +66,7 @@ from torchrl.objectives import SoftUpdate, ValueEstimators
 from torchrl.objectives.multiagent.qmixer import QMixerLoss
 
 from icco_torchrl.modules import make_agent, make_coordinator, make_posterior
-from icco_torchrl.modules.policy import make_policy, make_primer
+from icco_torchrl.modules.policy import make_policy, recurrent_transforms
 from icco_torchrl.objectives import ICCOLoss, total_loss
 from icco_torchrl.training.segments import SegmentCutter
 
@@ -136,16 +136,11 @@ def train(method: str = "icco", **overrides) -> dict:
     )
     n_actions = env.full_action_spec["agents", "action"].space.n
     z_dim = cfg["z_dim"] if method == "icco" else 0  # ICCO
-    carry = lambda: Compose(  # noqa: E731  (a transform factory: one per env)
-        StepCounter(),
-        InitTracker(),
-        make_primer(env.n_agents, cfg["hidden"], z_dim, device=device, n_actions=n_actions),
-    )  # ICCO
-    env, env_test = (
-        (env.append_transform(carry()), TransformedEnv(env_test, carry()))
-        if icco
-        else (env, env_test)
-    )  # ICCO
+    if icco:
+        env = env.append_transform(recurrent_transforms(env, cfg["hidden"], z_dim))  # ICCO
+        env_test = TransformedEnv(
+            env_test, recurrent_transforms(env_test, cfg["hidden"], z_dim)
+        )  # ICCO
 
     # Policy
     obs_dim = env.observation_spec["agents", "observation"].shape[-1]

@@ -12,7 +12,7 @@ import torch
 from tensordict.nn import TensorDictModule, TensorDictSequential
 from torch import nn
 from torchrl.data import Categorical, Composite, Unbounded
-from torchrl.envs import TensorDictPrimer
+from torchrl.envs import Compose, InitTracker, StepCounter, TensorDictPrimer
 from torchrl.envs.utils import ExplorationType
 from torchrl.modules import EGreedyModule, QValueModule
 
@@ -43,6 +43,25 @@ def make_primer(
         Composite({group: Composite(entries, shape=(n_agents,), device=device)}, device=device),
         expand_specs=True,
     )
+
+
+def recurrent_transforms(env, hidden: int, z_dim: int = 0, group: str = "agents") -> Compose:
+    """What any TorchRL multi-agent env needs for ICCO's recurrent agents and coordinator:
+    ``StepCounter`` (broadcast steps), ``InitTracker`` (episode starts) and :func:`make_primer`,
+    sized from ``env``'s specs (agents and actions of ``(group, "action")``).
+
+    Examples:
+        >>> from torchrl.envs import TransformedEnv
+        >>> from icco_torchrl.envs import ResourceCollectionEnv
+        >>> base = ResourceCollectionEnv(num_envs=2)
+        >>> env = TransformedEnv(base, recurrent_transforms(base, hidden=16, z_dim=4))
+        >>> env.reset()["agents", "rnn_hidden"].shape
+        torch.Size([2, 3, 16])
+    """
+    action = env.full_action_spec[group, "action"]
+    n_agents, n_actions = action.shape[-1], int(action.space.n)
+    primer = make_primer(n_agents, hidden, z_dim, env.device, group, n_actions=n_actions)
+    return Compose(StepCounter(), InitTracker(), primer)
 
 
 class GuidedEGreedyModule(EGreedyModule):
