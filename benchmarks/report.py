@@ -125,6 +125,66 @@ def train_section() -> str:
     return f"{text}\n\n{src}"
 
 
+def recipes_section() -> str:
+    data = load("train_throughput_recipes.json")
+    if data is None:
+        return "(not measured: no `results/train_throughput_recipes.json`)"
+    columns = {
+        "config": "recipe",
+        "sps": "median env steps / s",
+        "ratio_vs_reference": "× `icco_4step`",
+        "sps_runs": "rounds",
+        "train_share": "share of time in training",
+        "peak_rss_mb": "peak RSS (MB)",
+    }
+    settings = {k: v for k, v in data.get("settings", {}).items() if k in ("frames", "repeats")}
+    text = table(data.get("results", []), columns)
+    text += "\n\nSettings: " + ", ".join(f"`{k}` {fmt(v)}" for k, v in settings.items()) + "."
+    src = "[`results/train_throughput_recipes.json`](results/train_throughput_recipes.json)"
+    return f"{text}\n\nSource: {src}."
+
+
+def profile_section() -> str:
+    data = load("train_profile.json")
+    if data is None:
+        return "(not measured: no `results/train_profile.json`)"
+    rows = []
+    for r in data.get("results", []):
+        total = r["total_ms_per_frame"]
+        shares = {k: f"{100 * v / total:.0f} %" for k, v in r["ms_per_frame"].items()}
+        rows.append(
+            {
+                "recipe": r["recipe"],
+                "ms per frame": total,
+                **shares,
+                "speed-up": r["speedup_vs_first"],
+            }
+        )
+    src = "[`results/train_profile.json`](results/train_profile.json)"
+    return f"{table(rows)}\n\nSource: {src}."
+
+
+def skill_section() -> str:
+    data = load("time_to_skill.json")
+    if data is None:
+        return "(not measured: no `results/time_to_skill.json`)"
+    rows = [
+        {
+            "method": r["method"],
+            "recipe": r["recipe"],
+            "seed": r["seed"],
+            "follower": r["follower"],
+            "frames to pass it": "never" if r["frames"] is None else r["frames"],
+            "wall-clock (min)": None if r["wall_s"] is None else r["wall_s"] / 60,
+            "within (frames)": r["budget_frames"],
+            "best greedy team reward": max(v for _, v in r["curve"]),
+        }
+        for r in data.get("runs", [])
+    ]
+    src = "[`results/time_to_skill.json`](results/time_to_skill.json)"
+    return f"{table(rows)}\n\nSource: {src}; figure: `results/time_to_skill.png`."
+
+
 def train_gpu_section() -> str:
     data = load("train_throughput_h200.json")
     if data is None:
@@ -191,6 +251,9 @@ def render() -> str:
         env_gpu=env_section("env_throughput_h200.json"),
         loss=loss_section(),
         train=train_section(),
+        recipes=recipes_section(),
+        profile=profile_section(),
+        skill=skill_section(),
         train_gpu=train_gpu_section(),
         live=live_section(),
     )

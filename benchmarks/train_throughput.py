@@ -70,8 +70,8 @@ SUITES = {
 
 
 def run_ours(method: str, args) -> dict:
-    from icco_torchrl.training.build import compose_config
     from icco_torchrl.trainer import train
+    from icco_torchrl.training.build import compose_config
 
     if method in RECIPES:  # a recipe sets its own batch shape
         shape = ["method=icco", f"env.num_envs={args.num_envs}", *RECIPES[method]]
