@@ -240,12 +240,14 @@ def test_td_target_random_batch_matches_reference(double_q):
 
 
 # ============================================================================ real ICCO batches
-def _rollout_segments(parts, steps=24, seed=0):
+def _rollout_segments(parts, steps=24, seed=0, length=4):
+    """A rollout and its items of ``length`` steps (default: one broadcast period each; the
+    tests of longer items cut their own)."""
     torch.manual_seed(seed)
     parts["env"].set_seed(seed)
     with torch.no_grad():
         ro = parts["env"].rollout(steps, parts["policy"], break_when_any_done=False)
-    return ro, SegmentCutter(length=parts["cutter"].length)(ro)
+    return ro, SegmentCutter(length=length)(ro)
 
 
 @pytest.fixture(scope="module")

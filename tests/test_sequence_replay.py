@@ -35,7 +35,8 @@ def test_one_broadcast_items_with_one_step_targets_reproduce_the_previous_loss(m
     precision (the reference was computed by the loss before sequence replay)."""
     expected = json.loads(REFERENCE.read_text())[method]
     torch.manual_seed(0)
-    parts = build_components(method=method, num_envs=8)
+    one_step = ["train.sequence_length=4", "train.td_lambda=0", "train.burn_in=0"]
+    parts = build_components(compose_config([f"method={method}", *one_step]), num_envs=8)
     torch.manual_seed(0)
     parts["env"].set_seed(0)
     with torch.no_grad():
@@ -92,6 +93,7 @@ def test_burn_in_steps_are_left_out_of_the_loss(long_rollout):
     """With lambda = 0 the burn-in changes which steps are scored, not their values."""
     parts, rollout = long_rollout
     loss = parts["loss"]
+    assert loss.burn_in == 0
     items = SegmentCutter(length=16)(rollout)
     masked = items.clone()
     masked["mask"][:, :6] = False
@@ -114,14 +116,16 @@ def test_lambda_changes_the_targets_of_long_items(long_rollout):
     parts, rollout = long_rollout
     loss = parts["loss"]
     items = SegmentCutter(length=16)(rollout)
-    torch.manual_seed(1)
-    one_step = loss(items)["loss_td"].item()
-    loss.td_lambda = 0.6
+    default = loss.td_lambda
     try:
+        loss.td_lambda = 0.0
+        torch.manual_seed(1)
+        one_step = loss(items)["loss_td"].item()
+        loss.td_lambda = 0.6
         torch.manual_seed(1)
         assert loss(items)["loss_td"].item() != pytest.approx(one_step, rel=1e-3)
     finally:
-        loss.td_lambda = 0.0
+        loss.td_lambda = default
 
 
 @pytest.mark.parametrize(

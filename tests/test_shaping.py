@@ -110,7 +110,7 @@ def test_shaping_shapes_the_training_env_only(tmp_path):
     assert "PotentialShaping" not in repr(run.eval_env.transform)
     common = ("experiment=smoke", "logger.progress=false", "train.total_frames=1024")
     run_cli("train", *common, "train.shaping.potentials=[collect]", f"hydra.run.dir={tmp_path}/s")
-    run_cli("train", *common, f"hydra.run.dir={tmp_path}/p")
+    run_cli("train", *common, "train.shaping.potentials=[]", f"hydra.run.dir={tmp_path}/p")
     restored = restore(tmp_path / "s" / "checkpoint.pt")
     assert "PotentialShaping" not in repr(restored.env.transform)
     # the references are scored by the evaluation env: identical with and without shaping

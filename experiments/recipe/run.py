@@ -246,6 +246,21 @@ LEVERS.update(
         "zdim128_icco": ("z size", "128 (COPA's)", "icco", ["method.z_dim=128"]),
     }
 )
+# Every lever here was measured before sequence replay became the default (2026-12-01): pin that
+# recipe (4-step items, one-step targets, no shaping) so each still trains what it measured; a
+# lever's own overrides come after and win.
+PRE_SEQUENCE_REPLAY = [
+    "train.sequence_length=4",
+    "train.batch_segments=128",
+    "train.buffer_segments=20000",
+    "train.warmup_segments=512",
+    "train.td_lambda=0",
+    "train.shaping.potentials=[]",
+]
+LEVERS = {
+    name: (lever, setting, method, [*PRE_SEQUENCE_REPLAY, *overrides])
+    for name, (lever, setting, method, overrides) in LEVERS.items()
+}
 METRICS = ("reward", "task_reward", "inst_reward", "pick", "defense", "invasion")
 
 

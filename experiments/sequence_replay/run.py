@@ -36,12 +36,13 @@ SEQ16 = [
     "train.buffer_segments=5000",
     "train.warmup_segments=128",
 ]
+NO_SHAPING = ["train.shaping.potentials=[]"]  # the default since these screens
 SCREENS = {  # name: (lever, setting, method, overrides)
     "seq16_lam06": (
         "replay item, target",
         "16 steps (4 broadcasts), lambda 0.6",
         "icco",
-        [*SEQ16, "train.td_lambda=0.6"],
+        [*SEQ16, "train.td_lambda=0.6", *NO_SHAPING],
     ),
     "seq16_lam06_collect03": (
         "shaping (with the above)",
@@ -58,7 +59,13 @@ SCREENS = {  # name: (lever, setting, method, overrides)
         "fewer, larger updates (with the first)",
         "128 items (2048 transitions) per update, 2 updates per batch",
         "icco",
-        [*SEQ16, "train.td_lambda=0.6", "train.batch_segments=128", "train.updates_per_batch=2"],
+        [
+            *SEQ16,
+            "train.td_lambda=0.6",
+            *NO_SHAPING,
+            "train.batch_segments=128",
+            "train.updates_per_batch=2",
+        ],
     ),
 }
 METRICS = ("reward", "task_reward", "inst_reward", "pick", "collect", "defense", "in_quadrant")

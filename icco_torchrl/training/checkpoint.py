@@ -158,8 +158,13 @@ def load_checkpoint(path: str | Path, map_location="cpu") -> dict[str, Any]:
         METHOD_FIELDS_ADDED,
         METHOD_FIELDS_REMOVED,
         REMOVED_AT,
+        TRAIN_FIELDS_ADDED,
     )
 
+    train = payload.get("cfg", {}).get("train")
+    if isinstance(train, dict):
+        for key, value in TRAIN_FIELDS_ADDED.items():  # added later: it trained the old way
+            train.setdefault(key, value)
     method = payload.get("cfg", {}).get("method")
     if isinstance(method, dict):
         for key, value in METHOD_FIELDS_ADDED.items():  # added later: it had the old behaviour
