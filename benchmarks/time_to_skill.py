@@ -46,10 +46,10 @@ METHODS = {"icco": "ICCO", "qmix_full": "QMIX (FULL)"}
 SEEDS = (0, 1)
 
 
-def runs(out: Path) -> dict[tuple[str, str, int], Path]:
+def runs(out: Path, methods=tuple(METHODS)) -> dict[tuple[str, str, int], Path]:
     return {
         (method, recipe, seed): out / f"{method}_{recipe.split()[0]}_seed{seed}"
-        for method in METHODS
+        for method in methods
         for recipe in RECIPES
         for seed in SEEDS
     }
@@ -124,6 +124,7 @@ def main(argv=None) -> None:
     parser.add_argument("--frames", type=int, default=800_000)
     parser.add_argument("--eval-interval", type=int, default=50_000)
     parser.add_argument("--jobs", type=int, default=2)
+    parser.add_argument("--methods", nargs="+", choices=list(METHODS), default=list(METHODS))
     parser.add_argument("--report-only", action="store_true")
     args = parser.parse_args(argv)
     out = args.out.resolve()
@@ -141,7 +142,7 @@ def main(argv=None) -> None:
                     ],
                     args.frames,
                 )
-                for (method, recipe, seed), run in runs(out).items()
+                for (method, recipe, seed), run in runs(out, args.methods).items()
             },
             args.jobs,
         )
