@@ -161,8 +161,8 @@ class ShapingConfig:
     (:mod:`icco_torchrl.envs.shaping`)."""
 
     # Potentials to sum: collect (a robot's distance left in its delivery cycle) | defend (a free
-    # robot's distance to the nearest active invader). []: no shaping. collect at 0.3 measured
-    # (experiments/sequence_replay): team 302.6 vs 252.2 without, more defenses, picks unchanged.
+    # robot's distance to the nearest active invader). []: no shaping. collect at 0.3 is screened
+    # in experiments/sequence_replay (more team and task reward; picks unchanged).
     potentials: list[str] = _field(["collect"])
     # Scale of Phi, in reward units per metre.
     weight: float = _field(0.3, ge=0)
