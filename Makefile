@@ -5,6 +5,8 @@ TORCH_SPEC ?= torch==2.13.0
 PY         := $(VENV)/bin/python
 STAMP      := $(VENV)/.installed
 ARGS       ?=
+# pytest-xdist workers (one torch thread each): the suite's CLI runs keep two cores busy.
+PYTEST_WORKERS ?= 2
 # Modules whose docstring examples run with the tests (the runnable Examples: of the loss).
 DOCTESTS   := icco_torchrl/objectives/icco_loss.py icco_torchrl/objectives/returns.py \
               icco_torchrl/envs/shaping.py icco_torchrl/modules/policy.py
@@ -23,7 +25,7 @@ $(STAMP): pyproject.toml
 test: $(STAMP)
 	$(VENV)/bin/ruff format --check .
 	$(VENV)/bin/ruff check .
-	OMP_NUM_THREADS=1 $(PY) -m pytest tests $(DOCTESTS) --doctest-modules $(ARGS)
+	OMP_NUM_THREADS=1 $(PY) -m pytest -n $(PYTEST_WORKERS) tests $(DOCTESTS) --doctest-modules $(ARGS)
 
 bench: $(STAMP)
 	$(PY) benchmarks/env_throughput.py
