@@ -100,48 +100,33 @@ def loss_section() -> str:
     return f"{rows}\n\n{machine(data)} {src}"
 
 
-def train_section() -> str:
-    data = load("train_throughput.json")
+def throughput_section(name: str, first: str, baseline: str, settings=None) -> str:
+    """A ``train_throughput.py`` suite: SPS per config beside ``baseline``, then the settings
+    (``settings``: the ones to show; default every scalar one) and the source."""
+    data = load(name)
     if data is None:
-        return "(not measured: no `results/train_throughput.json`)"
+        return f"(not measured: no `results/{name}`)"
     rows = [
         {**r, "what": TRAIN_CONFIGS.get(r.get("config"), r.get("config"))}
         for r in data.get("results", [])
     ]
     columns = {
-        "what": "config",
+        "what": first,
         "sps": "median env steps / s",
-        "ratio_vs_reference": "× TorchRL's example",
+        "ratio_vs_reference": f"× {baseline}",
         "sps_runs": "rounds",
         "train_share": "share of time in training",
         "peak_rss_mb": "peak RSS (MB)",
     }
-    settings = data.get("settings", {})
-    shown = {k: v for k, v in settings.items() if not isinstance(v, (list, dict))}
+    shown = {
+        k: v
+        for k, v in data.get("settings", {}).items()
+        if not isinstance(v, (list, dict)) and (settings is None or k in settings)
+    }
     text = table(rows, columns)
     if shown:
         text += "\n\nSettings: " + ", ".join(f"`{k}` {fmt(v)}" for k, v in shown.items()) + "."
-    src = "Source: [`results/train_throughput.json`](results/train_throughput.json)."
-    return f"{text}\n\n{src}"
-
-
-def recipes_section() -> str:
-    data = load("train_throughput_recipes.json")
-    if data is None:
-        return "(not measured: no `results/train_throughput_recipes.json`)"
-    columns = {
-        "config": "recipe",
-        "sps": "median env steps / s",
-        "ratio_vs_reference": "× `icco_4step`",
-        "sps_runs": "rounds",
-        "train_share": "share of time in training",
-        "peak_rss_mb": "peak RSS (MB)",
-    }
-    settings = {k: v for k, v in data.get("settings", {}).items() if k in ("frames", "repeats")}
-    text = table(data.get("results", []), columns)
-    text += "\n\nSettings: " + ", ".join(f"`{k}` {fmt(v)}" for k, v in settings.items()) + "."
-    src = "[`results/train_throughput_recipes.json`](results/train_throughput_recipes.json)"
-    return f"{text}\n\nSource: {src}."
+    return f"{text}\n\nSource: [`results/{name}`](results/{name})."
 
 
 def profile_section() -> str:
@@ -250,8 +235,10 @@ def render() -> str:
         env_cpu=env_section("env_throughput.json"),
         env_gpu=env_section("env_throughput_h200.json"),
         loss=loss_section(),
-        train=train_section(),
-        recipes=recipes_section(),
+        train=throughput_section("train_throughput.json", "config", "TorchRL's example"),
+        recipes=throughput_section(
+            "train_throughput_recipes.json", "recipe", "`icco_4step`", ("frames", "repeats")
+        ),
         profile=profile_section(),
         skill=skill_section(),
         train_gpu=train_gpu_section(),

@@ -26,6 +26,8 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure
 
+from icco_torchrl.training.logger import clock_seconds, read_column
+
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "experiments"))
 from jobs import train_runs  # noqa: E402  (experiments/jobs.py)
@@ -55,28 +57,20 @@ def runs(out: Path, methods=tuple(METHODS)) -> dict[tuple[str, str, int], Path]:
     }
 
 
-def read_csv(path: Path) -> list[dict]:
-    return list(csv.DictReader(path.open())) if path.is_file() else []
-
-
 def skill_time(run: Path) -> dict | None:
-    """First evaluation past the follower: frames and the run's wall-clock up to it."""
-    evals, timing = read_csv(run / "eval.csv"), read_csv(run / "timing.csv")
-    refs = run / "references.json"
-    if not evals or not refs.is_file():
+    """First evaluation past the follower: frames and the run's clock up to it."""
+    evals, refs = read_column(run, "eval", "reward"), run / "references.json"
+    if evals is None or not refs.is_file():
         return None
     follower = json.loads(refs.read_text())["follower"]["reward"]
-    curve = [(int(r["frames"]), float(r["reward"])) for r in evals]
+    curve = [(int(f), float(r)) for f, r in zip(*evals)]
     out = {"follower": follower, "curve": curve, "frames": None, "wall_s": None}
-    for frames, reward in curve:
-        if reward > follower:
-            out["frames"] = frames
-            row = next((r for r in timing if int(r["frames"]) >= frames), None)
-            if row is not None:
-                out["wall_s"] = sum(
-                    float(row[k]) for k in ("time_collect", "time_train", "time_eval")
-                )
-            break
+    passed = next((frames for frames, reward in curve if reward > follower), None)
+    if passed is not None:
+        out["frames"] = passed
+        timing = csv.DictReader((run / "timing.csv").open())
+        row = next((r for r in timing if int(r["frames"]) >= passed), None)
+        out["wall_s"] = None if row is None else clock_seconds(row)
     out["budget_frames"] = curve[-1][0]
     return out
 

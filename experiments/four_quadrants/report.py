@@ -33,6 +33,7 @@ from icco_torchrl.evaluation.metrics import (
     write_json,
 )
 from icco_torchrl.evaluation.plots import plot_curves
+from icco_torchrl.training.logger import clock_seconds
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
@@ -81,7 +82,7 @@ def budget_section(runs: dict[str, list[Path]], info: dict) -> tuple[str, bool]:
     for label, dirs in runs.items():
         timing = [row for d in dirs if (row := _last_row(d / "timing.csv"))]
         frames = [float(r["frames"]) for r in timing]
-        wall = [sum(float(r[k]) for k in r if k.startswith("time_")) for r in timing]
+        wall = [clock_seconds(r) for r in timing]
         sps = [float(r["sps"]) for r in timing]
         smoke |= bool(frames) and max(frames) < SMOKE_FRAMES
         lines.append(

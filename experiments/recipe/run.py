@@ -19,6 +19,8 @@ import json
 import sys
 from pathlib import Path
 
+from icco_torchrl.training.logger import clock_seconds
+
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 from jobs import train_runs  # noqa: E402  (experiments/jobs.py)
@@ -289,9 +291,7 @@ def summarize(out: Path, frames: int) -> list[dict]:
         if "task_reward" not in row:  # runs from before task_reward was logged
             row["task_reward"] = row["reward"] - row["inst_reward"]
         if timing:
-            row["wall_min"] = (
-                sum(float(timing[k]) for k in ("time_collect", "time_train", "time_eval")) / 60
-            )
+            row["wall_min"] = clock_seconds(timing) / 60
             row["sps"] = float(timing["sps"])
         refs = run / "references.json"
         if refs.is_file():

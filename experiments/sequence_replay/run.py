@@ -24,6 +24,8 @@ import sys
 from pathlib import Path
 from string import Template
 
+from icco_torchrl.training.logger import clock_seconds
+
 HERE = Path(__file__).resolve().parent
 FOUR_QUADRANTS = HERE.parent / "four_quadrants"
 BUDGET = ["experiment=repro_cpu", "train.checkpoint_buffer=false"]
@@ -98,14 +100,12 @@ def run_screen(name: str, out: Path, jobs: int) -> None:
 
 
 def wall_minutes(sweep: Path) -> float | None:
-    """Mean wall time of a run of the sweep (collection, learning and evaluations), minutes."""
+    """Mean run clock of the sweep's runs (collection, learning and evaluations), minutes."""
     walls = []
     for timing in sorted(sweep.glob("*_seed*/timing.csv")):
         rows = list(csv.DictReader(timing.open()))
         if rows:
-            walls.append(
-                sum(float(rows[-1][k]) for k in ("time_collect", "time_train", "time_eval"))
-            )
+            walls.append(clock_seconds(rows[-1]))
     return sum(walls) / len(walls) / 60 if walls else None
 
 

@@ -40,7 +40,7 @@ def missing_for(name: str, *, n_resources: int, n_invaders: int) -> str | None:
 
 
 class StatePotential:
-    """``Phi(state) [B, N]`` per robot from the flat global state ``[B, state_dim]``."""
+    """``Phi(state) [..., N]`` per robot from the flat global state ``[..., state_dim]``."""
 
     def __init__(self, layout: ObsLayout, n_resources: int, potentials, weight: float):
         unknown = [p for p in potentials if p not in POTENTIALS]
@@ -55,18 +55,18 @@ class StatePotential:
         self.potentials, self.weight = tuple(potentials), float(weight)
 
     def __call__(self, state: torch.Tensor) -> torch.Tensor:
-        tokens = state.unflatten(-1, (-1, self.D))  # [B, tokens, D]
-        robots, rest = tokens[:, : self.N], tokens[:, self.N :]
-        resources, invaders = rest[:, : self.R], rest[:, self.R :]
-        pos, carry = robots[..., _X], robots[..., _FLAG] > 0.5  # [B, N, 2], [B, N]
+        tokens = state.unflatten(-1, (-1, self.D))  # [..., tokens, D]
+        robots, rest = tokens[..., : self.N, :], tokens[..., self.N :, :]
+        resources, invaders = rest[..., : self.R, :], rest[..., self.R :, :]
+        pos, carry = robots[..., _X], robots[..., _FLAG] > 0.5  # [..., N, 2], [..., N]
         phi = torch.zeros_like(pos[..., 0])
         if "collect" in self.potentials:
-            res = resources[..., _X]  # [B, R, 2]
-            trip = torch.cdist(pos, res) + res.norm(dim=-1).unsqueeze(1)  # robot -> r -> home
+            res = resources[..., _X]  # [..., R, 2]
+            trip = torch.cdist(pos, res) + res.norm(dim=-1).unsqueeze(-2)  # robot -> r -> home
             phi = phi - torch.where(carry, pos.norm(dim=-1), trip.min(-1).values)
         if "defend" in self.potentials:
-            active = invaders[..., _FLAG] > 0.5  # [B, I]
-            dist = torch.cdist(pos, invaders[..., _X]).masked_fill(~active.unsqueeze(1), torch.inf)
+            active = invaders[..., _FLAG] > 0.5  # [..., I]
+            dist = torch.cdist(pos, invaders[..., _X]).masked_fill(~active.unsqueeze(-2), torch.inf)
             nearest = dist.min(-1).values
             phi = phi - torch.where(~carry & nearest.isfinite(), nearest, torch.zeros_like(nearest))
         return self.weight * phi
@@ -95,8 +95,9 @@ class PotentialShaping(Transform):
         return cls(StatePotential(env.layout, env.n_resources, potentials, weight), gamma)
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
-        before = self.potential(tensordict.get(self.state_key))
-        after = self.potential(next_tensordict.get(self.state_key))
+        # Both states in one pass: the env step pays the potential's ops once, not twice.
+        states = (tensordict.get(self.state_key), next_tensordict.get(self.state_key))
+        before, after = self.potential(torch.stack(states))
         shaping = self.gamma * after - before  # [B, N]
         next_tensordict.set("reward", next_tensordict.get("reward") + shaping.sum(-1, keepdim=True))
         agent_reward = ("agents", "reward")

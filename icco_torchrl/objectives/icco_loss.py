@@ -256,7 +256,9 @@ class ICCOLoss(LossModule):
         x = read_sequences(self, tensordict)
         z_on = z_tgt = None
         if self.has_coordinator:
-            # Fresh noise for a broadcast at the bootstrap step, shared by online and target.
+            # Fresh noise for a broadcast at the bootstrap step, shared by online and target;
+            # drawn at the items' shape so the random stream is the one-broadcast learner's
+            # (tests/data/loss_reference_t4.json pins it).
             fresh = torch.randn_like(x["z_noise"])[:, -1]
             z_on, loc_w, scale_w = self._z_sequence(x, self.coordinator_params, fresh)
             with torch.no_grad():

@@ -133,5 +133,6 @@ def read_sequences(loss, td: TensorDictBase) -> dict:
         x["prev_seq"] = torch.cat([x["prev_action"][:, :1], x["action"]], 1)
     else:
         x["prev_seq"] = None
-    x["state_seq"] = torch.cat([state[:, :1], next_state], 1)  # [S, L+1, D]
+    reads_state = loss.has_coordinator or getattr(net, "full_state", False)
+    x["state_seq"] = torch.cat([state[:, :1], next_state], 1) if reads_state else None
     return x

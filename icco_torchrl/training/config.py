@@ -27,6 +27,7 @@ from omegaconf.errors import OmegaConfBaseException
 
 from icco_torchrl.envs.reference_policies import REFERENCE_POLICIES
 from icco_torchrl.envs.resource_collection import SPAWN_MODES, ResourceCollectionEnv
+from icco_torchrl.envs.shaping import POTENTIALS, missing_for
 from icco_torchrl.paths import CONF_DIR
 
 
@@ -430,8 +431,6 @@ def _check_fields(node, schema, prefix: str = "") -> None:
 
 def _check_shaping(shaping, params) -> None:
     """Known potentials, each computable from the env's state (what it needs is there)."""
-    from icco_torchrl.envs.shaping import POTENTIALS, missing_for
-
     for name in shaping.potentials:
         if name not in POTENTIALS:
             raise ConfigError(

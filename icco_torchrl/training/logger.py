@@ -154,3 +154,9 @@ def read_column(
         return None
     frames, values = map(np.array, zip(*pairs))
     return frames, values
+
+
+def clock_seconds(timing_row: dict) -> float:
+    """A ``timing.csv`` row's run clock in seconds: the sum of its ``time_*`` timers (collection,
+    updates, evaluations), so waits outside the run (a paused job, a resume) do not count."""
+    return sum(float(v) for k, v in timing_row.items() if k.startswith("time_"))
