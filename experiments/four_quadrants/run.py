@@ -60,8 +60,9 @@ def train(sweep: Path, methods, seeds, budget, jobs: int = 2) -> None:
     train_runs(
         {
             sweep / f"{m}_seed{s}": ([f"method={m}", f"seed={s}", *budget], totals[m])
-            for m in methods
+            # Seed by seed: a sweep cut short has every method at the same seeds.
             for s in seeds
+            for m in methods
         },
         jobs,
     )

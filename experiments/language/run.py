@@ -35,6 +35,7 @@ NO_TASK_REWARD = (
     "env.params.collect_reward=0",
     "env.params.defense_reward=0",
     "env.params.invasion_penalty=0",
+    "train.shaping.potentials=[]",  # no task shaping either (as experiment=inst_only)
 )
 
 
