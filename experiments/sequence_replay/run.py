@@ -111,7 +111,9 @@ def wall_minutes(sweep: Path) -> float | None:
 
 def gather(out: Path) -> dict:
     """The ablation table: every screen with results, the baseline and the references."""
-    baseline = json.loads((FOUR_QUADRANTS / "results.json").read_text())["methods"]
+    # The reproduction at the recipe these screens started from (commit 396580d) stays as
+    # measured: the four-quadrant report has since been rerun at the defaults kept here.
+    baseline = json.loads((HERE / "results.json").read_text())["baseline"]
     rows = []
     for name, (lever, setting, method, overrides) in SCREENS.items():
         path = HERE / "screens" / name / "results.json"
@@ -126,7 +128,7 @@ def gather(out: Path) -> dict:
         references = {k: result[k] for k in REFERENCES if k in result}
     return {
         "protocol": "four quadrants, calibrated reward, 20 trials per seed, seeds pooled",
-        "baseline": {m: baseline[m] for m in ("icco", "qmix_full") if m in baseline},
+        "baseline": baseline,
         "screens": rows,
         "references": references if rows else {},
     }
