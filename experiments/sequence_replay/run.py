@@ -57,6 +57,17 @@ SCREENS = {  # name: (lever, setting, method, overrides)
             "train.shaping.weight=0.3",
         ],
     ),
+    "seq16_lam06_collect10": (
+        "shaping weight (with the first)",
+        "collect potential, weight 1.0",
+        "icco",
+        [
+            *SEQ16,
+            "train.td_lambda=0.6",
+            "train.shaping.potentials=[collect]",
+            "train.shaping.weight=1.0",
+        ],
+    ),
     "seq16_lam06_wide": (
         "fewer, larger updates (with the first)",
         "128 items (2048 transitions) per update, 2 updates per batch",
