@@ -72,3 +72,35 @@ def test_benchmarks_readme_is_rendered_from_the_results():
     report = _load(ROOT / "benchmarks" / "report.py")
     readme = (ROOT / "benchmarks" / "README.md").read_text()
     assert readme == report.render(), "stale: run python benchmarks/report.py"
+
+
+def test_four_quadrant_bar_checks_both_scripted_ends_and_half_the_blends_work():
+    report = _load(ROOT / "experiments" / "four_quadrants" / "report.py")
+
+    def row(method, reward, pick=0.0, collect=0.0, defense=0.0, in_quadrant=0.0):
+        return dict(
+            method=method,
+            reward=reward,
+            pick=pick,
+            collect=collect,
+            defense=defense,
+            in_quadrant=in_quadrant,
+        )
+
+    refs = {
+        "follower": row("follower", 280.0, 2.0, 1.0, 5.0, 0.7),
+        "heuristic": row("heuristic", 300.0, 40.0, 40.0, 30.0, 0.2),
+        "blend (r=1.75 m)": row("blend (r=1.75 m)", 370.0, 16.0, 14.0, 30.0, 0.5),
+    }
+    # Past the heuristic (the better end), exactly half the blend's picks, short of its
+    # deliveries, its defenses met, in quadrant less often than the blend.
+    rows = {"ICCO": row("ICCO", 301.0, 8.0, 6.9, 15.0, 0.49)}
+    lines = report.criteria(rows, refs)
+    assert "the heuristic's" in lines[0]
+    assert lines[1] == (
+        "  - ICCO: 3 of 5 met (team 301.0 vs 300.0 met; picks 8.0 vs 8.0 met; deliveries 6.9 vs "
+        "7.0 NOT met; defenses 15.0 vs 15.0 met; in quadrant 0.49 vs 0.50 NOT met)."
+    )
+    assert report.criteria(rows, {"follower": refs["follower"]}) == [
+        "- Reference policies missing: the bar is not checked."
+    ]
