@@ -104,3 +104,9 @@ def test_four_quadrant_bar_checks_both_scripted_ends_and_half_the_blends_work():
     assert report.criteria(rows, {"follower": refs["follower"]}) == [
         "- Reference policies missing: the bar is not checked."
     ]
+
+
+def test_a_sweeps_note_is_quoted_on_its_page_and_absent_without_one():
+    report = _load(ROOT / "experiments" / "four_quadrants" / "report.py")
+    assert report.sweep_note({}) == ""
+    assert report.sweep_note({"note": "**Recipe.** a\n\nb\n"}) == "> **Recipe.** a\n>\n> b\n\n"

@@ -72,6 +72,14 @@ def _duration(seconds: float | None) -> str:
     return f"{hours} h {minutes:02d} min" if hours else f"{seconds / 60:.1f} min"
 
 
+def sweep_note(info: dict) -> str:
+    """The sweep's own remark on how it was run (``"note"`` in ``sweep.json``), as a quote."""
+    note = info.get("note")
+    if not note:
+        return ""
+    return "\n".join(f"> {line}".rstrip() for line in note.strip().splitlines()) + "\n\n"
+
+
 def budget_section(runs: dict[str, list[Path]], info: dict) -> tuple[str, bool]:
     """Frames, wall time and SPS per method, then the machine; and whether it is a smoke budget."""
     lines = [
@@ -263,6 +271,7 @@ def main(argv=None) -> int:
         trials=payload["trials"],
         budget_args=budget_args,
         sweep=shlex.quote(os.path.relpath(args.sweep)),
+        note=sweep_note(info),
         budget=budget,
         table=markdown_table(summary, COLUMNS, missing=missing),
         segment_table=segment_table(summary, "reward"),
