@@ -30,20 +30,12 @@ from icco_torchrl.training.logger import clock_seconds, read_column
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "experiments"))
-from jobs import train_runs  # noqa: E402  (experiments/jobs.py)
+from jobs import PRE_SEQUENCE_REPLAY, train_runs  # noqa: E402  (experiments/jobs.py)
 
 RESULTS = ROOT / "benchmarks" / "results"
 BUDGET = ["experiment=repro_cpu", "train.checkpoint_buffer=false", "logger.progress=false"]
-# The recipe before sequence replay (what the reproduction of 2026-11-30 trained).
-OLD_DEFAULTS = [
-    "train.sequence_length=4",
-    "train.batch_segments=128",
-    "train.buffer_segments=20000",
-    "train.warmup_segments=512",
-    "train.td_lambda=0",
-    "train.shaping.potentials=[]",
-]
-RECIPES = {"old defaults": OLD_DEFAULTS, "new defaults": []}
+# Old defaults: the recipe before sequence replay (what the reproduction of 2026-11-30 trained).
+RECIPES = {"old defaults": PRE_SEQUENCE_REPLAY, "new defaults": []}
 METHODS = {"icco": "ICCO", "qmix_full": "QMIX (FULL)"}
 SEEDS = (0, 1)
 
@@ -81,7 +73,7 @@ def report(out: Path) -> dict:
         result = skill_time(run)
         if result is not None:
             rows.append({"method": method, "recipe": recipe, "seed": seed, **result})
-    return {"budget": BUDGET, "old_defaults": OLD_DEFAULTS, "runs": rows}
+    return {"budget": BUDGET, "old_defaults": PRE_SEQUENCE_REPLAY, "runs": rows}
 
 
 def plot(results: dict, path: Path) -> None:

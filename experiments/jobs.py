@@ -16,6 +16,18 @@ from pathlib import Path
 
 from icco_torchrl.training.checkpoint import load_checkpoint
 
+# The training recipe before sequence replay became the default (commit 396580d): 4-step items,
+# one-step targets, no shaping. Scripts that compare against it, or whose measurements were taken
+# at it, add these overrides.
+PRE_SEQUENCE_REPLAY = [
+    "train.sequence_length=4",
+    "train.batch_segments=128",
+    "train.buffer_segments=20000",
+    "train.warmup_segments=512",
+    "train.td_lambda=0",
+    "train.shaping.potentials=[]",
+]
+
 
 def run_status(run: Path, total_frames: int) -> str:
     """``done`` (checkpoint at the budget), ``partial`` (a checkpoint short of it) or ``missing``.

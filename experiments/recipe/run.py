@@ -23,7 +23,7 @@ from icco_torchrl.training.logger import clock_seconds
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
-from jobs import train_runs  # noqa: E402  (experiments/jobs.py)
+from jobs import PRE_SEQUENCE_REPLAY, train_runs  # noqa: E402  (experiments/jobs.py)
 
 # The first budget (2026-11-22) with the first three levers of issue 7's probe (replay ratio 8
 # updates per batch, a hard target copy every 50 updates, epsilon at its floor after 300k frames).
@@ -251,14 +251,6 @@ LEVERS.update(
 # Every lever here was measured before sequence replay became the default (2026-12-01): pin that
 # recipe (4-step items, one-step targets, no shaping) so each still trains what it measured; a
 # lever's own overrides come after and win.
-PRE_SEQUENCE_REPLAY = [
-    "train.sequence_length=4",
-    "train.batch_segments=128",
-    "train.buffer_segments=20000",
-    "train.warmup_segments=512",
-    "train.td_lambda=0",
-    "train.shaping.potentials=[]",
-]
 LEVERS = {
     name: (lever, setting, method, [*PRE_SEQUENCE_REPLAY, *overrides])
     for name, (lever, setting, method, overrides) in LEVERS.items()
