@@ -66,7 +66,7 @@ def _run_hydra(name: str, overrides: list[str], task) -> None:
     from omegaconf.errors import OmegaConfBaseException
 
     from icco_torchrl.paths import CONF_DIR
-    from icco_torchrl.training.checkpoint import CheckpointError
+    from icco_torchrl.training.checkpoint import CheckpointError, RunFolderBusy
     from icco_torchrl.training.config import ConfigError, compose_error, validate
 
     @hydra.main(config_path=str(CONF_DIR), config_name="config", version_base=None)
@@ -74,9 +74,15 @@ def _run_hydra(name: str, overrides: list[str], task) -> None:
         output_dir = HydraConfig.get().runtime.output_dir
         try:
             return task(validate(raw), output_dir)
+        except RunFolderBusy as err:  # the folder is another process's: leave it as it is
+            _fail(name, str(err))
         except (ConfigError, CheckpointError) as err:  # user errors: one clear line
             _remove_if_only_hydra(output_dir)
             _fail(name, str(err))
+        except OSError as err:
+            if err.filename is None:
+                raise
+            _fail(name, os_error_line(err))
 
     sys.argv = [f"icco {name}", *overrides]
     # Hydra prints a composition error over several lines and exits 1; raised instead, it is said
@@ -86,6 +92,15 @@ def _run_hydra(name: str, overrides: list[str], task) -> None:
         main()
     except (HydraException, OmegaConfBaseException) as err:
         _fail(name, compose_error(err))
+    except OSError as err:  # Hydra writing its own files (.hydra/) into a full or read-only folder
+        if err.filename is None:
+            raise
+        _fail(name, os_error_line(err))
+
+
+def os_error_line(err: OSError) -> str:
+    """One line for a file the command could not write or read: the path and the reason."""
+    return f"cannot access {err.filename}: {err.strerror or err}"
 
 
 def _remove_if_only_hydra(folder: str) -> None:
@@ -94,7 +109,9 @@ def _remove_if_only_hydra(folder: str) -> None:
     from pathlib import Path
 
     path = Path(folder)
-    if path.is_dir() and {p.name for p in path.iterdir()} <= {".hydra", "cli.log"}:
+    from icco_torchrl.training.checkpoint import LOCK_FILE
+
+    if path.is_dir() and {p.name for p in path.iterdir()} <= {".hydra", "cli.log", LOCK_FILE}:
         shutil.rmtree(path, ignore_errors=True)
 
 

@@ -7,6 +7,7 @@ they differ only in the ``method`` config group.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import math
@@ -26,22 +27,24 @@ from icco_torchrl.evaluation.rollout import evaluate
 from icco_torchrl.modules.policy import exploration_module
 from icco_torchrl.objectives import total_loss
 from icco_torchrl.training.build import VALIDATION_SEED_OFFSET, Run, build
-from icco_torchrl.training.checkpoint import (
-    CheckpointError,
-    check_compatible,
+from icco_torchrl.training.checkpoint import (  # noqa: F401 (check_resume*: their old home)
+    CHECKPOINT,
+    REFERENCES_FILE,
+    REPLAY_DIR,
+    RunFolderLock,
+    check_resumable,
+    check_resume_overrides,
+    fresh_outputs,
+    last_evaluation,
     load_checkpoint,
-    load_replay,
     load_weights,
-    save_checkpoint,
-    save_replay,
+    outputs_of,
+    restore_replay,
+    save_run,
 )
-from icco_torchrl.training.config import set_env_params, validate
-from icco_torchrl.training.interrupt import GracefulInterrupt
+from icco_torchrl.training.interrupt import GracefulInterrupt, Interrupted, StopAtOnce
 from icco_torchrl.training.logger import RunLogger
 from icco_torchrl.training.rng import rng_state, set_rng_state
-
-REPLAY_DIR = "replay"  # the replay buffer dump beside checkpoint.pt (train.checkpoint_buffer)
-REFERENCES_FILE = "references.json"  # the reference policies' evaluation, beside eval.csv
 
 # What the loss reads; everything else the collector records is left out of the replay buffer.
 REPLAY_KEYS = [
@@ -114,14 +117,24 @@ def train(cfg: DictConfig, run_dir: str | Path) -> dict:
     return the final evaluation metrics; writes CSVs, checkpoints and ``learning_curve.png`` to
     ``run_dir`` (with ``resume=``, to the checkpoint's folder)."""
     run_dir = Path(cfg.resume).resolve().parent if cfg.resume else Path(run_dir)
-    seed_process(cfg)
-    training = TrainingRun(build(cfg, for_training=True), cfg, run_dir)
-    if cfg.resume:
-        training.resume(cfg.resume)
-    else:
-        training.start()
-    interrupted = training.loop(training.remaining)
-    return training.finish(interrupted)
+    # One writer per run folder; a signal before the loop stops at once (nothing to save yet).
+    with RunFolderLock(run_dir), StopAtOnce() as stop:
+        try:
+            seed_process(cfg)
+            training = TrainingRun(build(cfg, for_training=True), cfg, run_dir)
+            if cfg.resume:
+                training.resume(cfg.resume)
+            else:
+                training.start()
+        except Interrupted as err:
+            again = f"continue: icco train resume={cfg.resume}" if cfg.resume else "start it again"
+            print(f"stopped by {err.signal_name} before training began: {again}", flush=True)
+            return {}
+        try:
+            interrupted = training.loop(training.remaining)
+        except Interrupted:  # a signal as the loop handed the signals back
+            interrupted = True
+        return training.finish(interrupted, stop)
 
 
 def seed_process(cfg: DictConfig) -> None:
@@ -154,6 +167,9 @@ class TrainingRun:
         self.evaluated: list[dict] = []
         self.logger: RunLogger | None = None
         self.remaining = 0  # frames this process trains (set by start or resume)
+        self.outputs = fresh_outputs()  # final evaluation and curve of the last frame, written?
+        self.replay_id: str | None = None  # the replay dump the last checkpoint names
+        self.replay_segments = 0  # and the segments it holds
 
     # ------------------------------------------------------------------ start / resume
     def start(self) -> None:
@@ -184,6 +200,12 @@ class TrainingRun:
         check_resumable(ckpt, self.cfg, self.run.layout, path)
         self._open_logs(ckpt["frames"], resumed=True)
         self._restore(ckpt, path)
+        # A run with frames left writes its final outputs anew; one at its budget writes only
+        # those its checkpoint says are missing (a stop in the final evaluation).
+        self.outputs = outputs_of(ckpt, self.run_dir) if self.remaining == 0 else fresh_outputs()
+        logged = last_evaluation(self.run_dir, ckpt["frames"])
+        if logged is not None:  # the evaluation of its last frame, already in eval.csv
+            self.evaluated.append((ckpt["frames"], logged))
 
     def _open_logs(self, start: int, resumed: bool) -> None:
         """The logger, its bar ending where the collector will; a resumed run's CSVs lose the rows
@@ -208,14 +230,11 @@ class TrainingRun:
         # The schedule continues.
         self.explore.eps.fill_(epsilon(self.progress.frames, self.cfg.train))
         set_rng_state(ckpt["rng"], run.env)
-        if ckpt.get("replay_segments"):
-            if load_replay(run.buffer, self.run_dir / REPLAY_DIR):
-                self.logger.print(f"replay buffer restored: {len(run.buffer)} segments")
-            else:
-                self.logger.print(
-                    f"no replay buffer dump in {self.run_dir}: resuming with an empty buffer "
-                    f"(warm-up again)"
-                )
+        said = restore_replay(run.buffer, self.run_dir, ckpt, path)
+        if said:
+            self.logger.print(said)
+        self.replay_id = ckpt.get("replay_id")
+        self.replay_segments = len(run.buffer)
 
     # ------------------------------------------------------------------ loop
     def loop(self, remaining: int) -> bool:
@@ -351,13 +370,17 @@ class TrainingRun:
         return stats if len(episodes) else None
 
     # ------------------------------------------------------------------ evaluation and checkpoints
-    def evaluate(self) -> dict:
-        """A greedy evaluation on the evaluation env, logged to ``eval.csv``."""
+    def evaluate(self, stop: StopAtOnce | None = None) -> dict:
+        """A greedy evaluation on the evaluation env, logged to ``eval.csv`` (outside ``stop``'s
+        reach: a signal cuts the evaluation, never the row)."""
         start, frames = time.perf_counter(), self.progress.frames
         metrics = evaluate(self.run.eval_env, self.run.policy, seed=self.eval_seed)
         self.timers["eval"] += time.perf_counter() - start
-        self.logger.log("eval", {"frames": frames, **metrics})
-        self.evaluated.append((frames, metrics))
+        with stop.held() if stop is not None else contextlib.nullcontext():
+            self.logger.log("eval", {"frames": frames, **metrics})
+            self.evaluated.append((frames, metrics))
+            if stop is not None:  # the final evaluation: recorded with its row
+                self.record(final_evaluation=True, final_metrics=metrics)
         self.logger.print(
             f"[eval] frames={frames} reward={metrics['reward']:.2f}±{metrics['reward_std']:.2f} "
             f"task={metrics['task_reward']:.2f} pick={metrics['pick']:.2f} "
@@ -366,106 +389,95 @@ class TrainingRun:
         )
         return metrics
 
-    def final_evaluation(self) -> dict:
-        """The evaluation at the last frame (the loop's own when it ran there)."""
-        if self.evaluated and self.evaluated[-1][0] == self.progress.frames:
+    def final_evaluation(self, stop: StopAtOnce) -> dict:
+        """The evaluation at the last frame (the loop's own, or the logged one of a stopped run,
+        when there is one), recorded in the checkpoint."""
+        frames = self.progress.frames
+        if self.evaluated and self.evaluated[-1][0] == frames:
+            with stop.held():
+                self.record(final_evaluation=True, final_metrics=self.evaluated[-1][1])
             return self.evaluated[-1][1]
-        return self.evaluate()
+        self.logger.print(f"[eval] final evaluation at {frames} frames")
+        return self.evaluate(stop)
 
-    def finish(self, interrupted: bool) -> dict:
-        """A last checkpoint; unless the run was stopped or had nothing left to train, the final
-        evaluation and the learning curve; then the closing message. Returns the final metrics."""
-        path = self.save()
-        final = {}
-        if not interrupted and self.remaining > 0:
-            final = self.final_evaluation()
-            refs_file = self.run_dir / REFERENCES_FILE
-            refs = json.loads(refs_file.read_text()) if refs_file.exists() else {}
-            plot_learning_curve(self.run_dir, refs)
+    def finish(self, interrupted: bool, stop: StopAtOnce) -> dict:
+        """A last checkpoint; unless the run was stopped, the final evaluation and the learning
+        curve, each recorded in the checkpoint once written (a resume writes what a stop left
+        out); then the closing message, naming only files that exist. Returns the final metrics.
+
+        A signal here stops at once (no batch to finish), but never inside a checkpoint write."""
+        pending = False  # stopped while writing the final outputs
+        try:
+            with stop.held():
+                self.save(dump=self.remaining > 0)
+            if not interrupted:
+                if not self.outputs["final_evaluation"]:
+                    self.final_evaluation(stop)
+                if not self.outputs["learning_curve"]:
+                    refs_file = self.run_dir / REFERENCES_FILE
+                    refs = json.loads(refs_file.read_text()) if refs_file.exists() else {}
+                    plot_learning_curve(self.run_dir, refs)
+                    with stop.held():
+                        self.record(learning_curve=True)
+        except Interrupted as err:
+            interrupted = pending = True
+            self.logger.print(
+                f"interrupted by {err.signal_name} during the final evaluation at "
+                f"{self.progress.frames} frames: the checkpoint records what is still to write"
+            )
+        path = self.run_dir / CHECKPOINT
         self.logger.close()
-        message = finish_message(self.run_dir, path, self.progress.frames, interrupted, final)
+        final = self.outputs["final_metrics"] if not interrupted else {}
+        message = finish_message(
+            self.run_dir, path, self.progress.frames, interrupted, final, self.outputs, pending
+        )
         print(message, flush=True)
         return final
 
-    def save(self, name: str = "checkpoint.pt") -> Path:
-        """The checkpoint (with ``train.checkpoint_buffer``, the replay dump it names, first)."""
+    def record(self, **outputs) -> None:
+        """Note final outputs as written, in the checkpoint too (the replay dump is unchanged)."""
+        self.outputs.update(outputs)
+        self.save(dump=False)
+
+    def save(self, dump: bool = True) -> Path:
+        """The checkpoint (with ``train.checkpoint_buffer`` and ``dump``, the replay dump it names,
+        first; without ``dump`` it names the dump on disk)."""
         run, t, p = self.run, self.cfg.train, self.progress
-        if t.checkpoint_buffer:
-            save_replay(run.buffer, self.run_dir / REPLAY_DIR)
-        return save_checkpoint(
-            self.run_dir / name,
-            {
-                "cfg": OmegaConf.to_container(self.cfg, resolve=True),
-                "layout": run.layout.__dict__,
-                "frames": p.frames,
-                "updates": p.updates,
-                "batches": p.batches,
-                "loss": run.loss.state_dict(),
-                "optimizer": run.optim.state_dict(),
-                "updater": run.updater.state_dict(),
-                "rng": rng_state(run.env),
-                "epsilon": float(self.explore.eps),
-                "replay_segments": len(run.buffer) if t.checkpoint_buffer else 0,
-            },
-        )
-
-
-def check_resumable(ckpt: dict, cfg: DictConfig, layout, path: str | Path) -> None:
-    """Refuse, in one line, a checkpoint this config cannot continue: an exported policy, a
-    command line that changes what a resumed run cannot honour (:func:`check_resume_overrides`)
-    or networks and env layout that differ (``check_compatible``). A new ``train.env_params`` is
-    allowed (a shaping curriculum), and said: the replayed data keeps the old rewards."""
-    if ckpt.get("policy_only"):
-        raise CheckpointError(
-            f"{path} is an exported policy (no optimiser, targets or RNG state): "
-            f"resume from the run's own checkpoint.pt"
-        )
-    # The saved config through today's schema, so fields added since it was written compare as
-    # defaults.
-    saved = OmegaConf.to_container(validate(OmegaConf.create(ckpt["cfg"])), resolve=True)
-    check_resume_overrides(saved, OmegaConf.to_container(cfg, resolve=True), path)
-    check_compatible(ckpt, cfg, layout, path)
-    before, now = set_env_params(saved["train"]["env_params"]), set_env_params(cfg.train.env_params)
-    if before != now:
-        print(
-            f"note: resume={path} trains on train.env_params {now} instead of {before}; "
-            f"replayed transitions keep the rewards they were collected with",
-            flush=True,
-        )
-
-
-def check_resume_overrides(saved: dict, cfg: dict, path) -> None:
-    """Refuse, by name, overrides that a resumed run cannot honour: its seed (the restored RNG
-    streams belong to the old one), its env (the replay data came from it) and its exploration
-    schedule (epsilon continues exactly). The budget, evaluation settings and the training-only
-    ``train.env_params`` (a shaping curriculum) may change."""
-    fixed = [
-        ("seed",),
-        ("env",),
-        ("train", "eps_init"),
-        ("train", "eps_end"),
-        ("train", "eps_decay_frames"),
-        ("train", "steps_per_batch"),
-    ]
-    diffs = []
-    for keys in fixed:
-        a, b = saved, cfg
-        for k in keys:
-            a, b = (a or {}).get(k), (b or {}).get(k)
-        if a != b:
-            diffs.append(f"{'.'.join(keys)} (checkpoint {a!r}, now {b!r})")
-    if diffs:
-        raise CheckpointError(
-            f"resume={path} cannot change "
-            + "; ".join(diffs)
-            + ": drop these overrides, or start a new run without resume="
-        )
+        payload = {
+            "cfg": OmegaConf.to_container(self.cfg, resolve=True),
+            "layout": run.layout.__dict__,
+            "frames": p.frames,
+            "updates": p.updates,
+            "batches": p.batches,
+            "loss": run.loss.state_dict(),
+            "optimizer": run.optim.state_dict(),
+            "updater": run.updater.state_dict(),
+            "rng": rng_state(run.env),
+            "epsilon": float(self.explore.eps),
+            "outputs": dict(self.outputs),
+        }
+        if t.checkpoint_buffer and dump:
+            path, self.replay_id = save_run(self.run_dir, payload, run.buffer)
+            self.replay_segments = len(run.buffer)
+        else:
+            payload["replay_segments"] = self.replay_segments if t.checkpoint_buffer else 0
+            path, _ = save_run(self.run_dir, payload, replay_id=self.replay_id)
+        return path
 
 
 def finish_message(
-    run_dir: Path, checkpoint: Path, frames: int, interrupted: bool, final: dict
+    run_dir: Path,
+    checkpoint: Path,
+    frames: int,
+    interrupted: bool,
+    final: dict,
+    outputs: dict | None = None,
+    pending: bool = False,
 ) -> str:
-    """What a newcomer needs at the end: what happened, where the results are, what to run next."""
+    """What a newcomer needs at the end: what happened, where the results are (the files that
+    exist, and the learning curve once ``outputs`` records it), what to run next (and, when the
+    final outputs are ``pending``, which of them a resume writes)."""
+    run_dir = Path(run_dir)
     lines = [f"{'stopped' if interrupted else 'done'}: {frames:,} env steps; run folder {run_dir}"]
     if final:
         lines.append(
@@ -473,12 +485,28 @@ def finish_message(
             f"{final['task_reward']:.1f}, picks {final['pick']:.1f}, defenses "
             f"{final['defense']:.1f} (reference policies: {REFERENCES_FILE})"
         )
-    lines += [
-        "  metrics: train.csv, eval.csv, timing.csv; figure: learning_curve.png",
-        f"  checkpoint: {checkpoint}",
-    ]
+    metrics = [n for n in ("train.csv", "eval.csv", "timing.csv") if (run_dir / n).is_file()]
+    curve = (outputs or {}).get("learning_curve", True) and (
+        run_dir / "learning_curve.png"
+    ).is_file()
+    written = ([f"metrics: {', '.join(metrics)}"] if metrics else []) + (
+        ["figure: learning_curve.png"] if curve else []
+    )
+    if written:
+        lines.append("  " + "; ".join(written))
+    if Path(checkpoint).is_file():
+        lines.append(f"  checkpoint: {checkpoint}")
     if interrupted:
-        lines.append(f"  continue: icco train resume={checkpoint}")
+        missing = [
+            what
+            for what, key in (
+                ("the final evaluation", "final_evaluation"),
+                ("the learning curve", "learning_curve"),
+            )
+            if pending and not (outputs or {}).get(key)
+        ]
+        todo = f" (writes {' and '.join(missing)})" if missing else ""
+        lines.append(f"  continue: icco train resume={checkpoint}{todo}")
     else:
         lines.append(f"  next: icco eval checkpoint={checkpoint} eval.protocol=quadrants")
     return "\n".join(lines)

@@ -1,7 +1,9 @@
-"""Checkpoints and replay dumps that lose nothing: weights-only loads, checked dumps, no temps."""
+"""Checkpoints and replay dumps that lose nothing: weights-only loads, checked dumps, no temps;
+one plain line for every unreadable file, full disk, read-only folder, busy or mismatched run."""
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import pickle
@@ -12,13 +14,20 @@ import torch
 from tensordict import TensorDict
 from torchrl.data import LazyTensorStorage, RandomSampler, TensorDictReplayBuffer
 
+from icco_torchrl.training import checkpoint
 from icco_torchrl.training.checkpoint import (
     FORMAT_VERSION,
+    METHOD_FIELDS_ADDED,
     CheckpointError,
+    RunFolderBusy,
+    RunFolderLock,
     load_checkpoint,
     load_replay,
+    outputs_of,
+    restore_replay,
     save_checkpoint,
     save_replay,
+    save_run,
 )
 
 pytestmark = pytest.mark.fault  # the fault suite: crafted, damaged and stale files
@@ -50,7 +59,7 @@ def test_a_crafted_checkpoint_runs_no_code(tmp_path, writer):
     with pytest.raises(CheckpointError, match=str(path)) as info:
         load_checkpoint(path)
     assert not target.exists(), "loading the checkpoint ran code from the file"
-    assert "\n" not in str(info.value)
+    assert "\n" not in str(info.value) and "a crafted or foreign file" in str(info.value)
 
 
 def _optimizer_state() -> dict:
@@ -86,12 +95,10 @@ def test_a_checkpoint_round_trips_and_loads_weights_only(tmp_path):
     path = save_checkpoint(tmp_path / "checkpoint.pt", payload)
     torch.load(path, weights_only=True)  # no numpy object left in the file
 
-    loaded = load_checkpoint(path)
+    loaded = load_checkpoint(path, require=())
     assert loaded["format_version"] == FORMAT_VERSION
     # method fields added after the checkpoint was written come back with the value it was trained
     # with
-    from icco_torchrl.training.config import METHOD_FIELDS_ADDED
-
     assert loaded["cfg"] == {
         **payload["cfg"],
         "method": {**payload["cfg"]["method"], **METHOD_FIELDS_ADDED},
@@ -123,7 +130,7 @@ def test_a_checkpoint_round_trips_and_loads_weights_only(tmp_path):
 
 def test_a_method_field_the_checkpoint_has_is_kept(tmp_path):
     payload = {"cfg": {"method": {"name": "icco", "waypoint_features": True}}, "loss": {}}
-    loaded = load_checkpoint(save_checkpoint(tmp_path / "checkpoint.pt", payload))
+    loaded = load_checkpoint(save_checkpoint(tmp_path / "checkpoint.pt", payload), require=())
     assert loaded["cfg"]["method"] == {"name": "icco", "waypoint_features": True}
 
 
@@ -133,7 +140,7 @@ def test_a_checkpoint_written_before_weights_only_loading_still_loads(tmp_path):
     torch.save(
         {"format_version": FORMAT_VERSION, "rng": {"numpy": state}}, path
     )  # the previous writer
-    loaded = load_checkpoint(path)
+    loaded = load_checkpoint(path, require=())
     np.testing.assert_array_equal(loaded["rng"]["numpy"][1], state[1])
 
 
@@ -269,7 +276,7 @@ def test_a_damaged_replay_dump_is_refused_in_one_line_naming_the_file(tmp_path, 
 
 
 def test_no_replay_dump_is_not_an_error(tmp_path):
-    assert load_replay(make_buffer(4), tmp_path / "replay") is False
+    assert load_replay(make_buffer(4), tmp_path / "replay") is None
 
 
 def test_stale_replay_temp_folders_are_removed(tmp_path):
@@ -291,3 +298,211 @@ def test_stale_replay_temp_folders_are_removed(tmp_path):
     assert not mine.exists() and theirs.exists() and other.exists()
     assert sorted(os.listdir(tmp_path)) == [".replay.old.tmp", ".replays.k1ll3d_x.tmp", "replay"]
     assert json.loads((tmp_path / "replay" / "manifest.json").read_text())["segments"] == 2
+
+
+# ---------------------------------------------------------------- unreadable checkpoints
+def _text(path):
+    path.write_text("epoch 1: loss 0.52\nepoch 2: loss 0.31\n")
+    return "is not a checkpoint"
+
+
+def _empty(path):
+    path.write_bytes(b"")
+    return "is empty"
+
+
+def _only_a_format_version(path):
+    torch.save({"format_version": FORMAT_VERSION}, path)
+    return "lacks cfg, layout, loss"
+
+
+def _a_dict_of_the_wrong_shape(path):
+    torch.save({"format_version": FORMAT_VERSION, "cfg": 3, "layout": {}, "loss": {}}, path)
+    return "its cfg has no method and env"
+
+
+def _truncated(path):
+    save_checkpoint(path, {"cfg": {}, "loss": {"w": torch.zeros(1000)}})
+    path.write_bytes(path.read_bytes()[:700])
+    return "truncated or damaged"
+
+
+def _crafted_pickle(path):
+    with open(path, "wb") as handle:
+        pickle.dump(
+            {"format_version": FORMAT_VERSION, "x": _Payload(path.with_suffix(".pwn"))}, handle
+        )
+    return "a crafted or foreign file"
+
+
+def _crafted_torch_file(path):
+    torch.save({"format_version": FORMAT_VERSION, "x": _Payload(path.with_suffix(".pwn"))}, path)
+    return "a crafted or foreign file"
+
+
+@pytest.mark.parametrize(
+    "make",
+    [
+        _text,
+        _empty,
+        _only_a_format_version,
+        _a_dict_of_the_wrong_shape,
+        _truncated,
+        _crafted_pickle,
+        _crafted_torch_file,
+    ],
+)
+def test_every_unreadable_checkpoint_is_one_plain_line_naming_it(tmp_path, make, recwarn):
+    path = tmp_path / "checkpoint.pt"
+    said = make(path)
+    with pytest.raises(CheckpointError) as info:
+        load_checkpoint(path)
+    message = str(info.value)
+    assert said in message and str(path) in message and "\n" not in message, message
+    assert "KeyError" not in message and "Weights only load failed" not in message
+    assert not path.with_suffix(".pwn").exists()
+    assert not [w for w in recwarn if "pickle protocol" in str(w.message)]
+
+
+# ---------------------------------------------------------------- full disks, read-only folders
+def _enospc_after(calls: int):
+    """A ``_write_all`` that writes ``calls`` times, then finds the disk full (half written)."""
+    real, count = checkpoint._write_all, [0]
+
+    def write_all(fd, data):
+        count[0] += 1
+        if count[0] > calls:
+            os.write(fd, memoryview(data).cast("B")[: max(1, len(memoryview(data)) // 2)])
+            raise OSError(errno.ENOSPC, "No space left on device")
+        real(fd, data)
+
+    return write_all
+
+
+def _temps(folder):
+    return [p.name for p in folder.iterdir() if p.name.endswith(".tmp")]
+
+
+def test_a_full_disk_in_the_checkpoint_write_is_one_line_and_keeps_the_old_one(
+    tmp_path, monkeypatch
+):
+    path = save_checkpoint(tmp_path / "checkpoint.pt", {"frames": 1})
+    monkeypatch.setattr(checkpoint, "_write_all", _enospc_after(0))
+    with pytest.raises(CheckpointError) as info:
+        save_checkpoint(path, {"frames": 2, "loss": {"w": torch.zeros(10_000)}})
+    message = str(info.value)
+    assert "\n" not in message and str(path) in message and "No space left" in message
+    assert _temps(tmp_path) == []
+    assert load_checkpoint(path, require=())["frames"] == 1
+
+
+@pytest.mark.parametrize("where", ["mkstemp", "mkdtemp"])
+def test_a_read_only_folder_is_one_line_naming_it(tmp_path, monkeypatch, where):
+    def read_only(*args, dir=None, **kwargs):
+        raise OSError(errno.EROFS, "Read-only file system", str(dir))
+
+    monkeypatch.setattr(checkpoint.tempfile, where, read_only)
+    buffer = make_buffer(8)
+    buffer.extend(segments(3))
+    with pytest.raises(CheckpointError) as info:
+        if where == "mkstemp":
+            save_checkpoint(tmp_path / "checkpoint.pt", {"frames": 1})
+        else:
+            save_replay(buffer, tmp_path / "replay")
+    message = str(info.value)
+    assert "\n" not in message and str(tmp_path) in message and "Read-only" in message
+    assert sorted(os.listdir(tmp_path)) == []
+
+
+@pytest.mark.parametrize("how", ["checked first", "while writing"])
+def test_a_full_disk_in_the_replay_dump_is_one_line_and_leaves_no_temp(tmp_path, monkeypatch, how):
+    before = make_buffer(64)
+    before.extend(segments(5))
+    path = save_replay(before, tmp_path / "replay", dump_id="a")
+    buffer = make_buffer(64)
+    buffer.extend(segments(40))
+    if how == "checked first":  # too little room for the dump: nothing is written
+        monkeypatch.setattr(checkpoint, "_free_bytes", lambda folder: 1000)
+    else:  # the disk fills up under the dump (plain writes: ENOSPC, never a SIGBUS)
+        monkeypatch.setattr(checkpoint, "_write_all", _enospc_after(1))
+    with pytest.raises(CheckpointError) as info:
+        save_replay(buffer, path, dump_id="b")
+    message = str(info.value)
+    assert "\n" not in message and str(path) in message and "No space left" in message
+    assert sorted(os.listdir(tmp_path)) == ["replay"]  # no temp folder, the previous dump kept
+    restored = make_buffer(64)
+    assert load_replay(restored, path) == path and len(restored) == 5
+
+
+# ---------------------------------------------------------------- the run folder
+def test_a_second_writer_of_a_run_folder_is_refused_in_one_line(tmp_path):
+    with RunFolderLock(tmp_path):
+        with pytest.raises(RunFolderBusy) as info:
+            with RunFolderLock(tmp_path):
+                pass
+        message = str(info.value)
+        assert "\n" not in message and str(tmp_path) in message
+        assert f"pid {os.getpid()}" in message
+    with RunFolderLock(tmp_path):  # released with its holder
+        pass
+
+
+def _run_payload(frames):
+    return {"cfg": {"method": {}, "env": {}}, "layout": {}, "loss": {}, "frames": frames}
+
+
+def test_the_checkpoint_and_its_replay_dump_share_an_id(tmp_path):
+    buffer = make_buffer(16)
+    buffer.extend(segments(4))
+    path, dump_id = save_run(tmp_path, _run_payload(1), buffer)
+    ckpt = load_checkpoint(path)
+    manifest = json.loads((tmp_path / "replay" / "manifest.json").read_text())
+    assert ckpt["replay_id"] == manifest["id"] == dump_id and ckpt["replay_segments"] == 4
+    assert sorted(os.listdir(tmp_path)) == ["checkpoint.pt", "replay"]  # the previous dump dropped
+    restored = make_buffer(16)
+    said = restore_replay(restored, tmp_path, ckpt, path)
+    assert said == "replay buffer restored: 4 segments" and len(restored) == 4
+
+
+def test_a_dump_newer_than_its_checkpoint_is_set_aside_for_the_matching_one(tmp_path):
+    buffer = make_buffer(16)
+    buffer.extend(segments(4))
+    path, _ = save_run(tmp_path, _run_payload(1), buffer)
+    buffer.extend(segments(6, 100))
+    # What save_run writes before the checkpoint, then a kill before the checkpoint.
+    save_replay(buffer, tmp_path / "replay", dump_id="newer", keep_previous=True)
+    restored = make_buffer(16)
+    said = restore_replay(restored, tmp_path, load_checkpoint(path), path)
+    assert "\n" not in said and "replay buffer restored: 4 segments" in said
+    assert "newer than" in said and "matches" in said
+    assert len(restored) == 4 and restored.storage._storage["step_count"][:4, 0, 0].tolist() == [
+        0,
+        1,
+        2,
+        3,
+    ]
+    # Reconciled on disk: the matching dump is the run's replay/ again.
+    assert sorted(os.listdir(tmp_path)) == ["checkpoint.pt", "replay"]
+    assert (
+        json.loads((tmp_path / "replay" / "manifest.json").read_text())["id"]
+        == load_checkpoint(path)["replay_id"]
+    )
+
+
+def test_a_dump_of_another_checkpoint_is_refused_in_one_line(tmp_path):
+    buffer = make_buffer(16)
+    buffer.extend(segments(4))
+    path, _ = save_run(tmp_path, _run_payload(1), buffer)
+    save_replay(buffer, tmp_path / "replay", dump_id="someone-else")  # e.g. copied from a run
+    with pytest.raises(CheckpointError) as info:
+        restore_replay(make_buffer(16), tmp_path, load_checkpoint(path), path)
+    message = str(info.value)
+    assert "\n" not in message and "someone-else" in message and str(path) in message
+    assert f"delete {tmp_path / 'replay'}" in message
+
+
+def test_final_outputs_are_recorded_and_older_checkpoints_judged_by_their_files(tmp_path):
+    assert outputs_of({"outputs": {"final_evaluation": True}}, tmp_path)["learning_curve"] is False
+    assert outputs_of({}, tmp_path)["final_evaluation"] is False  # no curve: write them
+    (tmp_path / "learning_curve.png").write_bytes(b"png")
+    assert outputs_of({}, tmp_path)["learning_curve"] is True

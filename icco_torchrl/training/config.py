@@ -87,21 +87,8 @@ class MethodConfig:
     waypoint_features: bool = True
 
 
-# Method fields added after checkpoints had been written, with the value those older checkpoints
-# were trained with (not today's default, which may differ): load_checkpoint fills them in, so an
-# older checkpoint (the demo policy, a committed result) restores the networks it was trained with.
-METHOD_FIELDS_ADDED = {"waypoint_features": False}
-# Options measured and dropped from the library, with the only value it still builds: a checkpoint
-# trained with another value is refused in one line naming the commit that can load it.
-METHOD_FIELDS_REMOVED = {"instruction_head": False, "z_input": "head"}
-# Train fields added after checkpoints had been written, with the value those runs trained with:
-# a resumed older run keeps its recipe (4-step items, no shaping) instead of today's defaults.
-TRAIN_FIELDS_ADDED = {
-    "sequence_length": 4,
-    "burn_in": 0,
-    "shaping": {"potentials": [], "weight": 0.3},
-}
-REMOVED_AT = "396580d"
+# The fields added or removed since older checkpoints were written, and their upgrade, live with
+# the checkpoint format: icco_torchrl/training/checkpoint.py.
 
 
 def _env_params_schema(name: str = "EnvParams", unset: bool = False) -> type:

@@ -1,4 +1,8 @@
-"""Rebuild a trained policy from a checkpoint (through the one assembler): evaluation, demos."""
+"""Rebuild a trained policy from a checkpoint (through the one assembler): evaluation, demos.
+
+What a checkpoint holds and how it is read, checked and exported is
+:mod:`icco_torchrl.training.checkpoint`'s; this module only assembles the networks around it.
+"""
 
 from __future__ import annotations
 
@@ -7,11 +11,13 @@ from pathlib import Path
 from omegaconf import OmegaConf
 
 from icco_torchrl.training.build import EVAL_SEED_OFFSET, Run, build
-from icco_torchrl.training.checkpoint import (
+from icco_torchrl.training.checkpoint import (  # noqa: F401 (export_policy: its old home)
+    POLICY_KEYS,
     check_compatible,
+    export_policy,
     load_checkpoint,
     load_weights,
-    save_checkpoint,
+    policy_weights,
 )
 from icco_torchrl.training.config import resolve_device, validate
 
@@ -41,32 +47,6 @@ def restore(
         **env_overrides,
     )
     check_compatible(ckpt, cfg, run.layout, path)
-    weights = ckpt["loss"]
-    if ckpt.get(
-        "policy_only"
-    ):  # an exported policy (export_policy): the targets are the online weights
-        weights = {
-            **weights,
-            **{
-                f"target_{k}": v
-                for k, v in weights.items()
-                if f"target_{k}" in run.loss.state_dict()
-            },
-        }
-    load_weights(run.loss, weights, path, cfg.method.name)
+    load_weights(run.loss, policy_weights(ckpt, run.loss), path, cfg.method.name)
     run.checkpoint = ckpt
     return run
-
-
-POLICY_KEYS = ("format_version", "cfg", "layout", "frames", "updates")
-
-
-def export_policy(src: str | Path, dst: str | Path) -> Path:
-    """A small weights-only checkpoint of ``src`` for acting, not for training: the networks without
-    their target copies, the optimiser, the RNG state or the replay bookkeeping (about half the
-    size). :func:`restore` loads it like any checkpoint; ``resume=`` cannot continue from it."""
-    ckpt = load_checkpoint(src)
-    slim = {k: ckpt[k] for k in POLICY_KEYS if k in ckpt}
-    slim["loss"] = {k: v for k, v in ckpt["loss"].items() if not k.startswith("target_")}
-    slim["policy_only"] = True
-    return save_checkpoint(dst, slim)
