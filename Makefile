@@ -15,12 +15,18 @@ DOCTESTS   := icco_torchrl/objectives/icco_loss.py icco_torchrl/objectives/retur
 
 install: $(STAMP)
 
+# Quiet unless something fails: pip's output (and setuptools' warnings) go to the log, which is
+# printed only when a step fails.
+INSTALL_LOG := $(VENV).install.log
+
 $(STAMP): pyproject.toml
-	$(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q "$(TORCH_SPEC)"
-	$(PY) -m pip install -q -e ".[dev,submitit]"
-	touch $(STAMP)
+	@echo "installing into $(VENV) (log: $(INSTALL_LOG))"
+	@{ $(PYTHON) -m venv $(VENV) \
+	  && $(PY) -m pip install -q --upgrade pip \
+	  && $(PY) -m pip install -q "$(TORCH_SPEC)" \
+	  && $(PY) -m pip install -q -e ".[dev,submitit]"; } > $(INSTALL_LOG) 2>&1 \
+	  || { cat $(INSTALL_LOG); echo "make install failed: see $(INSTALL_LOG)"; exit 1; }
+	@touch $(STAMP)
 
 test: $(STAMP)
 	$(VENV)/bin/ruff format --check .

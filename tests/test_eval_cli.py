@@ -171,3 +171,58 @@ def test_learning_curves_average_seeds(tmp_path):
     ]
     assert len(curves["ICCO"].runs) == 2
     assert all(p.stat().st_size > 0 for p in plot_curves(curves, tmp_path / "curves"))
+
+
+ROOT = Path(__file__).resolve().parents[1]
+DEMO = ROOT / "assets" / "demo_icco.pt"
+
+
+def _tree(folder: Path) -> dict:
+    return {str(p.relative_to(folder)): p.stat().st_mtime_ns for p in folder.rglob("*")}
+
+
+def test_eval_and_instruct_on_the_demo_policy_write_under_runs_not_assets(
+    tmp_path, monkeypatch, capsys
+):
+    monkeypatch.chdir(tmp_path)
+    assets = _tree(ROOT / "assets")
+    quick = ("eval.trials=2", "eval.steps=4", "eval.references=[]")
+    assert icco("eval", f"checkpoint={DEMO}", *quick) == 0, capsys.readouterr().err
+    assert icco("instruct", "Go right", f"checkpoint={DEMO}", *quick) == 0, capsys.readouterr().err
+    assert _tree(ROOT / "assets") == assets, "a command wrote into assets/"
+    written = sorted(p.name for p in (tmp_path / "runs" / "demo_icco").iterdir())
+    assert written[0] == "eval_random_walk" and written[1].startswith("instruct_go_right_")
+    assert (tmp_path / "runs" / "demo_icco" / "eval_random_walk" / "random_walk.md").is_file()
+    # eval.out_dir still wins.
+    assert icco("eval", f"checkpoint={DEMO}", *quick, f"eval.out_dir={tmp_path / 'mine'}") == 0
+    assert (tmp_path / "mine" / "random_walk.md").is_file()
+
+
+def test_results_of_a_run_folder_checkpoint_stay_beside_it(tmp_path):
+    from icco_torchrl.commands import results_dir
+
+    run = tmp_path / "runs" / "icco" / "seed0"
+    run.mkdir(parents=True)
+    assert results_dir(None, [run / "checkpoint.pt"], "eval_quadrants") == run / "eval_quadrants"
+    assert results_dir(None, [DEMO], "eval_quadrants") == Path("runs/demo_icco/eval_quadrants")
+    assert results_dir("elsewhere", [DEMO], "eval_quadrants") == Path("elsewhere")
+
+
+def _text(path):
+    path.write_text("epoch 1: loss 0.52\n")
+
+
+def _fields_missing(path):
+    import torch
+
+    torch.save({"format_version": 2}, path)
+
+
+@pytest.mark.parametrize("make", [_text, _fields_missing])
+def test_eval_of_an_unreadable_checkpoint_is_one_plain_line(tmp_path, capsys, make):
+    path = tmp_path / "checkpoint.pt"
+    make(path)
+    code = icco("eval", f"checkpoint={path}", "eval.trials=2", f"hydra.run.dir={tmp_path / 'h'}")
+    err = capsys.readouterr().err
+    assert code == 2 and err.startswith("icco eval: ") and len(err.strip().splitlines()) == 1, err
+    assert str(path) in err and "Traceback" not in err and "KeyError" not in err

@@ -10,12 +10,14 @@ other; ``icco live`` and ``icco bridge`` (:mod:`.live`) start :mod:`icco_torchrl
 
 from __future__ import annotations
 
+import os
 import sys
 import tempfile
 from collections.abc import Callable
 from contextlib import contextmanager
 from dataclasses import dataclass
 from importlib import import_module
+from pathlib import Path
 
 from icco_torchrl.training.checkpoint import CheckpointError
 from icco_torchrl.training.config import ConfigError
@@ -35,6 +37,28 @@ def results_beside_checkpoint(command: str, args: list[str]) -> tuple[list[str],
     temporary folder (results are written next to the checkpoint, not under ``runs/``)."""
     folder = f"{tempfile.gettempdir()}/icco_{command}/${{now:%Y%m%d-%H%M%S-%f}}"
     return [f"hydra.run.dir={folder}", *args], {}
+
+
+PACKAGE_DIR = Path(__file__).resolve().parents[1]
+# Folders that ship with the project (the demo policy in assets/, the package): never written.
+SHIPPED_DIRS = (PACKAGE_DIR, PACKAGE_DIR.parent / "assets")
+
+
+def results_dir(out_dir: str | None, paths: list[Path], name: str) -> Path:
+    """Where ``icco eval`` and ``icco instruct`` write: ``eval.out_dir`` when given; else
+    ``<name>/`` beside the checkpoints, in their run (or sweep) folder; but for checkpoints that
+    ship with the project (``assets/demo_icco.pt``) or lie in a folder this user cannot write,
+    ``runs/<checkpoint name>/<name>/`` (under the working folder, as ``icco train``'s runs)."""
+    from icco_torchrl.evaluation.runner import default_out_dir  # heavy: plots, tables
+
+    if out_dir:
+        return Path(out_dir)
+    beside = default_out_dir(paths, name)
+    folder = beside.parent.resolve()
+    shipped = any(folder == d or d in folder.parents for d in SHIPPED_DIRS)
+    if shipped or not os.access(folder, os.W_OK):
+        return Path("runs") / Path(paths[0]).stem / name
+    return beside
 
 
 @dataclass(frozen=True)

@@ -5,8 +5,10 @@
 
 ``eval.checkpoints`` (paths or globs) compares several checkpoints, one row per method.
 
-Outputs go to ``eval.out_dir`` or to ``eval_<protocol>/`` next to the checkpoint(s); what is
-measured and written: :mod:`icco_torchrl.evaluation.runner`.
+Outputs go to ``eval.out_dir`` or to ``eval_<protocol>/`` next to the checkpoint(s) (for the
+demo policy and other checkpoints that ship with the project, to
+``runs/<checkpoint name>/eval_<protocol>/``: :func:`~icco_torchrl.commands.results_dir`); what
+is measured and written: :mod:`icco_torchrl.evaluation.runner`.
 """
 
 from __future__ import annotations
@@ -15,10 +17,9 @@ from pathlib import Path
 
 from omegaconf import DictConfig
 
-from icco_torchrl.commands import Command, clean_errors
+from icco_torchrl.commands import Command, clean_errors, results_dir
 from icco_torchrl.evaluation.runner import (
     PROTOCOL_TITLES,
-    default_out_dir,
     evaluate_checkpoints,
     find_checkpoints,
     protocol_schedules,
@@ -38,9 +39,7 @@ def run_eval(cfg: DictConfig, run_dir: str | Path) -> float:
             flush=True,
         )
         name = cfg.eval.protocol
-        out_dir = (
-            Path(cfg.eval.out_dir) if cfg.eval.out_dir else default_out_dir(paths, f"eval_{name}")
-        )
+        out_dir = results_dir(cfg.eval.out_dir, paths, f"eval_{name}")
         result = evaluate_checkpoints(
             cfg, paths, schedules, gif_stem=out_dir / name if cfg.eval.gif else None
         )

@@ -9,7 +9,8 @@ Instructions separated by ``;`` are given one after the other, ``eval.steps`` (1
 each, in one episode per trial; the planner (``cfg.llm``) is prompted once per instruction
 with the robots' positions at that moment (``eval.replan_every`` re-prompts more often). The
 metrics, tables and figures are those of ``icco eval`` (one segment per instruction), written
-to ``eval.out_dir`` or ``instruct_<instructions>_<hash>/`` next to the checkpoint(s). A remote
+to ``eval.out_dir`` or ``instruct_<instructions>_<hash>/`` next to the checkpoint(s) (under
+``runs/<checkpoint name>/`` for checkpoints that ship with the project). A remote
 model that never replies (down, bad key, timeouts) ends the command with one line and exit
 code 2, unless ``llm.fallback_on_error=true``.
 """
@@ -24,9 +25,8 @@ from pathlib import Path
 from omegaconf import DictConfig
 
 from icco_torchrl import methods
-from icco_torchrl.commands import Command, clean_errors, results_beside_checkpoint
+from icco_torchrl.commands import Command, clean_errors, results_beside_checkpoint, results_dir
 from icco_torchrl.evaluation.runner import (
-    default_out_dir,
     evaluate_checkpoints,
     find_checkpoints,
     slug,
@@ -72,7 +72,7 @@ def run_instruct(cfg: DictConfig, run_dir: str | Path, instruction: str) -> floa
             check_understood(instructions, field_size / 2)
         paths = find_checkpoints(cfg)
         name = out_dir_name(instructions)
-        out_dir = Path(cfg.eval.out_dir) if cfg.eval.out_dir else default_out_dir(paths, name)
+        out_dir = results_dir(cfg.eval.out_dir, paths, name)
         title = (
             f"Language instructions via {planner.model} ({planner.prompt} prompt): "
             + " -> ".join(f'"{text}"' for text in instructions)
