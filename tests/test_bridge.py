@@ -12,7 +12,7 @@ from conftest import bridge_with_fleet
 from icco_torchrl.envs import ResourceCollectionEnv
 from icco_torchrl.envs.reference_policies import make_reference_policy
 from icco_torchrl.live import LiveLoop
-from icco_torchrl.live.bridge import Bridge, ProtocolError, parse_message
+from icco_torchrl.live.bridge import MAX_MESSAGE, Bridge, ProtocolError, parse_message
 from icco_torchrl.live.dwa import RobotLimits, dwa_command
 from icco_torchrl.live.fleet import SimulatedFleet
 from icco_torchrl.modules.policy import make_policy
@@ -58,6 +58,18 @@ def test_dwa_keeps_clear_of_another_robot():
         (b'{"type": "state", "robots": [{"id": 0, "pose": [0, "a", 0]}]}', "pose"),
         (b'{"type": "state", "robots": [], "resources": [[0]]}', "resources"),
         (b'{"type": "instruct", "text": ""}', "non-empty"),
+        # The safety contract's checks (docs/live.md, "Bridge safety contract").
+        (b'{"type": "state", "robots": [{"id": true, "pose": [0, 0, 0]}]}', "integer 'id'"),
+        (b'{"type": "state", "robots": [{"id": 0.0, "pose": [0, 0, 0]}]}', "integer 'id'"),
+        (b'{"type": "state", "robots": [{"id": 0, "pose": [NaN, 0, 0]}]}', "NaN is not"),
+        (b'{"type": "state", "robots": [{"id": 0, "pose": [1e999, 0, 0]}]}', "out of range"),
+        (b'{"type": "state", "robots": [{"id": 0, "pose": [1e5, 0, 0]}]}', "at most 10000"),
+        (b'{"type": "state", "time": 1' + b"0" * 399 + b"}", "a number of 400 characters"),
+        (b'{"type": "state", "time": true}', "'time'"),
+        (b"[" * 5_000, "nested too deeply"),
+        (b" " * (MAX_MESSAGE + 1), f"at most {MAX_MESSAGE}"),
+        (b'{"type": "instruct", "text": "' + b"a" * 201 + b'"}', "too long: 201 characters"),
+        (b'{"type": "instruct", "text": "go \\ud800"}', "not valid unicode"),
     ],
 )
 def test_malformed_messages_are_refused_in_one_line(data, message):
@@ -143,6 +155,10 @@ def test_icco_bridge_with_the_simulated_fleet_through_the_cli(tmp_path):
     assert "listening on udp 127.0.0.1:" in proc.stdout and " 0 malformed" in proc.stdout
     commands = int(proc.stdout.split(" commands,")[0].rsplit(" ", 1)[-1])
     assert commands >= 20  # ~10 Hz for 3 s
+    actual = float(proc.stdout.split(" Hz actual of 10 nominal")[0].rsplit(" ", 1)[-1])
+    assert 7.0 <= actual <= 10.5, actual
+    # live.seconds ran out: the fleet was sent a stop command before the socket closed.
+    assert "bridge: sent a stop command (v = w = 0) to all 3 robots at 1 address" in proc.stdout
     # A busy port, in this process (the one-line exit 2 is the command's, as for `icco live`).
     from icco_torchrl.live.cli import run_bridge
     from icco_torchrl.training.build import compose_config

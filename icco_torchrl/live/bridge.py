@@ -1,84 +1,220 @@
 """Robot bridge: the live loop driven by external positions, commanding robots over JSON-over-UDP.
 
-Protocol (UTF-8 JSON, one object per datagram; distances in metres, angles in radians, field
-frame centred on home, +x right, +y up):
+Protocol (UTF-8 JSON, one object per datagram of at most ``MAX_MESSAGE`` bytes; distances in
+metres, angles in radians, field frame centred on home, +x right, +y up):
 
 * in, ``{"type": "state", "time": t, "robots": [{"id": i, "pose": [x, y, theta]}, ...],
   "resources": [[x, y], ...], "invader": [[x, y]] }`` as a motion-capture system streams it.
   ``robots`` may list any subset (robots reported separately); ``resources`` and ``invader``
   are optional (kept from the last message; ``"invader": []`` means none on the field).
-* in, ``{"type": "instruct", "text": "Go right"}``: a language instruction for the team.
+* in, ``{"type": "instruct", "text": "Go right"}``: a language instruction for the team (at most
+  ``MAX_INSTRUCTION`` characters).
 * out, to the sender of the latest state: ``{"type": "command", "time": t, "robots": [{"id": i,
-  "target": [x, y], "v": v, "w": w, "stopped": bool, "reason": null | "stale"}, ...]}`` at the
-  control rate: the policy's next point for each robot and a unicycle velocity command toward
-  it from the Dynamic Window Approach (``dwa.py``) within the robot's limits.
+  "target": [x, y], "v": v, "w": w, "stopped": bool, "reason": null | "stale" | "control error"
+  | "bridge stopped"}, ...]}`` at the control rate: the policy's next point for each robot and a
+  unicycle velocity command toward it from the Dynamic Window Approach (``dwa.py``) within the
+  robot's limits.
 
-A robot whose pose is older than ``timeout`` seconds (or never seen) gets ``v = w = 0`` with
-``"stopped": true, "reason": "stale"``, and the event is logged once; the others keep going.
-A malformed datagram is logged, counted in ``stats["malformed"]`` and ignored, never a crash.
+Safety contract (``docs/live.md``, "Bridge safety contract"):
+
+* No datagram stops the bridge. Each is checked before it is used: its byte length first (at
+  most ``MAX_MESSAGE``), then UTF-8 and JSON (no ``NaN`` or ``Infinity``, numbers of at most
+  ``MAX_DIGITS`` digits, nesting too deep for the parser refused), then strict types: an ``id``
+  is an int (``true`` is not), coordinates are finite numbers of magnitude at most ``MAX_COORD``,
+  an instruction is valid unicode within ``MAX_INSTRUCTION`` characters. A datagram that fails,
+  or that the loop cannot take, is refused: counted in ``stats["malformed"]`` (by kind in
+  ``stats["refused_by"]``) and logged in one line of at most about 300 characters, at most one
+  line per ``LOG_EVERY`` seconds (the next line says how many were refused in between).
+* A robot whose pose is older than ``timeout`` seconds (or never seen) gets ``v = w = 0`` with
+  ``"stopped": true, "reason": "stale"``, and the event is logged once; the others keep going.
+  A control tick that fails stops every robot (``"reason": "control error"``) until one works.
+* However :meth:`Bridge.serve` ends (``stop`` set, ``max_seconds`` out, SIGINT, SIGTERM or
+  SIGHUP when it runs in the main thread, an exception), and on :meth:`Bridge.close`, every robot
+  is sent a stop command (``"reason": "bridge stopped"``, ``STOP_REPEATS`` times) at every
+  address that sent a state, before the socket closes.
 """
 
 from __future__ import annotations
 
 import json
 import logging
+import math
+import signal
 import socket
 import threading
 import time
+from collections import OrderedDict, deque
 
 import numpy as np
 
 from icco_torchrl.live.dwa import DEFAULT_LIMITS, RobotLimits, dwa_command
-from icco_torchrl.live.loop import LiveLoop
+from icco_torchrl.live.loop import MAX_INSTRUCTION, LiveLoop
 
 log = logging.getLogger("icco.bridge")
-MAX_DATAGRAM = 65_507
+MAX_DATAGRAM = 65_507  # the largest UDP payload over IPv4
+MAX_MESSAGE = 16_384  # bytes: a longer datagram is refused before it is decoded
+MAX_DIGITS = 40  # characters of one JSON number (longer ones are refused, not converted)
+MAX_COORD = 1e4  # metres (and radians): the largest coordinate a state may carry
+MAX_PEERS = 32  # addresses remembered for the stop command (the most recent ones)
+MAX_ECHO = 160  # characters of a refusal's reason echoed in its log line
+LOG_EVERY = 1.0  # seconds between two log lines about refused datagrams (or failed ticks)
+STOP_REPEATS = 3  # copies of the final stop command (UDP may drop one), 10 ms apart
+RATE_WINDOW = 2.0  # seconds over which the actual control rate is measured (or 3 periods)
+MAX_BATCH = 256  # datagrams read in one go between two control ticks
+STOP_SIGNALS = tuple(
+    getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name)
+)
 
 
 class ProtocolError(ValueError):
-    """A datagram that does not follow the protocol (module docstring)."""
+    """A datagram that does not follow the protocol (module docstring); ``kind`` names the check
+    it failed (``oversize``, ``encoding``, ``json``, ``nesting``, ``number``, ``type``,
+    ``instruct``)."""
+
+    def __init__(self, message: str, kind: str = "type"):
+        super().__init__(message)
+        self.kind = kind
+
+
+def _refuse_constant(name: str):
+    raise ProtocolError(
+        f"{name} is not a number the protocol takes (finite numbers only)", "number"
+    )
+
+
+def _parse_int(text: str) -> int:
+    if len(text) > MAX_DIGITS:
+        raise ProtocolError(f"a number of {len(text)} characters (at most {MAX_DIGITS})", "number")
+    return int(text)
+
+
+def _parse_float(text: str) -> float:
+    if len(text) > MAX_DIGITS:
+        raise ProtocolError(f"a number of {len(text)} characters (at most {MAX_DIGITS})", "number")
+    value = float(text)
+    if not math.isfinite(value):
+        raise ProtocolError(f"{text} is out of range (finite numbers only)", "number")
+    return value
+
+
+def _decode(data: bytes):
+    """The datagram's JSON value, checked for size, encoding, nesting and numbers."""
+    if not isinstance(data, (bytes, bytearray)):
+        raise ProtocolError(f"a datagram must be bytes, got {type(data).__name__}")
+    if len(data) > MAX_MESSAGE:
+        raise ProtocolError(f"{len(data)} bytes or more (at most {MAX_MESSAGE})", "oversize")
+    try:
+        text = bytes(data).decode("utf-8")
+    except UnicodeDecodeError as err:
+        raise ProtocolError(f"not UTF-8 JSON: {err}", "encoding") from None
+    try:
+        return json.loads(
+            text,
+            parse_int=_parse_int,
+            parse_float=_parse_float,
+            parse_constant=_refuse_constant,
+        )
+    except RecursionError:
+        raise ProtocolError("not UTF-8 JSON: nested too deeply", "nesting") from None
+    except json.JSONDecodeError as err:
+        raise ProtocolError(f"not UTF-8 JSON: {err}", "json") from None
+    except ValueError as err:  # ProtocolError from a number hook, or int() refusing a literal
+        if isinstance(err, ProtocolError):
+            raise
+        raise ProtocolError(f"not UTF-8 JSON: {err}", "number") from None
+
+
+def _coord(value) -> bool:
+    """A finite number (not a bool) within ``MAX_COORD``."""
+    return (
+        isinstance(value, (int, float))
+        and not isinstance(value, bool)
+        and math.isfinite(value)
+        and abs(value) <= MAX_COORD
+    )
+
+
+def _points(value, size: int) -> bool:
+    """A list of ``[x, y]`` (``size`` 2) or ``[x, y, theta]`` (``size`` 3) coordinates."""
+    return isinstance(value, list) and len(value) == size and all(_coord(v) for v in value)
 
 
 def parse_message(data: bytes, n_robots: int) -> dict:
     """The validated message, or :class:`ProtocolError` with one line saying what is wrong."""
-    try:
-        msg = json.loads(data.decode("utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as err:
-        raise ProtocolError(f"not UTF-8 JSON: {err}") from None
+    msg = _decode(data)
     if not isinstance(msg, dict) or msg.get("type") not in ("state", "instruct"):
         raise ProtocolError("a message must be a JSON object with type 'state' or 'instruct'")
     if msg["type"] == "instruct":
-        if not isinstance(msg.get("text"), str) or not msg["text"].strip():
-            raise ProtocolError("an instruct message needs a non-empty 'text'")
+        text = msg.get("text")
+        if not isinstance(text, str) or not text.strip():
+            raise ProtocolError("an instruct message needs a non-empty 'text'", "instruct")
+        if len(text.strip()) > MAX_INSTRUCTION:
+            raise ProtocolError(
+                f"instruction too long: {len(text.strip())} characters, at most {MAX_INSTRUCTION}",
+                "instruct",
+            )
+        try:
+            text.encode("utf-8")
+        except UnicodeEncodeError:
+            raise ProtocolError("the instruction is not valid unicode", "instruct") from None
         return msg
     robots = msg.get("robots", [])
     if not isinstance(robots, list):
         raise ProtocolError("'robots' must be a list")
     for r in robots:
-        if (
-            not isinstance(r, dict)
-            or not isinstance(r.get("id"), int)
-            or not 0 <= r["id"] < n_robots
-        ):
+        rid = r.get("id") if isinstance(r, dict) else None
+        if type(rid) is not int or not 0 <= rid < n_robots:
             raise ProtocolError(f"each robot needs an integer 'id' in [0, {n_robots})")
-        pose = r.get("pose")
-        if not (isinstance(pose, list) and len(pose) == 3 and all(_finite(v) for v in pose)):
-            raise ProtocolError(f"robot {r['id']}: 'pose' must be [x, y, theta] (finite numbers)")
-    for key in ("resources", "invader"):
-        if key in msg and not (
-            isinstance(msg[key], list)
-            and all(
-                isinstance(p, list) and len(p) == 2 and all(_finite(v) for v in p) for p in msg[key]
+        if not _points(r.get("pose"), 3):
+            raise ProtocolError(
+                f"robot {rid}: 'pose' must be [x, y, theta] (finite numbers, at most "
+                f"{MAX_COORD:g} in size)"
             )
-        ):
-            raise ProtocolError(f"'{key}' must be a list of [x, y] points")
-    if "time" in msg and not _finite(msg["time"]):
+    for key in ("resources", "invader"):
+        if key in msg and not (isinstance(msg[key], list) and all(_points(p, 2) for p in msg[key])):
+            raise ProtocolError(f"'{key}' must be a list of [x, y] points (finite numbers)")
+    if "time" in msg and not (
+        isinstance(msg["time"], (int, float))
+        and not isinstance(msg["time"], bool)
+        and math.isfinite(msg["time"])
+    ):
         raise ProtocolError("'time' must be a number (seconds)")
     return msg
 
 
-def _finite(value) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and np.isfinite(value)
+def _one_line(text: str, limit: int = MAX_ECHO) -> str:
+    """``text`` on one line of at most ``limit`` characters, printable."""
+    text = " ".join(str(text).split())
+    text = text.encode("ascii", "backslashreplace").decode("ascii")
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def _peer(sender) -> str:
+    try:
+        host, port = sender[:2]
+        return _one_line(f"{host}:{int(port)}", 60)
+    except (TypeError, ValueError):
+        return _one_line(repr(sender), 60)
+
+
+class _Throttle:
+    """At most one log line per ``every`` seconds; :meth:`due` says whether one may be written now
+    and how many were held back since the last."""
+
+    def __init__(self, every: float = LOG_EVERY):
+        self.every, self.next_at, self.held = every, -math.inf, 0
+
+    def due(self) -> tuple[bool, int]:
+        now = time.monotonic()
+        if now < self.next_at:
+            self.held += 1
+            return False, 0
+        held, self.held, self.next_at = self.held, 0, now + self.every
+        return True, held
+
+
+def _held(n: int) -> str:
+    return f" ({n} more since the last line)" if n else ""
 
 
 class Bridge:
@@ -108,6 +244,7 @@ class Bridge:
         try:
             self.sock.bind((host, port))
         except OSError as err:
+            self.sock.close()
             raise OSError(f"cannot listen on udp {host}:{port}: {err.strerror or err}") from None
         self.address = self.sock.getsockname()
         self.poses = np.zeros((self.n, 3))
@@ -116,30 +253,47 @@ class Bridge:
         self.command = np.zeros((self.n, 2))  # last (v, w) sent
         self.resources = self.invader = None
         self.reply_to = None
+        self.peers: OrderedDict = OrderedDict()  # addresses that sent a state (the stop goes there)
         self.stale_logged = np.zeros(self.n, bool)
         self.stats = {
             "messages": 0,
-            "malformed": 0,
+            "malformed": 0,  # every refused datagram (by kind in "refused_by")
+            "refused_by": {},
             "commands": 0,
             "stale_stops": 0,
-            "latency_ms": [],
+            "control_errors": 0,
+            "stops_sent": 0,  # stop commands sent to all robots (control errors, the end)
+            "latency_ms": deque(maxlen=10_000),
         }
+        self.halted: str | None = None  # why every robot was last sent a stop (None: commanding)
+        self.stop_cause: str | None = None  # what ended serve() (a signal's name, an error)
         self._received_at = None
         self._last: dict[int, dict] = {}  # each robot's entry in the last command message
+        self._command_times: deque = deque(maxlen=4096)  # monotonic times of recent commands
+        self._first_command_at = self._last_command_at = None
+        self._refusals, self._failures = _Throttle(), _Throttle()
+        self._closed = False
         self.on_command = None  # called with each command message (e.g. the live page)
 
+    # ------------------------------------------------------------------ datagrams in
     def handle(self, data: bytes, sender) -> None:
-        """One datagram: update the measured state, or pass an instruction to the live loop."""
+        """One datagram: update the measured state, or pass an instruction to the live loop; a
+        datagram that cannot be used is refused (counted and logged), never raised."""
         try:
             msg = parse_message(data, self.n)
+            if msg["type"] == "instruct":
+                self.loop.instruct(msg["text"])
+            else:
+                self._apply_state(msg, sender)
         except ProtocolError as err:
-            self.stats["malformed"] += 1
-            log.warning("bridge: ignored a malformed datagram from %s: %s", sender, err)
+            self._refuse(sender, len(data), err.kind, str(err))
+            return
+        except Exception as err:  # the loop refusing it (no planner), or a bug: never a crash
+            self._refuse(sender, len(data), "not applied", f"{type(err).__name__}: {err}")
             return
         self.stats["messages"] += 1
-        if msg["type"] == "instruct":
-            self.loop.instruct(msg["text"])
-            return
+
+    def _apply_state(self, msg: dict, sender) -> None:
         now = time.monotonic()
         for r in msg.get("robots", []):
             i, pose = r["id"], np.asarray(r["pose"], float)
@@ -151,8 +305,29 @@ class Bridge:
             self.resources = np.asarray(msg["resources"], float).reshape(-1, 2)
         if "invader" in msg:
             self.invader = np.asarray(msg["invader"], float).reshape(-1, 2)
+        self.peers[sender] = now
+        self.peers.move_to_end(sender)
+        while len(self.peers) > MAX_PEERS:
+            self.peers.popitem(last=False)
         self.reply_to, self._received_at = sender, time.perf_counter()
 
+    def _refuse(self, sender, size: int, kind: str, reason: str) -> None:
+        """Count a refused datagram and log it in one bounded line (at most one per LOG_EVERY)."""
+        self.stats["malformed"] += 1
+        by = self.stats["refused_by"]
+        by[kind] = by.get(kind, 0) + 1
+        due, held = self._refusals.due()
+        if due:
+            log.warning(
+                "bridge: refused a datagram from %s (%d bytes, %s): %s%s",
+                _peer(sender),
+                size,
+                kind,
+                _one_line(reason),
+                _held(held),
+            )
+
+    # ------------------------------------------------------------------ commands out
     def control(self) -> dict | None:
         """One control tick: the policy's targets and DWA commands; stale robots stopped."""
         if self.reply_to is None:
@@ -167,7 +342,7 @@ class Bridge:
         _, targets = self.loop.act_on(
             self.poses[:, :2], velocities=self.velocity, resources=resources, invader=self.invader
         )
-        robots = []
+        robots, command = [], np.zeros_like(self.command)
         for i in range(self.n):
             if not fresh[i]:
                 if not self.stale_logged[i]:
@@ -178,7 +353,6 @@ class Bridge:
                     )
                     self.stale_logged[i] = True
                     self.stats["stale_stops"] += 1
-                self.command[i] = 0.0
                 robots.append(
                     {
                         "id": i,
@@ -199,7 +373,7 @@ class Bridge:
                 1.0 / self.rate_hz,
                 others=others,
             )
-            self.command[i] = (v, w)
+            command[i] = (v, w)
             robots.append(
                 {
                     "id": i,
@@ -211,19 +385,89 @@ class Bridge:
                 }
             )
         message = {"type": "command", "time": time.time(), "robots": robots}
-        self._last = {r["id"]: r for r in robots}
         self.sock.sendto(json.dumps(message).encode(), self.reply_to)
+        self.command, self._last, self.halted = command, {r["id"]: r for r in robots}, None
         self.stats["commands"] += 1
+        stamp = time.monotonic()
+        self._command_times.append(stamp)
+        self._last_command_at = stamp
+        if self._first_command_at is None:
+            self._first_command_at = stamp
         if self._received_at is not None:
             self.stats["latency_ms"].append((time.perf_counter() - self._received_at) * 1e3)
             self._received_at = None
-        if self.on_command is not None:
-            self.on_command(message)
+        self._tell(message)
         return message
+
+    def halt(self, reason: str = "bridge stopped", repeats: int = STOP_REPEATS) -> dict:
+        """Send every robot a stop command (``v = w = 0``, ``"stopped": true``, ``reason``) at
+        every address that sent a state (``repeats`` copies, 10 ms apart); returns the message."""
+        robots = []
+        for i in range(self.n):
+            target = self._last.get(i, {}).get("target") or self.poses[i, :2].tolist()
+            robots.append(
+                {"id": i, "target": target, "v": 0.0, "w": 0.0, "stopped": True, "reason": reason}
+            )
+        message = {"type": "command", "time": time.time(), "robots": robots}
+        data = json.dumps(message).encode()
+        peers = list(self.peers) if not self._closed else []
+        delivered = 0
+        for k in range(repeats if peers else 0):
+            if k:
+                time.sleep(0.01)
+            for peer in peers:
+                try:
+                    self.sock.sendto(data, peer)
+                    delivered += 1
+                except OSError as err:
+                    log.error("bridge: stop command to %s failed: %s", _peer(peer), err)
+        if self.halted != reason and peers:
+            log.warning(
+                "bridge: sent a stop command (v = w = 0) to all %d robots at %d address%s (%s)",
+                self.n,
+                len(peers),
+                "" if len(peers) == 1 else "es",
+                reason,
+            )
+        self.command[:] = 0.0
+        self._last = {r["id"]: r for r in robots}
+        self.halted = reason
+        if delivered:
+            self.stats["stops_sent"] += 1
+        self._tell(message)
+        return message
+
+    def _tell(self, message: dict) -> None:
+        if self.on_command is None:
+            return
+        try:
+            self.on_command(message)
+        except Exception as err:  # a watcher (the page) must not stop the robots' commands
+            log.error("bridge: on_command failed: %s", _one_line(f"{type(err).__name__}: {err}"))
+
+    def actual_rate(self) -> float | None:
+        """Commands per second over the last ``RATE_WINDOW`` seconds (or three periods, if
+        longer): None before the first two commands, 0 when none was sent in that window."""
+        times, now = self._command_times, time.monotonic()
+        window = max(RATE_WINDOW, 3.0 / self.rate_hz)
+        while times and now - times[0] > window:
+            times.popleft()
+        if len(times) < 2:
+            return None if self.stats["commands"] < 2 else 0.0
+        span = times[-1] - times[0]
+        return (len(times) - 1) / span if span > 0 else None
+
+    def mean_rate(self) -> float | None:
+        """Commands per second from the first command to the last (a run's actual rate)."""
+        if self._first_command_at is None or self.stats["commands"] < 2:
+            return None
+        span = self._last_command_at - self._first_command_at
+        return (self.stats["commands"] - 1) / span if span > 0 else None
 
     def fleet(self) -> dict:
         """The fleet as the bridge sees it, for the live page: each robot's last pose, how old it
-        is, its last command and whether it is stopped (and why); the message counts."""
+        is, its last command and whether it is stopped (and why); the message counts, the nominal
+        and the actual control rate, and ``halted`` (why every robot was stopped, or None)."""
         now = time.monotonic()
         robots = []
         for i in range(self.n):
@@ -241,11 +485,14 @@ class Bridge:
                 }
             )
         s = self.stats
-        latency = s["latency_ms"][-50:]
+        latency = list(s["latency_ms"])[-50:]
+        actual = 0.0 if self.halted else self.actual_rate()  # stopped: no command moves them
         return {
             "robots": robots,
             "address": f"udp {self.address[0]}:{self.address[1]}",
             "rate_hz": self.rate_hz,
+            "actual_hz": None if actual is None else round(actual, 2),
+            "halted": self.halted,
             "timeout_s": self.timeout,
             "messages": s["messages"],
             "commands": s["commands"],
@@ -254,28 +501,90 @@ class Bridge:
             "latency_ms": float(np.median(latency)) if latency else None,
         }
 
+    # ------------------------------------------------------------------ serving
     def serve(self, stop: threading.Event, max_seconds: float | None = None) -> None:
         """Receive datagrams and send commands at ``rate_hz`` until ``stop`` is set (or
-        ``max_seconds`` pass)."""
+        ``max_seconds`` pass); then every robot is sent a stop command, however it ends (see the
+        module docstring). In the main thread, SIGINT, SIGTERM and SIGHUP set ``stop`` while it
+        runs (the previous handlers are put back after the stop command)."""
         period = 1.0 / self.rate_hz
         end = None if max_seconds is None else time.monotonic() + max_seconds
         next_tick = time.monotonic() + period
-        while not stop.is_set() and (end is None or time.monotonic() < end):
-            self.sock.settimeout(max(1e-3, next_tick - time.monotonic()))
+        self.stop_cause = None
+        previous = self._trap_signals(stop)
+        try:
+            while not stop.is_set() and (end is None or time.monotonic() < end):
+                self._receive(max(1e-3, next_tick - time.monotonic()), period)
+                now = time.monotonic()
+                if now >= next_tick:  # late ticks are not made up for: at most one at once
+                    next_tick = max(next_tick + period, now)
+                    try:
+                        self.control()
+                    except Exception as err:  # a bad tick must not end the bridge: stop robots
+                        self.stats["control_errors"] += 1
+                        self._failed("control tick", err)
+                        self.halt("control error", repeats=1)
+            if self.stop_cause is None:
+                self.stop_cause = "stopped" if stop.is_set() else "max_seconds ran out"
+        except BaseException as err:
+            self.stop_cause = _one_line(f"{type(err).__name__}: {err}")
+            raise
+        finally:
             try:
-                data, sender = self.sock.recvfrom(MAX_DATAGRAM)
-                self.handle(data, sender)
-            except TimeoutError:
-                pass
-            if time.monotonic() >= next_tick:
-                next_tick += period
-                try:
-                    self.control()
-                except Exception as err:  # a bad tick must not end the bridge: log and go on
-                    log.error(
-                        "bridge: control tick failed: %s",
-                        f"{type(err).__name__}: {err}".splitlines()[0],
-                    )
+                log.info("bridge: ending (%s)", self.stop_cause)
+                self.halt("bridge stopped")
+            finally:
+                self._restore_signals(previous)
+
+    def _receive(self, timeout: float, period: float) -> None:
+        """Handle the datagrams that arrive within ``timeout`` seconds: the first one waited for,
+        then those already queued (at most ``MAX_BATCH``)."""
+        self.sock.settimeout(timeout)
+        for _ in range(MAX_BATCH):
+            try:
+                data, sender = self.sock.recvfrom(MAX_MESSAGE + 1)
+            except (TimeoutError, BlockingIOError):
+                return
+            except OSError as err:  # e.g. an ICMP error reported on the socket: go on
+                self._failed("receive", err)
+                time.sleep(min(period, 0.01))
+                return
+            self.handle(data, sender)
+            self.sock.settimeout(0)
+
+    def _failed(self, what: str, err: Exception) -> None:
+        due, held = self._failures.due()
+        if due:
+            log.error(
+                "bridge: %s failed: %s%s",
+                what,
+                _one_line(f"{type(err).__name__}: {err}"),
+                _held(held),
+            )
+
+    def _trap_signals(self, stop: threading.Event) -> dict:
+        if threading.current_thread() is not threading.main_thread():
+            return {}
+
+        def on_signal(signum, _frame):
+            self.stop_cause = signal.Signals(signum).name
+            stop.set()
+
+        return {sig: signal.signal(sig, on_signal) for sig in STOP_SIGNALS}
+
+    @staticmethod
+    def _restore_signals(previous: dict) -> None:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler if handler is not None else signal.SIG_DFL)
 
     def close(self) -> None:
-        self.sock.close()
+        """Stop every robot (unless the last thing sent was already that stop) and close the
+        socket; closing twice is harmless."""
+        if self._closed:
+            return
+        try:
+            if self.halted != "bridge stopped":
+                self.halt("bridge stopped")
+        finally:
+            self._closed = True
+            self.sock.close()

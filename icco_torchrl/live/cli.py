@@ -201,10 +201,12 @@ def run_bridge(cfg: DictConfig) -> float:
             page.close(reason=f"live.seconds={live.seconds:g} ran out" if ran_out else None)
     s = bridge.stats
     latency = np.median(s["latency_ms"]) if s["latency_ms"] else float("nan")
+    rate = bridge.mean_rate()
     print(
         f"icco bridge: {s['messages']} messages, {s['commands']} commands, {s['malformed']} "
-        f"malformed, {s['stale_stops']} stale-robot stops; median state-to-command latency "
-        f"{latency:.1f} ms",
+        f"malformed (refused), {s['stale_stops']} stale-robot stops; "
+        f"{'-' if rate is None else f'{rate:.1f}'} Hz actual of {live.rate_hz:g} nominal; "
+        f"median state-to-command latency {latency:.1f} ms",
         flush=True,
     )
     return float(s["commands"])
