@@ -23,6 +23,7 @@ from fake_openai import FakeOpenAI, closed_port
 from icco_torchrl.instructions.llm import (
     LLMPlanner,
     LLMUnavailable,
+    ReplyError,
     build_messages,
     last_json_object,
     parse_reply,
@@ -671,3 +672,58 @@ def test_a_bad_reply_still_falls_back_without_fallback_on_error(litellm: Any) ->
         and result.fallback == "positions"
         and result.error == "no JSON object in the reply"
     )
+
+
+# --- replies that are too large, too deep or too slow to parse ------------------------------
+
+
+def test_a_huge_reply_costs_one_short_error_a_few_log_lines_and_no_time(
+    litellm: Any, caplog: pytest.LogCaptureFixture
+) -> None:
+    points = [[1.0, 2.0]] * 300_000  # 2.4 MB of JSON
+    huge = json.dumps({"movement_strategy": "s", **{f"agent_{i}": points for i in range(3)}})
+    planner = mocked(max_retries=2, deadline_s=1.0)
+    with caplog.at_level(logging.WARNING, logger="icco_torchrl.instructions.llm"):
+        begin = time.monotonic()
+        result = planner.plan("Go right", starts(0), mock_response=huge)
+        elapsed = time.monotonic() - begin
+    assert not result.ok and result.attempts == 3 and elapsed < 1.5
+    assert result.error.startswith("reply too long: ") and len(result.error) < 100
+    assert len(caplog.text) < 4_000 and len(caplog.records) == 4  # 3 attempts and the fallback
+
+
+def test_a_bad_value_is_quoted_in_a_few_characters() -> None:
+    many = {"movement_strategy": "s", **{f"agent_{i}": [[1.0, 2.0]] * 1500 for i in range(3)}}
+    with pytest.raises(ReplyError) as info:  # 1500 points a robot: under the size limit
+        parse_reply(json.dumps(many), 3, K, 2 * HALF)
+    assert "1500 items" in str(info.value) and len(str(info.value)) < 200
+    keys = json.dumps({f"agent_{i}": [[0, 0]] * K for i in range(1000)})
+    with pytest.raises(ReplyError, match=r"\(1000 keys\)") as info:
+        parse_reply(keys, 3, K, 2 * HALF)
+    assert len(str(info.value)) < 200
+    digits = valid_reply().replace("-1.0", "1" * 400, 1)  # a 400-digit coordinate
+    with pytest.raises(ReplyError, match="out of range"):
+        parse_reply(digits, 3, K, 2 * HALF)
+    declined = json.dumps({"error": "no " * 20_000})
+    with pytest.raises(ReplyError, match="planner declined") as info:
+        parse_reply(declined, 3, K, 2 * HALF)
+    assert len(str(info.value)) <= 500
+    deep = '{"agent_0": ' + "[" * 50_000 + "]" * 50_000 + "}"
+    with pytest.raises(ReplyError):  # nested past the recursion limit: a bad reply, no crash
+        parse_reply(deep, 3, K, 2 * HALF)
+
+
+@pytest.mark.parametrize(
+    "unit",
+    ['{"a": 1, ', '{"s": "{', '{"a": [', '{"a": {"b": {'],
+    ids=["keys", "str", "list", "deep"],
+)
+def test_finding_the_last_json_object_is_linear(unit: str) -> None:
+    """``json``'s search from every ``{`` took 15 s on a 300 KB reply (its error messages count
+    lines from the start; about 7 s on this 600 KB text) or crashed on deep nesting; the search
+    here takes a second at most (a reply the planner parses is at most 64 KiB)."""
+    text = unit * (600_000 // len(unit)) + 'then {"a": 2}'
+    begin = time.perf_counter()
+    assert last_json_object(text) in ({"a": 2}, None)  # the budget may stop before the end
+    assert time.perf_counter() - begin < 3.0
+    assert last_json_object(unit * 1000 + ' then {"a": 2}') == {"a": 2}

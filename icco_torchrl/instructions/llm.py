@@ -24,6 +24,11 @@ such as "Go right" into K waypoints per agent, the instruction vectors.
   evaluation never silently runs on fallbacks, unless ``fallback_on_error``
   asks for them. Errors that a retry cannot fix (401, 403, 404, 400) are not
   retried. Every ``plan()`` ends within ``deadline_s``, retries included.
+- Replies are bounded: one over ``MAX_REPLY_CHARS`` is refused unparsed, the JSON search is
+  linear in the reply's length, and error messages and logged replies are cut short, so a
+  model that answers with megabytes costs milliseconds and a few lines of log. A ``plan()``
+  given a ``cancel`` event stops at the next moment it waits (a newer instruction superseded
+  it), and a planner runs at most ``MAX_REQUESTS`` requests at once, abandoned ones included.
 """
 
 from __future__ import annotations
@@ -32,6 +37,7 @@ import json
 import logging
 import os
 import re
+import reprlib
 import threading
 import time
 from collections.abc import Mapping, Sequence
@@ -58,7 +64,15 @@ BACKEND_MODELS = {
 ABSURD_FACTOR = (
     10.0  # |coordinate| > ABSURD_FACTOR * field_size: the reply is nonsense, not merely off-field
 )
-_SHOWN_CHARS = 2000  # raw replies in logs and retry feedback are cut to this length
+_SHOWN_CHARS = 2000  # a rejected reply shown back to the model is cut to this length
+_LOGGED_CHARS = 300  # raw replies in logs are cut to this length
+_ERROR_CHARS = 500  # an error message (PlanResult.error, logs) is cut to this length
+_VALUE_CHARS = 60  # a bad value quoted in an error message is cut to this length
+# A reply longer than this is refused without parsing (a plan for 8 agents is under 2 000).
+MAX_REPLY_CHARS = 64 * 1024
+# Requests one planner may have running at once, abandoned ones (deadline, cancel) included;
+# a further request waits for one of them to end (within the plan's deadline).
+MAX_REQUESTS = 2
 
 
 @dataclass
@@ -96,6 +110,31 @@ class DeadlineExceeded(TimeoutError):
     """A request still running when the plan's ``deadline_s`` ran out."""
 
 
+class PlanCancelled(RuntimeError):
+    """The caller set the plan's ``cancel`` event (a newer instruction superseded it)."""
+
+
+def _clip(text: str, limit: int) -> str:
+    """``text`` cut to ``limit`` characters, ``...`` marking a cut."""
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def _quoted(value: Any) -> str:
+    """``repr(value)`` cut short for an error message (a reply may hold megabytes): a few items
+    of each list and dict, a few levels deep (``reprlib``, which never builds the whole repr)."""
+    return _clip(_SHORT_REPR.repr(value), _VALUE_CHARS)
+
+
+def _short_repr() -> reprlib.Repr:
+    short = reprlib.Repr()  # Python 3.11's Repr takes no arguments
+    short.maxlevel, short.maxlist, short.maxdict, short.maxtuple = 3, 4, 4, 4
+    short.maxstring, short.maxlong, short.maxother = 40, 30, 40
+    return short
+
+
+_SHORT_REPR = _short_repr()
+
+
 # HTTP statuses that the same request gets again: retrying only spends the deadline.
 _FINAL_STATUSES = (400, 401, 403, 404)
 
@@ -118,7 +157,7 @@ def _describe(exc: BaseException) -> str:
     text = " ".join(str(exc).split())
     if root is not exc and str(root) not in text:
         text += f" ({type(root).__name__}: {' '.join(str(root).split())})"
-    return f"{type(exc).__name__}: {text}"[: _SHOWN_CHARS // 4]
+    return _clip(f"{type(exc).__name__}: {text}", _ERROR_CHARS)
 
 
 @cache
@@ -238,26 +277,61 @@ def response_format(n_agents: int, n_waypoints: int) -> dict[str, Any]:
     }
 
 
+_BRACE_TOKENS = re.compile(r'[{}"]')
+_STRING_END = re.compile(r'(?:[^"\\]|\\.)*"', re.DOTALL)
+
+
+def _braces(text: str) -> list[tuple[int, int]]:
+    """Each ``{`` in ``text`` with the index after its matching ``}`` (-1 when unclosed), in one
+    pass; inside braces, JSON strings are skipped (outside them, quotes are prose)."""
+    found: list[list[int]] = []
+    open_: list[list[int]] = []
+    pos = 0
+    while (match := _BRACE_TOKENS.search(text, pos)) is not None:
+        char, pos = match.group(), match.end()
+        if char == "{":
+            open_.append([match.start(), -1])
+            found.append(open_[-1])
+        elif char == "}" and open_:
+            open_.pop()[1] = pos
+        elif char == '"' and open_:
+            string = _STRING_END.match(text, pos)
+            if string is None:
+                break  # an unclosed string: nothing after it closes
+            pos = string.end()
+    return [(start, end) for start, end in found]
+
+
 def last_json_object(text: str) -> dict[str, Any] | None:
-    """The last top-level JSON object in ``text``, ignoring prose and code fences around it."""
-    decoder = json.JSONDecoder()
-    found, index = None, text.find("{")
-    while index != -1:
+    """The last top-level JSON object in ``text``, ignoring prose and code fences around it.
+
+    Linear in ``len(text)``: one pass matches the braces, then each candidate ``{...}`` is
+    decoded once, left to right, past each object found; one that does not decode costs its
+    length from a budget of a few times the text's (``json``'s own search from every ``{`` is
+    quadratic: each failure counts lines from the start of the text)."""
+    found, budget, pos = None, 4 * len(text) + 10_000, 0
+    for start, end in _braces(text):
+        if start < pos or end == -1:
+            continue  # inside an object already taken, or never closed: not JSON
+        if budget <= 0:
+            break
         try:
-            value, end = decoder.raw_decode(text, index)
-        except ValueError:
-            index = text.find("{", index + 1)
+            value = json.loads(text[start:end])
+        except (ValueError, RecursionError):
+            budget -= end - start
             continue
         if isinstance(value, dict):
-            found = value
-        index = text.find("{", end)
+            found, pos = value, end
     return found
 
 
 def _number(value: Any) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise ReplyError(f"coordinate {value!r} is not a number")
-    return float(value)
+        raise ReplyError(f"coordinate {_quoted(value)} is not a number")
+    try:
+        return float(value)
+    except OverflowError:  # a 400-digit integer
+        raise ReplyError(f"coordinate {_quoted(value)} is out of range") from None
 
 
 def _waypoint(value: Any) -> tuple[float, float]:
@@ -265,32 +339,41 @@ def _waypoint(value: Any) -> tuple[float, float]:
         return _number(value["x"]), _number(value["y"])
     if isinstance(value, list) and len(value) == 2:
         return _number(value[0]), _number(value[1])
-    raise ReplyError(f"waypoint {value!r} is not an [x, y] pair")
+    raise ReplyError(f"waypoint {_quoted(value)} is not an [x, y] pair")
 
 
 def parse_reply(raw: str | None, n_agents: int, n_waypoints: int, field_size: float) -> np.ndarray:
     """Validated waypoints [n_agents, n_waypoints, 2] (float64, clipped to the field).
 
-    Raises :class:`ReplyError` for an empty reply, no JSON, the wrong agent
-    keys or shape, NaN/inf, or coordinates beyond ``ABSURD_FACTOR * field_size``
-    (a model that far off misunderstood the frame; clipping would hide it).
+    Raises :class:`ReplyError` for an empty reply, one over ``MAX_REPLY_CHARS``, no JSON, the
+    wrong agent keys or shape, NaN/inf, or coordinates beyond ``ABSURD_FACTOR * field_size``
+    (a model that far off misunderstood the frame; clipping would hide it). Its message is at
+    most a few hundred characters, whatever the reply holds.
     """
     if raw is None or not raw.strip():
         raise ReplyError("empty reply")
+    if len(raw) > MAX_REPLY_CHARS:
+        raise ReplyError(f"reply too long: {len(raw)} characters, at most {MAX_REPLY_CHARS}")
     reply = last_json_object(raw)
     if reply is None:
         raise ReplyError("no JSON object in the reply")
     agents = sorted(k for k in reply if re.fullmatch(r"agent_\d+", k))
     if not agents and "error" in reply:
-        raise PlannerDeclined(f"planner declined: {reply['error']}")
+        declined = reply["error"] if isinstance(reply["error"], str) else repr(reply["error"])
+        raise PlannerDeclined(_clip(f"planner declined: {declined}", _ERROR_CHARS))
     if set(agents) != set(_agent_keys(n_agents)):
-        raise ReplyError(f"expected keys agent_0..agent_{n_agents - 1}, got {agents}")
+        raise ReplyError(
+            f"expected keys agent_0..agent_{n_agents - 1}, got {_quoted(agents)}"
+            + (f" ({len(agents)} keys)" if len(agents) > 8 else "")
+        )
     waypoints = np.empty((n_agents, n_waypoints, 2))
     for i in range(n_agents):
         trajectory = reply[f"agent_{i}"]
         if not isinstance(trajectory, list) or len(trajectory) != n_waypoints:
+            size = f" ({len(trajectory)} items)" if isinstance(trajectory, list) else ""
             raise ReplyError(
-                f"agent_{i} must be a list of {n_waypoints} [x, y] waypoints, got {trajectory!r}"
+                f"agent_{i} must be a list of {n_waypoints} [x, y] waypoints, got "
+                f"{_quoted(trajectory)}{size}"
             )
         waypoints[i] = [_waypoint(point) for point in trajectory]
     if not np.isfinite(waypoints).all():
@@ -355,6 +438,7 @@ class LLMPlanner:
             bool(fallback_on_error),
         )
         self.cache = ResponseCache(cache_dir)
+        self._requests: list[threading.Thread] = []  # requests running, abandoned ones included
         self.stats = {
             "calls": 0,
             "backend_calls": 0,
@@ -386,6 +470,7 @@ class LLMPlanner:
         resources: Any = None,
         invader: Any = None,
         mock_response: str | BaseException | Sequence[str | BaseException] | None = None,
+        cancel: threading.Event | None = None,
     ) -> PlanResult:
         """Waypoints for ``instruction`` given agent ``positions`` [N, 2] (metres).
 
@@ -393,6 +478,8 @@ class LLMPlanner:
         ``previous`` [N, K, 2] is the fallback when every attempt fails (else the
         current positions, i.e. "stay"). ``mock_response`` is passed to litellm
         (tests); a sequence gives one entry per attempt, the last one repeating.
+        ``cancel``, once set, ends the plan with :class:`PlanCancelled` at its next wait (a
+        request still running is abandoned to its timeout, and counts in ``MAX_REQUESTS``).
         """
         pos = _points(positions, "positions")
         messages = build_messages(
@@ -432,13 +519,17 @@ class LLMPlanner:
             if remaining <= 0:
                 error += f" (deadline_s={self.deadline_s:g} reached)"
                 break
+            if cancel is not None and cancel.is_set():
+                raise PlanCancelled(f"planning {instruction!r} was cancelled")
             raw, attempts, stop = None, attempt, False
             try:
                 raw = self._complete(
-                    litellm, conversation, fmt, _nth(mock_response, attempt - 1), remaining
+                    litellm, conversation, fmt, _nth(mock_response, attempt - 1), remaining, cancel
                 )
                 answered = True
                 waypoints = parse_reply(raw, len(pos), self.n_waypoints, self.field_size)
+            except PlanCancelled:
+                raise
             except PlannerDeclined as exc:
                 error, stop = (
                     str(exc),
@@ -452,12 +543,13 @@ class LLMPlanner:
             ) as exc:  # timeouts, auth, rate limits, provider bugs: no reply this attempt
                 error, stop = _describe(exc), _is_final(exc)
                 if not stop and attempt <= self.max_retries and self.backoff_s > 0:
-                    time.sleep(
-                        min(
-                            self.backoff_s * 2 ** (attempt - 1),
-                            max(deadline - time.monotonic(), 0.0),
-                        )
+                    pause = min(
+                        self.backoff_s * 2 ** (attempt - 1), max(deadline - time.monotonic(), 0.0)
                     )
+                    if cancel is not None and cancel.wait(pause):
+                        raise PlanCancelled(f"planning {instruction!r} was cancelled") from None
+                    if cancel is None:
+                        time.sleep(pause)
             else:
                 self.cache.put(key, raw, model=self.model, messages=messages)
                 return PlanResult(waypoints.astype(np.float32), ok=True, attempts=attempt, raw=raw)
@@ -469,7 +561,7 @@ class LLMPlanner:
                 self.max_retries + 1,
                 instruction,
                 error,
-                _shown(raw),
+                None if raw is None else _clip(raw, _LOGGED_CHARS),
             )
             if stop:
                 break
@@ -489,6 +581,7 @@ class LLMPlanner:
         fmt: dict[str, Any],
         mock: Any,
         remaining: float,
+        cancel: threading.Event | None = None,
     ) -> str | None:
         extra = {} if mock is None else {"mock_response": mock}
         self.stats["backend_calls"] += 1
@@ -508,6 +601,8 @@ class LLMPlanner:
                 drop_params=True,
                 **extra,
             ),
+            cancel,
+            self._requests,
         )
         return response.choices[0].message.content
 
@@ -548,13 +643,41 @@ class LLMPlanner:
         )
 
 
-def _within(seconds: float, call: Any) -> Any:
-    """``call()``, waited for at most ``seconds``.
+def _within(
+    seconds: float,
+    call: Any,
+    cancel: threading.Event | None = None,
+    running: list[threading.Thread] | None = None,
+) -> Any:
+    """``call()``, waited for at most ``seconds`` (and until ``cancel`` is set).
 
     The request's own timeout bounds each wait for a byte, not the whole request: a server
     that trickles its reply could hold it for minutes. So the request runs in a daemon
-    thread, and one still running at the deadline is left to its timeout and ignored.
+    thread, and one still running at the deadline (or when cancelled) is left to its timeout
+    and ignored. ``running`` lists a planner's request threads: while ``MAX_REQUESTS`` of
+    them still run, a new request waits for one to end, so abandoned requests cannot pile up.
     """
+    end = time.monotonic() + seconds
+
+    def wait(thread: threading.Thread) -> None:
+        """Join ``thread`` until it ends, ``end`` passes or ``cancel`` is set."""
+        while thread.is_alive():
+            left = end - time.monotonic()
+            if cancel is not None and cancel.is_set():
+                raise PlanCancelled("the plan was cancelled")
+            if left <= 0:
+                return
+            thread.join(min(left, 0.05) if cancel is not None else left)
+
+    if running is not None:
+        running[:] = [t for t in running if t.is_alive()]
+        while len(running) >= MAX_REQUESTS:
+            wait(running[0])
+            running[:] = [t for t in running if t.is_alive()]
+            if len(running) >= MAX_REQUESTS and time.monotonic() >= end:
+                raise DeadlineExceeded(
+                    f"{len(running)} earlier requests still running at the plan's deadline"
+                )
     outcome: dict[str, Any] = {}
 
     def run() -> None:
@@ -564,8 +687,10 @@ def _within(seconds: float, call: Any) -> Any:
             outcome["error"] = exc
 
     worker = threading.Thread(target=run, name="llm-request", daemon=True)
+    if running is not None:
+        running.append(worker)
     worker.start()
-    worker.join(seconds)
+    wait(worker)
     if worker.is_alive():
         raise DeadlineExceeded(
             f"no reply within the plan's deadline ({seconds:.1f} s left of llm.deadline_s)"
