@@ -3,17 +3,21 @@ does; the live settings' ranges."""
 
 from __future__ import annotations
 
+import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from icco_torchrl.instructions import LLMPlanner
 from icco_torchrl.live import LiveLoop
-from icco_torchrl.live.loop import MAX_INSTRUCTION, planner_reading
+from icco_torchrl.live.loop import MAX_INSTRUCTION, MAX_REASON, planner_reading, short_reason
 from icco_torchrl.modules.policy import make_policy
 from icco_torchrl.training.build import build_components, compose_config, make_env
 from icco_torchrl.training.config import ConfigError, validate
+
+DEMO = Path(__file__).resolve().parents[1] / "assets" / "demo_icco.pt"
 
 
 def team(method="icco", planner=None):
@@ -56,8 +60,34 @@ def test_ticks_step_the_team_and_report_it():
     s = states[-1]
     assert s.positions.shape == (3, 2) and s.waypoints.shape == (3, 4, 2) and s.z.shape[0] == 3
     assert set(s.totals) >= {"pick", "collect", "defense", "invasion", "inst_reward", "reward"}
-    assert s.totals["reward"] == pytest.approx(sum(x.events["reward"] for x in states), abs=1e-4)
+    # The totals are the episode's: the last step of one holds its sums, then they restart.
+    first, second = states[:40], states[40:]
+    assert [x.episode for x in (first[0], first[-1], second[0])] == [1, 1, 2]
+    assert s.episode_steps == 40 and loop.episode == 2
+    for episode in (first, second):
+        total = sum(x.events["reward"] for x in episode)
+        assert episode[-1].totals["reward"] == pytest.approx(total, abs=1e-4)
+    assert second[0].totals["invasion"] == second[0].events["invasion"]
     assert isinstance(s.to_dict()["positions"], list)  # JSON-ready
+
+
+def test_the_plan_in_use_outlasts_the_episode_and_reset_forgets_it():
+    loop = team(planner=SlowPlanner(delay=0.0))
+    loop.instruct("Go right")
+    assert loop.wait_for_plan(5).state == "used"
+    states = [loop.tick() for _ in range(45)]
+    assert states[39].episode == 1 and states[40].episode == 2
+    assert all(np.allclose(x.waypoints, 1.5) for x in states[1:])  # a new episode keeps it
+    assert loop.status.state == "used"
+    state = loop.reset()
+    assert state.episode == 3 and not np.allclose(loop.tick().waypoints, 1.5)
+
+
+def test_a_checkpoint_plays_episodes_as_long_as_it_was_trained_on():
+    # An endless episode would show totals nobody watched and step counts the policy never saw.
+    loop = LiveLoop.from_checkpoint(DEMO, planner=None, seed=0)
+    assert loop.raw.max_steps == 145 and loop.tick().episode_steps == 145
+    assert LiveLoop.from_checkpoint(DEMO, episode_steps=20).raw.max_steps == 20
 
 
 def test_an_instruction_is_planned_beside_the_loop_and_applied_on_the_next_tick():
@@ -96,6 +126,16 @@ def test_an_unknown_instruction_is_reported_and_the_last_plan_kept():
     assert [s.state for s in seen] == ["thinking", "used"] and seen[-1] is loop.status
 
 
+def test_a_fall_back_reason_is_short():
+    loop = team(planner=LLMPlanner(fallback_on_error=True))
+    loop.instruct("make me a sandwich")
+    status = loop.wait_for_plan(30)
+    assert status.state == "fell back" and status.error == "unknown instruction"
+    long = "planner declined: " + "x" * 5000 + "; understood: everything"
+    assert len(short_reason(long)) == MAX_REASON and short_reason(long).endswith("...")
+    assert short_reason("planner declined: no plan 'Go up'; understood: a", "Go up") == "no plan"
+
+
 def test_the_planner_reading_is_its_replys_movement_strategy():
     reply = '{"movement_strategy": "Rule planner (not an LLM): gather at the centre.", "a": 1}'
     assert planner_reading(reply) == "gather at the centre"
@@ -111,7 +151,66 @@ def test_a_newer_instruction_supersedes_one_still_being_planned():
     loop.instruct("Move top")
     assert loop.wait_for_plan(5).instruction == "Move top"
     time.sleep(0.4)  # the first answer arrives late and is dropped
-    assert loop.status.instruction == "Move top" and planner.calls == 2
+    # "Go right" was planned, or replaced before the planner thread took it.
+    assert loop.status.instruction == "Move top" and planner.calls in (1, 2)
+    assert loop.status.state == "used" and np.allclose(loop.tick().waypoints, 1.5)
+
+
+@pytest.fixture
+def slow_llm(monkeypatch):
+    """An LLMPlanner whose model answers after ``delay`` s (a litellm custom provider); yields
+    ``(planner, calls)``. Its requests cannot be interrupted, as a real HTTP request cannot."""
+    from icco_torchrl.instructions.llm import _litellm
+
+    litellm = _litellm()
+    calls, release = [], threading.Event()
+
+    class Slow(litellm.CustomLLM):
+        def completion(self, *args, **kwargs):
+            from icco_torchrl.instructions.planner import reply_to
+
+            calls.append(time.monotonic())
+            release.wait(0.6)  # bounded: a slow model, not a hung test
+            message = {"role": "assistant", "content": reply_to(kwargs["messages"])}
+            return litellm.ModelResponse(
+                choices=[{"index": 0, "finish_reason": "stop", "message": message}]
+            )
+
+    entry = {"provider": "slowtest", "custom_handler": Slow()}
+    monkeypatch.setattr(litellm, "custom_provider_map", [*litellm.custom_provider_map, entry])
+    yield LLMPlanner(model="slowtest/x", deadline_s=10.0, max_retries=0), calls
+    release.set()
+
+
+def test_a_newer_instruction_cancels_the_request_in_flight(slow_llm):
+    planner, calls = slow_llm
+    loop = team(planner=planner)
+    start = time.monotonic()
+    loop.instruct("Go right")
+    time.sleep(0.2)  # its request is on its way
+    loop.instruct("Move top")
+    status = loop.wait_for_plan(5)
+    # Without the cancel the second request would start only when the first one answers (0.6 s).
+    assert len(calls) == 2 and calls[1] - start < 0.45
+    assert status.state == "used" and status.instruction == "Move top"
+
+
+def test_a_hundred_instructions_against_a_slow_model_keep_the_threads_bounded(slow_llm):
+    from icco_torchrl.instructions.llm import MAX_REQUESTS
+
+    planner, calls = slow_llm
+    loop = team(planner=planner)
+    before, most = threading.active_count(), 0
+    for i in range(100):
+        loop.instruct(f"go to ({i % 3}, 1)")
+        most = max(most, threading.active_count() - before)
+        time.sleep(0.005)
+    status = loop.wait_for_plan(10)
+    assert most <= 1 + MAX_REQUESTS  # the planner thread and its requests, not 2 per instruction
+    assert status.state == "used" and status.instruction == "go to (0, 1)"  # the last one
+    assert status.requests == 100 and len(calls) <= 6  # superseded ones never reached the model
+    time.sleep(0.7)  # the abandoned requests end at their own pace
+    assert threading.active_count() <= before
 
 
 def test_run_keeps_its_rate_and_refuses_a_batched_env():

@@ -7,12 +7,17 @@ litellm model, through :class:`~icco_torchrl.instructions.LLMPlanner` with its c
 deadline and fallbacks). :meth:`LiveLoop.tick` steps the team once and returns what a display
 or a robot bridge needs; :meth:`LiveLoop.instruct` starts planning in a background thread and
 returns at once, so the team keeps moving on its previous waypoints until the plan arrives
-(the next tick applies it). :meth:`LiveLoop.run` ticks at a fixed rate (default real time: one
-env step per ``env.dt`` seconds). No web code here: a page or a bridge drives this object.
+(the next tick applies it). One planner thread serves the loop: a newer instruction supersedes
+(and cancels) one still being planned, so instructions never pile up threads or requests.
+Episodes are as long as the policy's training episodes (145 steps): when one ends the next
+starts at once, with the totals set to zero and the plan in use kept. :meth:`LiveLoop.run`
+ticks at a fixed rate (default real time: one env step per ``env.dt`` seconds). No web code
+here: a page or a bridge drives this object.
 """
 
 from __future__ import annotations
 
+import inspect
 import re
 import threading
 import time
@@ -29,8 +34,18 @@ from icco_torchrl.instructions.llm import last_json_object
 
 MAX_INSTRUCTION = 200  # characters: longer instructions are refused with a message
 MAX_READING = 300  # characters of the planner's reading kept for display
+MAX_REASON = 120  # characters of a fall-back's reason kept for display (its first clause)
 # The offline rule planner labels its strategy; the reading is what follows the label.
 _RULE_LABEL = re.compile(r"^Rule planner \(not an LLM\):\s*")
+
+
+def _takes_cancel(plan) -> bool:
+    """Whether a planner's ``plan`` takes a ``cancel`` event (``LLMPlanner.plan`` does)."""
+    try:
+        params = inspect.signature(plan).parameters.values()
+    except (TypeError, ValueError):
+        return False
+    return any(p.name == "cancel" or p.kind is p.VAR_KEYWORD for p in params)
 
 
 def _np(tensor: torch.Tensor) -> np.ndarray:
@@ -52,6 +67,18 @@ class PlannerStatus:
     reading: str | None = None
 
 
+def short_reason(error: str | None, instruction: str | None = None) -> str | None:
+    """A fall-back's reason as a page shows it: its first clause, without the planner's prefix
+    or a repeat of the instruction, at most ``MAX_REASON`` characters (the planner's own
+    message can list everything it understands, or quote a whole reply)."""
+    if not error:
+        return error
+    text = " ".join(str(error).split()).removeprefix("planner declined: ").split("; ")[0]
+    if instruction:
+        text = text.replace(f": {instruction!r}", "").replace(f" {instruction!r}", "")
+    return text if len(text) <= MAX_REASON else text[: MAX_REASON - 3] + "..."
+
+
 def planner_reading(raw: str | None) -> str | None:
     """The planner's reading of an instruction: the ``movement_strategy`` of its JSON reply
     (without the offline rule planner's label), or None when the reply has none."""
@@ -68,7 +95,7 @@ class TickState:
     """One tick, as plain numpy/python values (ready for JSON)."""
 
     tick: int
-    step: int
+    step: int  # step of the episode (1 .. episode_steps)
     positions: np.ndarray  # [N, 2]
     waypoints: np.ndarray  # [N, K, 2]
     resources: np.ndarray  # [R, 2]
@@ -77,9 +104,11 @@ class TickState:
     carry: np.ndarray  # [N]
     z: np.ndarray | None  # [N, z_dim] (ICCO) or None
     events: dict = field(default_factory=dict)  # this step's counts and instruction reward
-    totals: dict = field(default_factory=dict)  # running sums since the loop started
+    totals: dict = field(default_factory=dict)  # running sums over this episode
     planner: dict = field(default_factory=dict)
     latency_ms: float = 0.0  # policy + env step + bookkeeping of this tick
+    episode: int = 1  # episodes started since the loop was made (a reset starts one)
+    episode_steps: int = 0  # the episode's length (the env's max_steps)
 
     def to_dict(self) -> dict:
         out = asdict(self)
@@ -97,7 +126,8 @@ class LiveLoop:
         planner: an :class:`~icco_torchrl.instructions.LLMPlanner`, or None (instructions refused).
 
     ``on_status``, when set, is called with the new :class:`PlannerStatus` each time it changes
-    (from the thread that changed it: the caller's, or the planner's thread).
+    (from the thread that changed it: the caller's, or the planner's thread). ``totals`` are
+    this episode's sums; ``episode`` counts the episodes begun.
     """
 
     def __init__(self, env, policy, planner=None):
@@ -111,10 +141,16 @@ class LiveLoop:
         self.status = PlannerStatus()
         self.on_status = None
         self.totals = {k: 0.0 for k in (*EVENTS, "inst_reward", "reward")}
-        self.ticks = 0
+        self.ticks, self.episode = 0, 1
         self._lock = threading.Lock()  # one tick or plan hand-over at a time
-        self._pending: np.ndarray | None = None
-        self._thread: threading.Thread | None = None
+        self._idle = threading.Condition(self._lock)  # the planner thread ended
+        self._pending: np.ndarray | None = None  # a plan that arrived, for the next tick
+        self._plan_in_use: np.ndarray | None = None  # kept over an episode's end
+        self._job: tuple | None = None  # the newest instruction, waiting for the planner thread
+        self._cancel: threading.Event | None = None  # cancels the plan being computed
+        self._worker: threading.Thread | None = None  # the planner thread, while it has work
+        self._generation = 0  # bumped by each instruction and reset: older plans are dropped
+        self._cancellable = planner is not None and _takes_cancel(planner.plan)
         with torch.no_grad():
             self.td = env.reset()
 
@@ -126,19 +162,16 @@ class LiveLoop:
         planner=None,
         device: str = "cpu",
         seed: int | None = None,
-        episode_steps: int = 10**6,
+        episode_steps: int | None = None,
     ) -> LiveLoop:
-        """The checkpoint's policy on a one-team env; ``episode_steps`` long episodes (a live team
-        does not stop at 145 steps), reset when one ends."""
+        """The checkpoint's policy on a one-team env, in episodes of ``episode_steps`` (default:
+        the length it was trained on; a policy far past it acts on step counts it never saw);
+        the next episode starts when one ends."""
         from icco_torchrl.training.restore import restore  # heavy: networks and Hydra config
 
+        length = {} if episode_steps is None else {"max_steps": int(episode_steps)}
         restored = restore(
-            path,
-            num_envs=1,
-            device=device,
-            seed=seed,
-            max_steps=episode_steps,
-            waypoint_mode="external",
+            path, num_envs=1, device=device, seed=seed, waypoint_mode="external", **length
         )
         return cls(restored["env"], restored["policy"], planner)
 
@@ -147,9 +180,12 @@ class LiveLoop:
         """Plan ``instruction`` in the background from the robots' current positions; returns at
         once.
 
-        An instruction given while another is being planned replaces it (the older plan is
-        dropped when it arrives). Unknown instructions fall back in the planner: the status says
-        so and the team keeps its previous waypoints.
+        An instruction given while another is being planned supersedes it: the older one is
+        cancelled (an :class:`~icco_torchrl.instructions.LLMPlanner` stops waiting for its
+        reply) and its plan, should it still arrive, is dropped. One planner thread serves the
+        loop, so a burst of instructions costs one request at a time, not a thread each.
+        Unknown instructions fall back in the planner: the status says so and the team keeps
+        its previous waypoints.
         """
         if not isinstance(instruction, str) or not instruction.strip():
             raise ValueError(f"an instruction must be a non-empty string, got {instruction!r}")
@@ -164,38 +200,60 @@ class LiveLoop:
             )
         instruction = instruction.strip()
         with self._lock:
-            positions = self.raw.pos[0].cpu().numpy().copy()
-            previous = self.raw.waypoints[0].cpu().numpy().copy()
-            resources = self.raw.res_pos[0].cpu().numpy().copy()
-            invader = self.raw.inv_pos[0][self.raw.inv_active[0]].cpu().numpy().copy()
+            self._generation += 1
+            self._job = (
+                self._generation,
+                instruction,
+                self.raw.pos[0].cpu().numpy().copy(),
+                self.raw.waypoints[0].cpu().numpy().copy(),
+                self.raw.res_pos[0].cpu().numpy().copy(),
+                self.raw.inv_pos[0][self.raw.inv_active[0]].cpu().numpy().copy(),
+            )
+            if self._cancel is not None:
+                self._cancel.set()
             self._set_status(
                 PlannerStatus("thinking", instruction, requests=self.status.requests + 1)
             )
-        thread = threading.Thread(
-            target=self._plan,
-            args=(instruction, positions, previous, resources, invader),
-            daemon=True,
-            name="icco-live-planner",
-        )
-        self._thread = thread
-        thread.start()
+            if self._worker is None:
+                self._worker = threading.Thread(
+                    target=self._work, daemon=True, name="icco-live-planner"
+                )
+                self._worker.start()
 
-    def _plan(self, instruction, positions, previous, resources, invader) -> None:
+    def _work(self) -> None:
+        """The planner thread: plan the newest instruction until none waits, then end."""
+        while True:
+            with self._lock:
+                job, self._job = self._job, None
+                if job is None:
+                    self._worker = self._cancel = None
+                    self._idle.notify_all()
+                    return
+                cancel = self._cancel = threading.Event()
+            self._plan(job, cancel)
+
+    def _plan(self, job: tuple, cancel: threading.Event) -> None:
+        generation, instruction, positions, previous, resources, invader = job
         start = time.perf_counter()
+        extra = {"cancel": cancel} if self._cancellable else {}
         try:
             result = self.planner.plan(
-                instruction, positions, previous=previous, resources=resources, invader=invader
+                instruction,
+                positions,
+                previous=previous,
+                resources=resources,
+                invader=invader,
+                **extra,
             )
             ok, error, waypoints = result.ok, result.error, result.waypoints
             reading = planner_reading(getattr(result, "raw", None)) if ok else None
         except Exception as err:  # an unreachable model must not stop the team: report, keep plan
+            if cancel.is_set():
+                return  # superseded: the newer instruction's status stands
             ok, error, waypoints = False, f"{type(err).__name__}: {err}".splitlines()[0], None
         with self._lock:
-            if (
-                self.status.instruction != instruction
-                or threading.current_thread() is not self._thread
-            ):
-                return  # superseded by a newer instruction
+            if generation != self._generation:
+                return  # superseded by a newer instruction, or a reset
             latency = time.perf_counter() - start
             requests = self.status.requests
             if ok:
@@ -204,9 +262,8 @@ class LiveLoop:
                     PlannerStatus("used", instruction, None, latency, requests, reading)
                 )
             else:
-                self._set_status(
-                    PlannerStatus("fell back", instruction, error or "no plan", latency, requests)
-                )
+                reason = short_reason(error, instruction) or "no plan"
+                self._set_status(PlannerStatus("fell back", instruction, reason, latency, requests))
 
     def _set_status(self, status: PlannerStatus) -> None:
         """Replace the planner status (under the lock) and tell ``on_status``."""
@@ -215,10 +272,10 @@ class LiveLoop:
             self.on_status(status)
 
     def wait_for_plan(self, timeout: float | None = None) -> PlannerStatus:
-        """Block until the current planning request is answered (tests, scripted demos)."""
-        if self._thread is not None:
-            self._thread.join(timeout)
-        return self.status
+        """Block until no instruction is being planned (tests, scripted demos)."""
+        with self._idle:
+            self._idle.wait_for(lambda: self._worker is None, timeout)
+            return self.status
 
     # ------------------------------------------------------------------ stepping
     def tick(self) -> TickState:
@@ -226,10 +283,8 @@ class LiveLoop:
         start = time.perf_counter()
         with self._lock, torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
             if self._pending is not None:
-                self.raw.write_waypoints(
-                    self.td, torch.as_tensor(self._pending, device=self.raw.device)[None]
-                )
-                self._pending = None
+                self._write_plan(self._pending)
+                self._plan_in_use, self._pending = self._pending, None
             td = self.env.step(self.policy(self.td))
             nxt = td.get("next")
             events = {k: float(nxt.get(("events", k))[0]) for k in (*EVENTS, "inst_reward")}
@@ -239,12 +294,18 @@ class LiveLoop:
             self.ticks += 1
             state = self._state(td.get(("agents", "z"), None), events)
             self.td = step_mdp(td)
-            if bool(
-                nxt.get("done").any()
-            ):  # a live team never stops: the next tick starts a new episode
+            if bool(nxt.get("done").any()):  # the episode ended: the next tick starts another
                 self.td = self.env.reset()
+                self.episode += 1
+                self.totals = {k: 0.0 for k in self.totals}
+                if self._plan_in_use is not None:  # the instruction still stands
+                    self._write_plan(self._plan_in_use)
         state.latency_ms = (time.perf_counter() - start) * 1e3
         return state
+
+    def _write_plan(self, waypoints: np.ndarray) -> None:
+        """Drive the team by ``waypoints`` [N, K, 2] from now on (call under the lock)."""
+        self.raw.write_waypoints(self.td, torch.as_tensor(waypoints, device=self.raw.device)[None])
 
     def _state(self, z, events: dict) -> TickState:
         """The team as it is now (call under the lock)."""
@@ -262,6 +323,8 @@ class LiveLoop:
             events=events,
             totals=dict(self.totals),
             planner=asdict(self.status),
+            episode=self.episode,
+            episode_steps=int(raw.max_steps),
         )
 
     def snapshot(self) -> TickState:
@@ -272,10 +335,15 @@ class LiveLoop:
 
     def reset(self) -> TickState:
         """A new episode (new resources, invader and robot positions), the running totals set to
-        zero and any plan still being computed dropped; the planner's request count is kept."""
+        zero, the plan in use forgotten and any plan still being computed cancelled; the
+        planner's request count is kept."""
         with self._lock, torch.no_grad():
             self.td = self.env.reset()
-            self._pending, self._thread = None, None
+            self._generation += 1
+            self._job, self._pending, self._plan_in_use = None, None, None
+            if self._cancel is not None:
+                self._cancel.set()
+            self.episode += 1
             self.totals = {k: 0.0 for k in self.totals}
             self._set_status(PlannerStatus(requests=self.status.requests))
             return self._state(None, {})
@@ -323,7 +391,8 @@ class LiveLoop:
                 raw.inv_active = (torch.arange(raw.n_invaders, device=dev) < len(inv))[None]
             waypoints = raw.waypoints
             if self._pending is not None:
-                waypoints, self._pending = torch.as_tensor(self._pending, device=dev)[None], None
+                waypoints = torch.as_tensor(self._pending, device=dev)[None]
+                self._plan_in_use, self._pending = self._pending, None
             raw.write_waypoints(
                 self.td, waypoints
             )  # rebuilds the observation and the state from the above
