@@ -1,11 +1,15 @@
-"""The live page: its WebSocket protocol with several tabs, its bad input, and the page itself in a
-real headless browser (Chromium through the DevTools protocol)."""
+"""The live page: its WebSocket protocol with several tabs, its bad input, the server's guards
+(Host, Origin, token, rate limit, bounded planner output and threads), and the page itself in a
+real headless browser (Chromium through the DevTools protocol), a page from another origin
+among them."""
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import http.server
 import json
+import logging
 import queue
 import shutil
 import socket
@@ -21,8 +25,9 @@ import numpy as np
 import pytest
 
 from icco_torchrl.instructions import LLMPlanner
+from icco_torchrl.instructions.llm import MAX_REQUESTS
 from icco_torchrl.live import LiveLoop
-from icco_torchrl.live.web import LiveServer
+from icco_torchrl.live.web import BURST, RATE_LIMIT, LiveServer
 from icco_torchrl.modules.policy import make_policy
 from icco_torchrl.training.build import build_components, compose_config, make_env
 
@@ -44,7 +49,7 @@ class Tab:
     def __init__(self, session, url):
         self.session, self.url = session, url
         self.ticks, self.errors, self.planner, self.hello = [], [], [], None
-        self.oks, self.end, self.frames = 0, None, []
+        self.oks, self.end, self.frames, self.arrivals = 0, None, [], []
 
     async def __aenter__(self):
         self.ws = await self.session.ws_connect(self.url)
@@ -59,6 +64,7 @@ class Tab:
                 self.hello = data
             elif data["type"] == "tick":
                 self.ticks.append(data)
+                self.arrivals.append(time.monotonic())
             elif data["type"] == "planner":
                 self.planner.append(data)
             elif data["type"] == "ok":
@@ -259,6 +265,267 @@ def test_a_busy_port_is_one_line_naming_it():
     assert out.stderr.strip().splitlines() == [out.stderr.strip()] and f":{port}" in out.stderr
 
 
+# ---------------------------------------------------------------------------------- the guards
+def _raw(port, lines, timeout=5.0):
+    """``(status, head, body)`` of one HTTP/1.1 request sent over a plain socket as ``lines``."""
+    with socket.create_connection(("127.0.0.1", port), timeout=timeout) as sock:
+        sock.sendall(("\r\n".join([*lines, "", ""])).encode())
+        data, end = b"", time.monotonic() + timeout
+        while b"\r\n\r\n" not in data and time.monotonic() < end:
+            chunk = sock.recv(65536)
+            if not chunk:
+                break
+            data += chunk
+        head, _, body = data.partition(b"\r\n\r\n")
+        status = int(head.split(b" ", 2)[1])
+        length = [int(v) for k, v in _headers(head) if k == "content-length"]
+        if status != 101:  # a refusal: read its one-line body
+            while length and len(body) < length[0] and time.monotonic() < end:
+                chunk = sock.recv(65536)
+                if not chunk:
+                    break
+                body += chunk
+    return status, head.decode("latin-1"), body.decode("utf-8", "replace")
+
+
+def _headers(head):
+    lines = head.decode("latin-1").split("\r\n")[1:]
+    return [(k.strip().lower(), v.strip()) for k, _, v in (line.partition(":") for line in lines)]
+
+
+def _get(port, path="/", host=None):
+    host = f"127.0.0.1:{port}" if host is None else host
+    return _raw(port, [f"GET {path} HTTP/1.1", f"Host: {host}", "Connection: close"])
+
+
+def _upgrade(port, path="/ws", host=None, origin=None):
+    """A WebSocket handshake, as a browser on ``origin`` (None: a client that sends none)."""
+    lines = [
+        f"GET {path} HTTP/1.1",
+        f"Host: {f'127.0.0.1:{port}' if host is None else host}",
+        "Upgrade: websocket",
+        "Connection: Upgrade",
+        "Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==",
+        "Sec-WebSocket-Version: 13",
+    ]
+    return _raw(port, lines + ([f"Origin: {origin}"] if origin is not None else []))
+
+
+def test_only_requests_naming_this_server_and_sockets_from_its_own_page_are_answered(served):
+    loop = smoke_team()
+    server, url = served(loop)
+    port = int(url.rsplit(":", 1)[1])
+    assert _get(port)[0] == 200 and _get(port, host=f"localhost:{port}")[0] == 200
+    assert "icco live" in _get(port)[2]
+    # DNS rebinding: a page of attacker.example whose name now points at 127.0.0.1.
+    for host in (f"attacker.example:{port}", "attacker.example", ""):
+        status, _, body = _get(port, host=host)
+        assert status == 403 and "is not this server's address" in body
+        assert body.strip().count("\n") == 0
+    status, _, body = _upgrade(
+        port, host=f"attacker.example:{port}", origin=f"http://attacker.example:{port}"
+    )
+    assert status == 403 and "Host" in body
+    # Its own page (and a client that sends no Origin, not a web page) may open the socket.
+    assert _upgrade(port, origin=f"http://127.0.0.1:{port}")[0] == 101
+    assert _upgrade(port, host=f"localhost:{port}", origin=f"http://localhost:{port}")[0] == 101
+    assert _upgrade(port)[0] == 101
+    # Any other origin may not: another port is another origin, so are another name and "null".
+    for origin in (f"http://127.0.0.1:{port + 1}", f"http://localhost:{port}",
+                   "http://attacker.example", "null"):  # fmt: skip
+        status, _, body = _upgrade(port, origin=origin)
+        assert status == 403 and f"a page from {origin!r} may not drive" in body, origin
+    assert server.stats["forbidden"] == 8 and not server.paused
+
+
+def test_a_token_is_asked_of_every_request(served):
+    server, url = served(smoke_team(), token="s3cret")
+    port = int(url.rsplit(":", 1)[1])
+    for path in ("/", "/?token=wrong", "/?token=", "/ws"):
+        status, _, body = (_upgrade if path == "/ws" else _get)(port, path)
+        assert status == 403 and "needs its token" in body and "s3cret" not in body
+    assert _get(port, "/?token=s3cret")[0] == 200
+    assert _upgrade(port, "/ws?token=s3cret", origin=f"http://127.0.0.1:{port}")[0] == 101
+    with pytest.raises(ValueError, match="live.token"):
+        LiveServer(server.loop, token=" ")
+
+
+def test_a_burst_of_requests_is_cut_off_and_the_loop_keeps_ticking(served):
+    loop = smoke_team()
+    server, url = served(loop)
+
+    async def scenario():
+        async with aiohttp.ClientSession() as session:
+            async with Tab(session, url + "/ws") as a, Tab(session, url + "/ws") as b:
+                await b.until(lambda: len(b.ticks) > 5)
+                episodes, begin = loop.episode, time.monotonic()
+                for _ in range(3000):  # 3,000 resets at once
+                    await a.ws.send_str('{"type": "reset"}')
+                sent = time.monotonic() - begin
+                n = len(b.ticks)
+                await b.until(lambda: len(b.ticks) >= n + 25, timeout=10)
+                # The other tab kept getting ticks: no gap of a second (the queued resets of
+                # an unbounded queue stopped every tab for 20 s).
+                gaps = np.diff([t for t in b.arrivals if t >= begin])
+                assert gaps.max() < 1.0 and time.monotonic() - begin < sent + 3.0
+                await a.until(lambda: any("too many requests" in e for e in a.errors))
+                admitted = BURST + RATE_LIMIT * (time.monotonic() - begin)
+                assert server.stats["refused"] >= 3000 - admitted
+                assert loop.episode - episodes <= admitted  # resets coalesce: at most one each
+                warned = [e for e in a.errors if "too many requests" in e]
+                assert len(warned) <= 2 + time.monotonic() - begin  # one a second at most
+                await asyncio.sleep(1.0)  # the allowance refills: the tab is heard again
+                oks = a.oks
+                await a.send(type="pause")
+                await a.until(lambda: a.oks > oks and a.ticks[-1]["paused"])
+                assert not a.ws.closed and b.errors == []
+
+    asyncio.run(scenario())
+
+
+def test_deep_json_gets_an_error_reply_and_the_tab_stays(served):
+    server, url = served(smoke_team())
+
+    async def scenario():
+        async with aiohttp.ClientSession() as session:
+            async with Tab(session, url + "/ws") as a:
+                await a.ws.send_str("[" * 30_000)
+                await a.ws.send_str('{"type": ' * 5_000 + '"pause"' + "}" * 5_000)
+                await a.until(lambda: len(a.errors) == 2)
+                assert all("nested" in e and "\n" not in e for e in a.errors)
+                await a.send(type="pause")
+                await a.until(lambda: a.oks == 1)
+                assert not a.ws.closed and server.paused
+
+    asyncio.run(scenario())
+
+
+class HugeReply(LLMPlanner):
+    """A model that answers every request with 300,000 points (2.4 MB)."""
+
+    REPLY = json.dumps({"agent_0": [[1.0, 2.0]] * 300_000, "agent_1": [], "agent_2": []})
+
+    def __init__(self):
+        super().__init__(model="openai/gpt-4o", api_base="http://127.0.0.1:9", backoff_s=0.0)
+
+    def plan(self, *args, **kwargs):
+        return super().plan(*args, mock_response=self.REPLY, **kwargs)
+
+
+def test_a_huge_llm_reply_is_one_short_message_and_a_few_log_lines(served, caplog):
+    server, url = served(smoke_team())
+    server.loop.planner = HugeReply()
+
+    async def scenario():
+        async with aiohttp.ClientSession() as session:
+            async with Tab(session, url + "/ws") as a, Tab(session, url + "/ws") as b:
+                await a.send(type="instruct", text="Go right")
+                for tab in (a, b):
+                    await tab.until(lambda t=tab: t.planner[-1]["state"] == "fell back")
+                status = b.planner[-1]
+                assert status["error"].startswith("reply too long") and len(status["error"]) < 80
+                assert max(len(f) for f in a.frames + b.frames if '"planner"' in f) < 600
+
+    with caplog.at_level(logging.WARNING, logger="icco_torchrl.instructions.llm"):
+        asyncio.run(scenario())
+    assert 0 < len(caplog.text) < 4_000  # 3 attempts and the fallback, a line each
+
+
+class SlowModel:
+    """A litellm custom provider that answers after ``delay`` s with the rule planner's reply
+    (its requests cannot be interrupted, as a real HTTP request cannot)."""
+
+    def __init__(self, monkeypatch, delay=0.6):
+        from icco_torchrl.instructions.llm import _litellm
+        from icco_torchrl.instructions.planner import reply_to
+
+        litellm, self.calls, self.release = _litellm(), [], threading.Event()
+        model = self
+
+        class Handler(litellm.CustomLLM):
+            def completion(self, *args, **kwargs):
+                model.calls.append(time.monotonic())
+                model.release.wait(delay)  # bounded: a slow model, not a hung test
+                message = {"role": "assistant", "content": reply_to(kwargs["messages"])}
+                choice = {"index": 0, "finish_reason": "stop", "message": message}
+                return litellm.ModelResponse(choices=[choice])
+
+        entry = {"provider": "slowweb", "custom_handler": Handler()}
+        monkeypatch.setattr(litellm, "custom_provider_map", [*litellm.custom_provider_map, entry])
+        self.planner = LLMPlanner(model="slowweb/x", deadline_s=10.0, max_retries=0)
+
+
+def _planner_threads() -> tuple[int, int]:
+    names = [t.name for t in threading.enumerate()]
+    return names.count("icco-live-planner"), names.count("llm-request")
+
+
+def test_newer_instructions_supersede_older_ones_with_bounded_threads(served, monkeypatch):
+    model = SlowModel(monkeypatch)
+    loop = smoke_team()
+    loop.planner, loop._cancellable = model.planner, True
+    server, url = served(loop)
+
+    async def scenario():
+        async with aiohttp.ClientSession() as session:
+            async with (
+                Tab(session, url + "/ws") as a,
+                Tab(session, url + "/ws") as b,
+                Tab(session, url + "/ws") as c,
+            ):
+                tabs = [a, b, c]  # 100 instructions, each tab within its burst allowance
+                most = (0, 0)
+                for i in range(100):
+                    await tabs[i % 3].send(type="instruct", text=f"go to ({i % 3}, 1)")
+                    await asyncio.sleep(0.003)
+                    most = tuple(map(max, most, _planner_threads()))
+                await a.until(lambda: a.oks + b.oks + c.oks == 100)
+                await a.until(lambda: a.planner[-1]["state"] == "used", timeout=10)
+                last = a.planner[-1]
+                assert last["instruction"] == "go to (0, 1)" and last["requests"] == 100
+                # One planner thread; its requests, abandoned ones included, at most
+                # MAX_REQUESTS (2 threads an instruction before: 202 for 100).
+                assert most[0] <= 1 and most[1] <= MAX_REQUESTS
+                assert len(model.calls) <= 6  # the superseded ones never reached the model
+                assert a.errors == b.errors == c.errors == []
+
+    try:
+        asyncio.run(scenario())
+    finally:
+        model.release.set()
+
+
+def test_a_tab_opened_late_sees_this_episodes_totals_and_the_actual_tick_rate(served):
+    cfg = compose_config(["method=icco", "experiment=smoke"])
+    parts = build_components(cfg)
+    env = make_env(cfg, num_envs=1, seed=3, max_steps=30, waypoint_mode="external")
+    policy = make_policy(parts["agent"], env.full_action_spec_unbatched, parts["coordinator"])
+    loop = LiveLoop(env, policy, LLMPlanner())
+    server, url = served(loop, rate_hz=50.0)
+
+    async def scenario():
+        await asyncio.sleep(1.5)  # 75 ticks: the tab opens in the third episode or later
+        async with aiohttp.ClientSession() as session:
+            async with Tab(session, url + "/ws") as tab:
+                await tab.until(lambda: len(tab.ticks) > 40)
+                first = tab.ticks[0]
+                assert first["episode"] >= 2 and first["step"] <= first["episode_steps"] == 30
+                starts = [t for t in tab.ticks if t["step"] == 1]
+                assert starts  # an episode began while the tab watched: its totals restarted
+                for t in starts:
+                    assert t["totals"] == pytest.approx(t["events"], abs=1e-5)
+                rates = [t["tick_rate"] for t in tab.ticks[-10:]]
+                assert all(r is not None and 0 < r < 80 for r in rates)
+                assert tab.ticks[-1]["nominal_rate"] == 50.0
+                await tab.send(type="speed", value=2.0)
+                await tab.until(lambda: tab.ticks[-1]["nominal_rate"] == 100.0)
+                await tab.send(type="pause")
+                await tab.until(lambda: tab.ticks[-1]["paused"])
+                assert tab.ticks[-1]["tick_rate"] is None
+
+    asyncio.run(scenario())
+
+
 # ---------------------------------------------------------------------------------- real browser
 def _chromium() -> str | None:
     return next(
@@ -358,13 +625,20 @@ def _delta_e(a: str, b: str) -> float:
 
 
 @contextlib.asynccontextmanager
-async def _page(session, browser, url):
-    """The browser's page, opened at ``url``, driven through :class:`DevTools`."""
+async def _browser_tab(session, browser):
+    """The browser's page, driven through :class:`DevTools`."""
     async with session.get(f"http://127.0.0.1:{browser}/json/list") as r:
         page = next(t for t in await r.json() if t["type"] == "page")
     async with session.ws_connect(page["webSocketDebuggerUrl"], max_msg_size=0) as ws:
-        tools = DevTools(ws)
-        await tools.call("Page.navigate", url=url + "/")
+        yield DevTools(ws)
+
+
+@contextlib.asynccontextmanager
+async def _page(session, browser, url, path="/"):
+    """The browser's page, opened at ``url + path`` (the live page), driven through
+    :class:`DevTools`."""
+    async with _browser_tab(session, browser) as tools:
+        await tools.call("Page.navigate", url=url + path)
         await tools.until("window.icco && icco.connected && icco.ticks > 5")
         yield tools
 
@@ -384,7 +658,9 @@ def _text(element_id):
 def test_the_page_in_a_real_browser_go_right_moves_waypoints_and_robots(served, browser):
     """What a first-time user meets: a legend, colours that are told apart, the planner's
     reading, a stated instruction limit, errors that clear, and a run that ends cleanly."""
-    loop = LiveLoop.from_checkpoint(DEMO, planner=LLMPlanner(), seed=1)
+    # Episodes longer than the trained 145 steps (test_live checks that default): an episode
+    # that ends mid-test would move the robots back before they reach the right half.
+    loop = LiveLoop.from_checkpoint(DEMO, planner=LLMPlanner(), seed=1, episode_steps=400)
     server, url = served(loop, rate_hz=40.0, policy="demo_icco.pt")
 
     async def scenario():
@@ -463,6 +739,35 @@ def test_the_page_in_a_real_browser_go_right_moves_waypoints_and_robots(served, 
             await tools.until("document.getElementById('message').textContent.includes('large')")
             await tools.until("icco.connected && icco.ws !== icco.wsBefore")
             await tools.js("icco.wsBefore = icco.ws")
+            # What the panel's numbers cover: this episode, its step of the episode's length,
+            # the tick rate measured beside the nominal one.
+            assert "this episode" in await tools.js(_text("team-panel"))
+            episode = await tools.js(_text("episode"))
+            assert episode.split(": ")[1].startswith("step ") and episode.endswith(" of 400")
+            measured, nominal = (await tools.js(_text("rate"))).split(" of ")
+            assert 0 < float(measured) < 80 and float(nominal) == 40
+            # At an 800-pixel window, with a fall-back and a long error on show, the field stays
+            # square and whole, its legend in view, and the fall-back's reason is short.
+            await tools.call(
+                "Emulation.setDeviceMetricsOverride",
+                width=800,
+                height=800,
+                deviceScaleFactor=1,
+                mobile=False,
+            )
+            await _type_and_send(tools, "make me a sandwich")
+            await tools.until("icco.planner.state === 'fell back'")
+            assert len((await tools.js(_text("planner"))).split()) <= 20
+            await tools.js("showMessage('refused: ' + 'a long message '.repeat(30), 'error')")
+            box = await tools.js(
+                "(() => { const c = document.getElementById('field').getBoundingClientRect(), "
+                "l = document.getElementById('legend').getBoundingClientRect(); "
+                "return {w: c.width, h: c.height, right: Math.max(c.right, l.right), "
+                "bottom: l.bottom, iw: innerWidth, ih: innerHeight}; })()"
+            )
+            assert abs(box["w"] - box["h"]) < 1 and box["w"] >= 400, box
+            assert box["right"] <= box["iw"] and box["bottom"] <= box["ih"], box
+            await tools.call("Emulation.clearDeviceMetricsOverride")
             # The run ends: the page says so, why, turns its controls off and stops retrying.
             await asyncio.to_thread(server.close, reason="live.seconds=30 ran out")
             await tools.until("icco.ended !== null")
@@ -475,6 +780,79 @@ def test_the_page_in_a_real_browser_go_right_moves_waypoints_and_robots(served, 
 
     asyncio.run(scenario())
     assert server.stats["connections"] == 2
+
+
+@contextlib.contextmanager
+def _another_origin(html: str):
+    """A page served from another origin (another port on 127.0.0.1); yields its URL."""
+
+    class Handler(http.server.BaseHTTPRequestHandler):
+        def do_GET(self):  # noqa: N802 (http.server's name)
+            body = html.encode()
+            self.send_response(200)
+            self.send_header("Content-Type", "text/html; charset=utf-8")
+            self.send_header("Content-Length", str(len(body)))
+            self.end_headers()
+            self.wfile.write(body)
+
+        def log_message(self, *args):
+            pass
+
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+    thread = threading.Thread(target=server.serve_forever, kwargs={"poll_interval": 0.05})
+    thread.start()
+    try:
+        yield f"http://127.0.0.1:{server.server_address[1]}/"
+    finally:
+        server.shutdown()
+        server.server_close()
+        thread.join(5)
+
+
+def test_a_page_from_another_origin_cannot_drive_the_team(served, browser):
+    """The attack of the issue: another page, opened in the same browser, opens the WebSocket,
+    reads ``hello`` and sends "go left" and "pause". It is refused before any of that."""
+    loop = smoke_team()
+    server, url = served(loop)
+    port = int(url.rsplit(":", 1)[1])
+    evil = f"""<!DOCTYPE html><script>
+      window.result = {{opened: false, messages: [], closed: false}};
+      const ws = new WebSocket("ws://127.0.0.1:{port}/ws");
+      ws.onopen = () => {{
+        result.opened = true;
+        ws.send(JSON.stringify({{type: "instruct", text: "go left"}}));
+        ws.send(JSON.stringify({{type: "pause"}}));
+      }};
+      ws.onmessage = (event) => result.messages.push(event.data);
+      ws.onclose = (event) => {{ result.closed = true; result.code = event.code; }};
+    </script>"""
+
+    async def scenario():
+        async with aiohttp.ClientSession() as session, _browser_tab(session, browser) as tools:
+            with _another_origin(evil) as page:
+                await tools.call("Page.navigate", url=page)
+                await tools.until("window.result && result.closed")
+                result = await tools.js("result")
+            assert not result["opened"] and result["messages"] == [] and result["code"] == 1006
+            assert server.stats["forbidden"] == 1 and server.stats["connections"] == 0
+            assert not server.paused and loop.status.instruction is None
+            # The server's own page, in the same browser, is let in.
+            await tools.call("Page.navigate", url=url + "/")
+            await tools.until("window.icco && icco.connected && icco.ticks > 3")
+
+    asyncio.run(scenario())
+
+
+def test_the_page_passes_its_token_on_to_the_socket(served, browser):
+    server, url = served(smoke_team(), token="s3cret")
+
+    async def scenario():
+        async with aiohttp.ClientSession() as session:
+            async with _page(session, browser, url, path="/?token=s3cret") as tools:
+                assert await tools.js("icco.hello.mode") == "live"
+        assert server.stats["connections"] == 1 and server.stats["forbidden"] == 0
+
+    asyncio.run(scenario())
 
 
 def test_the_page_in_a_real_browser_shows_a_bridge_driven_fleet(served, browser):

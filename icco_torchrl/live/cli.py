@@ -17,6 +17,7 @@ import signal
 import sys
 import threading
 from pathlib import Path
+from urllib.parse import quote
 
 import numpy as np
 from omegaconf import DictConfig
@@ -47,13 +48,20 @@ def _checkpoint(cfg: DictConfig, command: str) -> Path:
     return DEMO_POLICY
 
 
-def _warn_if_exposed(host: str) -> None:
+def _warn_if_exposed(host: str, token: str | None = None) -> None:
     if host not in LOOPBACK:
+        guard = "with the page's token" if token else "(set live.token=SECRET to require one)"
         print(
             f"warning: live.host={host} is reachable from other machines; anyone who can reach "
-            "it can watch and steer the team",
+            f"it can watch and steer the team {guard}",
             file=sys.stderr,
         )
+
+
+def _page_url(address, token: str | None) -> str:
+    """The page's address as printed: with ``?token=`` when the server wants one."""
+    host = f"[{address[0]}]" if ":" in str(address[0]) else address[0]
+    return f"http://{host}:{address[1]}/" + (f"?token={quote(token)}" if token else "")
 
 
 def _stop_on_signals() -> threading.Event:
@@ -83,7 +91,7 @@ def run_live(cfg: DictConfig) -> float:
 
     live = cfg.live
     checkpoint = _checkpoint(cfg, "live")
-    _warn_if_exposed(live.host)
+    _warn_if_exposed(live.host, live.get("token"))
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     loop = LiveLoop.from_checkpoint(
         checkpoint, planner=LLMPlanner.from_config(cfg.llm), device=cfg.device, seed=cfg.seed
@@ -95,12 +103,13 @@ def run_live(cfg: DictConfig) -> float:
         rate_hz=live.rate_hz,
         policy=checkpoint.name,
         planner=_planner_label(cfg),
+        token=live.get("token"),
     )
     stop = _stop_on_signals()
 
     def started(address):
         print(
-            f"icco live: open http://{address[0]}:{address[1]}/ ({checkpoint.name} at "
+            f"icco live: open {_page_url(address, live.get('token'))} ({checkpoint.name} at "
             f"{live.rate_hz:g} Hz, any number of tabs); Ctrl-C stops",
             flush=True,
         )
@@ -110,7 +119,8 @@ def run_live(cfg: DictConfig) -> float:
     lat = server.stats["latency_ms"]
     print(
         f"icco live: {loop.ticks} ticks, {server.stats['connections']} page connections, "
-        f"median tick {np.median(lat) if lat else float('nan'):.1f} ms; totals {_totals(loop)}",
+        f"median tick {np.median(lat) if lat else float('nan'):.1f} ms; totals of episode "
+        f"{loop.episode} so far {_totals(loop)}",
         flush=True,
     )
     return float(loop.ticks)
@@ -127,7 +137,7 @@ def run_bridge(cfg: DictConfig) -> float:
 
     live = cfg.live
     checkpoint = _checkpoint(cfg, "bridge")
-    _warn_if_exposed(live.host)
+    _warn_if_exposed(live.host, live.get("token"))
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     limits = RobotLimits(
         max_speed=live.max_speed,
@@ -157,6 +167,7 @@ def run_bridge(cfg: DictConfig) -> float:
             drive=False,
             policy=checkpoint.name,
             planner=_planner_label(cfg),
+            token=live.get("token"),
         )
         try:
             address = page.start_in_thread()
@@ -164,7 +175,7 @@ def run_bridge(cfg: DictConfig) -> float:
             bridge.close()
             raise
         page.watch(bridge)
-        print(f"icco bridge: watch it at http://{address[0]}:{address[1]}/", flush=True)
+        print(f"icco bridge: watch it at {_page_url(address, live.get('token'))}", flush=True)
         _warm_planner()
     stop = _stop_on_signals()
     threads = []

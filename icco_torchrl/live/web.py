@@ -14,14 +14,18 @@ WebSocket protocol (JSON text frames):
   or ``"bridge"`` (robots driven by the bridge);
 * server -> page, every tick: ``{"type": "tick", ...}`` with
   :class:`~icco_torchrl.live.loop.TickState`'s fields (but ``planner``) plus ``paused``,
-  ``speed``, ``clients`` and, in bridge mode, ``fleet``
-  (:meth:`~icco_torchrl.live.bridge.Bridge.fleet`); a slow tab gets the latest tick only (older
-  ones are dropped for it, never queued), so it can neither fall behind nor slow the others;
+  ``speed``, ``clients``, ``tick_rate`` (ticks per second measured over the last 2 s; null
+  while paused), ``nominal_rate`` (``rate_hz * speed``) and, in bridge mode, ``fleet``
+  (:meth:`~icco_torchrl.live.bridge.Bridge.fleet`); ``totals`` are this episode's (``episode``,
+  ``step`` of ``episode_steps``); a slow tab gets the latest tick only (older ones are dropped
+  for it, never queued), so it can neither fall behind nor slow the others;
 * server -> page, on connect and each time it changes (never repeated in ticks):
   ``{"type": "planner", ...}`` with :class:`~icco_torchrl.live.loop.PlannerStatus`'s fields;
 * server -> page, to the sender only: ``{"type": "ok"}`` for each request applied, or
   ``{"type": "error", "message": ...}`` for a bad one (an instruction over ``max_instruction``
-  characters among them: the connection stays up);
+  characters, JSON nested too deeply, among them: the connection stays up); over
+  ``RATE_LIMIT`` requests a second (after a burst of ``BURST``) a request is dropped, counted
+  in ``stats["refused"]`` and answered by one error a second at most;
 * server -> page, once when the run ends (``live.seconds`` ran out, Ctrl-C, the bridge stopped):
   ``{"type": "end", "reason", "ticks"}``, then the server closes the connection (code 1000);
 * page -> server: ``{"type": "instruct", "text": "Go right"}``, ``{"type": "pause"}``,
@@ -30,15 +34,30 @@ WebSocket protocol (JSON text frames):
   closes the connection (code 1009); the page never sends one.
 
 A tab that disconnects or errs is dropped; the loop keeps ticking with no tab at all.
+
+Only the server's own page can drive it. Every HTTP request must name the server in ``Host``:
+``localhost`` or the bound address (on a wildcard bind, ``0.0.0.0`` or ``::``, also any IP
+address and this machine's name), so a DNS-rebinding page, whose Host is its own domain, is
+refused (403). A WebSocket upgrade that carries ``Origin`` (every browser sends it) must come
+from the page's own origin, ``http://`` + its Host, so a page from any other origin (another
+port included) is refused (403); a client without ``Origin`` is not a web page and may connect.
+With a ``token`` every request must carry it (``?token=...``: the page passes it on to
+``/ws``). Work a request asks of the loop is bounded: a reset or a redraw waits at most once in
+the tick thread (requests coalesce), single steps queue at most ``MAX_STEPS``, and the planner
+takes one instruction at a time (:meth:`~icco_torchrl.live.loop.LiveLoop.instruct`).
 """
 
 from __future__ import annotations
 
 import asyncio
+import hmac
+import ipaddress
 import json
 import logging
+import socket
 import threading
 import time
+from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict
 from pathlib import Path
@@ -53,6 +72,29 @@ OK = {"type": "ok"}
 SPEEDS = (0.25, 0.5, 1.0, 2.0, 4.0, 8.0)
 CONTROLS = ("pause", "resume", "step", "reset", "speed")
 MAX_MESSAGE = 64 * 1024  # bytes of one page request; a larger one closes the connection (1009)
+RATE_LIMIT = 20.0  # requests a second one connection may send, after a burst of BURST
+BURST = 40
+MAX_REPLIES = 64  # replies queued for one tab; more are dropped (counted), never queued
+MAX_STEPS = 10  # single steps queued while paused
+MAX_STATUS_CHARS = 400  # each text of a planner-status message is cut to this length
+RATE_WINDOW_S = 2.0  # the measured tick rate is over the ticks of the last 2 s
+LOOPBACK_NAMES = ("localhost", "127.0.0.1", "::1")
+
+
+def _hostname(host: str) -> str:
+    """The name in a ``Host`` header, without its port: ``[::1]:8000`` -> ``::1``."""
+    host = host.strip().lower()
+    if host.startswith("["):
+        return host[1 : host.find("]")] if "]" in host else host
+    return host.rsplit(":", 1)[0] if host.count(":") == 1 else host
+
+
+def _is_ip(name: str) -> bool:
+    try:
+        ipaddress.ip_address(name)
+    except ValueError:
+        return False
+    return True
 
 
 class _Client:
@@ -65,9 +107,21 @@ class _Client:
         self.status: str | None = None
         self.frame: str | None = None
         self.ready = asyncio.Event()
-        self.sent = self.dropped = 0
+        self.sent = self.dropped = self.refused = 0
         self.writer: asyncio.Task | None = None
         self.closing = False  # the run ended: send what is queued, then close
+        self.allowance, self.checked = float(BURST), time.monotonic()  # the rate limit's bucket
+        self.warned = 0.0  # when the last "too many requests" error was queued
+
+    def admit(self) -> bool:
+        """Whether one more request fits this tab's rate limit (a token bucket)."""
+        now = time.monotonic()
+        self.allowance = min(float(BURST), self.allowance + (now - self.checked) * RATE_LIMIT)
+        self.checked = now
+        if self.allowance < 1.0:
+            return False
+        self.allowance -= 1.0
+        return True
 
     def offer(self, frame: str) -> None:
         if self.frame is not None:
@@ -80,6 +134,9 @@ class _Client:
         self.ready.set()
 
     def reply(self, frame: str) -> None:
+        if len(self.replies) >= MAX_REPLIES:
+            self.dropped += 1
+            return
         self.replies.append(frame)
         self.ready.set()
 
@@ -104,9 +161,12 @@ class LiveServer:
         drive: bool = True,
         policy: str = "",
         planner: str = "",
+        token: str | None = None,
     ):
         if not rate_hz > 0:
             raise ValueError(f"rate_hz must be > 0, got {rate_hz!r}")
+        if token is not None and not str(token).strip():
+            raise ValueError("live.token must be a non-empty string, or null for none")
         self.loop, self.host, self.port, self.rate_hz, self.drive = (
             loop,
             host,
@@ -115,6 +175,7 @@ class LiveServer:
             drive,
         )
         self.policy, self.planner = policy, planner
+        self.token = None if token is None else str(token)
         self.paused, self.speed = False, 1.0
         self.clients: set[_Client] = set()
         self.stats = {
@@ -123,6 +184,8 @@ class LiveServer:
             "dropped": 0,
             "errors": 0,
             "connections": 0,
+            "refused": 0,  # requests over a tab's rate limit
+            "forbidden": 0,  # HTTP requests and upgrades refused (Host, Origin, token)
             "latency_ms": [],
         }
         self.address: tuple[str, int] | None = None
@@ -136,12 +199,16 @@ class LiveServer:
         self._status_frame = self._planner_frame(loop.status)
         self.end_reason = "the run was stopped"
         self._fleet: dict | None = None  # the bridge's fleet as last published
+        self._show_job: str | None = None  # "reset" or "snapshot", waiting in the tick thread
+        self._show_lock = threading.Lock()
+        self._tick_times: deque[float] = deque(maxlen=4096)  # when the last ticks were shown
+        self._names: set[str] = set()  # the Host names this server answers to
 
     # ------------------------------------------------------------------ lifecycle
     async def start(self) -> tuple[str, int]:
         """Bind and start serving (and ticking when ``drive``); raises ``OSError`` naming the
         port."""
-        app = web.Application()
+        app = web.Application(middlewares=[self._guard])
         app.router.add_get("/", self._page)
         app.router.add_get("/ws", self._socket)
         self._runner = web.AppRunner(app, access_log=None, handle_signals=False)
@@ -157,6 +224,9 @@ class LiveServer:
             ) from None
         self._aio = asyncio.get_running_loop()
         self.address = tuple(self._runner.addresses[0][:2])  # the bound port when port=0
+        self._names = {"localhost", self.host.lower(), str(self.address[0]).lower()}
+        if self.host in LOOPBACK_NAMES:
+            self._names.update(LOOPBACK_NAMES)
         self._status_frame = self._planner_frame(self.loop.status)
         self.loop.on_status = self._status_changed
         if self.drive:
@@ -260,6 +330,7 @@ class LiveServer:
                 await asyncio.sleep(0.5)
                 continue
             self.stats["latency_ms"].append(state.latency_ms)
+            self._tick_times.append(time.perf_counter())
             self._broadcast(state.to_dict())
             next_time += 1.0 / (self.rate_hz * self.speed)
             pause = next_time - time.perf_counter()
@@ -273,6 +344,7 @@ class LiveServer:
         payload = state.to_dict() if hasattr(state, "to_dict") else dict(state)
         if fleet is not None:
             payload["fleet"] = self._fleet = fleet
+        self._tick_times.append(time.perf_counter())  # the bridge's commands are its ticks
         self._soon(self._broadcast, payload)
 
     def watch(self, bridge) -> None:
@@ -303,12 +375,30 @@ class LiveServer:
                 "paused": self.paused,
                 "speed": self.speed,
                 "clients": len(self.clients),
+                "tick_rate": self.tick_rate(),
+                "nominal_rate": self.rate_hz * (self.speed if self.drive else 1.0),
             }
         )
 
+    def tick_rate(self) -> float | None:
+        """Ticks per second over the last ``RATE_WINDOW_S`` (None while paused or before two)."""
+        now, times = time.perf_counter(), self._tick_times
+        while times and times[0] < now - RATE_WINDOW_S:
+            times.popleft()
+        if (self.drive and self.paused) or len(times) < 2 or times[-1] <= times[0]:
+            return None
+        return round((len(times) - 1) / (times[-1] - times[0]), 2)
+
     @staticmethod
     def _planner_frame(status) -> str:
-        return json.dumps({"type": "planner", **asdict(status)})
+        """The planner status as a message, each text cut to ``MAX_STATUS_CHARS`` (a planner
+        may put a whole reply in its error)."""
+        fields = {
+            k: v[: MAX_STATUS_CHARS - 3] + "..." if isinstance(v, str) and len(v) > MAX_STATUS_CHARS
+            else v
+            for k, v in asdict(status).items()
+        }  # fmt: skip
+        return json.dumps({"type": "planner", **fields})
 
     def _status_changed(self, status) -> None:
         """The loop's planner status changed (any thread): every tab hears of it, once."""
@@ -344,6 +434,47 @@ class LiveServer:
         }
 
     # ------------------------------------------------------------------ HTTP and WebSocket handlers
+    @web.middleware
+    async def _guard(self, request: web.Request, handler) -> web.StreamResponse:
+        """Refuse (403, one line) a request that does not name this server in ``Host``, lacks
+        the token, or upgrades to a WebSocket from another page's origin (module docstring)."""
+        refusal = self._refusal(request)
+        if refusal is not None:
+            self.stats["forbidden"] += 1
+            log.warning("live: refused %s %s: %s", request.method, request.path, refusal)
+            response = web.Response(status=403, text=refusal + "\n")
+            response.force_close()  # a refused client gets no second request on this connection
+            return response
+        return await handler(request)
+
+    def _refusal(self, request: web.Request) -> str | None:
+        """Why ``request`` is refused, or None."""
+        host = request.headers.get("Host", "")
+        name = _hostname(host)
+        wildcard = self.host in ("0.0.0.0", "::", "")
+        if not (
+            name in self._names
+            or (wildcard and (_is_ip(name) or name == socket.gethostname().lower()))
+        ):
+            return (
+                f"refused: Host {host[:80]!r} is not this server's address (open "
+                f"http://{self._shown_host()}:{self.address[1]}/)"
+            )
+        if self.token is not None:
+            given = request.query.get("token", "")
+            if not hmac.compare_digest(given.encode(), self.token.encode()):
+                return "refused: this page needs its token: open the address with ?token= printed"
+        origin = request.headers.get("Origin")
+        if request.path == "/ws" and origin is not None:
+            allowed = {f"http://{host.strip().lower()}", f"https://{host.strip().lower()}"}
+            if origin.strip().lower() not in allowed:
+                return f"refused: a page from {origin[:80]!r} may not drive this server"
+        return None
+
+    def _shown_host(self) -> str:
+        host = "127.0.0.1" if self.host in ("0.0.0.0", "::", "") else self.host
+        return f"[{host}]" if ":" in host else host
+
     async def _page(self, request: web.Request) -> web.StreamResponse:
         return web.FileResponse(PAGE, headers={"Cache-Control": "no-store"})
 
@@ -363,6 +494,9 @@ class LiveServer:
             async for msg in ws:
                 if msg.type != WSMsgType.TEXT or client.closing:
                     continue
+                if not client.admit():
+                    self._refuse(client)
+                    continue
                 error = self.handle(msg.data)
                 if error:
                     self.stats["errors"] += 1
@@ -376,6 +510,19 @@ class LiveServer:
             self.stats["frames"] += client.sent
             self.stats["dropped"] += client.dropped
         return ws
+
+    def _refuse(self, client: _Client) -> None:
+        """Drop a request over ``client``'s rate limit: counted, and said once a second."""
+        client.refused += 1
+        self.stats["refused"] += 1
+        now = time.monotonic()
+        if now - client.warned >= 1.0:
+            client.warned = now
+            message = (
+                f"too many requests: at most {RATE_LIMIT:g} a second (after {BURST}); "
+                f"{client.refused} dropped so far"
+            )
+            client.reply(json.dumps({"type": "error", "message": message}))
 
     async def _write(self, client: _Client) -> None:
         try:
@@ -404,6 +551,8 @@ class LiveServer:
             msg = json.loads(text)
         except json.JSONDecodeError:
             return "a request must be a JSON object"
+        except RecursionError:
+            return "a request must be a JSON object, not nested this deeply"
         kind = msg.get("type") if isinstance(msg, dict) else None
         if kind == "instruct":
             text = msg.get("text")
@@ -414,8 +563,9 @@ class LiveServer:
             except ValueError as err:
                 return str(err)
             return None
-        if kind not in CONTROLS:
-            return f"unknown request type {kind!r}; expected instruct, {', '.join(CONTROLS)}"
+        if not isinstance(kind, str) or kind not in CONTROLS:
+            shown = repr(kind) if len(repr(kind)) <= 40 else repr(kind)[:37] + "..."
+            return f"unknown request type {shown}; expected instruct, {', '.join(CONTROLS)}"
         if not self.drive:
             return (
                 "this page shows robots driven by the bridge: pause, step, reset and speed are "
@@ -428,24 +578,38 @@ class LiveServer:
         elif kind == "step":
             if not self.paused:
                 return "step works while paused"
+            if self._steps >= MAX_STEPS:
+                return f"{MAX_STEPS} steps are already waiting: this one was not added"
             self._steps += 1
         elif kind == "reset":
-            self._show(self.loop.reset)
+            self._show("reset")
             return None
         elif kind == "speed":
             value = msg.get("value")
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                value = repr(value) if len(repr(value)) <= 40 else repr(value)[:37] + "..."
+                return f"speed must be one of {list(SPEEDS)}, got {value}"
             if value not in SPEEDS:
                 return f"speed must be one of {list(SPEEDS)}, got {value!r}"
             self.speed = float(value)
-        self._show(self.loop.snapshot)  # every tab sees the change at once, even while paused
+        self._show("snapshot")  # every tab sees the change at once, even while paused
         return None
 
-    def _show(self, state_fn) -> None:
-        """Run ``state_fn`` (reset or snapshot) in tick order, never mid-tick, and show its
-        state."""
+    def _show(self, job: str) -> None:
+        """Reset the loop (``"reset"``) or take its snapshot, in tick order (never mid-tick), and
+        show the state. Requests coalesce: one job at most waits in the tick thread, a reset
+        winning over a snapshot, so a burst of them costs one reset, not a queue of them."""
+        with self._show_lock:
+            if self._show_job is not None:
+                if job == "reset":
+                    self._show_job = "reset"
+                return
+            self._show_job = job
 
         def run_and_show():
-            state = state_fn()
-            self._aio.call_soon_threadsafe(self._broadcast, state.to_dict())
+            with self._show_lock:  # taken in the tick thread: the newest request's job
+                job, self._show_job = self._show_job, None
+            state = self.loop.reset() if job == "reset" else self.loop.snapshot()
+            self._soon(self._broadcast, state.to_dict())
 
         self._aio.run_in_executor(self._ticker, run_and_show)

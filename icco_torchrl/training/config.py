@@ -314,6 +314,9 @@ class LiveConfig:
 
     # Address the page and the bridge listen on (anything but loopback lets other machines steer).
     host: str = "127.0.0.1"
+    # A secret the page's every request must carry (open http://HOST:PORT/?token=...); set one
+    # for any host but loopback. null: none (the page still answers only its own origin).
+    token: Optional[str] = None
     # UDP port of the bridge (0 = any free port).
     port: int = _field(8765, ge=0, le=65535)
     # HTTP/WebSocket port of the live page (0 = any free port).
