@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import math
+import os
 import shutil
 import signal
 import subprocess
@@ -507,3 +508,106 @@ def test_an_exported_policy_acts_like_its_checkpoint_and_cannot_be_resumed(tmp_p
         )
     proc = run_cli("train", *SMOKE, f"resume={small}", check=False)
     assert proc.returncode == 2 and "is an exported policy" in proc.stderr
+
+
+def _popen_train(*args):
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "WANDB_MODE": "disabled", "PYTHONUNBUFFERED": "1"}
+    return subprocess.Popen(
+        [sys.executable, "-m", "icco_torchrl", "train", *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
+
+
+@pytest.mark.fault
+def test_two_resumes_of_one_checkpoint_at_once_the_second_is_refused_in_one_line(tmp_path):
+    run_cli("train", *SMOKE, "train.total_frames=512", f"hydra.run.dir={tmp_path}")
+    ckpt = tmp_path / "checkpoint.pt"
+    first = _popen_train("logger.progress=false", f"resume={ckpt}", "train.total_frames=10000000")
+    lock = tmp_path / ".train.lock"
+    deadline = time.time() + 120
+    while time.time() < deadline and first.poll() is None:
+        if lock.is_file() and lock.read_text().strip() == str(first.pid):
+            break
+        time.sleep(0.2)
+    try:
+        second = run_cli("train", "logger.progress=false", f"resume={ckpt}", check=False)
+    finally:
+        first.send_signal(signal.SIGTERM)
+        out, err = first.communicate(timeout=180)
+    assert second.returncode == 2, second.stderr
+    assert len(second.stderr.strip().splitlines()) == 1, second.stderr
+    assert f"run folder {tmp_path} is in use by another icco train (pid {first.pid})" in (
+        second.stderr
+    )
+    assert first.returncode == 0 and "interrupted by SIGTERM" in out, err[-2000:]
+    frames = _frames(tmp_path / "train.csv")
+    assert frames == sorted(frames) and len(set(frames)) == len(frames), "a frame logged twice"
+    assert load_checkpoint(ckpt)["frames"] == frames[-1]
+
+
+@pytest.mark.fault
+def test_sigterm_in_the_final_evaluation_leaves_a_run_that_resume_completes(tmp_path):
+    # eval_interval=0: the final evaluation is the first, so it runs after the last checkpoint.
+    budget = ("train.total_frames=1024", "train.eval_interval=0")
+    proc = _popen_train(*SMOKE, *budget, f"hydra.run.dir={tmp_path}")
+    for line in proc.stdout:
+        if "[eval] final evaluation at 1024 frames" in line:
+            proc.send_signal(signal.SIGTERM)
+            break
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 0, err[-2000:]
+    assert "interrupted by SIGTERM during the final evaluation" in out, out
+    stopped = out[out.index("stopped:") :]
+    assert "learning_curve.png" not in stopped and "(writes the" in stopped
+    ckpt = load_checkpoint(tmp_path / "checkpoint.pt")
+    assert ckpt["frames"] == 1024 and not ckpt["outputs"]["learning_curve"]
+    # The resume trains nothing, writes what is missing, and says only what exists.
+    proc = run_cli("train", "logger.progress=false", f"resume={tmp_path / 'checkpoint.pt'}")
+    assert "done: 1,024 env steps" in proc.stdout and "final greedy evaluation" in proc.stdout
+    assert "figure: learning_curve.png" in proc.stdout
+    assert (tmp_path / "learning_curve.png").stat().st_size > 0
+    assert _frames(tmp_path / "eval.csv") == [1024]  # evaluated once, not twice
+    saved = load_checkpoint(tmp_path / "checkpoint.pt")
+    assert saved["outputs"]["final_evaluation"] and saved["outputs"]["learning_curve"]
+    assert saved["updates"] == ckpt["updates"]
+    # Once complete, a resume changes nothing and repeats the final metrics.
+    again = run_cli("train", "logger.progress=false", f"resume={tmp_path / 'checkpoint.pt'}")
+    assert "final greedy evaluation" in again.stdout and "[eval]" not in again.stdout
+    assert _frames(tmp_path / "eval.csv") == [1024]
+
+
+def test_the_finish_message_names_only_files_that_exist(tmp_path):
+    from icco_torchrl.trainer import finish_message
+
+    (tmp_path / "train.csv").write_text("frames\n1\n")
+    (tmp_path / "learning_curve.png").write_bytes(b"partial")  # written, but not recorded
+    outputs = {"final_evaluation": False, "learning_curve": False}
+    message = finish_message(
+        tmp_path, tmp_path / "checkpoint.pt", 1024, True, {}, outputs, pending=True
+    )
+    assert "metrics: train.csv\n" in message + "\n" and "eval.csv" not in message
+    assert "learning_curve.png" not in message and "checkpoint:" not in message
+    assert "(writes the final evaluation and the learning curve)" in message
+    (tmp_path / "checkpoint.pt").write_bytes(b"x")
+    done = finish_message(tmp_path, tmp_path / "checkpoint.pt", 1024, False, {}, {})
+    assert "figure: learning_curve.png" in done and "checkpoint:" in done
+
+
+def test_a_signal_before_the_loop_stops_at_once_but_never_inside_a_checkpoint_write():
+    from icco_torchrl.training.interrupt import Interrupted, StopAtOnce
+
+    order = []
+    with StopAtOnce() as stop:
+        with pytest.raises(Interrupted):
+            with stop.held():
+                os.kill(os.getpid(), signal.SIGTERM)
+                time.sleep(0.05)
+                order.append("write finished")
+        assert order == ["write finished"] and stop.signal_name == "SIGTERM"
+    with StopAtOnce():
+        with pytest.raises(Interrupted):
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(1)
