@@ -884,6 +884,8 @@ def test_the_page_in_a_real_browser_shows_a_bridge_driven_fleet(served, browser)
             summary = await tools.js(_text("fleet-summary"))
             assert "3 of 3 robots moving" in summary and "0 malformed" in summary
             assert int(summary.split(" commands")[0].rsplit(" ", 1)[-1]) > 0
+            actual = float(summary.split(" of 20 Hz")[0].rsplit(" ", 1)[-1])  # beside nominal
+            assert 0 < actual < 40
             fleet.silence(2)  # robot 2 drops off the network: its row says it is stopped
             await tools.until("document.querySelectorAll('#fleet tr.stopped').length === 1")
             assert "stopped: no pose for" in await tools.js(
@@ -893,6 +895,9 @@ def test_the_page_in_a_real_browser_shows_a_bridge_driven_fleet(served, browser)
             await asyncio.to_thread(server.close, reason="the bridge stopped")
             await tools.until("icco.ended !== null")
             assert "the bridge stopped" in await tools.js(_text("ended-reason"))
+            # A fleet whose run ended reads as stopped, none of its robots as moving.
+            assert await tools.js("document.querySelectorAll('#fleet tr.moving').length") == 0
+            assert (await tools.js(_text("fleet-summary"))).startswith("stopped")
 
     with bridge_with_fleet(bridge, fleet, 30.0):
         asyncio.run(scenario())
