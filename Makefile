@@ -9,7 +9,8 @@ ARGS       ?=
 PYTEST_WORKERS ?= 2
 # Modules whose docstring examples run with the tests (the runnable Examples: of the loss).
 DOCTESTS   := icco_torchrl/objectives/icco_loss.py icco_torchrl/objectives/returns.py \
-              icco_torchrl/envs/shaping.py icco_torchrl/modules/policy.py
+              icco_torchrl/envs/shaping.py icco_torchrl/modules/policy.py \
+              icco_torchrl/modules/gru.py icco_torchrl/training/update.py
 
 .PHONY: install test bench train eval sweep clean
 
@@ -31,7 +32,7 @@ $(STAMP): pyproject.toml
 test: $(STAMP)
 	$(VENV)/bin/ruff format --check .
 	$(VENV)/bin/ruff check .
-	OMP_NUM_THREADS=1 $(PY) -m pytest -n $(PYTEST_WORKERS) tests $(DOCTESTS) --doctest-modules $(ARGS)
+	OMP_NUM_THREADS=1 $(PY) -m pytest -n $(PYTEST_WORKERS) --dist loadgroup tests $(DOCTESTS) --doctest-modules $(ARGS)
 
 bench: $(STAMP)
 	$(PY) benchmarks/env_throughput.py

@@ -6,10 +6,13 @@
 For ICCO and QMIX (FULL), each at the old defaults (4-step items, one-step targets) and at
 today's defaults, two seeds each: ``icco train`` at the reproduction's budget
 (``experiment=repro_cpu``, one torch thread, two runs side by side) with a greedy evaluation
-every ``--eval-interval`` frames. A run's skill time is the first evaluation whose team reward
-passes the follower's on the same evaluation episodes (``references.json``, written by the run
-itself), read from its ``eval.csv``; the wall-clock is the run's own time (collection, learning,
-evaluations) up to that evaluation, from ``timing.csv``. "never" means not within the budget.
+every ``--eval-interval`` frames. At the method's scale (``5M``): the 5M-frame reproduction's
+own runs (``experiment=repro_5m``, the compiled update, an evaluation every 100k frames), seeds
+0 and 1 of ``--scale-sweep``, trained here when missing. A run's skill time is the first
+evaluation whose team reward passes the follower's on the same evaluation episodes
+(``references.json``, written by the run itself), read from its ``eval.csv``; the wall-clock is
+the run's own time (collection, learning, evaluations) up to that evaluation, from
+``timing.csv``. "never" means not within the budget.
 
 Writes ``benchmarks/results/time_to_skill.json`` and ``time_to_skill.png`` (greedy team reward
 against frames, mean of the seeds, the follower's level dashed).
@@ -35,16 +38,24 @@ from jobs import PRE_SEQUENCE_REPLAY, train_runs  # noqa: E402  (experiments/job
 RESULTS = ROOT / "benchmarks" / "results"
 BUDGET = ["experiment=repro_cpu", "train.checkpoint_buffer=false", "logger.progress=false"]
 # Old defaults: the recipe before sequence replay (what the reproduction of 2026-11-30 trained).
-RECIPES = {"old defaults": PRE_SEQUENCE_REPLAY, "new defaults": []}
+RECIPES = {"old defaults": PRE_SEQUENCE_REPLAY, "new defaults": [], "5M": ["experiment=repro_5m"]}
+SCALE = "5M"  # its runs are the 5M reproduction's (experiments/four_quadrants, --scale-sweep)
 METHODS = {"icco": "ICCO", "qmix_full": "QMIX (FULL)"}
 SEEDS = (0, 1)
 
 
-def runs(out: Path, methods=tuple(METHODS)) -> dict[tuple[str, str, int], Path]:
+def runs(
+    out: Path, methods=tuple(METHODS), scale_sweep: Path | None = None, recipes=tuple(RECIPES)
+) -> dict[tuple[str, str, int], Path]:
+    def folder(method, recipe, seed):
+        if recipe == SCALE:
+            return (scale_sweep or out) / f"{method}_seed{seed}"
+        return out / f"{method}_{recipe.split()[0]}_seed{seed}"
+
     return {
-        (method, recipe, seed): out / f"{method}_{recipe.split()[0]}_seed{seed}"
+        (method, recipe, seed): folder(method, recipe, seed)
         for method in methods
-        for recipe in RECIPES
+        for recipe in recipes
         for seed in SEEDS
     }
 
@@ -67,9 +78,9 @@ def skill_time(run: Path) -> dict | None:
     return out
 
 
-def report(out: Path) -> dict:
+def report(out: Path, scale_sweep: Path | None = None) -> dict:
     rows = []
-    for (method, recipe, seed), run in runs(out).items():
+    for (method, recipe, seed), run in runs(out, scale_sweep=scale_sweep).items():
         result = skill_time(run)
         if result is not None:
             rows.append({"method": method, "recipe": recipe, "seed": seed, **result})
@@ -80,7 +91,7 @@ def plot(results: dict, path: Path) -> None:
     fig = Figure(figsize=(7, 4))
     ax = fig.subplots()
     for (method, label), color in zip(METHODS.items(), ("#1f77b4", "#2ca02c")):
-        for recipe, style in zip(RECIPES, (":", "-")):
+        for recipe, style in zip(RECIPES, (":", "-", "-.")):
             curves = [
                 r["curve"]
                 for r in results["runs"]
@@ -111,28 +122,43 @@ def main(argv=None) -> None:
     parser.add_argument("--eval-interval", type=int, default=50_000)
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument("--methods", nargs="+", choices=list(METHODS), default=list(METHODS))
+    parser.add_argument("--recipes", nargs="+", choices=list(RECIPES), default=list(RECIPES))
+    parser.add_argument(
+        "--scale-sweep",
+        type=Path,
+        default=Path("multirun/four_quadrants_5m"),
+        help="the 5M reproduction's sweep folder (its seed 0 and 1 runs)",
+    )
     parser.add_argument("--report-only", action="store_true")
     args = parser.parse_args(argv)
-    out = args.out.resolve()
+    out, scale_sweep = args.out.resolve(), args.scale_sweep.resolve()
+
+    def overrides(method, recipe, seed):
+        if recipe == SCALE:  # the 5M reproduction's own command line (its budget and evaluations)
+            return [f"method={method}", f"seed={seed}", *RECIPES[recipe]]
+        return [
+            f"method={method}",
+            f"seed={seed}",
+            *BUDGET,
+            *RECIPES[recipe],
+            f"train.total_frames={args.frames}",
+            f"train.eval_interval={args.eval_interval}",
+        ]
+
     if not args.report_only:
         train_runs(
             {
                 run: (
-                    [
-                        f"method={method}",
-                        f"seed={seed}",
-                        *BUDGET,
-                        *RECIPES[recipe],
-                        f"train.total_frames={args.frames}",
-                        f"train.eval_interval={args.eval_interval}",
-                    ],
-                    args.frames,
+                    overrides(method, recipe, seed),
+                    5_000_000 if recipe == SCALE else args.frames,
                 )
-                for (method, recipe, seed), run in runs(out, args.methods).items()
+                for (method, recipe, seed), run in runs(
+                    out, args.methods, scale_sweep, args.recipes
+                ).items()
             },
             args.jobs,
         )
-    results = report(out)
+    results = report(out, scale_sweep)
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / "time_to_skill.json").write_text(json.dumps(results, indent=1) + "\n")
     plot(results, RESULTS / "time_to_skill.png")

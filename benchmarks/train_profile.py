@@ -21,7 +21,6 @@ import torch
 from torchrl.collectors import Collector
 
 from icco_torchrl.objectives import total_loss
-from icco_torchrl.trainer import REPLAY_KEYS
 from icco_torchrl.training.build import build
 from icco_torchrl.training.config import compose_config
 
@@ -67,7 +66,7 @@ class Profiled:
         tick = clock()
         batch = next(self.batches)
         marks = [("collect", clock())]
-        items = run.cutter(batch.select(*REPLAY_KEYS, strict=False))
+        items = run.cutter(batch.select(*run.loss.in_keys, strict=False))
         marks.append(("cut", clock()))
         if items.shape[0]:
             run.buffer.extend(items)

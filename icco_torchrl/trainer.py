@@ -25,7 +25,6 @@ from icco_torchrl.envs.reference_policies import make_reference_policy, referenc
 from icco_torchrl.evaluation.plots import plot_learning_curve
 from icco_torchrl.evaluation.rollout import evaluate
 from icco_torchrl.modules.policy import exploration_module
-from icco_torchrl.objectives import total_loss
 from icco_torchrl.training.build import VALIDATION_SEED_OFFSET, Run, build
 from icco_torchrl.training.checkpoint import (  # noqa: F401 (check_resume*: their old home)
     CHECKPOINT,
@@ -45,25 +44,8 @@ from icco_torchrl.training.checkpoint import (  # noqa: F401 (check_resume*: the
 from icco_torchrl.training.interrupt import GracefulInterrupt, Interrupted, StopAtOnce
 from icco_torchrl.training.logger import RunLogger
 from icco_torchrl.training.rng import rng_state, set_rng_state
+from icco_torchrl.training.update import metrics_row
 
-# What the loss reads; everything else the collector records is left out of the replay buffer.
-REPLAY_KEYS = [
-    ("agents", "observation"),
-    "state",
-    ("agents", "action"),
-    ("agents", "prev_action"),
-    ("agents", "rnn_hidden"),
-    ("agents", "z"),
-    ("agents", "z_noise"),
-    "step_count",
-    "mask",
-    ("next", "agents", "observation"),
-    ("next", "state"),
-    ("next", "reward"),
-    ("next", "done"),
-    ("next", "terminated"),
-    ("next", "step_count"),
-]
 EPISODE_COLUMNS = ["episode_reward"] + [
     f"episode_{k}" for k in EVENT_KEYS
 ]  # train.csv: per finished episode
@@ -88,19 +70,25 @@ class EpisodeTracker:
         self.sums = torch.zeros(num_envs, 1 + len(EVENT_KEYS), device=device)
 
     def update(self, batch) -> torch.Tensor:
+        """The totals ``[E, 1 + events]`` of the episodes that ended in ``batch [B, L]``, in the
+        order they ended (step, then env), in one pass over the batch (one host sync)."""
         nxt = batch.get("next")
         step_values = torch.stack(
             [nxt.get("reward").squeeze(-1)] + [nxt.get(("events", k)).float() for k in EVENT_KEYS],
             -1,
-        )
+        )  # [B, L, K]
         done = nxt.get("done").squeeze(-1)  # [B, L]
-        finished = []
-        for t in range(batch.shape[1]):  # L is small (steps_per_batch); envs are vectorised
-            self.sums += step_values[:, t]
-            if done[:, t].any():
-                finished.append(self.sums[done[:, t]].clone())
-                self.sums[done[:, t]] = 0
-        return torch.cat(finished) if finished else self.sums.new_zeros(0, self.sums.shape[1])
+        B, L, K = step_values.shape
+        # Episode slot of each step: how many of its env's episodes ended before it.
+        ended = done.long().cumsum(1)
+        slot = ended - done.long()
+        bins = torch.zeros(B, L + 1, K, dtype=self.sums.dtype, device=self.sums.device)
+        bins[:, 0] = self.sums  # the episode running at the batch's start
+        bins.scatter_add_(1, slot.unsqueeze(-1).expand(B, L, K), step_values)  # in step order
+        t, b = done.t().nonzero(as_tuple=True)
+        finished = bins[b, slot[b, t]]
+        self.sums = bins[torch.arange(B, device=bins.device), ended[:, -1]]
+        return finished
 
 
 @dataclass
@@ -269,9 +257,8 @@ class TrainingRun:
                 p.batches += 1
                 self.explore.eps.fill_(epsilon(p.frames, t))
                 recent.append(tracker.update(batch))
-                items = run.cutter(
-                    batch.select(*REPLAY_KEYS, strict=False)
-                )  # only what is replayed
+                # Only what the loss reads is replayed.
+                items = run.cutter(batch.select(*run.loss.in_keys, strict=False))
                 if items.shape[0]:  # items longer than a batch complete in a later one
                     run.buffer.extend(items)
                 tick = time.perf_counter()
@@ -334,17 +321,10 @@ class TrainingRun:
         if len(run.buffer) < max(t.warmup_segments, t.batch_segments):
             return {}
         for _ in range(t.updates_per_batch):
-            losses = run.loss(run.buffer.sample())
-            run.optim.zero_grad(set_to_none=True)
-            total_loss(losses).backward()
-            if t.grad_clip > 0:
-                losses["grad_norm"] = torch.nn.utils.clip_grad_norm_(
-                    run.loss.parameters(), t.grad_clip
-                )
-            run.optim.step()
+            metrics = run.update(run.buffer.sample())
             run.updater.step()
             self.progress.updates += 1
-        return {k: v.item() for k, v in losses.items()}
+        return metrics_row(metrics)
 
     def log_train(self, row: dict, recent: list) -> dict | None:
         """One ``train.csv`` row: the loss's own metrics (``loss.metric_keys``, NaN before the first

@@ -13,7 +13,7 @@ from torch import nn
 
 from icco_torchrl.modules.coordinator import Coordinator, gaussian_entropy
 from icco_torchrl.objectives import ICCOLoss, NonFiniteLossError, make_target_updater, total_loss
-from icco_torchrl.objectives.inputs import read_sequences
+from icco_torchrl.objectives.inputs import assemble, read_sequences
 from icco_torchrl.training.build import build_components, compose_config
 from icco_torchrl.training.segments import SegmentCutter
 
@@ -486,18 +486,26 @@ def _z_on_every_state(loss, x, fresh):
     return torch.stack(z, 1)
 
 
+def _inputs(loss, seg):
+    """The loss's assembled inputs of ``seg`` (what its tensor part reads)."""
+    return assemble(read_sequences(loss, seg), reads_state=True)
+
+
 @pytest.mark.parametrize("cut_key,length", [("step_count", 4), ("step_count", 16), ("cut_at", 4)])
 def test_z_on_the_broadcast_inputs_equals_every_input(icco, cut_key, length):
-    """The coordinator runs only where some row broadcasts: the same z as on every input, for
-    items of one broadcast, of four, and items that start mid-period (every even step)."""
+    """The coordinator runs on a fixed grid of broadcast inputs: the same z as on every input,
+    on every input a loss term reads (the steps of the sequence's episode and the next-state
+    after its last one), for items of one broadcast, of four, and items that start mid-period
+    (every even step)."""
     parts, ro, _ = icco
     loss = parts["loss"]
     ro = ro.clone()
     ro["cut_at"] = ro["step_count"] * 2
-    x = read_sequences(loss, SegmentCutter(length=length, step_key=cut_key)(ro))
+    x = _inputs(loss, SegmentCutter(length=length, step_key=cut_key)(ro))
     fresh = torch.randn_like(x["z_noise"][:, 0])
     z, _, _ = loss._z_sequence(x, loss.coordinator_params, fresh)
-    torch.testing.assert_close(z, _z_on_every_state(loss, x, fresh))
+    read = torch.cat([torch.ones_like(x["mask"][:, :1]), x["mask"]], 1)  # input j: step j - 1
+    torch.testing.assert_close(z[read], _z_on_every_state(loss, x, fresh)[read])
 
 
 @pytest.mark.parametrize("method", ["icco", "qmix_full"])
@@ -512,7 +520,7 @@ def test_online_pass_in_pieces_equals_one_sequence(method, burn_in):
     seg = SegmentCutter(length=8)(_rollout_segments(parts, steps=24)[0])
     loss = parts["loss"]
     loss.burn_in = burn_in
-    x = read_sequences(loss, seg)
+    x = _inputs(loss, seg)
     z = None
     if loss.has_coordinator:
         z, _, _ = loss._z_sequence(x, loss.coordinator_params, torch.randn_like(x["z_noise"][:, 0]))
@@ -540,7 +548,7 @@ def test_replay_reproduces_collection_action_values(method, length):
     seg = SegmentCutter(length=length)(ro)
     assert (~seg["mask"]).any() and (seg["step_count"][:, 0] == 0).any()
     loss = parts["loss"]
-    x = read_sequences(loss, seg)
+    x = _inputs(loss, seg)
     valid = seg["mask"]
     with torch.no_grad():
         z_seq = None

@@ -51,7 +51,10 @@ def test_one_broadcast_items_with_one_step_targets_reproduce_the_previous_loss(m
     grads = _fingerprint(parts["loss"])
     assert grads.keys() == expected["grads"].keys()
     for name, values in expected["grads"].items():
-        assert grads[name] == pytest.approx(values, rel=1e-4, abs=1e-6), name
+        # float32 roundoff is relative to the gradient's size (its norm), not to each entry: a
+        # projection can cancel to near 0 (the coordinator now runs on another batch shape)
+        tol = 1e-6 * max(values[1], 1.0)
+        assert grads[name] == pytest.approx(values, rel=1e-4, abs=tol), name
 
 
 def test_lambda_return_with_an_episode_end_matches_a_hand_computation():

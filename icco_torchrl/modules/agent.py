@@ -2,8 +2,9 @@
 
 Input per robot: its observation (own state, own waypoints, visible entities), optionally
 the global state (QMIX (FULL)), its previous action and its TACI ``z^i``. Core: encoder ->
-GRU -> Q head on ``[GRU output; z]`` (COPA's player). The same ``nn.GRU`` runs one step at
-collection time and a whole segment in one call at training time.
+GRU -> Q head on ``[GRU output; z]`` (COPA's player). The same GRU
+(:class:`~icco_torchrl.modules.gru.GRU`: ``nn.GRU``'s parameters in a form ``torch.compile``
+traces) runs one step at collection time and a whole segment in one call at training time.
 
 Sizes come from the caller (the env's specs): ``n_actions`` always, and either an
 :class:`~icco_torchrl.envs.layout.ObsLayout` (a structured observation read by entity attention)
@@ -20,6 +21,7 @@ from torch import nn
 from torchrl.modules import recurrent_mode
 
 from icco_torchrl.modules.encoders import MLPEncoder, make_encoder
+from icco_torchrl.modules.gru import GRU
 from icco_torchrl.modules.relative import STATE_ENCODERS, RelativeStateEncoder
 from icco_torchrl.modules.tdmodule import TensorModule
 from icco_torchrl.modules.waypoint_features import PATH_FEATURES, path_features
@@ -146,7 +148,7 @@ class RecurrentQNet(nn.Module):
         nn.init.uniform_(self.embed.weight, -bound, bound)
         nn.init.uniform_(self.embed.bias, -bound, bound)
         nn.init.uniform_(self.prev_action_embed.weight, -bound, bound)
-        self.gru = nn.GRU(hidden, hidden, batch_first=True)
+        self.gru = GRU(hidden, hidden)
         head_in = hidden + z_dim  # COPA's player: the Q head reads [GRU output; z]
         self.head = nn.Sequential(
             nn.Linear(head_in, hidden), nn.ReLU(), nn.Linear(hidden, n_actions)
@@ -198,15 +200,8 @@ class RecurrentQNet(nn.Module):
     def step(self, obs, prev_action, hidden, z=None, state=None):
         """One step from ``hidden`` as given (no restart): Q ``[B, N, A]`` and the new hidden."""
         x = self._features(obs, prev_action, state, z)
-        g = self.gru  # one step of the same nn.GRU, without its sequence-call overhead
-        h = torch.gru_cell(
-            x.reshape(-1, self.hidden),
-            hidden.reshape(-1, self.hidden),
-            g.weight_ih_l0,
-            g.weight_hh_l0,
-            g.bias_ih_l0,
-            g.bias_hh_l0,
-        ).reshape(x.shape)
+        h = self.gru.step(x.reshape(-1, self.hidden), hidden.reshape(-1, self.hidden))
+        h = h.reshape(x.shape)
         return self._q(h, z), h
 
     def sequence(
@@ -218,7 +213,7 @@ class RecurrentQNet(nn.Module):
         x = self._features(obs, prev_action, state, z)
         S, L, N, H = x.shape
         out, h_last = self.gru(
-            x.permute(0, 2, 1, 3).reshape(S * N, L, H), hidden0.reshape(1, S * N, H).contiguous()
+            x.permute(0, 2, 1, 3).reshape(S * N, L, H), hidden0.reshape(S * N, H)
         )
         h = out.reshape(S, N, L, H).permute(0, 2, 1, 3)
         q = self._q(h, z)

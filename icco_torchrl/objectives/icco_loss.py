@@ -38,7 +38,7 @@ from torchrl.objectives.utils import ValueEstimators
 
 from icco_torchrl.modules.coordinator import gaussian_entropy
 from icco_torchrl.modules.tdmodule import TensorModule
-from icco_torchrl.objectives.inputs import next_key, read_sequences
+from icco_torchrl.objectives.inputs import assemble, next_key, read_sequences
 from icco_torchrl.objectives.returns import lambda_returns
 
 REWARD_REDUCTIONS = ("mean", "sum")
@@ -234,7 +234,37 @@ class ICCOLoss(LossModule):
         return self
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:
-        pass  # no value estimator object: the keys are read directly
+        self._in_keys = None  # set_keys renamed something: derive the keys again
+
+    @property
+    def in_keys(self) -> list[NestedKey]:
+        """Every batch key the loss reads, from its ``tensor_keys`` and the mixer's ``in_keys``:
+        what a replay buffer must store (``("next", ...)`` entries included). ``mask`` is the
+        cutter's; ``is_init`` is read when present and otherwise derived from ``step_count``."""
+        if getattr(self, "_in_keys", None) is None:
+            self._in_keys = self._derive_in_keys()
+        return list(self._in_keys)
+
+    def _derive_in_keys(self) -> list[NestedKey]:
+        k = self.tensor_keys
+        keys = [k.observation, k.state, k.action]
+        if self._sequence_agent or self._reads(k.prev_action):
+            keys.append(k.prev_action)
+        if self._sequence_agent or self._reads(k.rnn_hidden):
+            keys.append(k.rnn_hidden)
+        if self.has_coordinator:
+            keys += [k.z, k.z_noise]
+        keys += [k.step_count, k.mask]
+        keys += [next_key(key) for key in (k.observation, k.state, k.reward, k.done)]
+        keys += [next_key(k.terminated), next_key(k.step_count)]
+        local = unravel_key(k.local_value)
+        for key in self.mixer.in_keys:
+            if unravel_key(key) != local:
+                keys += [key, next_key(key)]
+        unique = {}
+        for key in keys:
+            unique.setdefault(unravel_key(key), key)
+        return list(unique.values())
 
     @property
     def metric_keys(self) -> tuple[str, ...]:
@@ -247,6 +277,11 @@ class ICCOLoss(LossModule):
                 keys += ("ce_nll", "log_q")
         return keys
 
+    @property
+    def out_keys(self) -> list[str]:
+        """The entries :meth:`forward` writes (:attr:`metric_keys`)."""
+        return list(self.metric_keys)
+
     def _reads(self, key: NestedKey) -> bool:
         """Whether the (non-sequence) agent's TensorDictModule reads ``key``."""
         return unravel_key(key) in [unravel_key(k) for k in self.agent.in_keys]
@@ -254,12 +289,36 @@ class ICCOLoss(LossModule):
     # ------------------------------------------------------------------ forward
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         x = read_sequences(self, tensordict)
-        z_on = z_tgt = None
+        x["mix"], x["mix_next"] = self._mixer_inputs(tensordict)
+        fresh = None
         if self.has_coordinator:
             # Fresh noise for a broadcast at the bootstrap step, shared by online and target;
             # drawn at the items' shape so the random stream is the one-broadcast learner's
             # (tests/data/loss_reference_t4.json pins it).
             fresh = torch.randn_like(x["z_noise"])[:, -1]
+        out = self._losses(x, fresh)
+        if self.check_finite:
+            self._check_finite(out)
+        return TensorDict(out, [])
+
+    def compile(self, **kwargs) -> ICCOLoss:
+        """Compile the loss's tensor part (:meth:`losses`: every network, the targets and both
+        terms, with the backward AOTAutograd derives from it) with ``torch.compile(**kwargs)``;
+        reading and checking the batch stays eager. Returns ``self``."""
+        self._losses = torch.compile(self.losses, **kwargs)
+        return self
+
+    def _losses(self, x: dict, fresh: torch.Tensor | None) -> dict[str, torch.Tensor]:
+        return self.losses(x, fresh)
+
+    def losses(self, x: dict, fresh: torch.Tensor | None) -> dict[str, torch.Tensor]:
+        """The loss terms and summaries from the checked batch ``x`` (:func:`read_sequences`, plus
+        the mixer's other inputs) and the bootstrap noise ``fresh``: tensors in, tensors out,
+        fixed shapes, no host sync (what :meth:`compile` traces)."""
+        reads_state = self.has_coordinator or getattr(self.agent.module, "full_state", False)
+        x = assemble(x, reads_state)
+        z_on = z_tgt = None
+        if self.has_coordinator:
             z_on, loc_w, scale_w = self._z_sequence(x, self.coordinator_params, fresh)
             with torch.no_grad():
                 z_tgt = self._z_sequence(x, self.target_coordinator_params, fresh)[0]
@@ -267,7 +326,7 @@ class ICCOLoss(LossModule):
         q_online, q_boot = self._q_online(x, z_on)  # [S, L, N, A], [S, N, A]
         action = x["action"].long().unsqueeze(-1)
         chosen = q_online.gather(-1, action).squeeze(-1)  # [S, L, N]
-        q_tot = self._mix(self.mixer_params, chosen, tensordict)
+        q_tot = self._mix(self.mixer_params, chosen, x["mix"])
         with torch.no_grad():
             q_target = self._q_sequence(self.target_agent_params, x, z_tgt)[:, 1:]
             if self.double_q:
@@ -275,7 +334,7 @@ class ICCOLoss(LossModule):
             else:
                 greedy_source = q_target
             next_value = q_target.gather(-1, greedy_source.argmax(-1, keepdim=True)).squeeze(-1)
-            q_tot_next = self._mix(self.target_mixer_params, next_value, tensordict.get("next"))
+            q_tot_next = self._mix(self.target_mixer_params, next_value, x["mix_next"])
             target = self._targets(x, q_tot_next)
 
         weight = self._loss_weight(x["mask"]).to(q_tot.dtype)  # [S, L]
@@ -290,9 +349,7 @@ class ICCOLoss(LossModule):
         }
         if self.use_ce:
             out.update(self._consistency(x, z_on, loc_w, scale_w))
-        if self.check_finite:
-            self._check_finite(out)
-        return TensorDict(out, [])
+        return out
 
     def _loss_weight(self, mask: torch.Tensor) -> torch.Tensor:
         """The steps the TD loss scores: in the sequence's episode and past the burn-in."""
@@ -321,38 +378,31 @@ class ICCOLoss(LossModule):
         """z for the ``L + 1`` inputs of each sequence under ``params`` ``[S, L+1, N, Z]``, and the
         coordinator's ``(loc, scale)`` at the window starts ``0, T, 2T, ...`` ``[S, W, N, Z]``.
 
-        Input 0 is rebuilt from the stored noise if it is a broadcast step, else it is the stored
-        z; input j >= 1 is a new draw where its step count is a multiple of T (stored noise inside
-        the sequence, ``fresh`` at the bootstrap input L), else the last draw held.
+        Within a sequence's episode the broadcasts are every T-th input from the first broadcast
+        step (input 0 when the sequence starts at one, as the cutter's do): each is a new draw
+        from the stored noise (``fresh`` at the bootstrap input ``L``), held until the next. The
+        inputs before the first broadcast hold the stored z. The coordinator runs on these
+        ``L // T + 1`` inputs of every row, a fixed shape; a broadcast off this grid can only
+        follow an episode end inside the sequence, on inputs no term reads.
         """
-        step, next_step, T = x["step_count"], x["next_step_count"], self.period
+        step, T = x["step_count"], self.period
         S, L = step.shape
         device = step.device
-        flags = torch.cat([torch.ones_like(step[:, :1], dtype=torch.bool), next_step % T == 0], 1)
-        window_starts = torch.arange(0, L - L % T if L >= T else 1, T, device=device)
-        if device.type == "cpu":  # only the inputs some row broadcasts at (a free host sync)
-            needed = flags.any(0)
-            needed[window_starts] = True
-            positions = needed.nonzero().squeeze(1)
-        else:
-            positions = torch.arange(L + 1, device=device)
+        P = L // T + 1  # broadcasts a sequence can hold
+        phase = (-step[:, :1]) % T  # [S, 1]: input of the first broadcast
+        at = (phase + T * torch.arange(P, device=device)).clamp_max(L)  # [S, P]
+        state = x["state_seq"].gather(1, at.unsqueeze(-1).expand(S, P, x["state_seq"].shape[-1]))
         with params.to_module(self.coordinator, preserve_module_state=False):
-            loc, scale = self.coordinator.module.distribution(x["state_seq"][:, positions])
-        noise = torch.cat([x["z_noise"], fresh.unsqueeze(1)], 1)[:, positions]
-        draws = loc + scale * noise  # [S, P, N, Z]
-        broadcast0 = (step[:, 0] % T == 0)[:, None, None]
-        draws = torch.cat(
-            [torch.where(broadcast0, draws[:, 0], x["z"][:, 0]).unsqueeze(1), draws[:, 1:]], 1
-        )
-        # Each input holds the draw of the last broadcast at or before it.
-        index = torch.arange(L + 1, device=device)
-        last = torch.cummax(torch.where(flags, index, 0), 1).values  # [S, L+1]
-        slot = torch.full((L + 1,), -1, dtype=torch.long, device=device)
-        slot[positions] = torch.arange(positions.numel(), device=device)
-        gather = slot[last][..., None, None].expand(-1, -1, *draws.shape[2:])
-        z_seq = draws.gather(1, gather)
-        at_windows = slot[window_starts]
-        return z_seq, loc[:, at_windows], scale[:, at_windows]
+            loc, scale = self.coordinator.module.distribution(state)  # [S, P, N, Z]
+        noise = torch.cat([x["z_noise"], fresh.unsqueeze(1)], 1)
+        noise = noise.gather(1, at[..., None, None].expand(S, P, *noise.shape[2:]))
+        # Slot 0: the stored z (held from before the sequence); slot p + 1: broadcast p.
+        draws = torch.cat([x["z"][:, :1], loc + scale * noise], 1)
+        j = torch.arange(L + 1, device=device)
+        slot = torch.where(j < phase, 0, 1 + torch.div(j - phase, T, rounding_mode="floor"))
+        z_seq = draws.gather(1, slot[..., None, None].expand(S, L + 1, *draws.shape[2:]))
+        W = max(L // T, 1)  # whole broadcast windows (one shorter window when L < T); scored
+        return z_seq, loc[:, :W], scale[:, :W]  # only where the sequence starts at a broadcast
 
     # ------------------------------------------------------------------ Q-values
     def _agent_state(self, x: dict, steps: slice = slice(None)) -> torch.Tensor | None:
@@ -434,9 +484,9 @@ class ICCOLoss(LossModule):
             )
         return q
 
-    def _mix(self, params: TensorDictParams, q: torch.Tensor, source: TensorDictBase):
-        """The mixer through its keys: ``q [S, L, N]`` as ``local_value``, every other input it
-        reads from ``source`` (the batch, or its ``"next"`` entry); returns ``[S, L, 1]``."""
+    def _mixer_inputs(self, tensordict: TensorDictBase) -> tuple[dict, dict]:
+        """Every input the mixer reads besides ``local_value``, from the batch and from its
+        ``"next"`` entry (``{key: tensor}`` each)."""
         k, mixer = self.tensor_keys, self.mixer
         local = unravel_key(k.local_value)
         in_keys = [unravel_key(key) for key in mixer.in_keys]
@@ -445,30 +495,42 @@ class ICCOLoss(LossModule):
                 f"ICCOLoss writes the agents' chosen values to local_value={k.local_value!r} but "
                 f"the mixer reads {mixer.in_keys}: rename with set_keys(local_value=...)"
             )
-        inputs = {local: q.unsqueeze(-1).contiguous()}
-        for key in in_keys:
-            if key != local:
-                value = source.get(key, None)
-                if value is None:
-                    raise KeyError(
-                        f"ICCOLoss: the mixer reads {key!r}, absent from the batch (or its 'next' "
-                        f"entry); mixer in_keys {mixer.in_keys}, the agents' values go to "
-                        f"local_value={k.local_value!r}"
-                    )
-                inputs[key] = value.contiguous()
-        with params.to_module(mixer, preserve_module_state=False):
-            if _is_plain(mixer, k.global_value):  # what TensorDictModule does, without the td
-                return mixer.module(*(inputs[key] for key in in_keys))
-            td = TensorDict({}, batch_size=q.shape[:2], device=q.device)
-            for key, value in inputs.items():
-                td.set(key, value)
-            value = mixer(td).get(k.global_value, None)
-        if value is None:
+        if not _is_plain(mixer, k.global_value) and unravel_key(k.global_value) not in [
+            unravel_key(key) for key in mixer.out_keys
+        ]:
             raise KeyError(
                 f"ICCOLoss reads global_value={k.global_value!r} but the mixer writes "
                 f"{mixer.out_keys}: rename with set_keys(global_value=...)"
             )
-        return value
+        found = []
+        for source in (tensordict, tensordict.get("next")):
+            inputs = {}
+            for key in in_keys:
+                if key != local:
+                    value = source.get(key, None)
+                    if value is None:
+                        raise KeyError(
+                            f"ICCOLoss: the mixer reads {key!r}, absent from the batch (or its "
+                            f"'next' entry); mixer in_keys {mixer.in_keys}, the agents' values go "
+                            f"to local_value={k.local_value!r}"
+                        )
+                    inputs[key] = value.contiguous()
+            found.append(inputs)
+        return found[0], found[1]
+
+    def _mix(self, params: TensorDictParams, q: torch.Tensor, inputs: dict) -> torch.Tensor:
+        """The mixer through its keys: ``q [S, L, N]`` as ``local_value`` and ``inputs`` (from
+        :meth:`_mixer_inputs`); returns ``[S, L, 1]``."""
+        k, mixer = self.tensor_keys, self.mixer
+        local = unravel_key(k.local_value)
+        inputs = {local: q.unsqueeze(-1).contiguous(), **inputs}
+        with params.to_module(mixer, preserve_module_state=False):
+            if _is_plain(mixer, k.global_value):  # what TensorDictModule does, without the td
+                return mixer.module(*(inputs[unravel_key(key)] for key in mixer.in_keys))
+            td = TensorDict({}, batch_size=q.shape[:2], device=q.device)
+            for key, value in inputs.items():
+                td.set(key, value)
+            return mixer(td).get(k.global_value)
 
     # ------------------------------------------------------------------ consistency
     def _consistency(self, x: dict, z_seq, loc_w, scale_w) -> dict[str, torch.Tensor]:

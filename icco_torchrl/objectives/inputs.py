@@ -64,7 +64,8 @@ def episode_mask(done: torch.Tensor, is_init: torch.Tensor | None) -> torch.Tens
 
 
 def read_sequences(loss, td: TensorDictBase) -> dict:
-    """The checked inputs of ``loss`` from ``td [S, L]`` (time last), as a dict of tensors."""
+    """The checked inputs of ``loss`` from ``td [S, L]`` (time last), as a dict of tensors (views
+    of the batch: the few ops that build the sequences are :func:`assemble`'s)."""
     if td.batch_dims != 2:
         raise ValueError(
             f"ICCOLoss expects sequences with batch [S, T] (time last), got batch "
@@ -110,14 +111,16 @@ def read_sequences(loss, td: TensorDictBase) -> dict:
         is_init = step_count == 0  # derived
     x["is_init"] = None if is_init is None else is_init.reshape(S, L).bool()
     mask = td.get(k.mask, None)
-    if mask is None:  # steps after an episode end (done) or a new start (is_init)
-        done = team_value(td, next_key(k.done), N, "flag", loss.reward_reduction, optional=True)
-        mask = episode_mask(x["terminated"] if done is None else done, x["is_init"])
+    x["done"] = None
+    if mask is None:  # derived in assemble()
+        x["done"] = team_value(
+            td, next_key(k.done), N, "flag", loss.reward_reduction, optional=True
+        )
     elif tuple(mask.shape) not in ((S, L), (S, L, 1)):
         raise ValueError(
             f"ICCOLoss: key {k.mask!r} must have shape [S, T] or [S, T, 1], got {list(mask.shape)}"
         )
-    x["mask"] = mask.reshape(S, L).bool()
+    x["mask"] = None if mask is None else mask.reshape(S, L).bool()
     if loss.has_coordinator:
         z_shape = (N, net.z_dim)
         x["z"] = get_checked(td, k.z, f"[S, T, N, {net.z_dim}]", trailing=z_shape)
@@ -126,13 +129,21 @@ def read_sequences(loss, td: TensorDictBase) -> dict:
         x["next_step_count"] = get_checked(
             td, next_key(k.step_count), "[S, T, 1]", trailing=(1,)
         ).squeeze(-1)
-    # The L + 1 inputs of the sequence (its L steps and the final next-step), shared by the online
-    # and the target networks.
+    return x
+
+
+def assemble(x: dict, reads_state: bool) -> dict:
+    """``x`` with the ``L + 1`` inputs of each sequence (its ``L`` steps and the final
+    next-step), shared by the online and the target networks, and the episode mask where the
+    batch has none: the tensor part of reading a batch (what a compiled update traces)."""
+    x = dict(x)
+    if x["mask"] is None:  # steps after an episode end (done) or a new start (is_init)
+        ended = x["terminated"] if x["done"] is None else x["done"]
+        x["mask"] = episode_mask(ended, x["is_init"])
     x["obs_seq"] = torch.cat([x["obs"][:, :1], x["next_obs"]], 1)  # [S, L+1, N, F]
     if x["prev_action"] is not None:
         x["prev_seq"] = torch.cat([x["prev_action"][:, :1], x["action"]], 1)
     else:
         x["prev_seq"] = None
-    reads_state = loss.has_coordinator or getattr(net, "full_state", False)
-    x["state_seq"] = torch.cat([state[:, :1], next_state], 1) if reads_state else None
+    x["state_seq"] = torch.cat([x["state"][:, :1], x["next_state"]], 1) if reads_state else None
     return x

@@ -24,6 +24,7 @@ from icco_torchrl.modules.policy import make_policy, make_primer
 from icco_torchrl.objectives import ICCOLoss, make_target_updater
 from icco_torchrl.training.config import compose_config, resolve_device, set_env_params
 from icco_torchrl.training.segments import SegmentCutter
+from icco_torchrl.training.update import Update
 
 # Env seeds relative to cfg.seed: training uses the seed itself, the evaluations during training
 # seed + VALIDATION_SEED_OFFSET, evaluations of a trained policy (icco eval/instruct, restore) seed
@@ -132,11 +133,31 @@ def make_loss(cfg: DictConfig, mods: dict) -> ICCOLoss:
 
 
 def make_optimizer(cfg: DictConfig, loss: ICCOLoss) -> torch.optim.Optimizer:
-    """``train.optimizer`` over the loss's parameters (foreach: one multi-tensor kernel a step)."""
+    """``train.optimizer`` over the loss's parameters: foreach (multi-tensor kernels), or with
+    ``train.compile`` or ``train.cudagraphs`` Adam's fused kernel (one op a step); capturable
+    in a CUDA graph with ``train.cudagraphs``."""
     t = cfg.train
+    graphs = bool(t.cudagraphs)
     if t.optimizer == "rmsprop":
-        return torch.optim.RMSprop(loss.parameters(), lr=t.lr, alpha=0.99, eps=1e-5, foreach=True)
+        return torch.optim.RMSprop(
+            loss.parameters(), lr=t.lr, alpha=0.99, eps=1e-5, foreach=True, capturable=graphs
+        )
+    if t.compile or graphs:
+        return torch.optim.Adam(loss.parameters(), lr=t.lr, fused=True, capturable=graphs)
     return torch.optim.Adam(loss.parameters(), lr=t.lr, foreach=True)
+
+
+def make_update(cfg: DictConfig, loss: ICCOLoss, optim: torch.optim.Optimizer) -> Update:
+    """One gradient update of ``loss`` (``train.compile``, ``train.cudagraphs``)."""
+    t = cfg.train
+    return Update(
+        loss,
+        optim,
+        grad_clip=t.grad_clip,
+        compile=t.compile,
+        compile_mode=t.compile_mode,
+        cudagraphs=t.cudagraphs,
+    )
 
 
 @dataclass
@@ -159,6 +180,7 @@ class Run:
     eval_env: TransformedEnv | None = None
     optim: torch.optim.Optimizer | None = None
     updater: object | None = None
+    update: Update | None = None
     buffer: TensorDictReplayBuffer | None = None
     checkpoint: dict | None = None
 
@@ -227,6 +249,7 @@ def build(
     )
     if for_training:
         run.optim = make_optimizer(cfg, loss)
+        run.update = make_update(cfg, loss, run.optim)
         run.updater = make_target_updater(
             loss, t.target_update, interval=t.target_update_interval, tau=t.tau
         )

@@ -211,6 +211,14 @@ class TrainConfig:
     checkpoint_buffer: bool = True
     # torch CPU threads (1 is the stable choice on shared machines).
     threads: int = _field(1, gt=0)
+    # Compile the update (torch.compile of the loss, fused Adam; icco_torchrl/training/update.py):
+    # the same loss and gradients in far fewer ops (benchmarks/README.md). The first run compiles
+    # for minutes on a CPU, later ones load the cache (~/.cache/icco_torchrl/inductor).
+    compile: bool = False
+    # torch.compile mode (null: its default; e.g. max-autotune-no-cudagraphs).
+    compile_mode: Optional[str] = None
+    # Capture the whole update in one CUDA graph (tensordict's CudaGraphModule); CUDA only.
+    cudagraphs: bool = False
     # Exploratory actions from this reference policy instead of uniform draws (experiments/recipe).
     explore_guide: Optional[str] = _field(None, choices=(None, *REFERENCE_POLICIES))
     # env.params overrides for the training env only (e.g. train.env_params.collect_reward=3.5):
@@ -498,7 +506,12 @@ def validate(cfg: DictConfig | dict) -> DictConfig:
             "train.env_params",
             only=list(shaping),
         )
-    resolve_device(merged.device)
+    device = resolve_device(merged.device)
+    if t.cudagraphs and device.type != "cuda":
+        raise ConfigError(
+            f"config field 'train.cudagraphs' captures CUDA graphs: it needs a CUDA device, and "
+            f"device is {merged.device!r} ({device.type})"
+        )
     return merged
 
 

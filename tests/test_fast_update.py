@@ -1,0 +1,202 @@
+"""The fast update: a traceable GRU with nn.GRU's parameters, the loss's in_keys, the compiled
+loss against the eager one (same loss terms and gradients on a fixed batch), the options' bad
+input and one training run through the CLI with the compiled update.
+
+The two compiling tests share one Inductor cache and one xdist group (``make test`` runs with
+``--dist loadgroup``), so the CLI run loads what the first test compiled.
+"""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+import torch
+from conftest import run_cli
+from torch import nn
+
+from icco_torchrl.modules.gru import GRU
+from icco_torchrl.objectives import total_loss
+from icco_torchrl.training import update as update_module
+from icco_torchrl.training.build import build, build_components, compose_config
+from icco_torchrl.training.config import ConfigError, validate
+from icco_torchrl.training.segments import SegmentCutter
+from icco_torchrl.training.update import Update
+
+# Small, fast to compile: the smoke recipe with one broadcast per item.
+COMPILE_RECIPE = ["experiment=smoke", "train.sequence_length=4", "method.hidden=16"]
+
+
+@pytest.fixture(scope="module")
+def inductor_cache(tmp_path_factory):
+    path = tmp_path_factory.getbasetemp().parent / "icco-inductor-cache"
+    old = os.environ.get("TORCHINDUCTOR_CACHE_DIR")
+    os.environ["TORCHINDUCTOR_CACHE_DIR"] = str(path)
+    yield path
+    if old is None:
+        os.environ.pop("TORCHINDUCTOR_CACHE_DIR", None)
+    else:
+        os.environ["TORCHINDUCTOR_CACHE_DIR"] = old
+
+
+def test_gru_has_nn_grus_parameters_init_and_values():
+    """Same state-dict names and shapes (checkpoints load), the same seeded init, the same outputs
+    as nn.GRU on a sequence and a step, and the unrolled (compiled) form equal to both."""
+    torch.manual_seed(3)
+    ref = nn.GRU(6, 5, batch_first=True)
+    torch.manual_seed(3)
+    gru = GRU(6, 5)
+    assert list(gru.state_dict()) == list(ref.state_dict())
+    for name, value in ref.state_dict().items():
+        torch.testing.assert_close(gru.state_dict()[name], value, atol=0, rtol=0)
+    x, h0 = torch.randn(4, 7, 6), torch.randn(4, 5)
+    out_ref, h_ref = ref(x, h0.unsqueeze(0))
+    out, h = gru(x, h0)
+    torch.testing.assert_close(out, out_ref)
+    torch.testing.assert_close(h, h_ref.squeeze(0))
+    out_u, h_u = gru.unrolled(x, h0)
+    torch.testing.assert_close(out_u, out_ref, atol=1e-6, rtol=1e-5)
+    torch.testing.assert_close(h_u, h_ref.squeeze(0), atol=1e-6, rtol=1e-5)
+    torch.testing.assert_close(gru.step(x[:, 0], h0), out_ref[:, 0])
+
+
+def test_in_keys_are_what_the_loss_reads():
+    """The replay stores the loss's keys: every key the update touches, and no other. A loss run on
+    a batch cut down to its in_keys gives the same terms as on the whole batch."""
+    parts = build_components(method="icco", num_envs=4)
+    keys = parts["loss"].in_keys
+    assert ("agents", "z_noise") in keys and ("next", "state") in keys and "mask" in keys
+    qmix = build_components(method="qmix", num_envs=4)["loss"].in_keys
+    assert ("agents", "z") not in qmix and ("agents", "rnn_hidden") in qmix
+    torch.manual_seed(0)
+    with torch.no_grad():
+        rollout = parts["env"].rollout(16, parts["policy"], break_when_any_done=False)
+    items = SegmentCutter(length=16)(rollout)
+    torch.manual_seed(1)
+    whole = parts["loss"](items)
+    torch.manual_seed(1)
+    cut = parts["loss"](items.select(*keys, strict=True))
+    for name in whole.keys():
+        torch.testing.assert_close(cut[name], whole[name], atol=0, rtol=0)
+    parts["loss"].set_keys(state="global_state", z_noise=("agents", "eps"))  # renamed: read
+    renamed = parts["loss"].in_keys
+    assert "global_state" in renamed and ("next", "global_state") in renamed
+    assert ("agents", "eps") in renamed and ("agents", "z_noise") not in renamed
+    assert "state" in renamed  # the mixer's own in_key
+    assert parts["loss"].out_keys == list(parts["loss"].metric_keys)
+
+
+def _grads(loss):
+    return {n: p.grad.clone() for n, p in loss.named_parameters() if p.grad is not None}
+
+
+@pytest.mark.xdist_group("compile")
+def test_compiled_loss_gives_the_eager_losses_and_gradients(inductor_cache):
+    """ICCO (coordinator, posterior, lambda-returns): the compiled loss's terms and every
+    gradient equal the eager loss's on a fixed batch, to float tolerance; then one compiled
+    update moves the weights as the eager one does."""
+    cfg = compose_config(["method=icco", "device=cpu", *COMPILE_RECIPE])
+    torch.manual_seed(0)
+    run = build(cfg, for_training=True)
+    with torch.no_grad():
+        rollout = run.env.rollout(40, run.policy, break_when_any_done=False)
+    items = run.cutter(rollout.select(*run.loss.in_keys, strict=False))
+    batch = items[: cfg.train.batch_segments]
+    torch.manual_seed(5)
+    eager = run.loss(batch)
+    total_loss(eager).backward()
+    eager_grads = _grads(run.loss)
+    run.loss.zero_grad(set_to_none=True)
+
+    run.loss.compile(fullgraph=True, dynamic=False)
+    torch.manual_seed(5)
+    compiled = run.loss(batch)
+    total_loss(compiled).backward()
+    assert set(compiled.keys()) == set(eager.keys())
+    for name in eager.keys():
+        torch.testing.assert_close(compiled[name], eager[name], atol=1e-5, rtol=1e-4)
+    grads = _grads(run.loss)
+    assert grads.keys() == eager_grads.keys() and len(grads) > 20
+    for name, grad in eager_grads.items():
+        scale = grad.abs().max().clamp_min(1.0)
+        torch.testing.assert_close(grads[name] / scale, grad / scale, atol=2e-5, rtol=1e-4)
+
+
+@pytest.mark.xdist_group("compile")
+def test_compiled_training_through_the_cli(tmp_path, inductor_cache):
+    """`icco train train.compile=true` trains, evaluates and saves like the eager run, and its
+    first evaluation matches the eager run's (same seed: the same data up to the first
+    update's float noise)."""
+    out = run_cli(
+        "train",
+        *COMPILE_RECIPE,
+        "train.compile=true",
+        "train.checkpoint_buffer=false",
+        f"hydra.run.dir={tmp_path}",
+        timeout=600,
+    )
+    assert "done: 2,048 env steps" in out.stdout
+    assert (tmp_path / "checkpoint.pt").exists() and (tmp_path / "eval.csv").exists()
+    rows = (tmp_path / "train.csv").read_text().splitlines()
+    header = rows[0].split(",")
+    last = dict(zip(header, rows[-1].split(",")))
+    assert float(last["updates"]) > 0 and float(last["loss_td"]) == float(last["loss_td"])
+
+
+def test_cudagraphs_on_a_cpu_fails_naming_the_field():
+    with pytest.raises(ConfigError, match=r"config field 'train.cudagraphs'.*CUDA device"):
+        validate(compose_config(["device=cpu", "train.cudagraphs=true"]))
+    parts = build_components(method="qmix", num_envs=2)
+    with pytest.raises(ValueError, match="cudagraphs captures CUDA kernels"):
+        Update(parts["loss"], torch.optim.Adam(parts["loss"].parameters()), cudagraphs=True)
+
+
+def test_gpu_recipe_without_a_gpu_fails_naming_the_field():
+    if torch.cuda.is_available():
+        pytest.skip("a GPU is present")
+    with pytest.raises(ConfigError, match="config field 'device'"):
+        validate(compose_config(["experiment=gpu"]))
+
+
+def test_a_torch_that_cannot_compile_gets_a_note_and_the_eager_path(monkeypatch, capsys):
+    monkeypatch.setattr(update_module, "can_compile", lambda: "no inductor in this build")
+    parts = build_components(method="qmix", num_envs=2)
+    update = Update(parts["loss"], torch.optim.Adam(parts["loss"].parameters()), compile=True)
+    assert not update.compiled
+    err = capsys.readouterr().out.strip().splitlines()
+    assert len(err) == 1 and "cannot compile (no inductor in this build)" in err[0]
+
+
+def test_episode_tracker_matches_the_step_by_step_totals():
+    """The batched episode totals equal a step-by-step running sum, bit for bit and in the order
+    the episodes ended, across batches, with several ends per env in one batch."""
+    from tensordict import TensorDict
+
+    from icco_torchrl.envs import EVENT_KEYS
+    from icco_torchrl.trainer import EpisodeTracker
+
+    g = torch.Generator().manual_seed(0)
+    B, L = 5, 12
+    tracker, sums, expected, got = (
+        EpisodeTracker(B, "cpu"),
+        torch.zeros(B, 1 + len(EVENT_KEYS)),
+        [],
+        [],
+    )
+    for _ in range(4):
+        reward = torch.randn(B, L, 1, generator=g)
+        events = {k: torch.rand(B, L, generator=g) < 0.3 for k in EVENT_KEYS}
+        done = torch.rand(B, L, 1, generator=g) < 0.2
+        batch = TensorDict(
+            {"next": {"reward": reward, "done": done, "events": events}}, batch_size=[B, L]
+        )
+        got.append(tracker.update(batch))
+        values = torch.stack([reward.squeeze(-1)] + [events[k].float() for k in EVENT_KEYS], -1)
+        for t in range(L):
+            sums += values[:, t]
+            ends = done[:, t, 0]
+            expected.append(sums[ends].clone())
+            sums[ends] = 0
+    torch.testing.assert_close(torch.cat(got), torch.cat(expected), atol=0, rtol=0)
+    assert torch.cat(got).shape[0] > 10
+    torch.testing.assert_close(tracker.sums, sums, atol=0, rtol=0)
