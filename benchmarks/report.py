@@ -230,6 +230,54 @@ def live_section() -> str:
     return "\n\n".join(parts) or "(not measured)"
 
 
+def speed_section(name: str = "train_speed.json") -> str:
+    """Today's eager update against the compiled one, side by side (benchmarks/train_speed.py)."""
+    data = load(name)
+    if data is None:
+        return f"(not measured: no `results/{name}`)"
+    rows = []
+    for result in data["results"]:
+        for path, v in result["paths"].items():
+            gemm = result.get("gemm_gflop_s") or {}
+            rows.append(
+                {
+                    "threads": result["threads"],
+                    "path": path,
+                    "env_steps_per_s": v["env_steps_per_s"],
+                    "ms_per_update": v["ms_per_update"],
+                    "ops_per_update": v["ops_per_update"],
+                    "achieved": v["achieved_gflop_s"],
+                    "gemm": max(gemm.values()) if gemm else None,
+                    "first_update_s": v["first_update_s"],
+                }
+            )
+    text = table(
+        rows,
+        {
+            "threads": "threads",
+            "path": "update",
+            "env_steps_per_s": "env steps / s (end to end)",
+            "ms_per_update": "ms / update",
+            "ops_per_update": "ops / update",
+            "achieved": "achieved GFLOP/s",
+            "gemm": "GEMM GFLOP/s (same core, best shape)",
+            "first_update_s": "warm-up to first update (s)",
+        },
+    )
+    ratios = "; ".join(
+        f"{r['threads']} thread(s): update {r['update_speedup']:.2f}x, end to end "
+        f"{r['end_to_end_speedup']:.2f}x"
+        for r in data["results"]
+    )
+    src = f"[`results/{name}`](results/{name})"
+    gflop = data["results"][0]["paths"]["eager"]["gflop_per_update"]
+    return (
+        f"{text}\n\nRatios, fastest path against eager: {ratios}. "
+        f"{gflop:.2f} GFLOP per update; recipe: {data['recipe']}; {data.get('cpu', '')}, "
+        f"torch {data.get('torch', '')}. Source: {src}."
+    )
+
+
 def render() -> str:
     return Template((HERE / "README.template.md").read_text()).substitute(
         env_cpu=env_section("env_throughput.json"),
@@ -241,6 +289,7 @@ def render() -> str:
         ),
         profile=profile_section(),
         skill=skill_section(),
+        speed=speed_section(),
         train_gpu=train_gpu_section(),
         live=live_section(),
     )

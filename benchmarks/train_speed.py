@@ -10,6 +10,8 @@ update's shapes. Writes ``benchmarks/results/train_speed.json``.
 
     .venv/bin/python benchmarks/train_speed.py                  # 1 and 2 threads, ICCO
     .venv/bin/python benchmarks/train_speed.py --threads 1 --batches 20
+    python benchmarks/train_speed.py --device cuda --experiment gpu --paths eager compiled \
+        graphs --threads 8 --out train_speed_gpu.json            # benchmarks/gpu_check.sh
 """
 
 from __future__ import annotations
@@ -33,7 +35,11 @@ from icco_torchrl.training.build import build
 from icco_torchrl.training.config import compose_config
 
 RESULTS = Path(__file__).resolve().parent / "results"
-PATHS = {"eager": ["train.compile=false"], "compiled": ["train.compile=true"]}
+PATHS = {
+    "eager": ["train.compile=false", "train.cudagraphs=false"],
+    "compiled": ["train.compile=true", "train.cudagraphs=false"],
+    "graphs": ["train.compile=true", "train.cudagraphs=true"],  # CUDA only
+}
 # The update's matrix products: [S*(L+1)*N, hidden] rows against the hidden and gate widths.
 GEMM_SHAPES = ((1632, 64, 64), (1632, 64, 192), (4096, 256, 256))
 
@@ -63,7 +69,7 @@ class Stepper:
 
     def __init__(self, overrides: list[str], method: str, run_dir: Path):
         torch.manual_seed(0)
-        cfg = compose_config([f"method={method}", "device=cpu", *overrides])
+        cfg = compose_config([f"method={method}", *overrides])
         self.cfg = cfg
         self.training = TrainingRun(build(cfg, for_training=True), cfg, run_dir)
         self.run = self.training.run
@@ -100,7 +106,7 @@ class Stepper:
         start = time.perf_counter()
         for _ in range(n):
             metrics = update(buffer.sample())
-        metrics["loss_td"].item()
+        metrics["loss_td"].item()  # waits for the device
         return 1e3 * (time.perf_counter() - start) / n
 
     def ops(self) -> int:
@@ -136,9 +142,9 @@ def gemm_rate(threads: int) -> dict[str, float]:
     return out
 
 
-def measure(threads: int, batches: int, method: str, run_dir: Path) -> dict:
+def measure(threads: int, batches: int, method: str, run_dir: Path, paths, common) -> dict:
     torch.set_num_threads(threads)
-    steppers = {name: Stepper(o, method, run_dir / name) for name, o in PATHS.items()}
+    steppers = {name: Stepper([*common, *PATHS[name]], method, run_dir / name) for name in paths}
     seconds = {name: [] for name in steppers}
     for _ in range(batches):  # in turn, so both paths see the same load
         for name, stepper in steppers.items():
@@ -160,13 +166,14 @@ def measure(threads: int, batches: int, method: str, run_dir: Path) -> dict:
             "first_update_s": stepper.first_update_s,
         }
         stepper.close()
-    base, fast = rows["eager"], rows["compiled"]
+    base, fast = rows["eager"], rows[paths[-1]]
     return {
         "threads": threads,
         "paths": rows,
+        "fastest": paths[-1],
         "update_speedup": base["ms_per_update"] / fast["ms_per_update"],
         "end_to_end_speedup": fast["env_steps_per_s"] / base["env_steps_per_s"],
-        "gemm_gflop_s": gemm_rate(threads),
+        "gemm_gflop_s": gemm_rate(threads) if "cpu" in common[0] else None,
     }
 
 
@@ -185,29 +192,44 @@ def main(argv=None) -> None:
     parser.add_argument("--batches", type=int, default=30, help="collector batches per path")
     parser.add_argument("--method", default="icco")
     parser.add_argument("--run-dir", default="runs/bench_train_speed")
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--experiment", default="default", help="the recipe (conf/experiment/)")
+    parser.add_argument("--paths", nargs="+", default=["eager", "compiled"], choices=list(PATHS))
+    parser.add_argument("--out", default="train_speed.json", help="file in benchmarks/results/")
     args = parser.parse_args(argv)
+    common = [f"device={args.device}", f"experiment={args.experiment}"]
     results = []
     for threads in args.threads:
-        row = measure(threads, args.batches, args.method, Path(args.run_dir))
+        row = measure(threads, args.batches, args.method, Path(args.run_dir), args.paths, common)
         results.append(row)
-        p = row["paths"]
+        p, fast = row["paths"], row["fastest"]
         print(
             f"{threads} thread(s): update {p['eager']['ms_per_update']:.1f} -> "
-            f"{p['compiled']['ms_per_update']:.1f} ms ({row['update_speedup']:.2f}x), end to end "
-            f"{p['eager']['env_steps_per_s']:.0f} -> {p['compiled']['env_steps_per_s']:.0f} "
+            f"{p[fast]['ms_per_update']:.1f} ms ({row['update_speedup']:.2f}x), end to end "
+            f"{p['eager']['env_steps_per_s']:.0f} -> {p[fast]['env_steps_per_s']:.0f} "
             f"env steps/s ({row['end_to_end_speedup']:.2f}x); ops/update "
-            f"{p['eager']['ops_per_update']} -> {p['compiled']['ops_per_update']}",
+            f"{p['eager']['ops_per_update']} -> {p[fast]['ops_per_update']} ({fast})",
             flush=True,
         )
+    cfg = compose_config([f"method={args.method}", *common])
+    t = cfg.train
+    ratio = t.updates_per_batch * t.batch_segments * t.sequence_length
+    ratio /= cfg.env.num_envs * t.steps_per_batch
     payload = {
         "method": args.method,
-        "recipe": "defaults (32 envs x 16 steps a batch, 8 updates of 32 x 16, replay ratio 8)",
+        "experiment": args.experiment,
+        "device": args.device,
+        "recipe": (
+            f"{cfg.env.num_envs} envs x {t.steps_per_batch} steps a batch, {t.updates_per_batch} "
+            f"updates of {t.batch_segments} x {t.sequence_length}, replay ratio "
+            f"{ratio:g}"
+        ),
         "cpu": cpu_name(),
         "torch": torch.__version__,
         "results": results,
     }
     RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "train_speed.json").write_text(json.dumps(payload, indent=1) + "\n")
+    (RESULTS / args.out).write_text(json.dumps(payload, indent=1) + "\n")
 
 
 if __name__ == "__main__":

@@ -9,6 +9,9 @@ The two compiling tests share one Inductor cache and one xdist group (``make tes
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
+from pathlib import Path
 
 import pytest
 import torch
@@ -200,3 +203,43 @@ def test_episode_tracker_matches_the_step_by_step_totals():
     torch.testing.assert_close(torch.cat(got), torch.cat(expected), atol=0, rtol=0)
     assert torch.cat(got).shape[0] > 10
     torch.testing.assert_close(tracker.sums, sums, atol=0, rtol=0)
+
+
+def _captured_against_plain() -> None:
+    results = []
+    for captured in (False, True):
+        torch.manual_seed(0)
+        parts = build_components(method="icco", num_envs=4)
+        with torch.no_grad():
+            items = SegmentCutter(length=16)(parts["env"].rollout(32, parts["policy"]))
+        loss = parts["loss"]
+        start = [p.detach().clone() for p in loss.parameters()]
+        update = Update(loss, torch.optim.Adam(loss.parameters(), foreach=True), grad_clip=10.0)
+        if captured:
+            update._capture(warmup=2)
+        torch.manual_seed(1)
+        metrics = [update(items) for _ in range(3)]
+        results.append((metrics, [p.detach().clone() for p in loss.parameters()], start))
+    (plain, w_plain, start), (graph, w_graph, _) = results
+    for a, b in zip(plain, graph):
+        for name in a.keys():
+            torch.testing.assert_close(b[name], a[name], atol=1e-6, rtol=1e-5)
+    for a, b in zip(w_plain, w_graph):
+        torch.testing.assert_close(b, a, atol=1e-6, rtol=1e-5)
+    assert sum(not torch.equal(a, b) for a, b in zip(w_plain, start)) > 20  # the weights moved
+
+
+def test_the_captured_update_steps_as_the_plain_one():
+    """The CUDA-graph wiring (CudaGraphModule over the whole update, gradients zeroed rather
+    than freed, no finite check), run on a CPU where CudaGraphModule calls it eagerly: the same
+    metrics and the same weights after three updates as the plain update. In a child process:
+    CudaGraphModule takes TensorDict out of torch's pytree registry for good."""
+    proc = subprocess.run(
+        [sys.executable, "-c", "import test_fast_update as t; t._captured_against_plain()"],
+        cwd=Path(__file__).parent,
+        env={**os.environ, "OMP_NUM_THREADS": "1"},
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]

@@ -103,12 +103,20 @@ class Update:
                 )
         self._step = self._update
         if cudagraphs:
-            from tensordict.nn import CudaGraphModule
+            self._capture(warmup)
 
-            # A captured graph replays the very same ops: the finite check (a host sync and a
-            # Python branch) moves to the metrics the caller reads once a batch.
-            loss.check_finite = False
-            self._step = CudaGraphModule(self._update, warmup=warmup, in_keys=[], out_keys=[])
+    def _capture(self, warmup: int) -> None:
+        """Route every call through tensordict's ``CudaGraphModule`` (eager warm-up calls on a
+        side stream, then one captured graph replayed; without CUDA it runs eagerly, which is
+        how the tests check its wiring on a CPU)."""
+        from tensordict.nn import CudaGraphModule
+
+        # A captured graph replays the very same kernels: the finite check (a host sync and a
+        # Python branch) moves to the metrics the caller reads once a batch, and gradients keep
+        # their buffers (zeroed, not freed).
+        self.loss.check_finite = False
+        self.cudagraphs = True
+        self._step = CudaGraphModule(self._update, warmup=warmup, in_keys=[], out_keys=[])
 
     def _update(self, batch: TensorDictBase) -> TensorDictBase:
         losses = self.loss(batch)
@@ -120,7 +128,7 @@ class Update:
         return losses.detach()
 
     def __call__(self, batch: TensorDictBase) -> TensorDictBase:
-        if self.cudagraphs:
+        if self.cudagraphs and torch.cuda.is_available():
             torch.compiler.cudagraph_mark_step_begin()
         return self._step(batch)
 
