@@ -230,3 +230,35 @@ def test_observations_and_states_stay_in_the_declared_boxes_at_extreme_parameter
 
 def test_parallel_api_at_extreme_parameters():
     parallel_api_test(parallel_env(seed=0, **EXTREME[0]), num_cycles=200)
+
+
+# ---------------------------------------------------------------- team sizes
+def test_parallel_api_with_team_sizes():
+    parallel_api_test(parallel_env(seed=0, n_agents=4, team_sizes=[1, 2, 3]), num_cycles=300)
+
+
+def test_agents_are_the_present_robots_and_follow_team_changes():
+    env = parallel_env(seed=0, n_agents=4, team_sizes=[2, 3], max_steps=6)
+    assert env.possible_agents == [f"agent_{i}" for i in range(4)]
+    seen = set()
+    for seed in range(12):
+        obs, infos = env.reset(seed=seed)
+        k = len(env.agents)
+        seen.add(k)
+        assert env.agents == env.possible_agents[:k] and set(obs) == set(infos) == set(env.agents)
+    assert seen == {2, 3}
+    env.reset(seed=1)
+    team = list(env.agents)
+    env.remove_robot(team[0])
+    assert env.agents == team[1:]
+    with pytest.raises(ValueError, match="actions must have exactly one entry"):
+        env.step({a: 0 for a in team})
+    obs, rew, term, trunc, info = env.step({a: 0 for a in env.agents})
+    assert set(obs) == set(rew) == set(term) == set(trunc) == set(info) == set(team[1:])
+    state = env.state().reshape(env._env.layout.state_tokens, -1)
+    assert (state[0] == 0).all()  # the removed robot's state token
+    assert env.add_robot() == "agent_0" and env.agents == team
+    obs, *_ = env.step({a: 0 for a in env.agents})
+    assert set(obs) == set(team) and obs["agent_0"][:2].any()
+    with pytest.raises(ValueError, match="unknown agent"):
+        env.remove_robot("agent_9")

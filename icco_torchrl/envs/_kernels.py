@@ -96,7 +96,8 @@ class Params(NamedTuple):
     pick: float
     collect: float
     defense: float
-    invasion_share: float  # -invasion_penalty / n_agents
+    invasion_share: float  # -invasion_penalty / n_agents (every robot present)
+    invasion: float  # -invasion_penalty (shared by the present robots of a partial team)
 
 
 class Dynamics(NamedTuple):
@@ -119,35 +120,50 @@ class Dynamics(NamedTuple):
 
 
 def dynamics(
-    pos, vel, carry, res, inv, inv_on, timer, wp, action, action_force, p: Params
+    pos, vel, carry, res, inv, inv_on, timer, wp, action, action_force, p: Params, present=None
 ) -> Dynamics:
     """One step of robots, invaders and events (see the env's docstring for the rules).
 
     ``wp`` [N, K, 2, B] are the waypoints, ``action`` [B, N] indices into ``action_force`` [5, 2].
+    ``present`` [N, B] (None: every robot) masks the absent robots out of everything: they do
+    not move (their action is ignored, their velocity is zero), touch nothing, earn nothing, and
+    the invasion penalty is shared by the present robots only. None runs the full-team ops alone,
+    so a full team's numbers are those of a build without team sizes, bit for bit.
     """
+    if present is not None:
+        action = action.masked_fill(~present.t(), 0)
     new_pos, new_vel, r_inst, inv, inv_vel = motion(
         pos, vel, inv, inv_on, wp, action, action_force, p
     )
+    if present is not None:
+        new_pos = torch.where(present.unsqueeze(1), new_pos, pos)
+        new_vel = new_vel.masked_fill(~present.unsqueeze(1), 0.0)
+        r_inst = r_inst.masked_fill(~present, 0.0)
+        live = present.unsqueeze(1)  # [N, 1, B]: only present robots touch anything
 
     # Events; one per robot per step, defense > pick > collect, ties to the lower index.
-    hit = assign((pair_sq_dist(new_pos, inv) < p.touch_invader2) & inv_on)  # [N, I, B]
+    touch = (pair_sq_dist(new_pos, inv) < p.touch_invader2) & inv_on
+    hit = assign(touch if present is None else touch & live)  # [N, I, B]
     defense = any_(hit, 1)
     removed = any_(hit, 0)
     invaded = inv_on & ~removed & (sq_norm(inv) < p.invader_home2)
     gone = removed | invaded
     timer = timer - (~inv_on).long()
     respawn = ~inv_on & ~gone & (timer <= 0)
-    took = assign(
-        (pair_sq_dist(new_pos, res) < p.touch_resource2) & ~(carry | defense).unsqueeze(1)
-    )  # [N, R, B]
+    touch = (pair_sq_dist(new_pos, res) < p.touch_resource2) & ~(carry | defense).unsqueeze(1)
+    took = assign(touch if present is None else touch & live)  # [N, R, B]
     pick = any_(took, 1)
     collect = carry & ~defense & (sq_norm(new_pos) < p.robot_home2)
+    if present is not None:
+        collect = collect & present
 
     n_invasion = invaded.sum(0)
+    if present is None:
+        share = p.invasion_share * n_invasion.float()
+    else:  # per env: the penalty split among its present robots, nothing for the absent ones
+        share = (p.invasion * n_invasion.float() / present.sum(0).clamp_min(1)) * present
     agent_reward = (
-        (p.pick * pick + p.collect * collect + p.defense * defense).float()
-        + p.invasion_share * n_invasion.float()
-        + r_inst
+        (p.pick * pick + p.collect * collect + p.defense * defense).float() + share + r_inst
     )
     counts = torch.cat([torch.stack([pick, collect, defense]).sum(1), n_invasion.unsqueeze(0)])
     return Dynamics(

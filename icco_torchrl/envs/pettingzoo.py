@@ -34,6 +34,11 @@ class ResourceCollectionParallelEnv(ParallelEnv):
     ``infos[agent]["events"]`` holds the team's event counts of the step (pick, collect,
     defense, invasion) and the summed instruction reward, identical for every robot.
 
+    Teams: ``possible_agents`` are all ``n_agents`` robots and ``agents`` the present ones (with
+    ``team_sizes``, drawn at each reset; :meth:`remove_robot` and :meth:`add_robot` change them
+    between steps). Observations, rewards, terminations, truncations, infos and the expected
+    actions cover exactly ``agents``; absent robots' state tokens are zeros.
+
     Actions are integers ``0..4`` (Python or numpy integers); anything else is a ``ValueError``.
     The observation and state ``Box`` bounds are computed from the env parameters (see
     :func:`space_bounds`) and hold for every valid setting. One difference from the batched
@@ -89,7 +94,7 @@ class ResourceCollectionParallelEnv(ParallelEnv):
             self._env.set_seed(seed)
         self._td = self._env.reset()
         self._steps = 0
-        self.agents = list(self.possible_agents)
+        self.agents = self._team()
         return self._observations(self._td), {a: {} for a in self.agents}
 
     def step(self, actions: dict):
@@ -102,22 +107,23 @@ class ResourceCollectionParallelEnv(ParallelEnv):
                 f"actions must have exactly one entry per live agent {self.agents}, "
                 f"got {sorted(actions)}"
             )
-        action = torch.tensor(
-            [[_action_index(a, actions[a]) for a in self.possible_agents]], dtype=torch.int64
+        action = torch.tensor(  # an absent robot's action is ignored by the env: a no-op
+            [[_action_index(a, actions[a]) if a in actions else 0 for a in self.possible_agents]],
+            dtype=torch.int64,
         )
         self._td.set(("agents", "action"), action)
         nxt = self._env.step(self._td).get("next")
         self._td = nxt.exclude("reward", ("agents", "reward"))
         self._steps += 1
 
-        rewards = nxt.get(("agents", "reward"))[0, :, 0].tolist()
+        rewards = dict(zip(self.possible_agents, nxt.get(("agents", "reward"))[0, :, 0].tolist()))
         events = {k: v.item() for k, v in nxt.get("events")[0].items()}
         truncated = self._steps >= self.max_cycles
         agents = self.agents
         obs = self._observations(nxt)
         out = (
             obs,
-            {a: float(rewards[i]) for i, a in enumerate(agents)},
+            {a: float(rewards[a]) for a in agents},
             {a: False for a in agents},
             {a: truncated for a in agents},
             {a: {"events": dict(events)} for a in agents},
@@ -125,6 +131,29 @@ class ResourceCollectionParallelEnv(ParallelEnv):
         if truncated:
             self.agents = []
         return out
+
+    def remove_robot(self, agent: str) -> None:
+        """Take ``agent`` (``"agent_<i>"``) out of the team between steps; it leaves ``agents``."""
+        self._env.remove_robot(0, self._robot(agent), tensordict=self._td)
+        self.agents = self._team()
+
+    def add_robot(self, agent: str | None = None) -> str:
+        """Bring ``agent`` (None: the lowest absent one) into the team between steps; its name."""
+        robot = None if agent is None else self._robot(agent)
+        added = self._env.add_robot(0, robot, tensordict=self._td)
+        self.agents = self._team()
+        return self.possible_agents[added]
+
+    def _robot(self, agent: str) -> int:
+        if self._td is None or not self.agents:
+            raise RuntimeError("a team changes during an episode; call reset() first")
+        if agent not in self.possible_agents:
+            raise ValueError(f"unknown agent {agent!r}; possible agents: {self.possible_agents}")
+        return self.possible_agents.index(agent)
+
+    def _team(self) -> list[str]:
+        present = self._env.present[0].tolist()
+        return [a for a, here in zip(self.possible_agents, present) if here]
 
     def state(self) -> np.ndarray:
         """Global state (everyone's positions, flags and waypoints), as the coordinator sees it."""
@@ -150,7 +179,7 @@ class ResourceCollectionParallelEnv(ParallelEnv):
         for cols, active in zip(self._invader_cols, self._env.inv_active[0].tolist()):
             if not active:  # out of play: no 1e9 placeholder distances (see the class docstring)
                 obs[:, cols] = 0.0
-        return {a: obs[i] for i, a in enumerate(self.possible_agents)}
+        return {a: obs[self.possible_agents.index(a)] for a in self.agents}
 
 
 def _action_index(agent: str, value) -> int:

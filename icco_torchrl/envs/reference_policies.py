@@ -20,7 +20,8 @@ so it plugs into ``env.rollout``, :func:`~icco_torchrl.evaluation.protocols.run_
 and the trainer's evaluation. It reads the env's state at call time, so call it on the td the
 env just returned (as rollouts do). Moves are chosen by a one-step lookahead through the env's
 own dynamics kernel; the few loops below run over a fixed small count (robots, lookahead
-steps), never over envs.
+steps), never over envs. Robots absent from a team (``env.present``) get actions too, which the
+env ignores; the heuristic neither sends one to an invader nor lets one claim a resource.
 """
 
 from __future__ import annotations
@@ -134,10 +135,10 @@ class HeuristicPolicy(ReferencePolicy):
     def targets(self) -> tuple[torch.Tensor, torch.Tensor]:
         """Each robot's task target ``[B, N, 2]`` and its distance ``[B, N]``."""
         e = self.env
-        pos, carry = e.pos, e.carry  # [B, N, 2], [B, N]
+        pos, carry, present = e.pos, e.carry, e.present  # [B, N, 2], [B, N], [B, N]
         B, N = carry.shape
         target = torch.zeros(B, N, 2, device=e.device)  # carriers: home (the origin)
-        busy = carry.clone()
+        busy = carry | ~present  # absent robots take no part (their actions are ignored)
         # Invaders: interception point of the robot that gets there first.
         step = e.max_speed * e.dt  # metres per robot step
         touch = e.agent_radius + e.invader_radius
@@ -153,6 +154,7 @@ class HeuristicPolicy(ReferencePolicy):
         feasible = reach <= k * step
         feasible[..., -1] = True  # else: wait at the last point (home's rim)
         when = feasible.to(torch.uint8).argmax(-1)  # [B, N, I] first feasible
+        when = when.masked_fill(~present.unsqueeze(-1), horizon)  # never an absent interceptor
         for i in range(inv.shape[1]):  # a fixed small count (1 invader by default)
             robot = when[:, :, i].argmin(
                 -1

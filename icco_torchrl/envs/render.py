@@ -49,17 +49,27 @@ def to_pixel(env: ResourceCollectionEnv, xy, size: int = 480) -> tuple[float, fl
 def render_frame(env: ResourceCollectionEnv, index: int = 0, size: int = 480) -> np.ndarray:
     """Draw env ``index`` of ``env`` as an ``[size, size, 3]`` uint8 RGB array.
 
-    Shows the field, home, resources, the active invaders, and each robot in its own colour
-    with its vision circle, its waypoints (dots joined by a line) and, when it carries a
-    resource, a gold dot at its centre.
+    Shows the field, home, resources, the active invaders, and each robot of the team (robots
+    absent from it are not drawn) in its own colour with its vision circle, its waypoints (dots
+    joined by a line) and, when it carries a resource, a gold dot at its centre.
     """
 
     def grab(t: torch.Tensor) -> list:
         return t[index].detach().cpu().tolist()
 
-    pos, carry, res, inv, inv_on, wps = map(
-        grab, (env.pos, env.carry, env.res_pos, env.inv_pos, env.inv_active, env.waypoints)
+    pos, carry, res, inv, inv_on, wps, present = map(
+        grab,
+        (
+            env.pos,
+            env.carry,
+            env.res_pos,
+            env.inv_pos,
+            env.inv_active,
+            env.waypoints,
+            env.present,
+        ),
     )
+    team = [i for i, here in enumerate(present) if here]  # robots absent from the team: not drawn
     scale = size * (1 - 2 * MARGIN) / env.field_size
     img = Image.new("RGB", (size, size), BACKGROUND)
     draw = ImageDraw.Draw(img)
@@ -75,9 +85,10 @@ def render_frame(env: ResourceCollectionEnv, index: int = 0, size: int = 480) ->
     )
     draw.rectangle((*corner0, *corner1), outline=FIELD_EDGE, width=2)
     circle((0.0, 0.0), env.home_radius, fill=HOME, outline=FIELD_EDGE)
-    for i, p in enumerate(pos):
-        circle(p, env.vision_radius, outline=robot_color(i), width=1)
-    for i, w in enumerate(wps):
+    for i in team:
+        circle(pos[i], env.vision_radius, outline=robot_color(i), width=1)
+    for i in team:
+        w = wps[i]
         points = [to_pixel(env, q, size) for q in w]
         draw.line(points, fill=robot_color(i), width=1)
         for q in w:
@@ -87,7 +98,8 @@ def render_frame(env: ResourceCollectionEnv, index: int = 0, size: int = 480) ->
     for q, on in zip(inv, inv_on):
         if on:
             circle(q, env.invader_radius, fill=INVADER, outline=(0, 0, 0))
-    for i, (p, c) in enumerate(zip(pos, carry)):
+    for i in team:
+        p, c = pos[i], carry[i]
         circle(p, env.agent_radius, fill=robot_color(i), outline=(0, 0, 0))
         if c:
             circle(p, env.agent_radius * 0.45, fill=RESOURCE, outline=(0, 0, 0))

@@ -10,6 +10,7 @@ Keys (``B = num_envs``, ``N = n_agents``, ``K = n_waypoints``)::
     ("agents", "waypoints")    [B, N, K, 2]      instruction vectors (input and output)
     ("agents", "action")       [B, N]            0 no-op, 1 -x, 2 +x, 3 -y, 4 +y
     ("agents", "reward")       [B, N, 1]         each robot's own reward   (in "next")
+    ("agents", "present")      [B, N, 1]  bool   which robots are in the team (see team_sizes)
     "state"                    [B, state_dim]    global state incl. everyone's waypoints
     "step_count"               [B, 1]            steps since reset (drives z and waypoint refresh)
     "reward"                   [B, 1]            team reward = sum of the robots' rewards
@@ -23,6 +24,17 @@ waypoints relative to the robot (K*2)], then ``n_entities`` tokens of ``entity_d
 outside ``vision_radius`` are all zeros. The global state is ``N + R + I`` tokens of
 ``state_token_dim`` features [x, y, vx, vy, one-hot type (agent, resource, invader), flag,
 defended, absolute waypoints (K*2, agents only)].
+
+Team sizes. ``n_agents`` is the most robots an env holds; ``present`` ``[B, N]`` says which are
+in its team. With ``team_sizes`` each env draws its team size k at reset, uniformly from that
+list, and robots ``0..k-1`` are present; :meth:`remove_robot` and :meth:`add_robot` change a team
+mid-episode. An absent robot is masked out of everything: its own observation row is all zeros,
+it is invisible to the others (its entity token is zero, visible flag 0, as for a robot out of
+range), its **state token is all zeros, robot type flag (columns 4:7) included**, so a network
+reads the robot mask from the state as ``token[4] == 1`` (a contract); its action and waypoints
+are ignored (it does not move), it picks, delivers and defends nothing, its reward is 0 and the
+event counters and the team reward leave it out (the invasion penalty is shared by the present
+robots). Its ``pos`` is where it was left and means nothing.
 
 Performance notes. On CPU an elementwise op whose innermost dimension is tiny (the ``2`` of
 ``[B, N, 2]``) or broadcast runs 5-20x slower per element than one over a long contiguous
@@ -40,6 +52,7 @@ under a seed but its stream differs from versions that drew for every env at eve
 from __future__ import annotations
 
 import math
+import numbers
 
 import torch
 from tensordict import TensorDict, TensorDictBase
@@ -66,6 +79,28 @@ def _positive(name: str, value, integer: bool = False) -> None:
         raise ValueError(f"{name} must be {kind}, got {value!r}")
 
 
+def _check_team_sizes(team_sizes, n_agents: int) -> tuple[int, ...] | None:
+    """``team_sizes`` as a tuple (None stays None), or a one-line ValueError naming the problem."""
+    if team_sizes is None:
+        return None
+    if isinstance(team_sizes, (str, bytes)) or not hasattr(team_sizes, "__iter__"):
+        raise ValueError(f"team_sizes must be a list of team sizes or None, got {team_sizes!r}")
+    sizes = tuple(team_sizes)
+    if not sizes:
+        raise ValueError("team_sizes must not be empty (None: every env holds n_agents robots)")
+    for k in sizes:
+        if not isinstance(k, int) or isinstance(k, bool) or not 1 <= k <= n_agents:
+            raise ValueError(
+                f"team_sizes entries must be integers in 1..n_agents={n_agents}, got {k!r}"
+            )
+    return sizes
+
+
+def _is_index(value) -> bool:
+    """An integer (Python or numpy), not a bool."""
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+
+
 def _state_property(name: str, doc: str) -> property:
     """Public ``[B, ...]`` view of the batch-last state tensor ``name`` (writable in place)."""
 
@@ -85,7 +120,7 @@ class ResourceCollectionEnv(EnvBase):
         num_envs: number of independent envs stepped together (the batch size).
         device: torch device of every tensor the env holds and emits.
         seed: seed of the env's own random generator (``set_seed`` re-seeds it).
-        n_agents: robots per env (paper: 3).
+        n_agents: the most robots an env holds (paper: 3); all of them unless ``team_sizes``.
         n_resources: resources on the field at all times; a picked one respawns at once (6).
         n_invaders: invaders (1). Each walks straight to home and respawns after removal.
         field_size: side of the square field in metres, centred on home at (0, 0) (6.5).
@@ -133,6 +168,17 @@ class ResourceCollectionEnv(EnvBase):
         invader_min_radius: with ``spawn="uniform"``, invaders spawn at least this far from
             home (1.5 m: about 8 invader steps).
         validate: check actions and supplied waypoints at every step (costs a device sync).
+        team_sizes: team sizes to draw from at each reset, uniformly over the list (a size
+            listed twice is drawn twice as often), each in ``1..n_agents``; robots ``0..k-1``
+            are present. None (default): every env holds all ``n_agents`` robots and no random
+            number is drawn for it, so the env is the fixed-team env, bit for bit.
+
+    Absent robots (``present`` False; contract, see the module docstring): zero observation row,
+    invisible in the others' observations, **all-zero state token, robot type flag (column 4)
+    included**, so networks read the robot mask from ``state token[4] == 1``; action and waypoints
+    ignored (it does not move); no pick, delivery, defense or instruction reward, reward 0, left
+    out of the event counts and the team reward. :meth:`remove_robot` and :meth:`add_robot` change
+    a team mid-episode.
     """
 
     batch_locked = True
@@ -174,6 +220,7 @@ class ResourceCollectionEnv(EnvBase):
         resource_min_radius: float = 1.5,
         invader_min_radius: float = 1.5,
         validate: bool = True,
+        team_sizes: tuple[int, ...] | list[int] | None = None,
     ):
         for name, value in dict(
             num_envs=num_envs,
@@ -219,6 +266,7 @@ class ResourceCollectionEnv(EnvBase):
             raise ValueError(
                 f"waypoint_mode must be 'random_walk' or 'external', got {waypoint_mode!r}"
             )
+        self.team_sizes = _check_team_sizes(team_sizes, n_agents)
         super().__init__(device=device, batch_size=torch.Size([num_envs]))
         self.num_envs, self.n_agents, self.n_resources, self.n_invaders = (
             num_envs,
@@ -272,6 +320,8 @@ class ResourceCollectionEnv(EnvBase):
             (torch.arange(N)[:, None] * L.obs_dim + torch.arange(L.own_dim)).view(-1).to(dev)
         )
         self._agents_batch = torch.Size([num_envs, n_agents])
+        if self.team_sizes is not None:
+            self._team_size_table = torch.tensor(self.team_sizes, device=dev)
         self._rng = torch.Generator(device=dev)
         self._rng.manual_seed(
             int(seed)
@@ -295,6 +345,7 @@ class ResourceCollectionEnv(EnvBase):
             agents=Composite(
                 observation=Unbounded((B, N, L.obs_dim), device=dev),
                 waypoints=Bounded(-self.half, self.half, (B, N, K, 2), device=dev),
+                present=Categorical(2, (B, N, 1), dtype=torch.bool, device=dev),
                 shape=(B, N),
                 device=dev,
             ),
@@ -345,6 +396,23 @@ class ResourceCollectionEnv(EnvBase):
     def waypoints(self, value: torch.Tensor) -> None:
         self._put(_wp=torch.as_tensor(value, device=self.device))
 
+    @property
+    def present(self) -> torch.Tensor:
+        """Which robots are in each env's team, bool ``[B, N]`` on the env's device (a copy:
+        change a team with :meth:`add_robot` and :meth:`remove_robot`)."""
+        return self._present.t().clone()
+
+    def _set_present(self, present: torch.Tensor, all_present: bool | None = None) -> None:
+        """Store the batch-last team mask [N, B], its emitted form [B, N, 1] and whether every
+        robot of every env is present (the step takes the full-team path then)."""
+        if all_present is None:
+            all_present = bool(present.all())
+        self._put(
+            _present=present,
+            _present_bf=batch_first(present).unsqueeze(-1),
+            _all_present=all_present,
+        )
+
     def _put(self, **state: torch.Tensor) -> None:
         # Plain instance attributes: nn.Module.__setattr__ costs ~10 us a call, paid per step.
         self.__dict__.update(state)
@@ -376,6 +444,7 @@ class ResourceCollectionEnv(EnvBase):
             ),  # robots whose walk is a path
             t=torch.zeros(B, dtype=torch.int64, device=dev),
         )
+        self._set_present(torch.ones(N, B, dtype=torch.bool, device=dev), all_present=True)
         # Scratch entity table for _write_visible_entities: one-hot types and "visible" are fixed.
         table = torch.zeros(N + R + I + 1, 10, B, device=dev)
         table[:, 4:8] = self._entity_type.unsqueeze(-1)
@@ -526,6 +595,12 @@ class ResourceCollectionEnv(EnvBase):
             wp = self._random_walk(start)
         else:
             wp = pos.unsqueeze(-2).expand(M, N, self.n_waypoints, 2).clone()
+        present = None  # the team: drawn last and only with team_sizes (a full team draws nothing)
+        if self.team_sizes is not None:
+            pick = torch.randint(
+                0, len(self.team_sizes), (M,), generator=self._rng, device=self.device
+            )
+            present = torch.arange(N, device=dev).unsqueeze(1) < self._team_size_table[pick]
         t = torch.zeros(M, dtype=torch.int64, device=dev)
         if ids is None:
             self._put(**fresh, _wp=wp, t=t)
@@ -537,6 +612,16 @@ class ResourceCollectionEnv(EnvBase):
                 },
                 _wp=self._wp.index_copy(0, ids, wp),
                 t=self.t.index_copy(0, ids, t),
+            )
+        if present is not None:
+            self._set_present(
+                present if ids is None else self._present.index_copy(-1, ids, present)
+            )
+        elif ids is None:
+            self._set_present(torch.ones(N, B, dtype=torch.bool, device=dev), all_present=True)
+        elif not self._all_present:  # a full team again in the reset envs
+            self._set_present(
+                self._present.index_copy(-1, ids, torch.ones_like(self._present[:, ids]))
             )
         zeros = torch.zeros(B, dtype=torch.int64, device=dev)
         false = torch.zeros(B, 1, dtype=torch.bool, device=dev)
@@ -603,6 +688,7 @@ class ResourceCollectionEnv(EnvBase):
             action,
             (self.dt * self.accel) * self._action_dirs,
             self._params(),
+            None if self._all_present else self._present,
         )
         # Respawns draw from the env's generator, so they happen here, only where needed.
         timer, inv, on = d.timer, d.inv, d.inv_on
@@ -658,6 +744,7 @@ class ResourceCollectionEnv(EnvBase):
             collect=w["collect"],
             defense=w["defense"],
             invasion_share=w["invasion"] / self.n_agents,
+            invasion=w["invasion"],
         )
 
     def _refresh_waypoints(self, ids: torch.Tensor) -> None:
@@ -690,7 +777,7 @@ class ResourceCollectionEnv(EnvBase):
         obs, state = self._observe()
         wp = self._wp.clone()  # the emitted copy; _read_waypoints recognises it next step
         self._put(_wp_emitted=(wp, wp._version))
-        agents = {"observation": obs, "waypoints": wp}
+        agents = {"observation": obs, "waypoints": wp, "present": self._present_bf.clone()}
         if agent_reward is not None:
             agents["reward"] = batch_first(agent_reward).unsqueeze(-1)
         return self._td(
@@ -720,6 +807,8 @@ class ResourceCollectionEnv(EnvBase):
         wp = self._waypoints_bl()
         # Own features [N, own_dim, B] into the zeroed observation; then the visible entities.
         own = torch.cat([pos, vel, carry.unsqueeze(1), (wp - pos.unsqueeze(1)).flatten(1, 2)], 1)
+        if not self._all_present:  # an absent robot observes nothing
+            own = own * self._present.unsqueeze(1)
         obs = torch.zeros(B, N * L.obs_dim, device=self.device)
         obs.index_copy_(1, self._own_cols, own.reshape(N * L.own_dim, B).t())
         obs = obs.view(B, N, L.obs_dim)
@@ -744,6 +833,9 @@ class ResourceCollectionEnv(EnvBase):
         )  # [S, B]
         state = self._state_template.expand(B, -1).clone()
         state.index_copy_(1, self._state_cols, src.t())
+        if not self._all_present:  # an absent robot's token is all zeros, its type flag included
+            robots = state.view(B, L.state_tokens, L.state_token_dim)[:, :N]
+            robots.mul_(self._present_bf)
         return obs, state
 
     def _write_visible_entities(self, ent: torch.Tensor) -> None:
@@ -759,6 +851,9 @@ class ResourceCollectionEnv(EnvBase):
         table[inv, 2:4], table[inv, 8] = self._inv_vel, on
         visible = pair_sq_dist(self._pos, table[:, 0:2]) <= self.vision_radius**2  # [N, E_all, B]
         visible[:, :N].diagonal(0, 0, 1).fill_(False)  # a robot is not its own entity
+        if not self._all_present:  # absent robots see nothing and nobody sees them
+            visible &= self._present.unsqueeze(1)
+            visible[:, :N] &= self._present.unsqueeze(0)
         flat = (
             visible.reshape(-1).nonzero().squeeze(1)
         )  # 1-D nonzero: ~2x faster than on [N, E_all, B]
@@ -821,3 +916,133 @@ class ResourceCollectionEnv(EnvBase):
         tensordict.set(("agents", "waypoints"), wp)
         tensordict.set("state", state)
         return tensordict
+
+    # ------------------------------------------------------------------ team changes
+    def remove_robot(
+        self, env_index: int, robot: int, *, tensordict: TensorDictBase | None = None
+    ) -> None:
+        """Take ``robot`` out of env ``env_index``'s team now; the episode goes on without it.
+
+        It stops (zero velocity), drops what it carries and from the next step on is masked out
+        of everything (see the class docstring). An env keeps at least one robot. With
+        ``tensordict`` (the current root td) its observation, state and ``present`` are rewritten,
+        as :meth:`write_waypoints` does. Not for the hot path (a few small ops and a sync).
+        """
+        e = self._team_env_index(env_index)
+        r = self._robot_index(robot)
+        present = self._present.clone()
+        if not bool(present[r, e]):
+            raise ValueError(f"robot {r} is not in env {e}'s team (present: {self._team(e)})")
+        if int(present[:, e].sum()) == 1:
+            raise ValueError(f"robot {r} is the last robot of env {e}; an env keeps at least one")
+        present[r, e] = False
+        self._put(**self._robot_reset(r, e, self._pos[r, :, e]))
+        self._set_present(present)
+        self._rewrite(tensordict)
+
+    def add_robot(
+        self,
+        env_index: int,
+        robot: int | None = None,
+        *,
+        tensordict: TensorDictBase | None = None,
+    ) -> int:
+        """Bring a robot into env ``env_index``'s team now and return its index.
+
+        ``robot`` None takes the lowest absent index. It appears at rest at a random point of the
+        field clear of the other robots, the resources, the invaders and home (at home's edge if
+        64 tries find none), with fresh waypoints (a random walk from it, or its position
+        repeated with ``waypoint_mode="external"``). Draws from the env's generator. With
+        ``tensordict`` (the current root td) its observation, state and ``present`` are
+        rewritten, as :meth:`write_waypoints` does. Not for the hot path.
+        """
+        e = self._team_env_index(env_index)
+        present = self._present.clone()
+        if robot is None:
+            absent = (~present[:, e]).nonzero().squeeze(-1)
+            if not absent.numel():
+                raise ValueError(
+                    f"env {e} is full: all n_agents={self.n_agents} robots are present"
+                )
+            r = int(absent[0])
+        else:
+            r = self._robot_index(robot)
+            if bool(present[r, e]):
+                raise ValueError(
+                    f"robot {r} is already in env {e}'s team (present: {self._team(e)})"
+                )
+        present[r, e] = True
+        self._put(**self._robot_reset(r, e, self._free_point(e, present[:, e])))
+        wp = self._wp.clone()
+        if self.waypoint_mode == "random_walk":
+            steps = self._randn(self.n_waypoints, 2) * self.waypoint_sigma
+            wp[e, r] = (self._pos[r, :, e] + steps.cumsum(0)).clamp(-self.half, self.half)
+        else:
+            wp[e, r] = self._pos[r, :, e]
+        self._put(_wp=wp)
+        self._set_present(present)
+        self._rewrite(tensordict)
+        return r
+
+    def _team_env_index(self, env_index) -> int:
+        if not _is_index(env_index) or not 0 <= env_index < self.num_envs:
+            raise ValueError(
+                f"env_index must be an integer in 0..{self.num_envs - 1}, got {env_index!r}"
+            )
+        return int(env_index)
+
+    def _robot_index(self, robot) -> int:
+        if not _is_index(robot) or not 0 <= robot < self.n_agents:
+            raise ValueError(f"robot must be an integer in 0..{self.n_agents - 1}, got {robot!r}")
+        return int(robot)
+
+    def _team(self, e: int) -> list[int]:
+        return self._present[:, e].nonzero().squeeze(-1).tolist()
+
+    def _robot_reset(self, r: int, e: int, point: torch.Tensor) -> dict:
+        """Robot ``r`` of env ``e`` at ``point`` [2], at rest, carrying nothing, on no path."""
+        state = {
+            name: getattr(self, name).clone() for name in ("_pos", "_vel", "_carry", "_defended")
+        }
+        state["_pos"][r, :, e] = point
+        state["_vel"][r, :, e] = 0.0
+        state["_carry"][r, e] = False
+        state["_defended"][r, e] = False
+        on_path = self._on_path.clone()
+        on_path[r, :, e] = False
+        return dict(state, _on_path=on_path)
+
+    def _free_point(self, e: int, team: torch.Tensor, tries: int = 64) -> torch.Tensor:
+        """A uniform point [2] of env ``e``'s field touching no robot of ``team`` [N], resource,
+        active invader or home; home's edge (+x side first, then around) when none of ``tries``
+        is."""
+        lim = self.half - self.agent_radius
+        cand = (self._rand(tries, 2) * 2 - 1) * lim
+        edge = self.home_radius + self.agent_radius + 1e-3
+        angle = torch.linspace(0, 2 * math.pi, tries + 1, device=self.device)[:-1]
+        ring = edge * torch.stack([angle.cos(), angle.sin()], -1)
+        cand = torch.cat([cand, ring])  # [2 * tries, 2]; the ring only if no uniform one fits
+        robots = self._pos[:, :, e][team]
+        inv = self._inv[:, :, e][self._inv_on[:, e]]
+        clear = torch.ones(cand.shape[0], dtype=torch.bool, device=self.device)
+        for others, gap in (
+            (robots, 2 * self.agent_radius),
+            (self._res[:, :, e], self.agent_radius + self.resource_radius),
+            (inv, self.agent_radius + self.invader_radius),
+            (torch.zeros(1, 2, device=self.device), self.home_radius + self.agent_radius),
+        ):
+            if others.numel():
+                clear &= torch.cdist(cand, others).amin(-1) >= gap
+        return cand[int(clear.to(torch.uint8).argmax())] if bool(clear.any()) else ring[0]
+
+    def _rewrite(self, tensordict: TensorDictBase | None) -> None:
+        """Rewrite the observation, state, waypoints and team mask of the root ``tensordict``."""
+        if tensordict is None:
+            return
+        obs, state = self._observe()
+        wp = self._wp.clone()
+        self._put(_wp_emitted=(wp, wp._version))
+        tensordict.set(("agents", "observation"), obs)
+        tensordict.set(("agents", "waypoints"), wp)
+        tensordict.set(("agents", "present"), self._present_bf.clone())
+        tensordict.set("state", state)

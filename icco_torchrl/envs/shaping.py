@@ -26,8 +26,9 @@ from icco_torchrl.envs.layout import ObsLayout
 
 POTENTIALS = ("collect", "defend")
 # State token columns (ResourceCollectionEnv._state_layout): position, then the robots' carry
-# flag and the invaders' active flag share column 7.
-_X, _FLAG = slice(0, 2), 7
+# flag and the invaders' active flag share column 7; column 4 is the robot type flag (0 for a robot
+# absent from the team).
+_X, _ROBOT, _FLAG = slice(0, 2), 4, 7
 
 
 def missing_for(name: str, *, n_resources: int, n_invaders: int) -> str | None:
@@ -59,6 +60,7 @@ class StatePotential:
         robots, rest = tokens[..., : self.N, :], tokens[..., self.N :, :]
         resources, invaders = rest[..., : self.R, :], rest[..., self.R :, :]
         pos, carry = robots[..., _X], robots[..., _FLAG] > 0.5  # [..., N, 2], [..., N]
+        present = robots[..., _ROBOT] > 0.5  # an absent robot's token is all zeros: no Phi
         phi = torch.zeros_like(pos[..., 0])
         if "collect" in self.potentials:
             res = resources[..., _X]  # [..., R, 2]
@@ -69,7 +71,7 @@ class StatePotential:
             dist = torch.cdist(pos, invaders[..., _X]).masked_fill(~active.unsqueeze(-2), torch.inf)
             nearest = dist.min(-1).values
             phi = phi - torch.where(~carry & nearest.isfinite(), nearest, torch.zeros_like(nearest))
-        return self.weight * phi
+        return self.weight * torch.where(present, phi, torch.zeros_like(phi))
 
 
 class PotentialShaping(Transform):

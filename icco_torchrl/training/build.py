@@ -210,6 +210,8 @@ def build(
     t = cfg.train
     if for_training:  # training-only env parameters (reward shaping); evaluations keep env.params
         env_overrides = {**set_env_params(t.env_params), **env_overrides}
+        if t.get("team_sizes"):  # per-env team sizes: the training env only, like env_params
+            env_overrides.setdefault("team_sizes", tuple(t.team_sizes))
     shaping = t.shaping if for_training else None
     env = make_env(
         cfg, num_envs=num_envs, seed=seed, device=device, shaping=shaping, **env_overrides

@@ -98,7 +98,7 @@ def _env_params_schema(name: str = "EnvParams", unset: bool = False) -> type:
     kinds = {"int": int, "float": float, "str": str, "bool": bool}
     fields = []
     for arg, p in inspect.signature(ResourceCollectionEnv.__init__).parameters.items():
-        if p.kind is p.KEYWORD_ONLY:
+        if p.kind is p.KEYWORD_ONLY and arg != "team_sizes":  # a list: train.team_sizes
             kind = kinds[str(p.annotation)]
             fields.append(
                 (arg, Optional[kind], dataclasses.field(default=None))
@@ -225,6 +225,9 @@ class TrainConfig:
     # the evaluations during training, `icco eval` and every restore use env.params, so they never
     # change what is scored. May change at resume (a curriculum); replayed data keeps old rewards.
     env_params: TrainEnvParams = field(default_factory=TrainEnvParams)
+    # Team sizes of the training env, one drawn per env at each reset (e.g. [2,3,4]; each at most
+    # its n_agents, robots 0..k-1 present). null: every env holds all n_agents robots, as before.
+    team_sizes: Optional[list[int]] = None
     # Potential-based shaping of the training env only (never in an evaluation).
     shaping: ShapingConfig = field(default_factory=ShapingConfig)
 
@@ -506,6 +509,7 @@ def validate(cfg: DictConfig | dict) -> DictConfig:
             "train.env_params",
             only=list(shaping),
         )
+    _check_team_sizes(t.team_sizes, shaping.get("n_agents", merged.env.params.n_agents))
     device = resolve_device(merged.device)
     if t.cudagraphs and device.type != "cuda":
         raise ConfigError(
@@ -513,6 +517,22 @@ def validate(cfg: DictConfig | dict) -> DictConfig:
             f"device is {merged.device!r} ({device.type})"
         )
     return merged
+
+
+def _check_team_sizes(team_sizes, n_agents: int) -> None:
+    """``train.team_sizes``: None, or a non-empty list of sizes in 1..the training n_agents."""
+    if team_sizes is None:
+        return
+    sizes = list(team_sizes)
+    if not sizes:
+        raise ConfigError(
+            "config field 'train.team_sizes' must not be empty (null: all n_agents robots)"
+        )
+    if not all(1 <= k <= n_agents for k in sizes):
+        raise ConfigError(
+            f"config field 'train.team_sizes' entries must be in 1..{n_agents} (the training env's "
+            f"n_agents), got {sizes}"
+        )
 
 
 def _check_env_params(params, prefix: str = "env.params", only=None) -> None:
