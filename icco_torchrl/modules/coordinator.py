@@ -31,8 +31,9 @@ class StateTokenEncoder(nn.Module):
     """Per-robot features ``[..., N, hidden]`` from the flat global state.
 
     ``attention``: each robot's state token queries all state tokens (single-head entity
-    attention, as in the agents' encoder; needs a layout). ``mlp``: the flat state through an MLP
-    to N outputs (a layout, or ``n_agents`` and ``state_dim`` for any env).
+    attention, as in the agents' encoder; needs a layout), absent robots' (all-zero, untyped)
+    tokens left out, so it reads any team up to ``n_agents``. ``mlp``: the flat state through an
+    MLP to N outputs (a layout, or ``n_agents`` and ``state_dim`` for any env; one team size).
     """
 
     def __init__(
@@ -74,7 +75,9 @@ class StateTokenEncoder(nn.Module):
             -1, (self.n_agents, self.token_dim)
         )
         every = state.unsqueeze(-2).expand(*state.shape[:-1], self.n_agents, state.shape[-1])
-        return self.net(torch.cat([robots, every], -1))
+        # a token of no type (an absent robot's, all zeros) is attended by no one
+        typed = state.unflatten(-1, (self.n_tokens, self.token_dim))[..., 4:7].ne(0).any(-1)
+        return self.net(torch.cat([robots, every], -1), typed.unsqueeze(-2))
 
 
 class Coordinator(nn.Module):
@@ -83,6 +86,11 @@ class Coordinator(nn.Module):
 
     Sizes: a ``layout`` (the resource-collection state, any encoder), or ``n_agents`` and
     ``state_dim`` for any flat global state (``encoder="mlp"``, ``state_encoder="flat"``).
+
+    Any team up to ``n_agents`` with ``state_encoder="relative"`` or ``encoder="attention"``:
+    absent robots (all-zero state tokens) are left out of every robot's attention, so a present
+    robot's z is the one it has in the same team unpadded, and the weights do not depend on
+    ``n_agents`` (a state dict loads into a coordinator of another team size).
     """
 
     def __init__(
@@ -110,6 +118,7 @@ class Coordinator(nn.Module):
                 "state_encoder='relative' reads the resource-collection state: it needs a layout"
             )
         self.z_dim, self.period = z_dim, period
+        self.layout = layout  # the loss reads which robots are present off the state with it
         encoder = encoder or ("attention" if layout is not None else "mlp")
         # relative: entities seen from each robot (modules/relative.py); flat: absolute state tokens
         self.encoder = (

@@ -17,7 +17,8 @@ class EntityAttentionEncoder(nn.Module):
     """One "self" token attends over entity tokens; returns ``[..., hidden]``.
 
     Input ``x = [own (own_dim), tokens (n_entities * entity_dim)]``. With ``masked=True`` a token
-    whose last feature (the visibility flag) is 0 is left out; with nothing visible the
+    whose last feature (the visibility flag) is 0 is left out; ``visible [..., n_entities]``
+    (bool) gives the mask instead, for tokens that carry no flag. With nothing visible the
     attention read-out is 0.
 
     Keys and values are linear in the raw tokens, so the attention is evaluated in token space:
@@ -44,14 +45,15 @@ class EntityAttentionEncoder(nn.Module):
         self.out = nn.Sequential(nn.Linear(2 * hidden, hidden), nn.ReLU())
         self.scale = 1.0 / math.sqrt(hidden)
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, visible: torch.Tensor | None = None) -> torch.Tensor:
         own, tokens = x[..., : self.own_dim], x[..., self.own_dim :]
         tokens = tokens.unflatten(-1, (self.n_entities, self.entity_dim))
         h = torch.relu(self.own(own))
         q = self.query(h) @ self.key.weight * self.scale  # the query in token space
         logits = (tokens @ q.unsqueeze(-1)).squeeze(-1)
-        if self.masked:
-            visible = tokens[..., -1] > 0
+        if self.masked or visible is not None:
+            if visible is None:
+                visible = tokens[..., -1] > 0
             weights = torch.softmax(logits.masked_fill(~visible, -1e9), -1) * visible
         else:
             weights = torch.softmax(logits, -1)

@@ -5,6 +5,14 @@ It factorises over the segment that follows a broadcast (ICCO, Sec. IV):
 Gaussian per robot. ``combine="product"`` multiplies them (precision-weighted Gaussian, the
 exact reading of the formula); ``combine="sum"`` adds the factors' log-likelihoods (COPA's
 code). Both are tested against hand computations.
+
+``inputs="flat"`` reads the flat state, the joint one-hot action and a robot one-hot at the
+broadcast step, and the flat observation after: one team size. ``inputs="tokens"`` reads any
+team up to ``n_agents`` with weights that do not depend on it: robot i's broadcast-step factor
+is an entity attention over the state seen from robot i (:mod:`~icco_torchrl.modules.relative`),
+each robot token carrying that robot's one-hot action, queried by robot i's own features and
+action (absent robots, all-zero tokens, left out); the later factors attend over the visible
+entity tokens of robot i's observation, queried by its own features and action.
 """
 
 from __future__ import annotations
@@ -16,11 +24,14 @@ import torch
 from torch import nn
 
 from icco_torchrl.modules.coordinator import LOGVAR_MAX, LOGVAR_MIN
+from icco_torchrl.modules.encoders import EntityAttentionEncoder
+from icco_torchrl.modules.relative import relative_dims, relative_tokens
 
 if TYPE_CHECKING:
     from icco_torchrl.envs.layout import ObsLayout
 
 _LOG_2PI = math.log(2 * math.pi)
+POSTERIOR_INPUTS = ("flat", "tokens")
 
 
 def _gaussian_head(in_dim: int, hidden: int, z_dim: int) -> nn.Module:
@@ -66,7 +77,8 @@ class Posterior(nn.Module):
     after.
 
     Sizes: ``n_actions`` (the env's action count) and a ``layout``, or ``n_agents``, ``obs_dim`` and
-    ``state_dim`` (flat observation and state of any env).
+    ``state_dim`` (flat observation and state of any env). ``inputs="tokens"`` (any team, see the
+    module doc) needs the layout.
     """
 
     def __init__(
@@ -80,15 +92,35 @@ class Posterior(nn.Module):
         n_agents: int | None = None,
         obs_dim: int | None = None,
         state_dim: int | None = None,
+        inputs: str = "flat",
     ):
         super().__init__()
         if combine not in ("product", "sum"):
             raise ValueError(f"combine must be 'product' or 'sum', got {combine!r}")
+        if inputs not in POSTERIOR_INPUTS:
+            raise ValueError(f"posterior inputs must be one of {POSTERIOR_INPUTS}, got {inputs!r}")
+        if inputs == "tokens" and layout is None:
+            raise ValueError(
+                "posterior inputs='tokens' reads state and entity tokens: it needs a layout"
+            )
+        self.layout, self.inputs = layout, inputs
         if layout is not None:
             n_agents, obs_dim, state_dim = layout.n_agents, layout.obs_dim, layout.state_dim
         elif None in (n_agents, obs_dim, state_dim):
             raise ValueError("Posterior needs a layout, or n_agents, obs_dim and state_dim")
         self.n_agents, self.n_actions, self.combine = n_agents, n_actions, combine
+        if inputs == "tokens":
+            own_dim, n_entities, entity_dim = relative_dims(layout)
+            A = n_actions
+            self.first_encoder = EntityAttentionEncoder(
+                own_dim + A, n_entities, entity_dim + A, hidden, masked=True
+            )
+            self.later_encoder = EntityAttentionEncoder(
+                layout.own_dim + A, layout.n_entities, layout.entity_dim, hidden, masked=True
+            )
+            self.first = _gaussian_head(hidden, hidden, z_dim)
+            self.later = _gaussian_head(hidden, hidden, z_dim)
+            return
         self.first = _gaussian_head(state_dim + n_agents * (n_actions + 1), hidden, z_dim)
         self.later = _gaussian_head(obs_dim + n_actions, hidden, z_dim)
 
@@ -103,6 +135,8 @@ class Posterior(nn.Module):
         onehot = nn.functional.one_hot(action.long(), self.n_actions).to(
             state.dtype
         )  # [S, T, N, A]
+        if self.inputs == "tokens":
+            return self._token_factors(state, onehot, obs)
         eye = torch.eye(N, device=state.device, dtype=state.dtype).expand(S, N, N)
         joint = onehot[:, 0].reshape(S, 1, -1).expand(S, N, -1)
         first = self.first(
@@ -110,6 +144,24 @@ class Posterior(nn.Module):
         ).unsqueeze(1)
         later = self.later(torch.cat([obs[:, 1:], onehot[:, 1:]], -1))
         return _split(torch.cat([first, later], 1))
+
+    def _token_factors(self, state, onehot, obs):
+        """:meth:`factors` of ``inputs="tokens"``: ``onehot [S, T, N, A]``."""
+        L, A = self.layout, self.n_actions
+        S, T, N = onehot.shape[:3]
+        own_dim, E, entity_dim = relative_dims(L)
+        rel = relative_tokens(state[:, 0], L)  # [S, N, own_dim + E * entity_dim]
+        own, ents = rel[..., :own_dim], rel[..., own_dim:].unflatten(-1, (E, entity_dim))
+        # every robot token carries its robot's action, the other entities none (the mask last)
+        acted = torch.cat([onehot[:, 0], onehot.new_zeros(S, E - N, A)], 1)  # [S, E, A]
+        acted = acted.unsqueeze(1).expand(S, N, E, A)
+        ents = torch.cat([ents[..., :-1], acted, ents[..., -1:]], -1)
+        first = self.first_encoder(torch.cat([own, onehot[:, 0], ents.flatten(-2)], -1))
+        later_obs = obs[:, 1:]
+        later = self.later_encoder(
+            torch.cat([later_obs[..., : L.own_dim], onehot[:, 1:], later_obs[..., L.own_dim :]], -1)
+        )
+        return _split(torch.cat([self.first(first).unsqueeze(1), self.later(later)], 1))
 
     def forward(self, z, state, action, obs, mask):
         """log q(z | segment) ``[S, N]``; z ``[S, N, Z]`` (or ``[S, T, N, Z]``: its first step is
@@ -133,6 +185,7 @@ def make_posterior(
     n_agents: int | None = None,
     obs_dim: int | None = None,
     state_dim: int | None = None,
+    inputs: str = "flat",
 ) -> Posterior:
     """The posterior for :class:`~icco_torchrl.objectives.ICCOLoss` (see :class:`Posterior` for the
     sizes).
@@ -150,4 +203,5 @@ def make_posterior(
         n_agents=n_agents,
         obs_dim=obs_dim,
         state_dim=state_dim,
+        inputs=inputs,
     )

@@ -11,6 +11,11 @@ distance feature lets the attention logit prefer near entities. Same information
 state, a representation the networks learn from quickly (measured in
 ``experiments/four_quadrants/README.md``).
 
+Any team up to ``n_agents``: an absent robot's state token is all zeros, its type flags included,
+so :func:`robot_mask` reads who is present off the state itself, and an untyped token (an absent
+robot) is left out of every attention, as an inactive invader is. A team padded with absent
+robots gives its present robots the features of the same team unpadded.
+
 Used by the coordinator (``method.state_encoder=relative``) and by QMIX (FULL)'s agents, so the
 full-information baseline reads the state through the same encoder as ICCO's coordinator.
 """
@@ -36,6 +41,13 @@ def relative_dims(layout: ObsLayout) -> tuple[int, int, int]:
     return 6 + K2, layout.state_tokens + 1, 12 + K2
 
 
+def robot_mask(state: torch.Tensor, layout: ObsLayout) -> torch.Tensor:
+    """``[..., state_dim]`` -> ``[..., N]`` bool: robot i is present (its token's robot type flag,
+    column 4, is set; an absent robot's token is all zeros)."""
+    tokens = state.unflatten(-1, (layout.state_tokens, layout.state_token_dim))
+    return tokens[..., : layout.n_agents, 4] > 0
+
+
 def relative_tokens(state: torch.Tensor, layout: ObsLayout) -> torch.Tensor:
     """``[..., state_dim]`` -> per robot ``[..., N, own_dim + n_entities * entity_dim]``."""
     N, T, D, K2 = (
@@ -55,11 +67,11 @@ def relative_tokens(state: torch.Tensor, layout: ObsLayout) -> torch.Tensor:
     dist = rel.norm(dim=-1, keepdim=True)
     kind = torch.cat([ents[..., 4:7], torch.zeros_like(ents[..., :1])], -1)  # [..., T+1, 4]
     kind[..., -1, 3] = 1.0  # home
-    # present: inactive invaders (flag 0) and the robot itself are left out of the attention
+    # present: inactive invaders (flag 0), absent robots (an untyped, all-zero token) and the
+    # robot itself are left out of the attention
     is_invader = ents[..., 6:7] > 0
-    present = torch.where(
-        is_invader, ents[..., 7:8], torch.ones_like(ents[..., 7:8])
-    )  # [..., T+1, 1]
+    typed = (kind != 0).any(-1, keepdim=True).to(kind.dtype)  # 0: no type (an absent robot)
+    present = torch.where(is_invader, ents[..., 7:8], typed)  # [..., T+1, 1]
     present = present.unsqueeze(-3).expand(*lead, N, T + 1, 1).clone()
     present[..., torch.arange(N), torch.arange(N), 0] = 0.0
     wp = ents[..., 9 : 9 + K2].unflatten(-1, (-1, 2))  # [..., T+1, K, 2]

@@ -38,7 +38,7 @@ from torchrl.objectives.utils import ValueEstimators
 
 from icco_torchrl.modules.coordinator import gaussian_entropy
 from icco_torchrl.modules.tdmodule import TensorModule
-from icco_torchrl.objectives.inputs import assemble, next_key, read_sequences
+from icco_torchrl.objectives.inputs import assemble, next_key, present_robots, read_sequences
 from icco_torchrl.objectives.returns import lambda_returns
 
 REWARD_REDUCTIONS = ("mean", "sum")
@@ -340,10 +340,11 @@ class ICCOLoss(LossModule):
         weight = self._loss_weight(x["mask"]).to(q_tot.dtype)  # [S, L]
         n_valid = weight.sum().clamp_min(1.0)
         td_error = (q_tot - target).squeeze(-1)  # [S, L]
+        # per-robot summaries average the present robots (absent ones: all-zero state tokens)
+        robot_weight = weight.unsqueeze(-1) * present_robots(self, x["state"], chosen.shape[-1])
         out = {
             "loss_td": (weight * td_error.pow(2)).sum() / n_valid,
-            "q_taken": (weight.unsqueeze(-1) * chosen.detach()).sum()
-            / (n_valid * chosen.shape[-1]),
+            "q_taken": (robot_weight * chosen.detach()).sum() / robot_weight.sum().clamp_min(1.0),
             "q_tot": (weight * q_tot.detach().squeeze(-1)).sum() / n_valid,
             "td_error": (weight * td_error.detach().abs()).sum() / n_valid,
         }
@@ -548,9 +549,10 @@ class ICCOLoss(LossModule):
         held = mask & (period_id == period_id[:, :1]) & starts[:, None]
         z0 = z_seq[:, : W * T : T].flatten(0, 1)  # [S * W, N, Z]
         scale0 = scale_w.flatten(0, 1)
-        w = starts.to(z0.dtype)
-        denom = (w.sum() * z0.shape[1]).clamp_min(1.0)
-        entropy = (w[:, None] * gaussian_entropy(scale0)).sum() / denom
+        present = present_robots(self, windows(x["state"])[:, 0], z0.shape[1])  # [S * W, N]
+        w = starts.to(z0.dtype)[:, None] * present  # scored windows x robots present at their start
+        denom = w.sum().clamp_min(1.0)
+        entropy = (w * gaussian_entropy(scale0)).sum() / denom
         out = {"entropy": entropy.detach(), "ce_neg_entropy": -self.entropy_coef * entropy}
         loss = out["ce_neg_entropy"]
         if self.posterior is not None:
@@ -560,7 +562,7 @@ class ICCOLoss(LossModule):
             log_q = self.posterior.module(
                 z0, windows(x["state"]), windows(x["action"]), windows(x["obs"]), factor_mask
             )  # [S * W, N]
-            mean_log_q = (w[:, None] * log_q).sum() / denom
+            mean_log_q = (w * log_q).sum() / denom
             out.update(log_q=mean_log_q.detach(), ce_nll=-self.ce_coef * mean_log_q)
             loss = loss + out["ce_nll"]
         out["loss_ce"] = loss

@@ -11,6 +11,8 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 
+from icco_torchrl.modules.relative import robot_mask
+
 
 def next_key(key: NestedKey) -> tuple:
     """``key`` under ``"next"``."""
@@ -49,6 +51,18 @@ def team_value(td, key, N: int, kind: str, reduction: str, optional=False):
             f"ICCOLoss: key {key!r} must have shape {expected}, got {list(value.shape)}"
         )
     return value
+
+
+def present_robots(loss, state: torch.Tensor, n_agents: int) -> torch.Tensor:
+    """``[..., N]``: 1.0 for the robots present in ``state [..., state_dim]``, 0.0 for absent ones
+    (an absent robot's state token is all zeros: :func:`~icco_torchrl.modules.relative.robot_mask`),
+    read with the layout of the loss's coordinator, mixer or posterior (the first that has one);
+    every robot is present when none has (a fixed team, or an env without a layout)."""
+    for name in ("coordinator", "mixer", "posterior"):
+        layout = getattr(getattr(getattr(loss, name, None), "module", None), "layout", None)
+        if layout is not None:
+            return robot_mask(state, layout).to(state.dtype)
+    return state.new_ones(*state.shape[:-1], n_agents)
 
 
 def episode_mask(done: torch.Tensor, is_init: torch.Tensor | None) -> torch.Tensor:

@@ -92,7 +92,14 @@ def make_modules(cfg: DictConfig, layout, device, *, n_actions: int) -> dict:
             state_encoder=m.state_encoder,
             waypoint_features=m.waypoint_features,
         ),
-        "mixer": make_mixer(layout.state_dim, layout.n_agents, device=device),
+        "mixer": make_mixer(
+            layout.state_dim,
+            layout.n_agents,
+            kind=m.mixer,
+            layout=layout,
+            hidden=m.hidden,
+            device=device,
+        ),
         "coordinator": None,
         "posterior": None,
     }
@@ -108,7 +115,12 @@ def make_modules(cfg: DictConfig, layout, device, *, n_actions: int) -> dict:
         )
         if m.ce_coef > 0:
             mods["posterior"] = make_posterior(
-                layout, n_actions=n_actions, z_dim=m.z_dim, hidden=m.hidden, combine=m.posterior
+                layout,
+                n_actions=n_actions,
+                z_dim=m.z_dim,
+                hidden=m.hidden,
+                combine=m.posterior,
+                inputs=m.posterior_input,
             )
     for mod in mods.values():
         if mod is not None:

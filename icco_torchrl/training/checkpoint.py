@@ -76,7 +76,11 @@ _NDARRAY = "__ndarray__"
 # Method fields added after checkpoints had been written, with the value those older checkpoints
 # were trained with (not today's default, which may differ): load_checkpoint fills them in, so an
 # older checkpoint (the demo policy, a committed result) restores the networks it was trained with.
-METHOD_FIELDS_ADDED = {"waypoint_features": False}
+METHOD_FIELDS_ADDED = {
+    "waypoint_features": False,
+    "mixer": "qmix",
+    "posterior_input": "flat",
+}
 # Options measured and dropped from the library, with the only value it still builds: a checkpoint
 # trained with another value is refused in one line naming the commit that can load it.
 METHOD_FIELDS_REMOVED = {"instruction_head": False, "z_input": "head"}

@@ -70,6 +70,12 @@ class MethodConfig:
     entropy_coef: float = _field(1e-4, ge=0)
     # The posterior's factors: product of Gaussians | sum of log-likelihoods (COPA).
     posterior: str = _field("product", choices=("product", "sum"))
+    # What the posterior reads: the flat state, joint action and observation (one team size) |
+    # robot and entity tokens (any team up to env.params.n_agents; modules/posterior.py).
+    posterior_input: str = _field("flat", choices=("flat", "tokens"))
+    # The mixer: TorchRL's QMixer on the flat state (one team size) | a masked QMIX whose
+    # per-robot weights come from the state tokens (any team; modules/mixer.py).
+    mixer: str = _field("qmix", choices=("qmix", "attention"))
     # Local observation encoder: entity tokens | flat MLP.
     encoder: str = _field("attention", choices=("attention", "mlp"))
     # Global-state encoder (coordinator, QMIX (FULL)): entities seen from each robot | absolute.
