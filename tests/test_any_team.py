@@ -312,3 +312,39 @@ def test_bad_module_arguments_fail_in_one_line():
     mixer = TokenMixer(layout)
     with pytest.raises(ValueError, match="TokenMixer mixes q"):
         mixer(torch.zeros(2, layout.n_agents + 1, 1), torch.zeros(2, layout.state_dim))
+
+
+def test_the_envs_absent_robots_are_what_the_networks_mask():
+    """A 6-robot env of teams 2-4, a robot taken out mid-team: the mask read off the state is the
+    env's, and every env's present robots get the z and Q_tot of its team without the absent."""
+    env = ResourceCollectionEnv(num_envs=4, n_agents=6, team_sizes=(2, 3, 4), seed=0)
+    td = env.reset()
+    largest = int(env.present.sum(1).argmax())
+    assert env.present[largest].sum() >= 3
+    env.remove_robot(largest, 1, tensordict=td)  # a hole in the middle of the team
+    assert not env.present[largest, 1] and env.present[largest, 2]
+    cfg = compose_config(["method=icco", *ANY_TEAM])
+    torch.manual_seed(0)
+    mods6 = make_modules(cfg, env.layout, "cpu", n_actions=N_ACTIONS)
+    q = torch.randn(4, 6, 1)
+    for _ in range(3):
+        state, present = td["state"], env.present
+        assert torch.equal(robot_mask(state, env.layout), present)
+        with torch.no_grad():
+            loc6, _ = mods6["coordinator"].module.distribution(state)
+            q_tot6 = mods6["mixer"].module(q, state)
+        for b in range(4):
+            idx = present[b].nonzero().squeeze(-1)
+            layout = shrunk(env.layout, len(idx))
+            tok = state[b].view(env.layout.state_tokens, -1)
+            compact = torch.cat([tok[idx], tok[env.n_agents :]]).flatten()
+            mods = make_modules(cfg, layout, "cpu", n_actions=N_ACTIONS)
+            for name in ("coordinator", "mixer"):
+                mods[name].load_state_dict(mods6[name].state_dict())
+            with torch.no_grad():
+                loc, _ = mods["coordinator"].module.distribution(compact)
+                q_tot = mods["mixer"].module(q[b, idx], compact)
+            close(loc6[b, idx], loc)
+            close(q_tot6[b], q_tot)
+        action = torch.randint(0, N_ACTIONS, (4, 6))
+        td = env.step(td.set(("agents", "action"), action))["next"]
