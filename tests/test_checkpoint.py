@@ -131,7 +131,10 @@ def test_a_checkpoint_round_trips_and_loads_weights_only(tmp_path):
 def test_a_method_field_the_checkpoint_has_is_kept(tmp_path):
     payload = {"cfg": {"method": {"name": "icco", "waypoint_features": True}}, "loss": {}}
     loaded = load_checkpoint(save_checkpoint(tmp_path / "checkpoint.pt", payload), require=())
-    assert loaded["cfg"]["method"] == {"name": "icco", "waypoint_features": True}
+    method = loaded["cfg"]["method"]
+    assert method["name"] == "icco" and method["waypoint_features"] is True  # kept, not upgraded
+    others = {k: v for k, v in METHOD_FIELDS_ADDED.items() if k != "waypoint_features"}
+    assert {k: method[k] for k in others} == others  # the fields it lacks: their old values
 
 
 def test_a_checkpoint_written_before_weights_only_loading_still_loads(tmp_path):

@@ -387,13 +387,14 @@ def test_coordinator_redraws_only_envs_at_a_broadcast_step():
     with torch.no_grad():
         loc, scale = coord.distribution(state)
         # envs out of phase: only env 0 (step 8) redraws, the others hold exactly
-        z, noise = coord(state, torch.tensor([[8], [1], [2], [7]]), z_prev, noise_prev)
+        z, noise, sent = coord(state, torch.tensor([[8], [1], [2], [7]]), z_prev, noise_prev)
+        assert sent.squeeze(-1).tolist() == [[True] * N] + [[False] * N] * 3
         torch.testing.assert_close(z[0], loc[0] + scale[0] * noise[0])
         assert not torch.equal(noise[0], noise_prev[0])
         assert torch.equal(z[1:], z_prev[1:]) and torch.equal(noise[1:], noise_prev[1:])
         # no env at a broadcast step (the network is skipped): everything held
-        z, noise = coord(state, torch.tensor([[1], [2], [3], [5]]), z_prev, noise_prev)
-        assert torch.equal(z, z_prev) and torch.equal(noise, noise_prev)
+        z, noise, sent = coord(state, torch.tensor([[1], [2], [3], [5]]), z_prev, noise_prev)
+        assert torch.equal(z, z_prev) and torch.equal(noise, noise_prev) and not sent.any()
 
 
 def test_coordinator_rejects_bad_period():

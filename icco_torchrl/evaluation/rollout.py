@@ -31,6 +31,13 @@ def episode_metrics(rollout: TensorDictBase) -> dict[str, torch.Tensor]:
     for key in EVENT_KEYS:
         out[key] = nxt.get(("events", key)).sum(-1).float()
     out["task_reward"] = out["reward"] - out["inst_reward"]
+    sent = rollout.get(("agents", "z_sent"), None)
+    if sent is not None:  # a coordinator's policy: the share of robot-steps a z reached a robot
+        present = rollout.get(("agents", "present"), None)
+        weight = torch.ones_like(sent, dtype=torch.float) if present is None else present.float()
+        out["broadcast_rate"] = (sent.float() * weight).sum((1, 2, 3)) / weight.sum(
+            (1, 2, 3)
+        ).clamp_min(1.0)
     return out
 
 

@@ -105,10 +105,13 @@ class Coordinator(nn.Module):
         init_logvar: float = 0.0,
         n_agents: int | None = None,
         state_dim: int | None = None,
+        threshold: float = 0.0,
     ):
         super().__init__()
         if period < 1:
             raise ValueError(f"period must be >= 1, got {period}")
+        if not threshold >= 0:
+            raise ValueError(f"broadcast threshold must be >= 0, got {threshold}")
         if state_encoder not in STATE_ENCODERS:
             raise ValueError(
                 f"state_encoder must be one of {STATE_ENCODERS}, got {state_encoder!r}"
@@ -117,7 +120,7 @@ class Coordinator(nn.Module):
             raise ValueError(
                 "state_encoder='relative' reads the resource-collection state: it needs a layout"
             )
-        self.z_dim, self.period = z_dim, period
+        self.z_dim, self.period, self.threshold = z_dim, period, float(threshold)
         self.layout = layout  # the loss reads which robots are present off the state with it
         encoder = encoder or ("attention" if layout is not None else "mlp")
         # relative: entities seen from each robot (modules/relative.py); flat: absolute state tokens
@@ -139,10 +142,14 @@ class Coordinator(nn.Module):
         return self.loc(h), (0.5 * logvar).exp()
 
     def forward(self, state, step_count, z_prev, noise_prev):
-        """Redraw z where ``step_count % period == 0`` (mean when exploration is deterministic).
+        """Redraw z where ``step_count % period == 0`` (mean when exploration is deterministic);
+        returns ``(z, noise, sent)``.
 
-        ``step_count [B, 1]`` (TorchRL's ``StepCounter``); ``state [B, ...]``, trailing dims
-        flattened.
+        With ``threshold`` (COPA's adaptive broadcast, beta) robot i receives the new draw only
+        where it moved more than ``threshold`` (L2) from the z it holds, or at an episode's first
+        step; otherwise it keeps its z (and the noise behind it). ``sent [B, N, 1]`` marks the
+        robots that received a z this step. ``step_count [B, 1]`` (TorchRL's ``StepCounter``);
+        ``state [B, ...]``, trailing dims flattened.
         """
         if step_count is None:
             raise KeyError(
@@ -153,18 +160,19 @@ class Coordinator(nn.Module):
             state = state.flatten(step_count.dim() - 1)
         fresh = (step_count % self.period == 0).unsqueeze(-1)  # [B, 1, 1]
         if state.device.type == "cpu" and not torch.compiler.is_compiling() and not fresh.any():
-            return (
-                z_prev,
-                noise_prev,
-            )  # every env holds its z: skip the network (on GPU this test would sync)
+            # every env holds its z: skip the network (on GPU this test would sync)
+            return z_prev, noise_prev, torch.zeros_like(z_prev[..., :1], dtype=torch.bool)
         loc, scale = self.distribution(state)
         if exploration_type() in (ExplorationType.RANDOM, None):
             noise = torch.randn_like(loc)
         else:
             noise = torch.zeros_like(loc)
-        noise = torch.where(fresh, noise, noise_prev)
-        z = torch.where(fresh, loc + scale * noise, z_prev)
-        return z, noise
+        draw = loc + scale * noise
+        send = fresh.expand(*draw.shape[:-1], 1)
+        if self.threshold > 0:
+            moved = (draw - z_prev).norm(dim=-1, keepdim=True) > self.threshold
+            send = send & (moved | (step_count == 0).unsqueeze(-1))
+        return torch.where(send, draw, z_prev), torch.where(send, noise, noise_prev), send
 
 
 def gaussian_entropy(scale: torch.Tensor) -> torch.Tensor:
@@ -183,6 +191,7 @@ def make_coordinator(
     init_logvar: float = 0.0,
     n_agents: int | None = None,
     state_dim: int | None = None,
+    threshold: float = 0.0,
     state_key="state",
     group="agents",
     step_count_key="step_count",
@@ -191,8 +200,8 @@ def make_coordinator(
 
     in:  ``state_key`` (any trailing shape, flattened), ``step_count_key`` (TorchRL's
          ``StepCounter``), ``(group, "z")`` and ``(group, "z_noise")`` (held values)
-    out: ``(group, "z")``, ``(group, "z_noise")`` (the distribution itself:
-         ``module.distribution(state)``)
+    out: ``(group, "z")``, ``(group, "z_noise")``, ``(group, "z_sent")`` (the robots that
+         received a new z this step; the distribution itself: ``module.distribution(state)``)
     """
     net = Coordinator(
         layout,
@@ -204,6 +213,7 @@ def make_coordinator(
         init_logvar=init_logvar,
         n_agents=n_agents,
         state_dim=state_dim,
+        threshold=threshold,
     )
     return TensorModule(
         net,
@@ -213,5 +223,5 @@ def make_coordinator(
             "z_prev": (group, "z"),
             "noise_prev": (group, "z_noise"),
         },
-        out_keys=[(group, "z"), (group, "z_noise")],
+        out_keys=[(group, "z"), (group, "z_noise"), (group, "z_sent")],
     )

@@ -108,8 +108,10 @@ class ICCOLoss(LossModule):
         per agent ``[S, L, N, 1]``). ``mask`` is optional: without it, the steps after an episode
         end (``done``) or a new start (``is_init``) are left out. ``state`` may have any trailing
         shape. ``prev_action`` and ``rnn_hidden`` are read for recurrent agents, ``z``,
-        ``z_noise`` and ``step_count`` with a coordinator. ``action_value`` is what the agent
-        writes, ``local_value``/``global_value`` what the mixer reads/writes.
+        ``z_noise`` and ``step_count`` with a coordinator, ``z_sent`` (which robots received a z,
+        ``[S, T, N, 1]``) with an adaptive broadcast (a coordinator ``threshold > 0``).
+        ``action_value`` is what the agent writes, ``local_value``/``global_value`` what the mixer
+        reads/writes.
         """
 
         observation: NestedKey = ("agents", "observation")
@@ -119,6 +121,7 @@ class ICCOLoss(LossModule):
         rnn_hidden: NestedKey = ("agents", "rnn_hidden")
         z: NestedKey = ("agents", "z")
         z_noise: NestedKey = ("agents", "z_noise")
+        z_sent: NestedKey = ("agents", "z_sent")
         step_count: NestedKey = "step_count"
         is_init: NestedKey = "is_init"
         reward: NestedKey = "reward"
@@ -196,6 +199,7 @@ class ICCOLoss(LossModule):
         if self.has_coordinator:
             self.convert_to_functional(coordinator, "coordinator", create_target_params=True)
             self.period = coordinator.module.period
+            self.threshold = float(getattr(coordinator.module, "threshold", 0.0))
         # The posterior has no target copy: it only appears in L_CE. Held as ``posterior.module``
         # (the parameter names of checkpoints made when it came wrapped in a TensorDictModule).
         if posterior is not None and not isinstance(posterior, TensorDictModule):
@@ -253,7 +257,7 @@ class ICCOLoss(LossModule):
         if self._sequence_agent or self._reads(k.rnn_hidden):
             keys.append(k.rnn_hidden)
         if self.has_coordinator:
-            keys += [k.z, k.z_noise]
+            keys += [k.z, k.z_noise] + ([k.z_sent] if self.threshold > 0 else [])
         keys += [k.step_count, k.mask]
         keys += [next_key(key) for key in (k.observation, k.state, k.reward, k.done)]
         keys += [next_key(k.terminated), next_key(k.step_count)]
@@ -397,13 +401,32 @@ class ICCOLoss(LossModule):
             loc, scale = self.coordinator.module.distribution(state)  # [S, P, N, Z]
         noise = torch.cat([x["z_noise"], fresh.unsqueeze(1)], 1)
         noise = noise.gather(1, at[..., None, None].expand(S, P, *noise.shape[2:]))
+        draws = loc + scale * noise
+        if self.threshold > 0:  # robot i holds its z until a broadcast moved it (COPA's beta)
+            draws = self._held_draws(x, draws, at)
         # Slot 0: the stored z (held from before the sequence); slot p + 1: broadcast p.
-        draws = torch.cat([x["z"][:, :1], loc + scale * noise], 1)
+        draws = torch.cat([x["z"][:, :1], draws], 1)
         j = torch.arange(L + 1, device=device)
         slot = torch.where(j < phase, 0, 1 + torch.div(j - phase, T, rounding_mode="floor"))
         z_seq = draws.gather(1, slot[..., None, None].expand(S, L + 1, *draws.shape[2:]))
         W = max(L // T, 1)  # whole broadcast windows (one shorter window when L < T); scored
         return z_seq, loc[:, :W], scale[:, :W]  # only where the sequence starts at a broadcast
+
+    def _held_draws(self, x: dict, draws: torch.Tensor, at: torch.Tensor) -> torch.Tensor:
+        """``draws [S, P, N, Z]`` at the broadcast inputs ``at [S, P]`` -> the z each robot holds
+        after each of them: the draw where it was sent (the stored ``z_sent`` inside the sequence;
+        at the bootstrap input, where the draw moved more than the threshold from the held z),
+        else the z held before."""
+        S, P = at.shape
+        L, N = x["z_sent"].shape[1:3]
+        stored = x["z_sent"].gather(1, at.clamp_max(L - 1)[..., None, None].expand(S, P, N, 1))
+        held, out = x["z"][:, 0], []
+        for p in range(P):  # P = L // T + 1 broadcasts, each depends on the last one
+            moved = (draws[:, p] - held).norm(dim=-1, keepdim=True) > self.threshold
+            sent = torch.where((at[:, p] < L)[:, None, None], stored[:, p], moved)
+            held = torch.where(sent, draws[:, p], held)
+            out.append(held)
+        return torch.stack(out, 1)
 
     # ------------------------------------------------------------------ Q-values
     def _agent_state(self, x: dict, steps: slice = slice(None)) -> torch.Tensor | None:

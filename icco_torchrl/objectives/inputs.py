@@ -139,6 +139,10 @@ def read_sequences(loss, td: TensorDictBase) -> dict:
         z_shape = (N, net.z_dim)
         x["z"] = get_checked(td, k.z, f"[S, T, N, {net.z_dim}]", trailing=z_shape)
         x["z_noise"] = get_checked(td, k.z_noise, f"[S, T, N, {net.z_dim}]", trailing=z_shape)
+        x["z_sent"] = None
+        if loss.threshold > 0:
+            sent = get_checked(td, k.z_sent, "[S, T, N, 1]", trailing=(N, 1))
+            x["z_sent"] = sent.bool()
         x["step_count"] = step_count.squeeze(-1)
         x["next_step_count"] = get_checked(
             td, next_key(k.step_count), "[S, T, 1]", trailing=(1,)

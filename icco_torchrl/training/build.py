@@ -112,6 +112,7 @@ def make_modules(cfg: DictConfig, layout, device, *, n_actions: int) -> dict:
             encoder=m.encoder,
             state_encoder=m.state_encoder,
             init_logvar=m.z_init_logvar,
+            threshold=m.broadcast_threshold,
         )
         if m.ce_coef > 0:
             mods["posterior"] = make_posterior(

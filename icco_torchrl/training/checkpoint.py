@@ -80,6 +80,7 @@ METHOD_FIELDS_ADDED = {
     "waypoint_features": False,
     "mixer": "qmix",
     "posterior_input": "flat",
+    "broadcast_threshold": 0.0,
 }
 # Options measured and dropped from the library, with the only value it still builds: a checkpoint
 # trained with another value is refused in one line naming the commit that can load it.

@@ -88,6 +88,9 @@ class MethodConfig:
     z_dim: int = _field(32, ge=0)
     # z is redrawn every `period` steps and held in between (T).
     period: int = _field(4, gt=0)
+    # Adaptive broadcast (COPA's beta): every T steps robot i receives the new z only if it moved
+    # more than this (L2) from the z it holds; 0 sends every T steps.
+    broadcast_threshold: float = _field(0.0, ge=0)
     # Agents also read the nearest own waypoint and the path direction r_inst scores
     # (modules/waypoint_features.py).
     waypoint_features: bool = True
