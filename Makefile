@@ -40,7 +40,7 @@ bench: $(STAMP)
 	$(PY) benchmarks/train_throughput.py
 
 train: $(STAMP)
-	$(VENV)/bin/icco train $(ARGS)
+	$(VENV)/bin/icco train experiment=make_train $(ARGS)
 
 eval: $(STAMP)
 	$(VENV)/bin/icco eval $(ARGS)
