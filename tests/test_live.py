@@ -166,11 +166,13 @@ def slow_llm(monkeypatch):
     calls, release = [], threading.Event()
 
     class Slow(litellm.CustomLLM):
+        delay = 0.6  # a test may make it slower
+
         def completion(self, *args, **kwargs):
             from icco_torchrl.instructions.planner import reply_to
 
             calls.append(time.monotonic())
-            release.wait(0.6)  # bounded: a slow model, not a hung test
+            release.wait(Slow.delay)  # bounded: a slow model, not a hung test
             message = {"role": "assistant", "content": reply_to(kwargs["messages"])}
             return litellm.ModelResponse(
                 choices=[{"index": 0, "finish_reason": "stop", "message": message}]
@@ -178,20 +180,24 @@ def slow_llm(monkeypatch):
 
     entry = {"provider": "slowtest", "custom_handler": Slow()}
     monkeypatch.setattr(litellm, "custom_provider_map", [*litellm.custom_provider_map, entry])
-    yield LLMPlanner(model="slowtest/x", deadline_s=10.0, max_retries=0), calls
+    planner = LLMPlanner(model="slowtest/x", deadline_s=10.0, max_retries=0)
+    planner.slow_model = Slow
+    yield planner, calls
     release.set()
 
 
 def test_a_newer_instruction_cancels_the_request_in_flight(slow_llm):
     planner, calls = slow_llm
+    planner.slow_model.delay = 4.0  # far longer than any scheduling delay on a loaded machine
     loop = team(planner=planner)
-    start = time.monotonic()
     loop.instruct("Go right")
-    time.sleep(0.2)  # its request is on its way
+    deadline = time.monotonic() + 5
+    while not calls and time.monotonic() < deadline:  # its request is on its way
+        time.sleep(0.01)
     loop.instruct("Move top")
-    status = loop.wait_for_plan(5)
-    # Without the cancel the second request would start only when the first one answers (0.6 s).
-    assert len(calls) == 2 and calls[1] - start < 0.45
+    status = loop.wait_for_plan(8)
+    # Without the cancel the second request would start only when the first one answers (4 s).
+    assert len(calls) == 2 and calls[1] - calls[0] < 2.0
     assert status.state == "used" and status.instruction == "Move top"
 
 
