@@ -3,6 +3,7 @@ loopback."""
 
 from __future__ import annotations
 
+import logging
 import time
 
 import numpy as np
@@ -54,7 +55,8 @@ def test_dwa_keeps_clear_of_another_robot():
         (b"\xff\xfe", "not UTF-8 JSON"),
         (b"[1, 2]", "JSON object"),
         (b'{"type": "dance"}', "type"),
-        (b'{"type": "state", "robots": [{"id": 7, "pose": [0, 0, 0]}]}', "integer 'id'"),
+        (b'{"type": "state", "robots": [{"id": -1, "pose": [0, 0, 0]}]}', "integer 'id'"),
+        (b'{"type": "state", "robots": [{"id": 2147483648, "pose": [0, 0, 0]}]}', "2147483647"),
         (b'{"type": "state", "robots": [{"id": 0, "pose": [0, "a", 0]}]}', "pose"),
         (b'{"type": "state", "robots": [], "resources": [[0]]}', "resources"),
         (b'{"type": "instruct", "text": ""}', "non-empty"),
@@ -74,7 +76,7 @@ def test_dwa_keeps_clear_of_another_robot():
 )
 def test_malformed_messages_are_refused_in_one_line(data, message):
     with pytest.raises(ProtocolError, match=message):
-        parse_message(data, 3)
+        parse_message(data)
 
 
 def _heuristic_loop():
@@ -119,6 +121,70 @@ def test_bridge_and_simulated_fleet_over_loopback():
     assert moved[0] > 0.2 and moved[2] > 0.2, moved  # driven by the commands
     assert fleet.velocity[1].tolist() == [0.0, 0.0]  # the silenced robot was stopped
     assert np.median(bridge.stats["latency_ms"]) < 100  # state in -> command out
+
+
+def _until(predicate, seconds: float = 5.0) -> bool:
+    end = time.monotonic() + seconds
+    while time.monotonic() < end and not predicate():
+        time.sleep(0.01)
+    return predicate()
+
+
+def _entries(msg: dict) -> dict:
+    return {r["id"]: r for r in msg["robots"]}
+
+
+def test_the_team_is_the_robots_that_report(caplog):
+    """A silent robot leaves the team after the timeout and the others are still driven; it joins
+    again when it reports again; a new id joins while there is room; one too many is refused in
+    one line and commanded to stop."""
+    caplog.set_level(logging.INFO, logger="icco.bridge")
+    env = ResourceCollectionEnv(
+        num_envs=1, n_agents=4, seed=0, waypoint_mode="external", max_steps=10**6
+    )
+    loop = LiveLoop(env, make_reference_policy("heuristic", env), team=[0, 1, 2])
+    bridge = Bridge(loop, rate_hz=20, timeout=0.3, limits=LIMITS)
+    fleet = SimulatedFleet(bridge.address, rate_hz=20, latency=0.02, limits=LIMITS, seed=1)
+    with bridge_with_fleet(bridge, fleet, 20.0):
+        assert _until(lambda: bridge.team() == [0, 1, 2] and len(fleet.commands) > 5)
+        fleet.silence(1)
+        assert _until(lambda: loop.team == [0, 2]), loop.team  # out of the env's team
+        assert _until(lambda: _entries(fleet.commands[-1])[1]["stopped"])  # commands in flight
+        n = len(fleet.commands)
+        assert _until(lambda: len(fleet.commands) > n + 8)
+        after = fleet.commands[n:]
+        for msg in after:  # it is stopped while known; the others are still commanded
+            robots = _entries(msg)
+            assert robots[1]["stopped"] and robots[1]["reason"] == "stale"
+            assert not robots[0]["stopped"] and not robots[2]["stopped"]
+        assert any(r["v"] > 0 for m in after for r in m["robots"] if r["id"] in (0, 2))
+        assert fleet.velocity[fleet.row(1)].tolist() == [0.0, 0.0]
+        panel = bridge.fleet()
+        assert panel["team"] == [0, 2] and not _entries(panel)[1]["in_team"]
+        fleet.resume(1)  # it comes back: in the team again, in its own place
+        assert _until(lambda: loop.team == [0, 1, 2] and bridge.team() == [0, 1, 2])
+        fleet.join(7)  # a new id: the free place
+        assert _until(lambda: bridge.team() == [0, 1, 2, 7] and loop.team == [0, 1, 2, 3])
+        fleet.join(8)  # one too many for n_agents=4
+        assert _until(lambda: 8 in _entries(fleet.commands[-1]))
+        n = len(fleet.commands)
+        assert _until(lambda: len(fleet.commands) > n + 4)
+        for msg in fleet.commands[n:]:
+            robots = _entries(msg)
+            assert robots[8]["stopped"] and robots[8]["reason"] == "team full"
+            assert robots[8]["v"] == 0 == robots[8]["w"]
+            assert not any(robots[i]["stopped"] for i in (0, 1, 2, 7))
+        assert fleet.velocity[fleet.row(8)].tolist() == [0.0, 0.0]
+        assert bridge.team() == [0, 1, 2, 7] and loop.team == [0, 1, 2, 3]
+        panel = _entries(bridge.fleet())
+        assert panel[8]["in_team"] is False and panel[7]["slot"] == 3
+    s = bridge.stats
+    assert (s["dropped"], s["refused_robots"], s["malformed"]) == (1, 1, 0)
+    refused = [r.getMessage() for r in caplog.records if "refused" in r.getMessage()]
+    assert len(refused) == 1 and "robot 8 refused: the team is full" in refused[0]
+    assert len(refused[0]) <= 300 and "\n" not in refused[0]
+    left = [r.getMessage() for r in caplog.records if "out of the team" in r.getMessage()]
+    assert len(left) == 1 and left[0].startswith("bridge: robot 1 sent no pose")
 
 
 def test_a_port_in_use_is_one_clear_line():

@@ -26,7 +26,7 @@ from conftest import ROOT
 from icco_torchrl.envs import ResourceCollectionEnv
 from icco_torchrl.envs.reference_policies import make_reference_policy
 from icco_torchrl.live import LiveLoop
-from icco_torchrl.live.bridge import LOG_EVERY, MAX_MESSAGE, Bridge
+from icco_torchrl.live.bridge import LOG_EVERY, MAX_MESSAGE, MAX_ROBOT_ID, Bridge
 from icco_torchrl.live.dwa import RobotLimits
 from icco_torchrl.live.loop import MAX_INSTRUCTION
 
@@ -233,7 +233,7 @@ def _huge(rng: random.Random) -> bytes:
 
 
 WRONG = {
-    "id": [True, False, "0", 0.0, None, [], {}, -1, N, 10**12, 1e300],
+    "id": [True, False, "0", 0.0, None, [], {}, -1, MAX_ROBOT_ID + 1, 10**12, 1e300],
     "pose": [
         "abc",
         [0, 0],

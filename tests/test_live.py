@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from icco_torchrl.instructions import LLMPlanner
 from icco_torchrl.live import LiveLoop
@@ -219,6 +220,85 @@ def test_a_hundred_instructions_against_a_slow_model_keep_the_threads_bounded(sl
     assert threading.active_count() <= before
 
 
+class RecordingPlanner:
+    """Plans every present robot to the right edge; records how many robots each plan was for."""
+
+    def __init__(self):
+        self.teams = []
+
+    def plan(self, instruction, positions, previous=None, **kwargs):
+        from icco_torchrl.instructions.llm import PlanResult
+
+        self.teams.append(len(positions))
+        return PlanResult(np.full(previous.shape, 2.0, dtype=np.float32), True, 1, "{}")
+
+
+def test_robots_join_and_leave_between_ticks_and_the_team_keeps_acting():
+    """The demo policy (trained on 3) in a loop that holds 5: the team grows and shrinks between
+    ticks, the others keep their memory, the new one starts from zero, the plan follows the
+    team, and every robot of the team keeps moving."""
+    planner = RecordingPlanner()
+    loop = LiveLoop.from_checkpoint(DEMO, planner=planner, seed=0, max_robots=5)
+    assert loop.raw.n_agents == 5 and loop.team == [0, 1, 2]
+    for _ in range(6):
+        state = loop.tick()
+    assert state.present.tolist() == [True, True, True, False, False]
+    loop.instruct("Go right")
+    assert loop.wait_for_plan(5).state == "used" and planner.teams == [3]
+    loop.tick()
+    hidden = loop.td["agents", "rnn_hidden"][0].clone()
+    assert hidden[:3].abs().sum() > 0
+    assert loop.add_robot() == 3 and loop.team == [0, 1, 2, 3]
+    held = loop.td["agents", "rnn_hidden"][0]
+    assert torch.equal(held[:3], hidden[:3]) and not held[3].any()  # theirs kept, its own zero
+    assert not loop.td["agents", "z"][0, 3].any() and loop.td["agents", "present"][0, 3, 0]
+    assert loop.wait_for_plan(5).state == "used" and planner.teams == [3, 4]  # planned again
+    start = loop.tick()
+    assert np.allclose(start.waypoints[:4], 2.0) and start.present[3]
+    for _ in range(15):
+        state = loop.tick()
+    moved = np.linalg.norm(state.positions - start.positions, axis=-1)
+    assert (moved[:4] > 0.1).all() and moved[4] == 0, moved  # the policy drives all four
+    loop.remove_robot(1)
+    assert loop.wait_for_plan(5).state == "used" and planner.teams == [3, 4, 3]
+    hidden = loop.td["agents", "rnn_hidden"][0].clone()
+    before = loop.tick()
+    assert before.present.tolist() == [True, False, True, True, False]
+    for _ in range(15):
+        state = loop.tick()
+    moved = np.linalg.norm(state.positions - before.positions, axis=-1)
+    assert (moved[[0, 2, 3]] > 0.1).all() and moved[1] == 0, moved  # it left; they go on
+    # The team outlasts the episode: the next one starts with the same robots.
+    while state.episode == 1:
+        state = loop.tick()
+    assert state.present.tolist() == [True, False, True, True, False]
+    assert loop.reset().present.tolist() == [True, False, True, True, False]
+
+
+def test_a_bad_team_change_is_one_line_and_changes_nothing():
+    loop = team()  # a full team of 3
+    state = loop.tick()
+    for change, message in [
+        (loop.add_robot, "the team is full: 3 robots"),
+        (lambda: loop.add_robot(1), "robot 1 is already in the team"),
+        (lambda: loop.remove_robot(7), r"robot must be an integer in 0\.\.2, got 7"),
+        (lambda: loop.remove_robot("1"), "robot must be an integer"),
+        (lambda: loop.remove_robot(True), "robot must be an integer"),
+    ]:
+        with pytest.raises(ValueError, match=message) as err:
+            change()
+        assert "\n" not in str(err.value)
+    loop.remove_robot(2)
+    loop.remove_robot(0)
+    with pytest.raises(ValueError, match="robot 2 is not in the team"):
+        loop.remove_robot(2)
+    with pytest.raises(ValueError, match="robot 1 is the last robot"):
+        loop.remove_robot(1)
+    assert loop.team == [1] and loop.tick().tick == state.tick + 1  # it keeps ticking
+    with pytest.raises(ValueError, match="a live team needs at least one robot"):
+        LiveLoop(loop.env, loop.policy, team=[])
+
+
 def test_run_keeps_its_rate_and_refuses_a_batched_env():
     loop = team(method="qmix")
     start = time.perf_counter()
@@ -238,6 +318,7 @@ def test_run_keeps_its_rate_and_refuses_a_batched_env():
         ({"seconds": 0}, "'live.seconds' must be > 0"),
         ({"port": -1}, "'live.port' must be >= 0"),
         ({"web_port": 70000}, "'live.web_port' must be <= 65535"),
+        ({"max_robots": 0}, "'live.max_robots' must be >= 1"),
     ],
 )
 def test_live_settings_are_range_checked_from_their_fields(override, message):

@@ -217,6 +217,63 @@ def test_pause_step_speed_reset_and_a_vanished_tab_never_stop_the_loop(served):
     assert server.stats["connections"] == 2
 
 
+def test_a_tab_adds_and_removes_robots_and_a_bad_change_is_answered(served):
+    # The demo policy (trained on 3) in a loop that holds 4; episodes longer than the test.
+    loop = LiveLoop.from_checkpoint(DEMO, seed=1, max_robots=4, episode_steps=10**6)
+    server, url = served(loop)
+
+    def moved(ticks, robots):
+        first, last = np.asarray(ticks[0]["positions"]), np.asarray(ticks[-1]["positions"])
+        return np.linalg.norm(last - first, axis=-1)[robots]
+
+    async def scenario():
+        async with aiohttp.ClientSession() as http:
+            async with Tab(http, url + "/ws") as a, Tab(http, url + "/ws") as b:
+                await a.until(lambda: a.hello and len(a.ticks) > 2)
+                assert a.hello["n_agents"] == 4 and a.hello["team"] == [0, 1, 2]
+                assert a.ticks[-1]["present"] == [True, True, True, False]
+                await a.send(type="add_robot")
+                await b.until(lambda: b.ticks[-1]["present"] == [True] * 4)  # every tab sees it
+                assert a.oks == 1 and loop.team == [0, 1, 2, 3]
+                n = len(b.ticks)
+                await b.until(lambda: len(b.ticks) > n + 20)
+                assert (moved(b.ticks[n:], [0, 1, 2, 3]) > 0).all()  # the four are driven
+                await b.send(type="remove_robot", robot=1)
+                await a.until(lambda: a.ticks[-1]["present"] == [True, False, True, True])
+                n = len(a.ticks)
+                await a.until(lambda: len(a.ticks) > n + 20)
+                still = moved(a.ticks[n:], [0, 1, 2, 3])
+                assert still[1] == 0 and (still[[0, 2, 3]] > 0).all(), still
+                # Bad changes: an error to the sender only, and the loop goes on.
+                await a.send(type="remove_robot", robot=1)  # not in the team
+                await a.send(type="add_robot", robot=0)  # already in
+                await a.send(type="remove_robot")  # which one?
+                await a.send(type="remove_robot", robot="x")
+                await a.send(type="add_robot")  # robot 1 again: the team is full after it
+                await a.send(type="add_robot")
+                await a.until(lambda: len(a.errors) == 5)
+                assert "robot 1 is not in the team" in a.errors[0]
+                assert "robot 0 is already in the team" in a.errors[1]
+                assert "needs the robot to remove" in a.errors[2]
+                assert "robot must be an integer in 0..3" in a.errors[3]
+                assert "the team is full: 4 robots" in a.errors[4]
+                assert all("\n" not in e for e in a.errors) and b.errors == []
+                ticks = loop.ticks
+                await a.until(
+                    lambda: loop.ticks > ticks + 5 and a.ticks[-1]["present"] == [True] * 4
+                )
+                for robot in (0, 1, 2):
+                    await a.send(type="remove_robot", robot=robot)
+                await a.send(type="remove_robot", robot=3)  # the last one stays
+                await a.until(lambda: len(a.errors) == 6)
+                assert "robot 3 is the last robot" in a.errors[5]
+                await a.until(lambda: a.ticks[-1]["present"] == [False, False, False, True])
+                ticks = loop.ticks
+                await a.until(lambda: loop.ticks > ticks + 5)
+
+    asyncio.run(scenario())
+
+
 def test_when_live_seconds_run_out_every_tab_is_told_the_run_ended():
     loop = smoke_team()
     server, started = LiveServer(loop, rate_hz=50.0), queue.Queue()
@@ -782,6 +839,50 @@ def test_the_page_in_a_real_browser_go_right_moves_waypoints_and_robots(served, 
     assert server.stats["connections"] == 2
 
 
+def test_the_page_in_a_real_browser_adds_a_robot_and_removes_the_one_clicked(served, browser):
+    loop = LiveLoop.from_checkpoint(DEMO, seed=1, max_robots=4, episode_steps=10**6)
+    server, url = served(loop, rate_hz=20.0)
+    team = "[...document.querySelectorAll('#team-list li')].map(li => +li.dataset.robot)"
+
+    async def scenario():
+        async with aiohttp.ClientSession() as http, _page(http, browser, url) as tools:
+            assert await tools.js(team) == [0, 1, 2]
+            assert "3 of at most 4" in await tools.js(_text("team-count"))
+            assert "robot 3" not in await tools.js(_text("legend"))
+            await tools.js("document.getElementById('add-robot').click()")
+            await tools.until(f"{team}.length === 4 && icco.state.present.every(Boolean)")
+            assert "robot 3" in await tools.js(_text("legend"))
+            assert await tools.js("document.getElementById('add-robot').disabled")  # full
+            # A click on robot 1 on the field selects it; the button takes it out of the team.
+            await tools.js("icco.send({type: 'pause'})")
+            await tools.until("icco.state.paused")
+            x, y = await tools.js(
+                "(() => { const c = document.getElementById('field').getBoundingClientRect(), "
+                "h = icco.hello, p = icco.state.positions[1], k = c.width / h.field_size; "
+                "return [c.left + (p[0] + h.field_size / 2) * k, "
+                "c.top + (h.field_size / 2 - p[1]) * k]; })()"
+            )
+            for kind in ("mousePressed", "mouseReleased"):
+                await tools.call(
+                    "Input.dispatchMouseEvent", type=kind, x=x, y=y, button="left", clickCount=1
+                )
+            await tools.until("icco.selected === 1")
+            assert await tools.js(_text("remove-robot")) == "Remove robot 1"
+            await tools.js("document.getElementById('remove-robot').click()")
+            await tools.until(f"{team}.join() === '0,2,3' && !icco.state.present[1]")
+            assert "robot 1" not in await tools.js(_text("legend"))
+            assert await tools.js("icco.selected") is None and loop.team == [0, 2, 3]
+            # The server's answer to a bad change is shown; the page stays connected.
+            await tools.js("icco.send({type: 'remove_robot', robot: 1})")
+            await tools.until("document.getElementById('message').className === 'error'")
+            assert "robot 1 is not in the team" in await tools.js(_text("message"))
+            await tools.js("icco.send({type: 'resume'})")
+            ticks = loop.ticks
+            await tools.until(f"icco.connected && icco.state.tick > {ticks + 5}")
+
+    asyncio.run(scenario())
+
+
 @contextlib.contextmanager
 def _another_origin(html: str):
     """A page served from another origin (another port on 127.0.0.1); yields its URL."""
@@ -880,18 +981,21 @@ def test_the_page_in_a_real_browser_shows_a_bridge_driven_fleet(served, browser)
             rows = await tools.js(
                 "[...document.querySelectorAll('#fleet tr')].map(r => r.innerText)"
             )
-            assert [r.split()[:3] for r in rows] == [["robot", str(i), "moving"] for i in range(3)]
+            assert [r.split()[:4] for r in rows] == [
+                ["robot", str(i), "in", "moving"] for i in range(3)
+            ]
             summary = await tools.js(_text("fleet-summary"))
             assert "3 of 3 robots moving" in summary and "0 malformed" in summary
+            assert "team: robot 0, robot 1, robot 2 (3 of at most 3)" in summary
             assert int(summary.split(" commands")[0].rsplit(" ", 1)[-1]) > 0
             actual = float(summary.split(" of 20 Hz")[0].rsplit(" ", 1)[-1])  # beside nominal
             assert 0 < actual < 40
             fleet.silence(2)  # robot 2 drops off the network: its row says it is stopped
             await tools.until("document.querySelectorAll('#fleet tr.stopped').length === 1")
-            assert "stopped: no pose for" in await tools.js(
-                "document.querySelectorAll('#fleet tr')[2].innerText"
-            )
-            assert "2 of 3 robots moving" in await tools.js(_text("fleet-summary"))
+            row = await tools.js("document.querySelectorAll('#fleet tr')[2].innerText")
+            assert "stopped: no pose for" in row and row.split()[2] == "out"  # it left the team
+            summary = await tools.js(_text("fleet-summary"))
+            assert "2 of 3 robots moving" in summary and "team: robot 0, robot 1 (2 of" in summary
             await asyncio.to_thread(server.close, reason="the bridge stopped")
             await tools.until("icco.ended !== null")
             assert "the bridge stopped" in await tools.js(_text("ended-reason"))
@@ -944,6 +1048,9 @@ def test_the_page_watches_a_bridge_driven_fleet_and_relays_instructions(served):
                 robots = tab.ticks[-1]["fleet"]["robots"]
                 assert robots[1]["reason"] == "stale" and robots[1]["age_s"] > 0.5
                 assert tab.ticks[-1]["fleet"]["stale_stops"] == 1 and not robots[0]["stopped"]
+                # It left the team: the page draws the other two, the fleet says who is in.
+                await tab.until(lambda: tab.ticks[-1]["present"] == [True, False, True])
+                assert tab.ticks[-1]["fleet"]["team"] == [0, 2] and not robots[1]["in_team"]
 
     with bridge_with_fleet(bridge, fleet, 30.0):  # stopped on leaving
         asyncio.run(scenario())

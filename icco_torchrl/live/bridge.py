@@ -10,10 +10,21 @@ metres, angles in radians, field frame centred on home, +x right, +y up):
 * in, ``{"type": "instruct", "text": "Go right"}``: a language instruction for the team (at most
   ``MAX_INSTRUCTION`` characters).
 * out, to the sender of the latest state: ``{"type": "command", "time": t, "robots": [{"id": i,
-  "target": [x, y], "v": v, "w": w, "stopped": bool, "reason": null | "stale" | "control error"
-  | "bridge stopped"}, ...]}`` at the control rate: the policy's next point for each robot and a
-  unicycle velocity command toward it from the Dynamic Window Approach (``dwa.py``) within the
-  robot's limits.
+  "target": [x, y], "v": v, "w": w, "stopped": bool, "reason": null | "stale" | "team full" |
+  "control error" | "bridge stopped"}, ...]}`` at the control rate: the policy's next point for
+  each robot and a unicycle velocity command toward it from the Dynamic Window Approach
+  (``dwa.py``) within the robot's limits.
+
+The team is the robots that report. A robot ``id`` is any integer in ``0..MAX_ROBOT_ID``; each
+one in the team holds one of the env's ``n_agents`` places (its own index when that is free, so
+ids ``0..n_agents-1`` keep theirs). A new id joins the team (``LiveLoop.add_robot``) while a place
+is free; beyond that it is refused (one log line) and commanded to stop (``"reason": "team
+full"``), and joins as soon as a place frees. A robot silent for ``timeout`` seconds leaves the
+team (``LiveLoop.remove_robot``; the last one stays, stopped); the others keep being commanded.
+Robots that left or were refused stay known (the ``MAX_KNOWN`` most recent) and get stop
+commands; one that reports again joins again. Until the first robots report, the loop's own team
+holds the places (listed by index, stopped as never seen); after ``timeout`` seconds of states,
+places nobody claimed leave the team.
 
 Safety contract (``docs/live.md``, "Bridge safety contract"):
 
@@ -26,7 +37,8 @@ Safety contract (``docs/live.md``, "Bridge safety contract"):
   ``stats["refused_by"]``) and logged in one line of at most about 300 characters, at most one
   line per ``LOG_EVERY`` seconds (the next line says how many were refused in between).
 * A robot whose pose is older than ``timeout`` seconds (or never seen) gets ``v = w = 0`` with
-  ``"stopped": true, "reason": "stale"``, and the event is logged once; the others keep going.
+  ``"stopped": true, "reason": "stale"``, and the event is logged once; it leaves the team, and
+  the others keep going. A robot refused for a full team gets ``"reason": "team full"``.
   A control tick that fails stops every robot (``"reason": "control error"``) until one works.
 * However :meth:`Bridge.serve` ends (``stop`` set, ``max_seconds`` out, SIGINT, SIGTERM or
   SIGHUP when it runs in the main thread, an exception), and on :meth:`Bridge.close`, every robot
@@ -61,6 +73,8 @@ LOG_EVERY = 1.0  # seconds between two log lines about refused datagrams (or fai
 STOP_REPEATS = 3  # copies of the final stop command (UDP may drop one), 10 ms apart
 RATE_WINDOW = 2.0  # seconds over which the actual control rate is measured (or 3 periods)
 MAX_BATCH = 256  # datagrams read in one go between two control ticks
+MAX_ROBOT_ID = 2**31 - 1  # the largest robot id a state may carry
+MAX_KNOWN = 64  # robots outside the team (left, refused) remembered for stop commands
 STOP_SIGNALS = tuple(
     getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name)
 )
@@ -139,7 +153,7 @@ def _points(value, size: int) -> bool:
     return isinstance(value, list) and len(value) == size and all(_coord(v) for v in value)
 
 
-def parse_message(data: bytes, n_robots: int) -> dict:
+def parse_message(data: bytes) -> dict:
     """The validated message, or :class:`ProtocolError` with one line saying what is wrong."""
     msg = _decode(data)
     if not isinstance(msg, dict) or msg.get("type") not in ("state", "instruct"):
@@ -163,8 +177,8 @@ def parse_message(data: bytes, n_robots: int) -> dict:
         raise ProtocolError("'robots' must be a list")
     for r in robots:
         rid = r.get("id") if isinstance(r, dict) else None
-        if type(rid) is not int or not 0 <= rid < n_robots:
-            raise ProtocolError(f"each robot needs an integer 'id' in [0, {n_robots})")
+        if type(rid) is not int or not 0 <= rid <= MAX_ROBOT_ID:
+            raise ProtocolError(f"each robot needs an integer 'id' in [0, {MAX_ROBOT_ID}]")
         if not _points(r.get("pose"), 3):
             raise ProtocolError(
                 f"robot {rid}: 'pose' must be [x, y, theta] (finite numbers, at most "
@@ -213,6 +227,15 @@ class _Throttle:
         return True, held
 
 
+def _stop(rid: int, target, reason: str) -> dict:
+    """A command entry that stops robot ``rid`` (``v = w = 0``) for ``reason``."""
+    return {"id": rid, "target": target, "v": 0.0, "w": 0.0, "stopped": True, "reason": reason}
+
+
+def _ids(ids) -> str:
+    return ", ".join(str(i) for i in ids)
+
+
 def _held(n: int) -> str:
     return f" ({n} more since the last line)" if n else ""
 
@@ -255,8 +278,16 @@ class Bridge:
         self.reply_to = None
         self.peers: OrderedDict = OrderedDict()  # addresses that sent a state (the stop goes there)
         self.stale_logged = np.zeros(self.n, bool)
+        # The team: the robot id in each place (None: unclaimed), and robots outside it.
+        self.slot_id: list[int | None] = [None] * self.n
+        self.slot_of: dict[int, int] = {}
+        self.outside: OrderedDict[int, dict] = OrderedDict()  # left ("stale") or "team full"
+        self._first_state_at: float | None = None
         self.stats = {
             "messages": 0,
+            "joined": 0,  # robots that joined the team (a return counts again)
+            "dropped": 0,  # robots that left it after timeout s without a pose
+            "refused_robots": 0,  # robots refused because the team was full
             "malformed": 0,  # every refused datagram (by kind in "refused_by")
             "refused_by": {},
             "commands": 0,
@@ -271,7 +302,7 @@ class Bridge:
         self._last: dict[int, dict] = {}  # each robot's entry in the last command message
         self._command_times: deque = deque(maxlen=4096)  # monotonic times of recent commands
         self._first_command_at = self._last_command_at = None
-        self._refusals, self._failures = _Throttle(), _Throttle()
+        self._refusals, self._failures, self._full = _Throttle(), _Throttle(), _Throttle()
         self._closed = False
         self.on_command = None  # called with each command message (e.g. the live page)
 
@@ -280,7 +311,7 @@ class Bridge:
         """One datagram: update the measured state, or pass an instruction to the live loop; a
         datagram that cannot be used is refused (counted and logged), never raised."""
         try:
-            msg = parse_message(data, self.n)
+            msg = parse_message(data)
             if msg["type"] == "instruct":
                 self.loop.instruct(msg["text"])
             else:
@@ -295,8 +326,15 @@ class Bridge:
 
     def _apply_state(self, msg: dict, sender) -> None:
         now = time.monotonic()
+        if self._first_state_at is None:
+            self._first_state_at = now
         for r in msg.get("robots", []):
-            i, pose = r["id"], np.asarray(r["pose"], float)
+            rid, pose = r["id"], np.asarray(r["pose"], float)
+            i = self.slot_of.get(rid)
+            if i is None:
+                i = self._join(rid, pose, now)
+                if i is None:
+                    continue
             if np.isfinite(self.seen[i]) and now > self.seen[i]:
                 self.velocity[i] = (pose[:2] - self.poses[i, :2]) / (now - self.seen[i])
             self.poses[i], self.seen[i] = pose, now
@@ -310,6 +348,110 @@ class Bridge:
         while len(self.peers) > MAX_PEERS:
             self.peers.popitem(last=False)
         self.reply_to, self._received_at = sender, time.perf_counter()
+
+    # ------------------------------------------------------------------ the team
+    def team(self) -> list[int]:
+        """The ids of the robots in the team (claimed places), sorted."""
+        return sorted(self.slot_of)
+
+    def _place_for(self, rid: int) -> int | None:
+        """A free place for robot ``rid``: its own index, the place it had, a place of the loop's
+        team nobody claimed, then any free one; None when the team is full."""
+        free = [i for i in range(self.n) if self.slot_id[i] is None]
+        if not free:
+            return None
+        team = set(self.loop.team)
+        before = self.outside.get(rid, {}).get("slot")
+        for choice in (rid, before):
+            if choice in free:
+                return choice
+        unclaimed = [i for i in free if i in team]
+        return (unclaimed or free)[0]
+
+    def _join(self, rid: int, pose: np.ndarray, now: float) -> int | None:
+        """Robot ``rid`` reported and is not in the team: give it a place (the loop adds it), or
+        refuse it (known, stopped) when the team is full."""
+        i = self._place_for(rid)
+        if i is None:  # a silent robot may be due to leave: its place is this one's
+            self._leave(now)
+            i = self._place_for(rid)
+        if i is None:
+            known = self.outside.pop(rid, None)
+            if known is None or known["reason"] != "team full":
+                self.stats["refused_robots"] += 1
+                due, held = self._full.due()
+                if due:
+                    log.warning(
+                        "bridge: robot %d refused: the team is full (%d robots, live.max_robots); "
+                        "it is sent stop commands%s",
+                        rid,
+                        self.n,
+                        _held(held),
+                    )
+            self._remember(rid, {"reason": "team full", "pose": pose, "seen": now, "slot": None})
+            return None
+        if i not in self.loop.team:
+            self.loop.add_robot(i)
+        self.outside.pop(rid, None)
+        self.slot_id[i], self.slot_of[rid] = rid, i
+        self.seen[i], self.velocity[i], self.command[i] = -np.inf, 0.0, 0.0
+        self.stats["joined"] += 1
+        log.info("bridge: robot %d joined the team (team: %s)", rid, _ids(self.team()))
+        return i
+
+    def _remember(self, rid: int, entry: dict) -> None:
+        """Keep ``rid`` known outside the team (the ``MAX_KNOWN`` most recent)."""
+        self.outside[rid] = entry
+        self.outside.move_to_end(rid)
+        while len(self.outside) > MAX_KNOWN:
+            self.outside.popitem(last=False)
+
+    def _leave(self, now: float) -> None:
+        """Robots silent for ``timeout`` s leave the team (the last one stays); after ``timeout``
+        s of states, places of the loop's team nobody claimed leave it too."""
+        team = self.loop.team
+        for i in list(team):
+            rid = self.slot_id[i]
+            if now - self.seen[i] <= self.timeout:
+                continue
+            if rid is None and (
+                self._first_state_at is None or now - self._first_state_at <= self.timeout
+            ):
+                continue  # a place waiting for its robot's first pose
+            if len(self.loop.team) == 1:
+                return  # a team keeps one robot: it stays, stopped as stale
+            self.loop.remove_robot(i)
+            if rid is None:
+                continue
+            self.slot_id[i] = None
+            del self.slot_of[rid]
+            target = self._last.get(rid, {}).get("target")
+            entry = {"reason": "stale", "pose": self.poses[i].copy(), "seen": self.seen[i]}
+            self._remember(rid, {**entry, "slot": i, "target": target})
+            self.stats["dropped"] += 1
+            if not self.stale_logged[i]:
+                self.stats["stale_stops"] += 1
+            log.warning(
+                "bridge: robot %d sent no pose for %.2f s: stopped and out of the team (team: %s)",
+                rid,
+                now - self.seen[i],
+                _ids(self.team()) or "none",
+            )
+            self.command[i], self.stale_logged[i] = 0.0, False
+
+    def _listed(self) -> list[tuple[int, int | None]]:
+        """``(id, place)`` of every robot a command lists: the team (a place nobody claimed by
+        its index, unless a known robot has that id) and the known robots outside it (place
+        None), by id."""
+        known = set(self.slot_of) | set(self.outside)
+        listed = []
+        for i in self.loop.team:
+            rid = self.slot_id[i]
+            if rid is None and i in known:
+                continue
+            listed.append((i if rid is None else rid, i))
+        listed += [(rid, None) for rid in self.outside]
+        return sorted(listed, key=lambda pair: pair[0])
 
     def _refuse(self, sender, size: int, kind: str, reason: str) -> None:
         """Count a refused datagram and log it in one bounded line (at most one per LOG_EVERY)."""
@@ -333,6 +475,7 @@ class Bridge:
         if self.reply_to is None:
             return None
         now = time.monotonic()
+        self._leave(now)
         fresh = now - self.seen <= self.timeout
         resources = (
             self.resources
@@ -343,28 +486,34 @@ class Bridge:
             self.poses[:, :2], velocities=self.velocity, resources=resources, invader=self.invader
         )
         robots, command = [], np.zeros_like(self.command)
-        for i in range(self.n):
+        listed = self._listed()
+        team = [i for _, i in listed if i is not None]
+        nearby = [  # robots to keep clear of: the team's fresh ones and refused ones standing by
+            *((i, self.poses[i, :2]) for i in team if fresh[i]),
+            *(
+                (None, e["pose"][:2])
+                for e in self.outside.values()
+                if now - e["seen"] <= self.timeout
+            ),
+        ]
+        for rid, i in listed:
+            if i is None:
+                entry = self.outside[rid]
+                target = entry.get("target") or entry["pose"][:2].tolist()
+                robots.append(_stop(rid, target, entry["reason"]))
+                continue
             if not fresh[i]:
                 if not self.stale_logged[i]:
                     log.warning(
                         "bridge: robot %d sent no pose for %.2f s: stopping it",
-                        i,
+                        rid,
                         now - self.seen[i],
                     )
                     self.stale_logged[i] = True
                     self.stats["stale_stops"] += 1
-                robots.append(
-                    {
-                        "id": i,
-                        "target": targets[i].tolist(),
-                        "v": 0.0,
-                        "w": 0.0,
-                        "stopped": True,
-                        "reason": "stale",
-                    }
-                )
+                robots.append(_stop(rid, targets[i].tolist(), "stale"))
                 continue
-            others = np.delete(self.poses[:, :2], i, axis=0)
+            others = np.asarray([p for j, p in nearby if j != i], float).reshape(-1, 2)
             v, w = dwa_command(
                 self.poses[i],
                 self.command[i],
@@ -376,7 +525,7 @@ class Bridge:
             command[i] = (v, w)
             robots.append(
                 {
-                    "id": i,
+                    "id": rid,
                     "target": targets[i].tolist(),
                     "v": v,
                     "w": w,
@@ -403,11 +552,10 @@ class Bridge:
         """Send every robot a stop command (``v = w = 0``, ``"stopped": true``, ``reason``) at
         every address that sent a state (``repeats`` copies, 10 ms apart); returns the message."""
         robots = []
-        for i in range(self.n):
-            target = self._last.get(i, {}).get("target") or self.poses[i, :2].tolist()
-            robots.append(
-                {"id": i, "target": target, "v": 0.0, "w": 0.0, "stopped": True, "reason": reason}
-            )
+        for rid, i in self._listed():
+            last = self.poses[i, :2].tolist() if i is not None else self.outside[rid]["pose"][:2]
+            target = self._last.get(rid, {}).get("target") or list(map(float, last))
+            robots.append(_stop(rid, target, reason))
         message = {"type": "command", "time": time.time(), "robots": robots}
         data = json.dumps(message).encode()
         peers = list(self.peers) if not self._closed else []
@@ -424,7 +572,7 @@ class Bridge:
         if self.halted != reason and peers:
             log.warning(
                 "bridge: sent a stop command (v = w = 0) to all %d robots at %d address%s (%s)",
-                self.n,
+                len(robots),
                 len(peers),
                 "" if len(peers) == 1 else "es",
                 reason,
@@ -466,24 +614,35 @@ class Bridge:
 
     def fleet(self) -> dict:
         """The fleet as the bridge sees it, for the live page: each robot's last pose, how old it
-        is, its last command and whether it is stopped (and why); the message counts, the nominal
-        and the actual control rate, and ``halted`` (why every robot was stopped, or None)."""
+        is, whether it is in the team (``in_team``, its ``slot`` in the env), its last command
+        and whether it is stopped (and why); ``team`` (the ids in it) and ``max_robots``; the
+        message counts, the nominal and the actual control rate, and ``halted`` (why every robot
+        was stopped, or None)."""
         now = time.monotonic()
         robots = []
-        for i in range(self.n):
-            seen = bool(np.isfinite(self.seen[i]))
-            last = self._last.get(i, {"stopped": True, "reason": "no command yet"})
+        for rid, i in self._listed():
+            if i is None:
+                entry = self.outside[rid]
+                pose, at, v, w = entry["pose"], entry["seen"], 0.0, 0.0
+            else:
+                pose, at, (v, w) = self.poses[i], self.seen[i], self.command[i]
+            seen = bool(np.isfinite(at))
+            default = {"stopped": True, "reason": "no command yet"}
+            last = self._last.get(rid, default) if i is not None else None
             robots.append(
                 {
-                    "id": i,
-                    "pose": np.round(self.poses[i], 3).tolist() if seen else None,
-                    "age_s": round(float(now - self.seen[i]), 3) if seen else None,
-                    "v": float(self.command[i, 0]),
-                    "w": float(self.command[i, 1]),
-                    "stopped": bool(last["stopped"]),
-                    "reason": last["reason"],
+                    "id": rid,
+                    "slot": i,
+                    "in_team": i is not None,
+                    "pose": np.round(pose, 3).tolist() if seen else None,
+                    "age_s": round(float(now - at), 3) if seen else None,
+                    "v": float(v),
+                    "w": float(w),
+                    "stopped": True if last is None else bool(last["stopped"]),
+                    "reason": (self.halted or self.outside[rid]["reason"]) if last is None
+                    else last["reason"],
                 }
-            )
+            )  # fmt: skip
         s = self.stats
         latency = list(s["latency_ms"])[-50:]
         actual = 0.0 if self.halted else self.actual_rate()  # stopped: no command moves them
@@ -498,6 +657,11 @@ class Bridge:
             "commands": s["commands"],
             "malformed": s["malformed"],
             "stale_stops": s["stale_stops"],
+            "team": self.team(),
+            "max_robots": self.n,
+            "joined": s["joined"],
+            "dropped": s["dropped"],
+            "refused_robots": s["refused_robots"],
             "latency_ms": float(np.median(latency)) if latency else None,
         }
 

@@ -94,7 +94,11 @@ def run_live(cfg: DictConfig) -> float:
     _warn_if_exposed(live.host, live.get("token"))
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     loop = LiveLoop.from_checkpoint(
-        checkpoint, planner=LLMPlanner.from_config(cfg.llm), device=cfg.device, seed=cfg.seed
+        checkpoint,
+        planner=LLMPlanner.from_config(cfg.llm),
+        device=cfg.device,
+        seed=cfg.seed,
+        max_robots=live.get("max_robots"),
     )
     server = LiveServer(
         loop,
@@ -119,6 +123,7 @@ def run_live(cfg: DictConfig) -> float:
     lat = server.stats["latency_ms"]
     print(
         f"icco live: {loop.ticks} ticks, {server.stats['connections']} page connections, "
+        f"team robots {', '.join(map(str, loop.team))} of at most {loop.raw.n_agents}, "
         f"median tick {np.median(lat) if lat else float('nan'):.1f} ms; totals of episode "
         f"{loop.episode} so far {_totals(loop)}",
         flush=True,
@@ -147,7 +152,10 @@ def run_bridge(cfg: DictConfig) -> float:
         radius=live.robot_radius,
     )
     loop = LiveLoop.from_checkpoint(
-        checkpoint, planner=LLMPlanner.from_config(cfg.llm), device=cfg.device
+        checkpoint,
+        planner=LLMPlanner.from_config(cfg.llm),
+        device=cfg.device,
+        max_robots=live.get("max_robots"),
     )
     bridge = Bridge(
         loop,
@@ -182,7 +190,7 @@ def run_bridge(cfg: DictConfig) -> float:
     if live.fleet:
         fleet = SimulatedFleet(
             bridge.address,
-            n_robots=loop.raw.n_agents,
+            n_robots=len(loop.team),  # the checkpoint's team; live.max_robots leaves room
             n_resources=loop.raw.n_resources,
             limits=limits,
             field_size=loop.raw.field_size,
@@ -218,6 +226,13 @@ def run_bridge(cfg: DictConfig) -> float:
         f"malformed (refused), {s['stale_stops']} stale-robot stops; "
         f"{'-' if rate is None else f'{rate:.1f}'} Hz actual of {live.rate_hz:g} nominal; "
         f"median state-to-command latency {latency:.1f} ms",
+        flush=True,
+    )
+    team = ", ".join(map(str, bridge.team())) or "none"
+    print(
+        f"icco bridge: team at the end: robots {team} (at most {bridge.n}); {s['joined']} joined, "
+        f"{s['dropped']} left after live.timeout_s={live.timeout_s:g} s, {s['refused_robots']} "
+        "refused (team full)",
         flush=True,
     )
     return float(s["commands"])

@@ -4,7 +4,9 @@ Run it beside :class:`~icco_torchrl.live.bridge.Bridge` on one machine to try th
 without robots: it streams the robots' poses (and fixed resources, and an invader walking to
 home) to the bridge as a motion-capture system would, applies the velocity commands it gets
 back after ``latency`` seconds, within the robots' limits, with Gaussian noise on the motion.
-``silence(i)`` stops reporting robot ``i`` (a robot that drops off the network).
+``silence(i)`` stops reporting robot ``i`` (a robot that drops off the network), ``resume(i)``
+brings it back, and ``join(i)`` adds a robot with a new id (a robot switched on mid-run). Robots
+carry any integer ids (``ids``; default ``0..n_robots-1``); commands for other ids are ignored.
 """
 
 from __future__ import annotations
@@ -21,6 +23,9 @@ from icco_torchrl.live.dwa import DEFAULT_LIMITS, RobotLimits
 
 
 class SimulatedFleet:
+    """Robots ``ids`` (default ``0..n_robots-1``) streaming poses to ``bridge_address`` at
+    ``rate_hz`` and driven by its commands (see the module docstring)."""
+
     def __init__(
         self,
         bridge_address,
@@ -33,6 +38,7 @@ class SimulatedFleet:
         limits: RobotLimits = DEFAULT_LIMITS,
         field_size: float = 6.5,
         seed: int = 0,
+        ids=None,
     ):
         self.bridge, self.rate_hz, self.latency, self.noise, self.limits = (
             bridge_address,
@@ -42,7 +48,12 @@ class SimulatedFleet:
             limits,
         )
         self.rng = np.random.default_rng(seed)
-        half = field_size / 2 - 0.5
+        self.half = half = field_size / 2 - 0.5
+        self.ids = list(range(n_robots)) if ids is None else [int(i) for i in ids]
+        if len(set(self.ids)) != len(self.ids):
+            raise ValueError(f"robot ids must differ, got {self.ids}")
+        n_robots = len(self.ids)
+        self._lock = threading.Lock()  # join() may add a robot while run() steps them
         self.poses = np.column_stack(
             [
                 self.rng.uniform(-half, half, (n_robots, 2)),
@@ -60,7 +71,29 @@ class SimulatedFleet:
         self.commands: list[dict] = []
 
     def silence(self, robot: int) -> None:
+        """Robot ``robot`` (an id) stops reporting its pose."""
         self.silenced.add(robot)
+
+    def resume(self, robot: int) -> None:
+        """Robot ``robot`` reports again (it comes back after a silence)."""
+        self.silenced.discard(robot)
+
+    def join(self, robot: int, pose=None) -> None:
+        """A robot with the new id ``robot`` is switched on (at ``pose`` [x, y, theta], else a
+        random one) and reports from the next state on."""
+        if robot in self.ids:
+            raise ValueError(f"robot {robot} is already in the fleet (ids {self.ids})")
+        if pose is None:
+            xy = self.rng.uniform(-self.half, self.half, 2)
+            pose = [*xy, self.rng.uniform(-np.pi, np.pi)]
+        with self._lock:
+            self.ids.append(int(robot))
+            self.poses = np.vstack([self.poses, np.asarray(pose, float).reshape(1, 3)])
+            self.velocity = np.vstack([self.velocity, np.zeros((1, 2))])
+
+    def row(self, robot: int) -> int:
+        """The row of robot ``robot`` (an id) in ``poses`` and ``velocity``."""
+        return self.ids.index(robot)
 
     def send_raw(self, data: bytes) -> None:
         self.sock.sendto(data, self.bridge)
@@ -79,12 +112,19 @@ class SimulatedFleet:
         now = time.monotonic()
         while self.queue and self.queue[0][0] <= now:
             _, msg = self.queue.popleft()
+            rows = {rid: k for k, rid in enumerate(self.ids)}
             for r in msg["robots"]:
+                if r["id"] not in rows:
+                    continue  # not one of these robots
                 v = float(np.clip(r["v"], 0.0, self.limits.max_speed))
                 w = float(np.clip(r["w"], -self.limits.max_turn, self.limits.max_turn))
-                self.velocity[r["id"]] = (v, w)
+                self.velocity[rows[r["id"]]] = (v, w)
 
     def step(self, dt: float) -> None:
+        with self._lock:
+            self._step(dt)
+
+    def _step(self, dt: float) -> None:
         v, w = self.velocity[:, 0], self.velocity[:, 1]
         self.poses[:, 2] += w * dt + self.rng.normal(0, self.noise, len(v))
         self.poses[:, 0] += v * np.cos(self.poses[:, 2]) * dt + self.rng.normal(
@@ -101,11 +141,12 @@ class SimulatedFleet:
         )
 
     def state_message(self) -> bytes:
-        robots = [
-            {"id": i, "pose": self.poses[i].tolist()}
-            for i in range(len(self.poses))
-            if i not in self.silenced
-        ]
+        with self._lock:
+            robots = [
+                {"id": rid, "pose": self.poses[k].tolist()}
+                for k, rid in enumerate(self.ids)
+                if rid not in self.silenced
+            ]
         return json.dumps(
             {
                 "type": "state",
@@ -121,7 +162,8 @@ class SimulatedFleet:
         end = time.monotonic() + max_seconds
         while not stop.is_set() and time.monotonic() < end:
             self._receive()
-            self._apply_due()
+            with self._lock:
+                self._apply_due()
             self.step(period)
             self.sock.sendto(self.state_message(), self.bridge)
             time.sleep(period)

@@ -9,6 +9,10 @@ or a robot bridge needs; :meth:`LiveLoop.instruct` starts planning in a backgrou
 returns at once, so the team keeps moving on its previous waypoints until the plan arrives
 (the next tick applies it). One planner thread serves the loop: a newer instruction supersedes
 (and cancels) one still being planned, so instructions never pile up threads or requests.
+The team can change between ticks (:meth:`LiveLoop.add_robot`, :meth:`LiveLoop.remove_robot`, up
+to the env's ``n_agents``): the others keep their recurrent state, a new robot starts from zero,
+and the instruction in use is planned again for the new team (the planner plans for the present
+robots only).
 Episodes are as long as the policy's training episodes (145 steps): when one ends the next
 starts at once, with the totals set to zero and the plan in use kept. :meth:`LiveLoop.run`
 ticks at a fixed rate (default real time: one env step per ``env.dt`` seconds). No web code
@@ -46,6 +50,64 @@ def _takes_cancel(plan) -> bool:
     except (TypeError, ValueError):
         return False
     return any(p.name == "cancel" or p.kind is p.VAR_KEYWORD for p in params)
+
+
+def _names(team) -> str:
+    return ", ".join(str(r) for r in team)
+
+
+def _restore(path, device: str, seed: int | None, max_robots: int | None, length: dict):
+    """The checkpoint's run on a one-team env of ``max_robots`` robots, and the team it was
+    trained for. At another team size than the trained one only the acting networks' weights
+    (agent, coordinator) are loaded: they read any team; the mixer and the posterior are sized
+    for the trained team and unused here."""
+    from omegaconf import OmegaConf
+
+    from icco_torchrl.training.build import EVAL_SEED_OFFSET, build
+    from icco_torchrl.training.checkpoint import (
+        CheckpointError,
+        check_compatible,
+        load_checkpoint,
+        policy_weights,
+    )
+    from icco_torchrl.training.config import resolve_device, validate
+    from icco_torchrl.training.restore import restore  # heavy: networks and Hydra config
+
+    ckpt = load_checkpoint(path)
+    trained = int((ckpt.get("layout") or {}).get("n_agents") or ckpt["cfg"]["env"]["params"].get(
+        "n_agents", 3))  # fmt: skip
+    if max_robots is not None and (isinstance(max_robots, bool) or int(max_robots) < 1):
+        raise ValueError(f"live.max_robots must be an integer >= 1, got {max_robots!r}")
+    if max_robots is None or int(max_robots) == trained:
+        run = restore(
+            path, num_envs=1, device=device, seed=seed, waypoint_mode="external", **length
+        )
+        return run, trained
+    cfg = validate(OmegaConf.create(ckpt["cfg"]))
+    cfg.device = str(resolve_device(device))
+    run = build(
+        cfg,
+        num_envs=1,
+        seed=cfg.seed + EVAL_SEED_OFFSET if seed is None else seed,
+        waypoint_mode="external",
+        n_agents=int(max_robots),
+        **length,
+    )
+    layout = dict(ckpt.get("layout") or {})
+    same = {k: getattr(run.layout, k) for k in ("n_agents", "n_entities", "state_tokens")}
+    check_compatible({**ckpt, "layout": {**layout, **same}}, cfg, run.layout, path)
+    acting = ("agent_params.", "coordinator_params.", "target_agent_params.",
+              "target_coordinator_params.")  # fmt: skip
+    weights, current = policy_weights(ckpt, run.loss), run.loss.state_dict()
+    loaded = {k: v for k, v in weights.items() if k.startswith(acting)}
+    wrong = sorted(k for k, v in loaded.items() if k not in current or current[k].shape != v.shape)
+    if wrong or not loaded:
+        raise CheckpointError(
+            f"checkpoint {path}: its agent does not read a team of live.max_robots={max_robots} "
+            f"(weights {wrong[:3]} differ)"
+        )
+    run.loss.load_state_dict({**current, **loaded})
+    return run, trained
 
 
 def _np(tensor: torch.Tensor) -> np.ndarray:
@@ -103,6 +165,7 @@ class TickState:
     invader_active: np.ndarray  # [I]
     carry: np.ndarray  # [N]
     z: np.ndarray | None  # [N, z_dim] (ICCO) or None
+    present: np.ndarray | None = None  # [N] bool: the robots in the team (draw only these)
     events: dict = field(default_factory=dict)  # this step's counts and instruction reward
     totals: dict = field(default_factory=dict)  # running sums over this episode
     planner: dict = field(default_factory=dict)
@@ -124,13 +187,16 @@ class LiveLoop:
         policy: maps the root TensorDict to one with the action (a restored trained policy, or a
             reference policy); run greedily.
         planner: an :class:`~icco_torchrl.instructions.LLMPlanner`, or None (instructions refused).
+        team: the robots in the team from the start (indices below the env's ``n_agents``);
+            None: all of them. The team outlasts episodes and resets; :meth:`add_robot` and
+            :meth:`remove_robot` change it.
 
     ``on_status``, when set, is called with the new :class:`PlannerStatus` each time it changes
     (from the thread that changed it: the caller's, or the planner's thread). ``totals`` are
     this episode's sums; ``episode`` counts the episodes begun.
     """
 
-    def __init__(self, env, policy, planner=None):
+    def __init__(self, env, policy, planner=None, *, team=None):
         raw = base_env(env)
         if raw.num_envs != 1 or raw.waypoint_mode != "external":
             raise ValueError(
@@ -151,8 +217,17 @@ class LiveLoop:
         self._worker: threading.Thread | None = None  # the planner thread, while it has work
         self._generation = 0  # bumped by each instruction and reset: older plans are dropped
         self._cancellable = planner is not None and _takes_cancel(planner.plan)
+        self._plan_instruction: str | None = None  # the instruction of the plan in use
+        self._team = np.ones(raw.n_agents, bool)
+        if team is not None:
+            members = [self._robot(r) for r in team]
+            if not members:
+                raise ValueError("a live team needs at least one robot, got team=[]")
+            self._team[:] = False
+            self._team[members] = True
         with torch.no_grad():
             self.td = env.reset()
+            self._keep_team()
 
     @classmethod
     def from_checkpoint(
@@ -163,17 +238,21 @@ class LiveLoop:
         device: str = "cpu",
         seed: int | None = None,
         episode_steps: int | None = None,
+        max_robots: int | None = None,
     ) -> LiveLoop:
         """The checkpoint's policy on a one-team env, in episodes of ``episode_steps`` (default:
         the length it was trained on; a policy far past it acts on step counts it never saw);
-        the next episode starts when one ends."""
-        from icco_torchrl.training.restore import restore  # heavy: networks and Hydra config
+        the next episode starts when one ends.
 
+        ``max_robots`` (``live.max_robots``) is the most robots the team may hold (the env's
+        ``n_agents``; default: the checkpoint's team). The team starts as the checkpoint's (or
+        the first ``max_robots`` robots, when fewer); :meth:`add_robot` grows it up to
+        ``max_robots``. The agents and the coordinator read any team (attention over tokens);
+        the mixer and the posterior, sized for the trained team, are not used when acting."""
         length = {} if episode_steps is None else {"max_steps": int(episode_steps)}
-        restored = restore(
-            path, num_envs=1, device=device, seed=seed, waypoint_mode="external", **length
-        )
-        return cls(restored["env"], restored["policy"], planner)
+        restored, trained = _restore(path, device, seed, max_robots, length)
+        team = None if trained >= restored["env"].base_env.n_agents else range(trained)
+        return cls(restored["env"], restored["policy"], planner, team=team)
 
     # ------------------------------------------------------------------ instructions
     def instruct(self, instruction: str) -> None:
@@ -198,27 +277,30 @@ class LiveLoop:
             raise ValueError(
                 "this live loop has no planner: give one (LLMPlanner) to take instructions"
             )
-        instruction = instruction.strip()
         with self._lock:
-            self._generation += 1
-            self._job = (
-                self._generation,
-                instruction,
-                self.raw.pos[0].cpu().numpy().copy(),
-                self.raw.waypoints[0].cpu().numpy().copy(),
-                self.raw.res_pos[0].cpu().numpy().copy(),
-                self.raw.inv_pos[0][self.raw.inv_active[0]].cpu().numpy().copy(),
+            self._queue(instruction.strip())
+
+    def _queue(self, instruction: str) -> None:
+        """Plan ``instruction`` for the team as it is now (call under the lock)."""
+        self._generation += 1
+        team = np.flatnonzero(self._team)
+        self._job = (
+            self._generation,
+            instruction,
+            team,
+            self.raw.pos[0].cpu().numpy().copy(),
+            self.raw.waypoints[0].cpu().numpy().copy(),
+            self.raw.res_pos[0].cpu().numpy().copy(),
+            self.raw.inv_pos[0][self.raw.inv_active[0]].cpu().numpy().copy(),
+        )
+        if self._cancel is not None:
+            self._cancel.set()
+        self._set_status(PlannerStatus("thinking", instruction, requests=self.status.requests + 1))
+        if self._worker is None:
+            self._worker = threading.Thread(
+                target=self._work, daemon=True, name="icco-live-planner"
             )
-            if self._cancel is not None:
-                self._cancel.set()
-            self._set_status(
-                PlannerStatus("thinking", instruction, requests=self.status.requests + 1)
-            )
-            if self._worker is None:
-                self._worker = threading.Thread(
-                    target=self._work, daemon=True, name="icco-live-planner"
-                )
-                self._worker.start()
+            self._worker.start()
 
     def _work(self) -> None:
         """The planner thread: plan the newest instruction until none waits, then end."""
@@ -233,14 +315,14 @@ class LiveLoop:
             self._plan(job, cancel)
 
     def _plan(self, job: tuple, cancel: threading.Event) -> None:
-        generation, instruction, positions, previous, resources, invader = job
+        generation, instruction, team, positions, previous, resources, invader = job
         start = time.perf_counter()
         extra = {"cancel": cancel} if self._cancellable else {}
         try:
-            result = self.planner.plan(
+            result = self.planner.plan(  # the present robots only: a plan for the team that is in
                 instruction,
-                positions,
-                previous=previous,
+                positions[team],
+                previous=previous[team],
                 resources=resources,
                 invader=invader,
                 **extra,
@@ -257,7 +339,9 @@ class LiveLoop:
             latency = time.perf_counter() - start
             requests = self.status.requests
             if ok:
-                self._pending = np.asarray(waypoints, dtype=np.float32)
+                full = previous.astype(np.float32)  # absent robots keep theirs (ignored)
+                full[team] = np.asarray(waypoints, dtype=np.float32).reshape(full[team].shape)
+                self._pending, self._plan_instruction = full, instruction
                 self._set_status(
                     PlannerStatus("used", instruction, None, latency, requests, reading)
                 )
@@ -296,6 +380,7 @@ class LiveLoop:
             self.td = step_mdp(td)
             if bool(nxt.get("done").any()):  # the episode ended: the next tick starts another
                 self.td = self.env.reset()
+                self._keep_team()
                 self.episode += 1
                 self.totals = {k: 0.0 for k in self.totals}
                 if self._plan_in_use is not None:  # the instruction still stands
@@ -320,6 +405,7 @@ class LiveLoop:
             invader_active=_np(raw.inv_active[0]),
             carry=_np(raw.carry[0]),
             z=None if z is None else _np(z[0]),
+            present=_np(raw.present[0]),
             events=events,
             totals=dict(self.totals),
             planner=asdict(self.status),
@@ -339,14 +425,103 @@ class LiveLoop:
         planner's request count is kept."""
         with self._lock, torch.no_grad():
             self.td = self.env.reset()
+            self._keep_team()
             self._generation += 1
             self._job, self._pending, self._plan_in_use = None, None, None
+            self._plan_instruction = None
             if self._cancel is not None:
                 self._cancel.set()
             self.episode += 1
             self.totals = {k: 0.0 for k in self.totals}
             self._set_status(PlannerStatus(requests=self.status.requests))
             return self._state(None, {})
+
+    # ------------------------------------------------------------------ team changes
+    @property
+    def team(self) -> list[int]:
+        """The robots in the team (indices below ``raw.n_agents``)."""
+        return np.flatnonzero(self._team).tolist()
+
+    def add_robot(self, robot: int | None = None) -> int:
+        """Bring a robot into the team between two ticks and return its index (``robot``, or the
+        lowest one not in the team). It appears at rest at a free point of the field with zero
+        recurrent state, previous action and z; the others keep theirs. The instruction in use
+        (or the one being planned) is planned again for the new team. A full team, a robot
+        already in it or an index out of range is a ``ValueError`` of one line (nothing
+        changes)."""
+        n = self.raw.n_agents
+        with self._lock, torch.no_grad():
+            if robot is None:
+                free = np.flatnonzero(~self._team)
+                if not len(free):
+                    raise ValueError(
+                        f"the team is full: {n} robots, the most this loop holds (live.max_robots)"
+                    )
+                robot = int(free[0])
+            r = self._robot(robot)
+            if self._team[r]:
+                raise ValueError(f"robot {r} is already in the team (robots {_names(self.team)})")
+            self.raw.add_robot(0, r, tensordict=self.td)
+            self._team[r] = True
+            for key in (("agents", "rnn_hidden"), ("agents", "prev_action"), ("agents", "z"),
+                        ("agents", "z_noise")):  # fmt: skip
+                value = self.td.get(key, None)
+                if value is not None:
+                    value = value.clone()
+                    value[0, r] = 0
+                    self.td.set(key, value)
+            if self._plan_in_use is not None:  # until the new plan: it holds where it appeared
+                self._plan_in_use = self._plan_in_use.copy()
+                self._plan_in_use[r] = _np(self.raw.waypoints[0, r])
+            self._replan()
+        return r
+
+    def remove_robot(self, robot: int) -> None:
+        """Take ``robot`` out of the team between two ticks: it stops, drops what it carries and
+        is left out of everything; the others keep their recurrent state, and the instruction in
+        use is planned again for them. A robot not in the team, the last robot or an index out
+        of range is a ``ValueError`` of one line (nothing changes)."""
+        with self._lock, torch.no_grad():
+            r = self._robot(robot)
+            if not self._team[r]:
+                raise ValueError(f"robot {r} is not in the team (robots {_names(self.team)})")
+            if self._team.sum() == 1:
+                raise ValueError(f"robot {r} is the last robot: a team keeps at least one")
+            self.raw.remove_robot(0, r, tensordict=self.td)
+            self._team[r] = False
+            self._replan()
+
+    def _robot(self, robot) -> int:
+        n = self.raw.n_agents
+        if isinstance(robot, (bool, np.bool_)) or not isinstance(robot, (int, np.integer)):
+            shown = repr(robot) if len(repr(robot)) <= 40 else repr(robot)[:37] + "..."
+            raise ValueError(f"robot must be an integer in 0..{n - 1}, got {shown}")
+        if not 0 <= robot < n:
+            raise ValueError(f"robot must be an integer in 0..{n - 1}, got {robot}")
+        return int(robot)
+
+    def _replan(self) -> None:
+        """After a team change (under the lock): a plan made for the old team is dropped and its
+        instruction planned again for the new one (with a planner, when there is one)."""
+        if self.planner is None:
+            return
+        thinking = self.status.state == "thinking"
+        instruction = self.status.instruction if thinking else self._plan_instruction
+        if self._pending is not None:
+            self._pending = None
+            instruction = self._plan_instruction
+        if instruction is not None:
+            self._queue(instruction)
+
+    def _keep_team(self) -> None:
+        """Make the env's team this loop's after a reset (which brings every robot in)."""
+        present = _np(self.raw.present[0])
+        if np.array_equal(present, self._team):
+            return
+        for r in np.flatnonzero(self._team & ~present):
+            self.raw.add_robot(0, int(r), tensordict=self.td)
+        for r in np.flatnonzero(present & ~self._team):
+            self.raw.remove_robot(0, int(r), tensordict=self.td)
 
     def act_on(
         self, positions, *, velocities=None, resources=None, invader=None

@@ -30,8 +30,13 @@ WebSocket protocol (JSON text frames):
   ``{"type": "end", "reason", "ticks"}``, then the server closes the connection (code 1000);
 * page -> server: ``{"type": "instruct", "text": "Go right"}``, ``{"type": "pause"}``,
   ``{"type": "resume"}``, ``{"type": "step"}`` (one tick while paused), ``{"type": "reset"}``,
-  ``{"type": "speed", "value": x}`` with x in ``SPEEDS``. A request over ``max_message`` bytes
-  closes the connection (code 1009); the page never sends one.
+  ``{"type": "speed", "value": x}`` with x in ``SPEEDS``, ``{"type": "add_robot"}`` (the
+  lowest robot not in the team; ``"robot": i`` names one) and ``{"type": "remove_robot",
+  "robot": i}``: the team changes between two ticks (:meth:`~icco_torchrl.live.loop.LiveLoop.
+  add_robot`), up to ``n_agents`` robots (``live.max_robots``); a full team, a robot not in it,
+  the last robot or a bad index is answered with an error and the loop goes on. Ticks carry
+  ``present`` (``[n_agents]`` bools: the robots in the team). A request over ``max_message``
+  bytes closes the connection (code 1009); the page never sends one.
 
 A tab that disconnects or errs is dropped; the loop keeps ticking with no tab at all.
 
@@ -70,7 +75,7 @@ log = logging.getLogger("icco.live")
 PAGE = Path(__file__).with_name("static") / "live.html"
 OK = {"type": "ok"}
 SPEEDS = (0.25, 0.5, 1.0, 2.0, 4.0, 8.0)
-CONTROLS = ("pause", "resume", "step", "reset", "speed")
+CONTROLS = ("pause", "resume", "step", "reset", "speed", "add_robot", "remove_robot")
 MAX_MESSAGE = 64 * 1024  # bytes of one page request; a larger one closes the connection (1009)
 RATE_LIMIT = 20.0  # requests a second one connection may send, after a burst of BURST
 BURST = 40
@@ -418,6 +423,7 @@ class LiveServer:
             "home_radius": raw.home_radius,
             "vision_radius": raw.vision_radius,
             "n_agents": raw.n_agents,
+            "team": self.loop.team,
             "dt": raw.dt,
             "agent_radius": raw.agent_radius,
             "resource_radius": raw.resource_radius,
@@ -567,6 +573,11 @@ class LiveServer:
             shown = repr(kind) if len(repr(kind)) <= 40 else repr(kind)[:37] + "..."
             return f"unknown request type {shown}; expected instruct, {', '.join(CONTROLS)}"
         if not self.drive:
+            if kind in ("add_robot", "remove_robot"):
+                return (
+                    "this page shows robots driven by the bridge: its team is the robots that "
+                    "report (a new one joins, a silent one leaves after live.timeout_s)"
+                )
             return (
                 "this page shows robots driven by the bridge: pause, step, reset and speed are "
                 "not available"
@@ -584,6 +595,19 @@ class LiveServer:
         elif kind == "reset":
             self._show("reset")
             return None
+        elif kind in ("add_robot", "remove_robot"):
+            robot = msg.get("robot")
+            if kind == "remove_robot" and robot is None:
+                return (
+                    "remove_robot needs the robot to remove: {'type': 'remove_robot', 'robot': i}"
+                )
+            try:  # between two ticks: the loop's lock
+                if kind == "add_robot":
+                    self.loop.add_robot(robot)
+                else:
+                    self.loop.remove_robot(robot)
+            except ValueError as err:
+                return str(err)
         elif kind == "speed":
             value = msg.get("value")
             if isinstance(value, bool) or not isinstance(value, (int, float)):

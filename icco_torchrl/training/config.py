@@ -345,8 +345,12 @@ class LiveConfig:
     web: bool = False
     # Ticks per second (10 = real time at dt 0.1 s); the page's speed control scales it.
     rate_hz: float = _field(10.0, gt=0)
-    # A robot without a pose for this long (s) is sent a stop command.
+    # A robot without a pose for this long (s) is sent a stop command and leaves the team (the
+    # bridge); it joins again when it reports again.
     timeout_s: float = _field(0.5, gt=0)
+    # The most robots the team may hold (the page's "Add robot", robots joining the bridge);
+    # null: the checkpoint's team. The agents and the coordinator read any team.
+    max_robots: Optional[int] = _field(None, ge=1, le=32)
     # Also run the simulated fleet (unicycles with noise and latency) in this process.
     fleet: bool = False
     # Stop after this many seconds (the page then shows "run ended"); null: until Ctrl-C / SIGTERM.
