@@ -226,3 +226,130 @@ def test_eval_of_an_unreadable_checkpoint_is_one_plain_line(tmp_path, capsys, ma
     err = capsys.readouterr().err
     assert code == 2 and err.startswith("icco eval: ") and len(err.strip().splitlines()) == 1, err
     assert str(path) in err and "Traceback" not in err and "KeyError" not in err
+
+
+# ---------------------------------------------------------------- another team size, another beta
+def test_a_checkpoint_trained_on_3_robots_is_evaluated_with_5(checkpoints, tmp_path, capsys):
+    out = tmp_path / "eval"
+    code = icco(
+        "eval",
+        f"checkpoint={checkpoints['icco']}",
+        "eval.protocol=quadrants",
+        "eval.trials=2",
+        "eval.steps=4",
+        "eval.team_size=5",
+        "eval.references=[blend]",
+        f"eval.out_dir={out}",
+        f"hydra.run.dir={tmp_path / 'hydra'}",
+    )
+    assert code == 0, capsys.readouterr().err
+    payload = json.loads((out / "quadrants.json").read_text())
+    assert payload["team_size"] == 5 and "teams of 5 robots" in (out / "quadrants.md").read_text()
+    [entry] = payload["checkpoints"]
+    assert entry["team_size"] == 5 and entry["trained_team_size"] == 3
+    assert "n_agents: trained 3, evaluated 5" in entry["env_differences"]
+    episode = {r["method"]: r for r in payload["summary"] if r["segment"] == "episode"}
+    assert set(episode) == {"ICCO", "blend (r=1.75 m)"}  # the reference at the same size
+    # beta = 0: every robot gets z every T = 4 steps of the 16; a policy without one has no rate.
+    assert episode["ICCO"]["broadcast_rate"] == pytest.approx(0.25)
+    assert episode["blend (r=1.75 m)"]["broadcast_rate"] is None
+
+
+def test_another_team_size_loads_the_acting_weights_and_acts_for_every_robot(checkpoints):
+    import torch
+
+    from icco_torchrl.training.checkpoint import load_checkpoint
+    from icco_torchrl.training.restore import restore
+
+    saved = load_checkpoint(checkpoints["icco"])["loss"]
+    run = restore(checkpoints["icco"], num_envs=2, n_agents=5)
+    assert run.layout.n_agents == 5 and run.env.base_env.n_agents == 5
+    state = run.loss.state_dict()
+    acting = [k for k in saved if k.startswith(("agent_params.", "coordinator_params."))]
+    assert len(acting) > 10 and all(torch.equal(state[k], saved[k]) for k in acting)
+    # The QMixer of 5 robots has other shapes than the checkpoint's: it stays fresh.
+    mixer = [k for k in saved if k.startswith("mixer_params.")]
+    assert any(state[k].shape != saved[k].shape for k in mixer)
+    acted = run.policy(run.env.reset())
+    assert acted.get(("agents", "action")).shape[:2] == (2, 5)
+
+
+@pytest.fixture(scope="module")
+def flat_checkpoint(tmp_path_factory):
+    return smoke_checkpoints(tmp_path_factory, ["qmix_full_flat"])["qmix_full_flat"]
+
+
+def test_networks_tied_to_one_team_size_are_refused_at_another_in_one_line(
+    flat_checkpoint, tmp_path, capsys
+):
+    quick = ("eval.trials=2", "eval.steps=4", "eval.references=[]")
+    code = icco(
+        "eval",
+        f"checkpoint={flat_checkpoint}",
+        "eval.team_size=5",
+        *quick,
+        f"hydra.run.dir={tmp_path}",
+    )
+    err = capsys.readouterr().err
+    assert code == 2 and err.startswith("icco eval: ") and len(err.strip().splitlines()) == 1, err
+    assert "cannot act in a team of 5 robots (trained with n_agents=3)" in err
+    assert "state_encoder=flat" in err and "eval.team_size=3" in err
+    # At its own size it is evaluated as before.
+    out = tmp_path / "own"
+    code = icco(
+        "eval",
+        f"checkpoint={flat_checkpoint}",
+        "eval.team_size=3",
+        *quick,
+        f"eval.out_dir={out}",
+        f"hydra.run.dir={tmp_path}",
+    )
+    assert code == 0 and (out / "random_walk.json").is_file()
+
+
+@pytest.mark.parametrize(
+    "override, field",
+    [
+        ("eval.team_size=0", "eval.team_size"),
+        ("eval.broadcast_threshold=-0.5", "eval.broadcast_threshold"),
+    ],
+)
+def test_a_bad_team_size_or_beta_is_one_line_naming_the_field(
+    checkpoints, tmp_path, capsys, override, field
+):
+    code = icco("eval", f"checkpoint={checkpoints['icco']}", override, f"hydra.run.dir={tmp_path}")
+    err = capsys.readouterr().err
+    assert code == 2 and len(err.strip().splitlines()) == 1 and field in err, err
+
+
+def test_checkpoints_of_different_team_sizes_need_an_explicit_one(checkpoints, tmp_path):
+    from icco_torchrl.evaluation.runner import team_size
+    from icco_torchrl.training.checkpoint import load_checkpoint, save_checkpoint
+
+    four = load_checkpoint(checkpoints["icco"])
+    four["cfg"]["env"]["params"]["n_agents"] = 4
+    save_checkpoint(tmp_path / "four.pt", four)
+    both = [checkpoints["icco"], tmp_path / "four.pt"]
+    with pytest.raises(ValueError, match="different team sizes .*: give eval.team_size=K"):
+        team_size(compose_config([]), both)
+    assert team_size(compose_config(["eval.team_size=6"]), both) == 6
+    assert team_size(compose_config([]), both[1:]) == 4  # default: the checkpoints' own
+
+
+def test_the_broadcast_threshold_override_reaches_the_coordinator(checkpoints):
+    from icco_torchrl.evaluation.protocols import quadrant_schedule, run_schedule, schedule_env
+    from icco_torchrl.modules.coordinator import Coordinator
+
+    rates = {}
+    for beta in (None, 1e9):
+        restored = schedule_env(checkpoints["icco"], 16, 2, broadcast_threshold=beta)
+        coordinators = [m for m in restored.policy.modules() if isinstance(m, Coordinator)]
+        assert coordinators and {c.threshold for c in coordinators} == {beta or 0.0}
+        assert restored.cfg.method.broadcast_threshold == (beta or 0.0)
+        run = run_schedule(restored.env, restored.policy, quadrant_schedule(4), 2)
+        rates[beta] = float(run.per_step["broadcast_rate"].mean())
+    assert rates[None] == pytest.approx(0.25)  # the checkpoint's beta = 0: every T = 4 steps
+    assert rates[1e9] == pytest.approx(1 / 16)  # z never moves that far: only the first step's
+    qmix = schedule_env(checkpoints["qmix"], 16, 2, broadcast_threshold=0.5)  # nothing to set
+    run = run_schedule(qmix.env, qmix.policy, quadrant_schedule(4), 2)
+    assert all(r["broadcast_rate"] != r["broadcast_rate"] for r in run.rows)  # NaN: no coordinator

@@ -5,6 +5,15 @@
 
 ``eval.checkpoints`` (paths or globs) compares several checkpoints, one row per method.
 
+    icco eval checkpoint=PATH eval.protocol=quadrants eval.team_size=5     # another team size
+    icco eval checkpoint=PATH eval.broadcast_threshold=0.5                  # another beta
+
+``eval.team_size`` runs every checkpoint and reference with that many robots (default: the
+checkpoints' ``n_agents``); a checkpoint trained on another size acts zero-shot when its agent
+and coordinator read any team, and is refused in one line otherwise.
+``eval.broadcast_threshold`` replaces the coordinators' beta (no retraining); the tables then
+report ``broadcast_rate``, the share of robot-steps on which a robot received a z.
+
 Outputs go to ``eval.out_dir`` or to ``eval_<protocol>/`` next to the checkpoint(s) (for the
 demo policy and other checkpoints that ship with the project, to
 ``runs/<checkpoint name>/eval_<protocol>/``: :func:`~icco_torchrl.commands.results_dir`); what

@@ -26,9 +26,11 @@ from icco_torchrl.training.logger import read_column  # noqa: F401  (re-exported
 
 # Summed over steps: team reward, its instruction part, its task part, and the event counts.
 ADDITIVE = ("reward", "task_reward", "inst_reward", *EVENTS)
-# Averaged over steps: distance (m) from each robot to its nearest waypoint, and the fraction of
-# robots strictly inside the instructed quadrant (NaN for segments without a quadrant).
-AVERAGED = ("waypoint_dist", "in_quadrant")
+# Averaged over steps: distance (m) from each robot to its nearest waypoint, the fraction of
+# robots strictly inside the instructed quadrant (NaN for segments without a quadrant) and the
+# broadcast rate, the share of present robots that received a coordinator's z (NaN without one;
+# over a whole segment: the share of robot-steps, 1/T when every robot gets z every T steps).
+AVERAGED = ("waypoint_dist", "in_quadrant", "broadcast_rate")
 METRICS = ADDITIVE + AVERAGED
 EPISODE = "episode"  # the segment name of a whole-episode row
 TASK_REWARDS = ("pick_reward", "collect_reward", "defense_reward", "invasion_penalty")
@@ -45,8 +47,17 @@ def method_label(cfg: Mapping, suffix: str = "") -> str:
     return label
 
 
-def step_values(env, nxt, waypoints: torch.Tensor, quadrant: int | None) -> dict[str, torch.Tensor]:
-    """This step's ``[B]`` values from the raw env (after the step) and its ``"next"`` td."""
+def step_values(
+    env,
+    nxt,
+    waypoints: torch.Tensor,
+    quadrant: int | None,
+    sent: torch.Tensor | None = None,
+    present: torch.Tensor | None = None,
+) -> dict[str, torch.Tensor]:
+    """This step's ``[B]`` values from the raw env (after the step) and its ``"next"`` td;
+    ``sent [B, N, 1]`` marks the robots a coordinator sent z to, among ``present [B, N]`` (default:
+    every robot)."""
     reward = nxt.get("reward").reshape(-1).float()
     inst = nxt.get(("events", "inst_reward")).float()
     out = {"reward": reward, "task_reward": reward - inst, "inst_reward": inst}
@@ -58,6 +69,12 @@ def step_values(env, nxt, waypoints: torch.Tensor, quadrant: int | None) -> dict
     else:
         signs = torch.tensor(QUADRANT_SIGNS[quadrant], device=env.pos.device)
         out["in_quadrant"] = (env.pos * signs > 0).all(-1).float().mean(-1)
+    if sent is None:
+        out["broadcast_rate"] = torch.full_like(reward, math.nan)
+    else:
+        sent = sent.reshape(sent.shape[0], -1).float()
+        team = torch.ones_like(sent) if present is None else present.reshape(sent.shape).float()
+        out["broadcast_rate"] = (sent * team).sum(-1) / team.sum(-1).clamp_min(1.0)
     return out
 
 
@@ -123,7 +140,7 @@ def markdown_table(
     """A Markdown table of ``segment`` rows, one per method (mean ± std over trials); methods
     in ``missing`` get a row saying so, so a comparison never silently loses one. Metrics
     without a value in any row (``in_quadrant`` without quadrants) are left out."""
-    digits = {"waypoint_dist": 2, "in_quadrant": 2}
+    digits = {"waypoint_dist": 2, "in_quadrant": 2, "broadcast_rate": 3}
     rows = [row for row in summary if row["segment"] == segment]
     metrics = (
         [m for m in metrics if any(math.isfinite(row[m]) for row in rows)]

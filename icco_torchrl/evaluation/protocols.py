@@ -122,9 +122,13 @@ def run_schedule(
                 if new is not None:
                     raw.write_waypoints(td, new)
                 waypoints.append(raw.waypoints.clone())
+                present = raw.present  # the team the action was chosen for
                 td = env.step(policy(td))
+                sent = td.get(("agents", "z_sent"), None)  # a coordinator's broadcast this step
                 record_state()
-                values.append(step_values(raw, td.get("next"), waypoints[-1], source.quadrant))
+                values.append(
+                    step_values(raw, td.get("next"), waypoints[-1], source.quadrant, sent, present)
+                )
                 td = step_mdp(td)
 
     trajectory = {key: torch.stack(v).cpu().numpy() for key, v in states.items()}
@@ -181,11 +185,14 @@ def schedule_env(
     *,
     device: str = "cpu",
     seed: int | None = None,
+    broadcast_threshold: float | None = None,
     **env_overrides,
 ) -> dict:
     """:func:`~icco_torchrl.training.restore.restore` with an env fit for a schedule:
     ``num_envs=trials``, ``max_steps=total_steps``, external waypoints. ``env_overrides`` may
-    change other env parameters; layout changes are refused there (``CheckpointError``)."""
+    change other env parameters (``n_agents``: another team size, for acting networks that read
+    any team); layout changes are refused there (``CheckpointError``). ``broadcast_threshold``
+    replaces the coordinator's beta (None: the checkpoint's)."""
     from icco_torchrl.training.restore import restore  # heavy (networks, Hydra config)
 
     if isinstance(trials, bool) or not isinstance(trials, int) or trials < 1:
@@ -195,5 +202,6 @@ def schedule_env(
         num_envs=trials,
         device=device,
         seed=seed,
+        broadcast_threshold=broadcast_threshold,
         **{**env_overrides, "max_steps": total_steps, "waypoint_mode": "external"},
     )

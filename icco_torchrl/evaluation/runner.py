@@ -8,10 +8,14 @@ checkpoint and on the reference policies; :func:`write_report` writes the tables
 Checkpoints of one method (several seeds) are pooled into one table row. Every checkpoint is
 evaluated in the env the command line composes (by default the paper's task), so all methods
 are scored by the same rewards; parameters that differ from a checkpoint's training env are
-reported, and a different observation layout is refused. All checkpoints face the same initial
-configurations (the env seed is ``seed + EVAL_SEED_OFFSET``). Outputs: ``<name>_trials.csv``
-(one row per checkpoint, trial and segment, plus the whole episode), ``<name>_summary.csv``,
-``<name>.json``, ``<name>.md`` and figures (PNG + PDF, GIFs on request).
+reported, and a different observation layout is refused. The team size is ``eval.team_size``
+(default: the checkpoints' ``n_agents``, which must then agree): a checkpoint trained on another
+size acts zero-shot when its acting networks read any team
+(:func:`~icco_torchrl.training.restore.restore`), and ``eval.broadcast_threshold`` replaces the
+coordinators' beta. All checkpoints face the same initial configurations (the env seed is
+``seed + EVAL_SEED_OFFSET``). Outputs: ``<name>_trials.csv`` (one row per checkpoint, trial and
+segment, plus the whole episode), ``<name>_summary.csv``, ``<name>.json``, ``<name>.md`` and
+figures (PNG + PDF, GIFs on request).
 """
 
 from __future__ import annotations
@@ -118,6 +122,25 @@ class Evaluation:
     checkpoints: list = field(default_factory=list)  # path, method, seed, frames, env differences
     sources: list = field(default_factory=list)  # per-segment counters of the LLM sources
     gifs: list = field(default_factory=list)
+    team_size: int | None = None  # the robots of every evaluated team
+
+
+def team_size(cfg: DictConfig, paths: Sequence[Path]) -> int:
+    """``eval.team_size``, or the ``n_agents`` every checkpoint was trained with (checkpoints of
+    different sizes need an explicit one: the references run one size)."""
+    if cfg.eval.team_size is not None:
+        size = cfg.eval.team_size
+        if isinstance(size, bool) or not isinstance(size, int) or size < 1:
+            raise ValueError(f"config field 'eval.team_size' must be an integer >= 1, got {size!r}")
+        return size
+    trained = {str(p): load_checkpoint(p)["cfg"]["env"]["params"]["n_agents"] for p in paths}
+    if len(set(trained.values())) > 1:
+        raise ValueError(
+            "the checkpoints were trained for different team sizes ("
+            + ", ".join(f"{p}: {n}" for p, n in trained.items())
+            + "): give eval.team_size=K"
+        )
+    return int(next(iter(trained.values())))
 
 
 def _restore(cfg: DictConfig, path: Path, total: int, eval_params: dict) -> dict:
@@ -129,6 +152,7 @@ def _restore(cfg: DictConfig, path: Path, total: int, eval_params: dict) -> dict
             cfg.eval.trials,
             device=cfg.device,
             seed=cfg.seed + EVAL_SEED_OFFSET,
+            broadcast_threshold=cfg.eval.broadcast_threshold,
             **eval_params,
         )
     except CheckpointError as err:
@@ -155,8 +179,9 @@ def evaluate_checkpoints(
         cfg.train.threads
     )  # tiny networks: extra threads only contend on shared CPUs
     e = cfg.eval
-    eval_params = OmegaConf.to_container(cfg.env.params, resolve=True)
-    out = Evaluation()
+    size = team_size(cfg, paths)
+    eval_params = {**OmegaConf.to_container(cfg.env.params, resolve=True), "n_agents": size}
+    out = Evaluation(team_size=size)
     total = check_schedule(make_schedule(0), e.trials)
     for path in paths:
         restored = _restore(cfg, path, total, eval_params)
@@ -175,6 +200,14 @@ def evaluate_checkpoints(
                 seed=seed,
                 frames=restored["checkpoint"].get("frames"),
                 env_differences=diffs,
+                team_size=size,
+                trained_team_size=trained["env"]["params"]["n_agents"],
+                trained_team_sizes=trained["train"].get("team_sizes"),
+                broadcast_threshold=(
+                    trained["method"]["broadcast_threshold"]
+                    if trained["method"]["coordinator"]
+                    else None
+                ),
             )
         )
         for episode in range(e.episodes):
@@ -247,7 +280,9 @@ def write_report(
     steps = {r["segment"]: r["steps"] for r in rows}
     segments = [s for s in steps if s != EPISODE]
     header = (
-        f"# {title}\n\n{e.trials} trials x {e.episodes} episode(s) per checkpoint; segments: "
+        f"# {title}\n\n{e.trials} trials x {e.episodes} episode(s) per checkpoint"
+        + (f", teams of {result.team_size} robots" if result.team_size else "")
+        + "; segments: "
         + ", ".join(f"{s} ({steps[s]} steps)" for s in segments)
         + ".\nMean ± std over trials (seeds pooled). Rewards are team totals (sum over robots).\n"
     )
@@ -276,6 +311,8 @@ def write_report(
             **(meta or {}),
             title=title,
             name=name,
+            team_size=result.team_size,
+            broadcast_threshold=e.broadcast_threshold,
             trials=e.trials,
             episodes=e.episodes,
             segments=segments,

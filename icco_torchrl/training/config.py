@@ -290,6 +290,11 @@ class EvalConfig:
     references: list[str] = _field(list(REFERENCE_POLICIES))
     # Radius (m) of the blend reference: task within r, follow otherwise.
     blend_radius: float = _field(1.75, ge=0)
+    # Robots in the evaluation env (references too); null: the checkpoints' n_agents. Another size
+    # needs acting networks that read any team (the default encoders; docs/method.md).
+    team_size: Optional[int] = _field(None, ge=1)
+    # The coordinator's broadcast threshold (beta) for this evaluation; null: each checkpoint's.
+    broadcast_threshold: Optional[float] = _field(None, ge=0)
 
 
 @dataclass
