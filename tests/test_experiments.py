@@ -4,6 +4,7 @@ after hours), and the README's count of the VMAS example's ICCO lines is the exa
 from __future__ import annotations
 
 import importlib.util
+import json
 from pathlib import Path
 
 from icco_torchrl.training.build import compose_config
@@ -110,3 +111,143 @@ def test_a_sweeps_note_is_quoted_on_its_page_and_absent_without_one():
     report = _load(ROOT / "experiments" / "four_quadrants" / "report.py")
     assert report.sweep_note({}) == ""
     assert report.sweep_note({"note": "**Recipe.** a\n\nb\n"}) == "> **Recipe.** a\n>\n> b\n\n"
+
+
+def test_team_size_runs_compose_with_the_any_team_networks_and_their_team_sizes():
+    run = _load(ROOT / "experiments" / "team_size" / "run.py")
+    for budget in (["experiment=repro_cpu"], list(run.SMOKE_BUDGET)):
+        for method in run.METHODS:
+            mixed = compose_config(run.run_overrides(method, "mixed", 1, budget))
+            fixed = compose_config(run.run_overrides(method, "fixed3", 1, budget))
+            for cfg in (mixed, fixed):
+                assert cfg.method.name == method and cfg.seed == 1
+                assert (cfg.method.mixer, cfg.method.posterior_input) == ("attention", "tokens")
+            assert mixed.env.params.n_agents == 4 and list(mixed.train.team_sizes) == [2, 3, 4]
+            assert fixed.env.params.n_agents == 3 and fixed.train.team_sizes is None
+    assert (
+        compose_config(run.run_overrides("icco", "mixed", 0, ["experiment=repro_cpu"])).train[
+            "total_frames"
+        ]
+        == 800_000
+    )
+
+
+def _team_size_results(points_5_6: dict, betas: list[tuple[float, float, float]]) -> dict:
+    """A small results.json: ``{label: (reward per robot at 5, at 6)}`` (the blend's under
+    "blend"), and beta sweep points ``(beta, team reward, broadcast rate)`` at T = 4."""
+
+    def entry(method, k, per_robot, trained_on):
+        return dict(
+            method=method,
+            kind="reference" if trained_on is None else "trained",
+            trained_on=trained_on,
+            team_size=k,
+            trials=2,
+            seeds=1,
+            reward=per_robot * k,
+            reward_std=1.0,
+            reward_per_robot=per_robot,
+            reward_per_robot_std=1.0 / k,
+            broadcast_rate=None,
+            broadcast_rate_std=None,
+        )
+
+    sizes = []
+    for label, values in points_5_6.items():
+        trained_on = None if label == "blend" else ([3] if label.endswith("(3)") else [2, 3, 4])
+        for k, value in zip((5, 6), values):
+            if value is not None:
+                sizes.append(
+                    entry(label if label != "blend" else "blend (r=1.75 m)", k, value, trained_on)
+                )
+    points = [
+        dict(
+            method="ICCO (2-4)",
+            beta=b,
+            team_size=3,
+            reward=r,
+            reward_std=2.0,
+            reward_per_robot=r / 3,
+            broadcast_rate=rate,
+            broadcast_rate_std=0.0,
+        )
+        for b, r, rate in betas
+    ]
+    return dict(
+        smoke=False,
+        frames=800_000,
+        checkpoint_frames=800_256,
+        budget=["experiment=repro_cpu"],
+        seeds=[0],
+        trials=2,
+        steps=145,
+        episode_steps=580,
+        period=4,
+        team_sizes=[5, 6],
+        sizes=sizes,
+        beta_sweep=dict(team_size=3, points=points),
+        commands=["icco train ..."],
+        machine=dict(cpu="test"),
+        wall_s=dict(train=60.0, eval=6.0),
+    )
+
+
+def test_team_size_report_checks_both_targets_from_the_numbers(tmp_path):
+    report = _load(ROOT / "experiments" / "team_size" / "report.py")
+    sweep = [(0.0, 300.0, 0.25), (0.5, 310.0, 0.1), (1.0, 280.0, 0.05), (2.0, 200.0, 0.02)]
+    results = _team_size_results(
+        {
+            "blend": (10.0, 9.0),
+            "ICCO (2-4)": (8.5, 7.0),  # 85 % at 5, 78 % at 6: not met
+            "QMIX (FULL) (2-4)": (8.0, 7.65),  # 80 % and 85 %: met
+            "ICCO (3)": (100.0, 100.0),  # not trained on 2-4: not a candidate
+        },
+        sweep,
+    )
+    zero_shot, beta = report.targets(results).splitlines()
+    assert zero_shot.endswith(
+        "**: met (by QMIX (FULL) (2-4)). ICCO (2-4): 5 robots 8.50 vs 10.00 per robot (85 %), "
+        "met; 6 robots 7.00 vs 9.00 per robot (78 %), NOT met. QMIX (FULL) (2-4): 5 robots 8.00 "
+        "vs 10.00 per robot (80 %), met; 6 robots 7.65 vs 9.00 per robot (85 %), met."
+    )
+    # beta = 0.5 sends 40 % of the every-T broadcasts (too many); beta = 1 sends 20 %, keeps 93 %.
+    assert beta.endswith(
+        "**: met: beta = 1 sends 20 % of the every-T broadcasts (broadcast rate 0.050 of "
+        "robot-steps, every T: 0.250) and keeps 280.0 of 300.0 (93 %)."
+    )
+    lower = _team_size_results({"blend": (10.0, 9.0), "ICCO (2-4)": (7.0, None)}, sweep[:2])
+    zero_shot, beta = report.targets(lower).splitlines()
+    assert "**: not met. ICCO (2-4): 5 robots 7.00 vs 10.00 per robot (70 %), NOT met" in zero_shot
+    assert "6 robots not evaluated" in zero_shot
+    assert (
+        "**: not measured (no beta sent <= 25 % of the every-T broadcasts; the fewest: 40 %" in beta
+    )
+    worse = _team_size_results({"ICCO (2-4)": (7.0, 7.0)}, [(0.0, 300.0, 0.25), (1.0, 250.0, 0.05)])
+    zero_shot, beta = report.targets(worse).splitlines()
+    assert zero_shot.endswith(
+        "**: not measured. ICCO (2-4): 5 robots not evaluated; 6 robots not evaluated."
+    )
+    assert "**: not met: beta = 1 sends 20 %" in beta and "(83 %)." in beta
+    assert report.targets(None).count("not measured (the experiment has not been run)") == 2
+
+    path = tmp_path / "results.json"
+    path.write_text(json.dumps(results))
+    readme = tmp_path / "README.md"
+    assert report.main([str(path), "--readme", str(readme)]) == 0
+    text = readme.read_text()
+    assert "| QMIX (FULL) (2-4) | 8.00 ± 0.20 | 7.65 ± 0.17 |" in text
+    assert "| 1 | 280.0 ± 2.0 | 93.33 | 0.050 | 20 % | 93 % |" in text
+    assert (
+        "![team reward against broadcast rate](figures/beta_sweep.png)" in text and "$" not in text
+    )
+    for name in ("reward_per_robot.png", "beta_sweep.png"):
+        assert (tmp_path / "figures" / name).stat().st_size > 0
+
+
+def test_team_size_readme_says_it_has_not_been_run_until_results_exist():
+    report = _load(ROOT / "experiments" / "team_size" / "report.py")
+    if (ROOT / "experiments" / "team_size" / "results.json").is_file():
+        return  # rendered from results: the other test covers the rendering
+    readme = (ROOT / "experiments" / "team_size" / "README.md").read_text()
+    assert readme == report.render(None), "stale: run python experiments/team_size/report.py"
+    assert "Not run yet at its budget" in readme

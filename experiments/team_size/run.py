@@ -1,0 +1,270 @@
+"""Team-size experiment (issue 26, COPA's dynamic teams): train on 2-4 robots, run 1-6 zero-shot,
+and sweep the coordinator's broadcast threshold beta.
+
+    python experiments/team_size/run.py                          # experiment=repro_cpu, 3 seeds
+    python experiments/team_size/run.py --budget experiment=paper device=cuda
+    python experiments/team_size/run.py --smoke                  # minutes: a pipeline check
+
+1. Training: ICCO and QMIX (FULL) with the networks that read any team (``method.mixer=attention
+   method.posterior_input=tokens``), each on 2-4 robots (``env.params.n_agents=4
+   train.team_sizes=[2,3,4]``, a team drawn per env at every reset) and on 3 robots only, one
+   ``icco train`` per run into ``--sweep`` (``<method>_<group>_seed<seed>``), seed by seed,
+   ``--jobs`` (2) side by side. Run the script again after an interruption: finished runs are
+   kept, interrupted ones continue from their checkpoint (``experiments/jobs.py``).
+2. Team sizes: ``icco eval eval.protocol=quadrants eval.team_size=K`` for K in ``--team-sizes``
+   (1-6) on each group's checkpoints (seeds pooled per method) into ``<sweep>/eval_<group>_n<K>``,
+   the scripted references (follower, heuristic, blend) beside the 2-4 group on the same episodes.
+3. Beta sweep: ICCO (2-4) at ``--beta-team-size`` (3) robots with ``eval.broadcast_threshold=b``
+   for b in ``--betas`` (no retraining) into ``<sweep>/eval_beta<b>``.
+4. ``results.json`` (the budget's frames, the commands, the machine) in ``--out`` (default: this
+   folder; with ``--smoke``: ``<sweep>/report``, never this folder), then ``report.py`` renders
+   the README and figures there.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+from icco_torchrl import methods
+from icco_torchrl.evaluation.metrics import write_json
+from icco_torchrl.training.build import compose_config
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE.parent))
+from jobs import train_runs  # noqa: E402  (experiments/jobs.py, a sibling script)
+
+
+def _script(path: Path, name: str):
+    """A sibling script as a module (its file name is not unique: every experiment has a run.py)."""
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+FOUR_QUADRANTS = _script(HERE.parent / "four_quadrants" / "run.py", "four_quadrants_run")
+icco, machine = FOUR_QUADRANTS.icco, FOUR_QUADRANTS.machine
+
+METHODS = ("icco", "qmix_full")
+SEEDS = (0, 1, 2)
+# The networks whose every shape is independent of the team size (docs/method.md).
+ANY_TEAM = ("method.mixer=attention", "method.posterior_input=tokens")
+# Training groups: what each trains on, and its label suffix in tables and figures.
+GROUPS = {
+    "mixed": dict(
+        overrides=("env.params.n_agents=4", "train.team_sizes=[2,3,4]"), sizes=[2, 3, 4], tag="2-4"
+    ),
+    "fixed3": dict(overrides=("env.params.n_agents=3",), sizes=[3], tag="3"),
+}
+REFERENCES = ("follower", "heuristic", "blend")
+TEAM_SIZES = (1, 2, 3, 4, 5, 6)
+BETAS = (0.0, 0.25, 0.5, 1.0, 2.0, 4.0)
+# Seconds per run: proves the pipeline, says nothing about the methods.
+SMOKE_BUDGET = (
+    "experiment=smoke",
+    "train.total_frames=512",
+    "train.eval_interval=256",
+    "train.checkpoint_interval=0",
+    "train.eval_envs=2",
+)
+
+
+def run_overrides(method: str, group: str, seed: int, budget) -> list[str]:
+    """The ``icco train`` overrides of one run."""
+    return [f"method={method}", f"seed={seed}", *ANY_TEAM, *GROUPS[group]["overrides"], *budget]
+
+
+def run_dir(sweep: Path, method: str, group: str, seed: int) -> Path:
+    return sweep / f"{method}_{group}_seed{seed}"
+
+
+def train(sweep: Path, seeds, budget, jobs: int = 2) -> int:
+    """Bring every ``method x group x seed`` run to its budget; returns ``train.total_frames``."""
+    runs = {}
+    for s in seeds:  # seed by seed: a sweep cut short has every run at the same seeds
+        for group in GROUPS:
+            for m in METHODS:
+                overrides = run_overrides(m, group, s, budget)
+                total = compose_config(overrides).train.total_frames
+                runs[run_dir(sweep, m, group, s)] = (overrides, total)
+    train_runs(runs, jobs)
+    return total
+
+
+def evaluate(sweep: Path, name: str, checkpoints, *overrides: str, commands: list) -> dict:
+    """One ``icco eval`` (quadrants) into ``<sweep>/<name>``; returns its JSON."""
+    out = sweep / name
+    args = [
+        "eval",
+        f"eval.checkpoints=[{','.join(map(str, checkpoints))}]",
+        "eval.protocol=quadrants",
+        *overrides,
+        f"eval.out_dir={out}",
+        f"hydra.run.dir={out}",
+    ]
+    commands.append("icco " + " ".join(args))
+    icco(*args)
+    return json.loads((out / "quadrants.json").read_text())
+
+
+def episode_rows(payload: dict) -> dict[str, dict]:
+    """``{table label: whole-episode summary row}`` of an eval JSON (null back to NaN)."""
+    return {
+        r["method"]: {k: (math.nan if v is None else v) for k, v in r.items()}
+        for r in payload["summary"]
+        if r["segment"] == "episode"
+    }
+
+
+def point(row: dict, team: int, **labels) -> dict:
+    """A results.json entry: team reward, reward per robot, broadcast rate (mean and std)."""
+    return dict(
+        **labels,
+        team_size=team,
+        trials=row["n"],
+        seeds=row["seeds"],
+        reward=row["reward"],
+        reward_std=row["reward_std"],
+        reward_per_robot=row["reward"] / team,
+        reward_per_robot_std=row["reward_std"] / team,
+        broadcast_rate=row["broadcast_rate"],
+        broadcast_rate_std=row["broadcast_rate_std"],
+    )
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--sweep", type=Path, help="default multirun/team_size[_smoke]")
+    parser.add_argument(
+        "--budget",
+        nargs="*",
+        help="training overrides (default experiment=repro_cpu); with --smoke, added to the "
+        "smoke budget",
+    )
+    parser.add_argument("--seeds", nargs="+", type=int, default=list(SEEDS))
+    parser.add_argument("--team-sizes", nargs="+", type=int, default=list(TEAM_SIZES))
+    parser.add_argument("--betas", nargs="+", type=float, default=list(BETAS))
+    parser.add_argument("--beta-team-size", type=int, default=3)
+    parser.add_argument("--trials", type=int, default=20, help="trials per checkpoint")
+    parser.add_argument("--steps", type=int, default=145, help="steps per quadrant")
+    parser.add_argument(
+        "--smoke", action="store_true", help="tiny budget, 2 trials, 10 steps: a pipeline check"
+    )
+    parser.add_argument("--jobs", type=int, default=2, help="training runs side by side")
+    parser.add_argument("--out", type=Path, help="results.json, README.md and figures/")
+    args = parser.parse_args(argv)
+    if any(k < 1 for k in [*args.team_sizes, args.beta_team_size]):
+        parser.error("team sizes must be >= 1")
+    if any(b < 0 for b in args.betas):
+        parser.error("--betas must be >= 0")
+    budget = (
+        [*SMOKE_BUDGET, *(args.budget or [])]
+        if args.smoke
+        else (args.budget or ["experiment=repro_cpu"])
+    )
+    trials, steps = (2, 10) if args.smoke else (args.trials, args.steps)
+    sweep = (args.sweep or Path("multirun/team_size" + "_smoke" * args.smoke)).resolve()
+    out = args.out or (sweep / "report" if args.smoke else HERE)
+    sweep.mkdir(parents=True, exist_ok=True)
+
+    start = time.time()
+    frames = train(sweep, args.seeds, budget, args.jobs)
+    train_wall = time.time() - start
+    checkpoints = {
+        (m, g): [
+            p for s in args.seeds if (p := run_dir(sweep, m, g, s) / "checkpoint.pt").is_file()
+        ]
+        for g in GROUPS
+        for m in METHODS
+    }
+    commands = [
+        "icco train " + " ".join(run_overrides(m, g, "S", budget)) + " hydra.run.dir=..."
+        for g in GROUPS
+        for m in METHODS
+    ]
+    quick = [f"eval.trials={trials}", f"eval.steps={steps}"]
+    start = time.time()
+    sizes, trained_frames = [], []
+    for team in args.team_sizes:
+        for group, spec in GROUPS.items():
+            paths = [p for m in METHODS for p in checkpoints[(m, group)]]
+            refs = list(REFERENCES) if group == "mixed" else []
+            payload = evaluate(
+                sweep,
+                f"eval_{group}_n{team}",
+                paths,
+                *quick,
+                f"eval.team_size={team}",
+                f"eval.references=[{','.join(refs)}]",
+                commands=commands,
+            )
+            trained_frames += [c["frames"] for c in payload["checkpoints"]]
+            for label, row in episode_rows(payload).items():
+                reference = label not in {methods.label(m) for m in METHODS}
+                sizes.append(
+                    point(
+                        row,
+                        team,
+                        method=label if reference else f"{label} ({spec['tag']})",
+                        kind="reference" if reference else "trained",
+                        trained_on=None if reference else spec["sizes"],
+                    )
+                )
+    sweep_points = []
+    icco_label = methods.label("icco")
+    for beta in args.betas:
+        payload = evaluate(
+            sweep,
+            f"eval_beta{beta:g}",
+            checkpoints[("icco", "mixed")],
+            *quick,
+            f"eval.team_size={args.beta_team_size}",
+            f"eval.broadcast_threshold={beta}",
+            "eval.references=[]",
+            commands=commands,
+        )
+        row = episode_rows(payload)[icco_label]
+        sweep_points.append(
+            point(row, args.beta_team_size, method=f"{icco_label} (2-4)", beta=beta)
+        )
+    eval_wall = time.time() - start
+
+    cfg = compose_config(run_overrides("icco", "mixed", 0, budget))
+    results = dict(
+        experiment="team_size",
+        smoke=args.smoke,
+        frames=frames,
+        checkpoint_frames=min(trained_frames, default=None),
+        budget=budget,
+        seeds=args.seeds,
+        trials=trials,
+        steps=steps,
+        episode_steps=4 * steps,
+        period=int(cfg.method.period),
+        groups={
+            g: dict(overrides=list(s["overrides"]), sizes=s["sizes"]) for g, s in GROUPS.items()
+        },
+        networks=list(ANY_TEAM),
+        team_sizes=args.team_sizes,
+        sizes=sizes,
+        beta_sweep=dict(team_size=args.beta_team_size, points=sweep_points),
+        commands=commands,
+        machine=machine(),
+        wall_s=dict(train=train_wall, eval=eval_wall),
+        sweep=str(sweep),
+    )
+    write_json(results, out / "results.json")
+    report = _script(HERE / "report.py", "team_size_report")
+    report.main([str(out / "results.json"), "--readme", str(out / "README.md")])
+
+
+if __name__ == "__main__":
+    main()
