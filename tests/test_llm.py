@@ -595,7 +595,8 @@ def test_a_model_that_never_replies_fails_fast_in_one_line(
             planner.plan("Go right", starts(0))
         elapsed = time.monotonic() - begin
     message = str(info.value)
-    assert elapsed < 3.0, f"took {elapsed:.1f} s for a {planner.deadline_s} s deadline"
+    # The deadline holds (a hung provider would take its 20 s), with room for a loaded machine.
+    assert elapsed < planner.deadline_s + 2.0, f"took {elapsed:.1f} s for a 2 s deadline"
     assert (
         "\n" not in message
         and NO_REPLY[case] in message

@@ -18,10 +18,12 @@ torch.set_num_threads(1)
 
 
 def _state(env, robots, carry, resources, invaders, active):
-    """A global state with the given positions (other features zero), as the env lays it out."""
+    """A global state with the given positions and the type flags (other features zero), as the
+    env lays it out (a robot's type flag, column 4, marks it present)."""
     L = env.layout
     tokens = torch.zeros(1, L.state_tokens, L.state_token_dim)
     N, R = env.n_agents, env.n_resources
+    tokens[0, :N, 4], tokens[0, N : N + R, 5], tokens[0, N + R :, 6] = 1.0, 1.0, 1.0
     tokens[0, :N, 0:2] = torch.tensor(robots)
     tokens[0, :N, 7] = torch.tensor(carry, dtype=torch.float32)
     tokens[0, N : N + R, 0:2] = torch.tensor(resources)

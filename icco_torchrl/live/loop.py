@@ -58,19 +58,9 @@ def _names(team) -> str:
 
 def _restore(path, device: str, seed: int | None, max_robots: int | None, length: dict):
     """The checkpoint's run on a one-team env of ``max_robots`` robots, and the team it was
-    trained for. At another team size than the trained one only the acting networks' weights
-    (agent, coordinator) are loaded: they read any team; the mixer and the posterior are sized
-    for the trained team and unused here."""
-    from omegaconf import OmegaConf
-
-    from icco_torchrl.training.build import EVAL_SEED_OFFSET, build
-    from icco_torchrl.training.checkpoint import (
-        CheckpointError,
-        check_compatible,
-        load_checkpoint,
-        policy_weights,
-    )
-    from icco_torchrl.training.config import resolve_device, validate
+    trained for (:func:`~icco_torchrl.training.restore.restore` with ``n_agents``: at another
+    team size only the acting networks' weights are loaded)."""
+    from icco_torchrl.training.checkpoint import load_checkpoint
     from icco_torchrl.training.restore import restore  # heavy: networks and Hydra config
 
     ckpt = load_checkpoint(path)
@@ -78,35 +68,10 @@ def _restore(path, device: str, seed: int | None, max_robots: int | None, length
         "n_agents", 3))  # fmt: skip
     if max_robots is not None and (isinstance(max_robots, bool) or int(max_robots) < 1):
         raise ValueError(f"live.max_robots must be an integer >= 1, got {max_robots!r}")
-    if max_robots is None or int(max_robots) == trained:
-        run = restore(
-            path, num_envs=1, device=device, seed=seed, waypoint_mode="external", **length
-        )
-        return run, trained
-    cfg = validate(OmegaConf.create(ckpt["cfg"]))
-    cfg.device = str(resolve_device(device))
-    run = build(
-        cfg,
-        num_envs=1,
-        seed=cfg.seed + EVAL_SEED_OFFSET if seed is None else seed,
-        waypoint_mode="external",
-        n_agents=int(max_robots),
-        **length,
+    team = {} if max_robots is None else {"n_agents": int(max_robots)}
+    run = restore(
+        path, num_envs=1, device=device, seed=seed, waypoint_mode="external", **team, **length
     )
-    layout = dict(ckpt.get("layout") or {})
-    same = {k: getattr(run.layout, k) for k in ("n_agents", "n_entities", "state_tokens")}
-    check_compatible({**ckpt, "layout": {**layout, **same}}, cfg, run.layout, path)
-    acting = ("agent_params.", "coordinator_params.", "target_agent_params.",
-              "target_coordinator_params.")  # fmt: skip
-    weights, current = policy_weights(ckpt, run.loss), run.loss.state_dict()
-    loaded = {k: v for k, v in weights.items() if k.startswith(acting)}
-    wrong = sorted(k for k, v in loaded.items() if k not in current or current[k].shape != v.shape)
-    if wrong or not loaded:
-        raise CheckpointError(
-            f"checkpoint {path}: its agent does not read a team of live.max_robots={max_robots} "
-            f"(weights {wrong[:3]} differ)"
-        )
-    run.loss.load_state_dict({**current, **loaded})
     return run, trained
 
 
