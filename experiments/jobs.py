@@ -29,6 +29,24 @@ PRE_SEQUENCE_REPLAY = [
 ]
 
 
+# A smoke run's budget, seconds per run: proves a pipeline, says nothing about the methods.
+SMOKE_BUDGET = (
+    "experiment=smoke",
+    "train.total_frames=512",
+    "train.eval_interval=256",
+    "train.checkpoint_interval=0",
+    "train.eval_envs=2",
+)
+
+
+def budget(smoke: bool, overrides: list[str] | None, default: list[str]) -> list[str]:
+    """An experiment script's training overrides: with ``--smoke`` the smoke budget plus
+    ``--budget``'s overrides, else ``--budget`` or the script's ``default``."""
+    if smoke:
+        return [*SMOKE_BUDGET, *(overrides or [])]
+    return list(overrides or default)
+
+
 def run_status(run: Path, total_frames: int) -> str:
     """``done`` (checkpoint at the budget), ``partial`` (a checkpoint short of it) or ``missing``.
 

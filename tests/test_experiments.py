@@ -115,7 +115,7 @@ def test_a_sweeps_note_is_quoted_on_its_page_and_absent_without_one():
 
 def test_team_size_runs_compose_with_the_any_team_networks_and_their_team_sizes():
     run = _load(ROOT / "experiments" / "team_size" / "run.py")
-    for budget in (["experiment=repro_cpu"], list(run.SMOKE_BUDGET)):
+    for budget in (["experiment=repro_cpu"], list(run.jobs.SMOKE_BUDGET)):
         for method in run.METHODS:
             mixed = compose_config(run.run_overrides(method, "mixed", 1, budget))
             fixed = compose_config(run.run_overrides(method, "fixed3", 1, budget))

@@ -32,18 +32,11 @@ from icco_torchrl import methods
 from icco_torchrl.training.build import compose_config
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from jobs import train_runs  # noqa: E402  (experiments/jobs.py, a sibling script)
+import jobs  # noqa: E402  (experiments/jobs.py, a sibling script)
+from jobs import train_runs  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 SEEDS = (0, 1, 2)
-# Seconds per run: proves the pipeline, says nothing about the methods.
-SMOKE_BUDGET = (
-    "experiment=smoke",
-    "train.total_frames=512",
-    "train.eval_interval=256",
-    "train.checkpoint_interval=0",
-    "train.eval_envs=2",
-)
 
 
 def icco(*args: str) -> None:
@@ -128,11 +121,7 @@ def main(argv=None) -> None:
         "--readme", type=Path, default=HERE / "README.md", help="where report.py writes"
     )
     args = parser.parse_args(argv)
-    budget = (
-        [*SMOKE_BUDGET, *(args.budget or [])]
-        if args.smoke
-        else (args.budget or ["experiment=default"])
-    )
+    budget = jobs.budget(args.smoke, args.budget, ["experiment=default"])
     trials, steps = (4, 20) if args.smoke else (args.trials, args.steps)
     sweep = (args.sweep or Path("multirun/four_quadrants" + "_smoke" * args.smoke)).resolve()
     sweep.mkdir(parents=True, exist_ok=True)

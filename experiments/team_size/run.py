@@ -37,7 +37,8 @@ from icco_torchrl.training.build import compose_config
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
-from jobs import train_runs  # noqa: E402  (experiments/jobs.py, a sibling script)
+import jobs  # noqa: E402  (experiments/jobs.py, a sibling script)
+from jobs import train_runs  # noqa: E402
 
 
 def _script(path: Path, name: str):
@@ -65,14 +66,6 @@ GROUPS = {
 REFERENCES = ("follower", "heuristic", "blend")
 TEAM_SIZES = (1, 2, 3, 4, 5, 6)
 BETAS = (0.0, 0.25, 0.5, 1.0, 2.0, 4.0)
-# Seconds per run: proves the pipeline, says nothing about the methods.
-SMOKE_BUDGET = (
-    "experiment=smoke",
-    "train.total_frames=512",
-    "train.eval_interval=256",
-    "train.checkpoint_interval=0",
-    "train.eval_envs=2",
-)
 
 
 def run_overrides(method: str, group: str, seed: int, budget) -> list[str]:
@@ -165,11 +158,7 @@ def main(argv=None) -> None:
         parser.error("team sizes must be >= 1")
     if any(b < 0 for b in args.betas):
         parser.error("--betas must be >= 0")
-    budget = (
-        [*SMOKE_BUDGET, *(args.budget or [])]
-        if args.smoke
-        else (args.budget or ["experiment=repro_cpu"])
-    )
+    budget = jobs.budget(args.smoke, args.budget, ["experiment=repro_cpu"])
     trials, steps = (2, 10) if args.smoke else (args.trials, args.steps)
     sweep = (args.sweep or Path("multirun/team_size" + "_smoke" * args.smoke)).resolve()
     out = args.out or (sweep / "report" if args.smoke else HERE)
