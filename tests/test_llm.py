@@ -251,7 +251,7 @@ def test_offline_planner_is_fast(litellm: Any) -> None:
         planner.plan("Spread out", pos)
     assert (
         time.perf_counter() - begin
-    ) / 50 < 0.010  # whole litellm round trip: ~4 ms on a 2-core CPU
+    ) / 50 < 0.025  # whole litellm round trip: ~4 ms on a quiet 2-core CPU, 13 ms loaded
 
 
 def test_offline_results_are_clipped_to_the_field() -> None:
