@@ -33,13 +33,14 @@ from icco_torchrl.training.logger import clock_seconds, read_column
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "experiments"))
-from jobs import PRE_SEQUENCE_REPLAY, train_runs  # noqa: E402  (experiments/jobs.py)
+from jobs import PRE_SEQUENCE_REPLAY, run_status, train_runs  # noqa: E402  (experiments/jobs.py)
 
 RESULTS = ROOT / "benchmarks" / "results"
 BUDGET = ["experiment=repro_cpu", "train.checkpoint_buffer=false", "logger.progress=false"]
 # Old defaults: the recipe before sequence replay (what the reproduction of 2026-11-30 trained).
 RECIPES = {"old defaults": PRE_SEQUENCE_REPLAY, "new defaults": [], "5M": ["experiment=repro_5m"]}
 SCALE = "5M"  # its runs are the 5M reproduction's (experiments/four_quadrants, --scale-sweep)
+SCALE_FRAMES = 5_000_000
 METHODS = {"icco": "ICCO", "qmix_full": "QMIX (FULL)"}
 SEEDS = (0, 1)
 
@@ -81,6 +82,8 @@ def skill_time(run: Path) -> dict | None:
 def report(out: Path, scale_sweep: Path | None = None) -> dict:
     rows = []
     for (method, recipe, seed), run in runs(out, scale_sweep=scale_sweep).items():
+        if recipe == SCALE and run_status(run, SCALE_FRAMES) != "done":
+            continue  # a 5M run still under way says nothing yet
         result = skill_time(run)
         if result is not None:
             rows.append({"method": method, "recipe": recipe, "seed": seed, **result})
@@ -159,6 +162,15 @@ def main(argv=None) -> None:
             args.jobs,
         )
     results = report(out, scale_sweep)
+    previous = RESULTS / "time_to_skill.json"
+    if previous.is_file():  # rows whose runs are not on this machine keep their recorded result
+        found = {(r["method"], r["recipe"], r["seed"]) for r in results["runs"]}
+        kept = [
+            r
+            for r in json.loads(previous.read_text()).get("runs", [])
+            if (r["method"], r["recipe"], r["seed"]) not in found
+        ]
+        results["runs"] = kept + results["runs"]
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / "time_to_skill.json").write_text(json.dumps(results, indent=1) + "\n")
     plot(results, RESULTS / "time_to_skill.png")
