@@ -161,7 +161,9 @@ def skill_section() -> str:
             "follower": r["follower"],
             "frames to pass it": "never" if r["frames"] is None else r["frames"],
             "wall-clock (min)": None if r["wall_s"] is None else r["wall_s"] / 60,
-            "within (frames)": r["budget_frames"],
+            "within (frames)": r["budget_frames"]
+            if r.get("finished", True)
+            else f"{r['budget_frames']:,} (run cut short)",
             "best greedy team reward": max(v for _, v in r["curve"]),
         }
         for r in data.get("runs", [])
@@ -278,6 +280,45 @@ def speed_section(name: str = "train_speed.json") -> str:
     )
 
 
+def team_speed_section() -> str:
+    """The fixed-size path at a baseline commit and at this one (benchmarks/team_speed.py)."""
+    data = load("team_speed.json")
+    if data is None:
+        return "(not measured: no `results/team_speed.json`)"
+    rows = [
+        {
+            "commit": data[tree],
+            "update": path,
+            **values,
+            "rounds": " / ".join(
+                f"{run['paths'][path]['ms_per_update']:.1f}" for run in data["runs"][tree]
+            ),
+        }
+        for tree in ("baseline", "current")
+        for path, values in data["median"][tree].items()
+    ]
+    text = table(
+        rows,
+        {
+            "commit": "commit",
+            "update": "update",
+            "env_steps_per_s": "env steps / s (end to end)",
+            "ms_per_update": "ms / update",
+            "ops_per_update": "ops / update",
+            "rounds": "ms / update, each round",
+        },
+    )
+    ratios = "; ".join(
+        f"{path}: env steps/s {r['env_steps_per_s']:.2f}x, ms/update {r['ms_per_update']:.2f}x"
+        for path, r in data["current_over_baseline"].items()
+    )
+    src = "[`results/team_speed.json`](results/team_speed.json)"
+    return (
+        f"{text}\n\nThis commit over the baseline: {ratios}; {data['rounds']} rounds of "
+        f"{data['batches']} collector batches per path, {data.get('cpu', '')}. Source: {src}."
+    )
+
+
 def render() -> str:
     return Template((HERE / "README.template.md").read_text()).substitute(
         env_cpu=env_section("env_throughput.json"),
@@ -290,6 +331,7 @@ def render() -> str:
         profile=profile_section(),
         skill=skill_section(),
         speed=speed_section(),
+        team_speed=team_speed_section(),
         train_gpu=train_gpu_section(),
         live=live_section(),
     )

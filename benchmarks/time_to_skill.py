@@ -12,7 +12,8 @@ own runs (``experiment=repro_5m``, the compiled update, an evaluation every 100k
 evaluation whose team reward passes the follower's on the same evaluation episodes
 (``references.json``, written by the run itself), read from its ``eval.csv``; the wall-clock is
 the run's own time (collection, learning, evaluations) up to that evaluation, from
-``timing.csv``. "never" means not within the budget.
+``timing.csv``. "never" means not within the budget. A 5M run still under way is reported
+once it has passed (``"finished": false``, its curve up to where it is).
 
 Writes ``benchmarks/results/time_to_skill.json`` and ``time_to_skill.png`` (greedy team reward
 against frames, mean of the seeds, the follower's level dashed).
@@ -82,9 +83,11 @@ def skill_time(run: Path) -> dict | None:
 def report(out: Path, scale_sweep: Path | None = None) -> dict:
     rows = []
     for (method, recipe, seed), run in runs(out, scale_sweep=scale_sweep).items():
-        if recipe == SCALE and run_status(run, SCALE_FRAMES) != "done":
-            continue  # a 5M run still under way says nothing yet
         result = skill_time(run)
+        if recipe == SCALE and result is not None and run_status(run, SCALE_FRAMES) != "done":
+            if result["frames"] is None:
+                continue  # a 5M run still under way that has not passed yet says nothing yet
+            result["finished"] = False  # its skill time is known; its curve stops early
         if result is not None:
             rows.append({"method": method, "recipe": recipe, "seed": seed, **result})
     return {"budget": BUDGET, "old_defaults": PRE_SEQUENCE_REPLAY, "runs": rows}

@@ -8,6 +8,8 @@ side by side use a 2-core machine fully). Each run logs to ``<folder>.log``.
 
 from __future__ import annotations
 
+import csv
+import json
 import shutil
 import subprocess
 import sys
@@ -110,3 +112,46 @@ def train_runs(runs: dict[Path, tuple[list[str], int]], jobs: int = 2) -> None:
                 failed.append(run.name)
     if failed:
         raise SystemExit(f"training failed for {failed}: see their .log files")
+
+
+# What a finished run leaves behind once its checkpoint is gone: enough for learning curves,
+# budgets and time to skill (``find_runs``, ``timing.csv``, ``references.json``).
+RECORD_FILES = ("config.yaml", "eval.csv", "timing.csv", "references.json")
+REFERENCES_TRIALS = "references_trials.csv"
+
+
+def keep_records(results: Path, trials: Path, records: Path) -> list[Path]:
+    """File each checkpoint of an ``icco eval`` (``results``: its JSON, ``trials``: its trials
+    CSV) as a record ``records/<run>/``: the run's :data:`RECORD_FILES`, ``checkpoint.json``
+    (its entry in the evaluation) and ``trials.csv`` (its own rows). The scripted references'
+    rows go to ``records/references_trials.csv``; every evaluation plays the same initial
+    configurations, so they are the same rows whichever evaluation wrote them. Returns the
+    record folders."""
+    with trials.open() as handle:
+        rows = list(csv.DictReader(handle))
+    fields = list(rows[0]) if rows else []
+
+    def write(path: Path, subset: list[dict]) -> None:
+        with path.open("w", newline="") as handle:
+            writer = csv.DictWriter(handle, fieldnames=fields)
+            writer.writeheader()
+            writer.writerows(subset)
+
+    kept = []
+    for entry in json.loads(results.read_text())["checkpoints"]:
+        run = Path(entry["path"]).parent
+        dest = records / run.name
+        dest.mkdir(parents=True, exist_ok=True)
+        for name in RECORD_FILES:
+            if (run / name).is_file():
+                shutil.copyfile(run / name, dest / name)
+        (dest / "checkpoint.json").write_text(
+            json.dumps({k: v for k, v in entry.items() if k != "path"}, indent=1) + "\n"
+        )
+        own = [{**r, "checkpoint": run.name} for r in rows if r["checkpoint"] == entry["path"]]
+        write(dest / "trials.csv", own)
+        kept.append(dest)
+    references = [r for r in rows if not r["checkpoint"]]
+    if references:
+        write(records / REFERENCES_TRIALS, references)
+    return kept

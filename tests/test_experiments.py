@@ -251,3 +251,52 @@ def test_team_size_readme_says_it_has_not_been_run_until_results_exist():
     readme = (ROOT / "experiments" / "team_size" / "README.md").read_text()
     assert readme == report.render(None), "stale: run python experiments/team_size/report.py"
     assert "Not run yet at its budget" in readme
+
+
+def test_run_records_from_two_machines_pool_like_one_evaluation(tmp_path):
+    """Seeds evaluated on different machines (``run.py --records``) give the table one joint
+    evaluation gives: each run's own trials, the references' once."""
+    import numpy as np
+
+    from icco_torchrl.evaluation.metrics import EPISODE, METRICS, summarize, write_csv
+
+    jobs = _load(ROOT / "experiments" / "jobs.py")
+    report = _load(ROOT / "experiments" / "four_quadrants" / "report.py")
+    rng = np.random.default_rng(0)
+
+    def rows(method, seed, checkpoint):
+        return [
+            dict(method=method, seed=seed, checkpoint=checkpoint, episode=0, trial=t, segment=s)
+            | dict(steps=145 if s != EPISODE else 580, **{m: float(rng.normal()) for m in METRICS})
+            for t in range(3)
+            for s in ("quadrant 1", EPISODE)
+        ]
+
+    references = rows("follower", -1, "")
+    joint, records = list(references), tmp_path / "records"
+    for seed in (0, 1):  # one machine per seed
+        run = tmp_path / f"machine{seed}" / f"icco_seed{seed}"
+        run.mkdir(parents=True)
+        (run / "config.yaml").write_text("seed: 0\n")
+        (run / "eval.csv").write_text("frames,reward\n1,2.0\n")
+        own = rows("ICCO", seed, str(run / "checkpoint.pt"))
+        joint += own
+        entry = dict(path=str(run / "checkpoint.pt"), method="ICCO", seed=seed, frames=5_000_000)
+        results = tmp_path / f"machine{seed}" / "quadrants.json"
+        results.write_text(json.dumps({"checkpoints": [entry]}))
+        write_csv(own + references, tmp_path / f"machine{seed}" / "trials.csv")
+        kept = jobs.keep_records(results, tmp_path / f"machine{seed}" / "trials.csv", records)
+        assert kept == [records / run.name]
+        assert (records / run.name / "eval.csv").read_text() == "frames,reward\n1,2.0\n"
+
+    pooled, checkpoints, runs = report.pooled_records(records)
+    assert [c["seed"] for c in checkpoints] == [0, 1] and "path" not in checkpoints[0]
+    assert [r.name for r in runs] == ["icco_seed0", "icco_seed1"]
+    got = {(r["method"], r["segment"]): r for r in summarize(pooled)}
+    want = {(r["method"], r["segment"]): r for r in summarize(joint)}
+    assert got.keys() == want.keys()
+    for key, row in want.items():
+        assert got[key]["n"] == row["n"] and got[key]["seeds"] == row["seeds"], key
+        for metric in METRICS:
+            assert got[key][metric] == row[metric], (key, metric)
+    assert got[("ICCO", EPISODE)]["seeds"] == 2 and got[("follower", EPISODE)]["n"] == 3

@@ -4,8 +4,10 @@
 
 Reads ``<sweep>/eval_quadrants/quadrants.json`` (from ``icco eval``), the runs' CSVs and
 ``<sweep>/sweep.json`` (budget, machine, wall time), copies the PNG figures next to the README
-and fills ``README.template.md``. The comparison with the paper is computed from the numbers,
-not written in advance, and a method without a checkpoint is listed as missing.
+and fills ``README.template.md``. With ``--records DIR`` (``run.py --records``) the table, the
+bars and the curves pool every run record in ``DIR`` instead, whichever machine trained it.
+The comparison with the paper is computed from the numbers, not written in advance, and a
+method without a checkpoint is listed as missing.
 """
 
 from __future__ import annotations
@@ -30,13 +32,15 @@ from icco_torchrl.evaluation.metrics import (
     result_name,
     results_json,
     segment_table,
+    summarize,
     write_json,
 )
-from icco_torchrl.evaluation.plots import plot_curves
+from icco_torchrl.evaluation.plots import plot_bars, plot_curves
 from icco_torchrl.training.logger import clock_seconds
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
+import jobs  # noqa: E402  (experiments/jobs.py)
 from aggregate import find_runs  # noqa: E402  (experiments/aggregate.py, a sibling script)
 
 EXPECTED = [methods.label(name) for name in methods.names()]
@@ -215,25 +219,68 @@ def criteria(rows: dict, refs: dict) -> list[str]:
     return lines
 
 
+def _number(value: str):
+    try:
+        return float(value)
+    except ValueError:
+        return value
+
+
+def pooled_records(records: Path) -> tuple[list[dict], list[dict], list[Path]]:
+    """Trial rows, checkpoint entries and run folders of every record in ``records`` (see
+    ``jobs.keep_records``), methods in the paper's order, then the scripted references."""
+    order = {label: i for i, label in enumerate(EXPECTED)}
+    entries = []
+    for path in records.glob("*/checkpoint.json"):
+        entry = json.loads(path.read_text())
+        entries.append((order.get(entry["method"], len(order)), entry["seed"], path.parent, entry))
+    entries.sort(key=lambda e: e[:2])
+    rows = []
+    for *_, folder, _ in entries:
+        with (folder / "trials.csv").open() as handle:
+            rows += [{k: _number(v) for k, v in r.items()} for r in csv.DictReader(handle)]
+    references = records / jobs.REFERENCES_TRIALS
+    if references.is_file():
+        with references.open() as handle:
+            rows += [{k: _number(v) for k, v in r.items()} for r in csv.DictReader(handle)]
+    for row in rows:
+        row["method"], row["segment"] = str(row["method"]), str(row["segment"])
+    return rows, [e[-1] for e in entries], [e[2] for e in entries]
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("sweep", type=Path, help="the sweep folder written by run.py")
     parser.add_argument("--readme", type=Path, default=HERE / "README.md")
+    parser.add_argument("--records", type=Path, help="pool the run records in this folder")
     args = parser.parse_args(argv)
     results = args.sweep / "eval_quadrants" / "quadrants.json"
-    if not results.is_file():
+    if args.records is not None:
+        rows, checkpoints, record_runs = pooled_records(args.records)
+        if not checkpoints:
+            print(f"report.py: no run records in {args.records}", file=sys.stderr)
+            return 2
+        summary = summarize(rows, by=("method", "segment"))
+        payload = dict(
+            checkpoints=checkpoints,
+            trials=len({r["trial"] for r in rows}),
+            segment_steps={r["segment"]: int(r["steps"]) for r in rows if r["segment"] != EPISODE},
+        )
+    elif not results.is_file():
         print(
             f"report.py: {results} not found: run experiments/four_quadrants/run.py (or icco eval) "
             "first",
             file=sys.stderr,
         )
         return 2
-    payload = json.loads(results.read_text())
-    summary = [
-        {k: (math.nan if v is None else v) for k, v in row.items()} for row in payload["summary"]
-    ]
+    else:
+        payload = json.loads(results.read_text())
+        summary = [
+            {k: (math.nan if v is None else v) for k, v in row.items()}
+            for row in payload["summary"]
+        ]
     info_path = args.sweep / "sweep.json"
     info = json.loads(info_path.read_text()) if info_path.is_file() else {}
     present = {r["method"] for r in summary}
@@ -242,8 +289,13 @@ def main(argv=None) -> int:
     figures = args.readme.parent / "figures"
     figures.mkdir(parents=True, exist_ok=True)
     for name in ("quadrants_reward.png", "quadrants_trajectories.png"):
-        shutil.copyfile(args.sweep / "eval_quadrants" / name, figures / name)
-    found = find_runs([args.sweep])
+        if (args.sweep / "eval_quadrants" / name).is_file():  # this machine's evaluation
+            shutil.copyfile(args.sweep / "eval_quadrants" / name, figures / name)
+    if args.records is not None:
+        segments = [*payload["segment_steps"], EPISODE]
+        plot_bars(summary, figures / "quadrants_reward", segments=segments, ylabel="team reward")
+        (figures / "quadrants_reward.pdf").unlink()
+    found = find_runs(record_runs if args.records is not None else [args.sweep])
     runs = {
         label: found[label] for label in [*EXPECTED, *found] if label in found
     }  # the paper's order
@@ -264,13 +316,19 @@ def main(argv=None) -> int:
         budget_args = "--smoke"
     else:
         budget_args = " ".join(shlex.quote(a) for a in ["--budget", *info.get("budget", [])])
+    page = []  # where this page and its records live, when not the default
+    if args.readme.resolve() != (HERE / "README.md").resolve():
+        page += ["--readme", os.path.relpath(args.readme)]
+    if args.records is not None:
+        page += ["--records", os.path.relpath(args.records)]
+    page_args = "".join(" " + shlex.quote(a) for a in page)
     text = Template((HERE / "README.template.md").read_text()).substitute(
         banner=banner,
         steps=steps,
         episode_steps=4 * steps,
         trials=payload["trials"],
-        budget_args=budget_args,
-        sweep=shlex.quote(os.path.relpath(args.sweep)),
+        budget_args=budget_args + page_args,
+        sweep=shlex.quote(os.path.relpath(args.sweep)) + page_args,
         note=sweep_note(info),
         budget=budget,
         table=markdown_table(summary, COLUMNS, missing=missing),

@@ -12,6 +12,12 @@
    method) into ``<sweep>/eval_quadrants``.
 3. Report: ``report.py <sweep>`` fills ``README.md`` here from ``README.template.md``.
 
+With ``--records DIR`` each evaluated run also leaves its record in ``DIR/<run>/`` (its config,
+greedy-eval curve, timing, references and its own quadrant trials), and the report pools every
+record there. Checkpoints stay on the machine that trained them, so seeds trained on different
+machines (one sitting each) meet in one report: the 5M reproduction keeps its records in
+``records_5m/`` here.
+
 ``--train-only`` stops after step 1 (the language experiment uses it to train its agents).
 """
 
@@ -120,6 +126,11 @@ def main(argv=None) -> None:
     parser.add_argument(
         "--readme", type=Path, default=HERE / "README.md", help="where report.py writes"
     )
+    parser.add_argument(
+        "--records",
+        type=Path,
+        help="keep each evaluated run's record here and report on every record there",
+    )
     args = parser.parse_args(argv)
     budget = jobs.budget(args.smoke, args.budget, ["experiment=default"])
     trials, steps = (4, 20) if args.smoke else (args.trials, args.steps)
@@ -155,8 +166,19 @@ def main(argv=None) -> None:
     )
     info.update(eval_wall_s=time.time() - start, eval_trials=trials, eval_steps=steps)
     info_path.write_text(json.dumps(info, indent=2))
+    records = []
+    if args.records:
+        jobs.keep_records(out / "quadrants.json", out / "quadrants_trials.csv", args.records)
+        records = ["--records", str(args.records)]
     subprocess.run(
-        [sys.executable, str(HERE / "report.py"), str(sweep), "--readme", str(args.readme)],
+        [
+            sys.executable,
+            str(HERE / "report.py"),
+            str(sweep),
+            "--readme",
+            str(args.readme),
+            *records,
+        ],
         check=True,
     )
 
