@@ -234,7 +234,19 @@ def test_team_size_report_checks_both_targets_from_the_numbers(tmp_path):
     path.write_text(json.dumps(results))
     readme = tmp_path / "README.md"
     assert report.main([str(path), "--readme", str(readme)]) == 0
+    assert "Not run (`run.py --beta-screen CHECKPOINT...`)." in readme.read_text()
+    screen = {
+        "period": 4,
+        "checkpoints": ["multirun/x/icco_seed1/checkpoint.pt"],
+        "eval_overrides": ["eval.trials=20", "eval.steps=145"],
+        "beta_sweep": dict(results["beta_sweep"], policy="ICCO (3, 5M)"),
+        "commands": ["icco eval ..."],
+    }
+    (tmp_path / "beta_screen.json").write_text(json.dumps(screen))
+    assert report.main([str(path), "--readme", str(readme)]) == 0
     text = readme.read_text()
+    assert "- **Screen: at a broadcast rate <= 25 % ICCO keeps >= 90 % of its every-T team " in text
+    assert "ICCO (3, 5M) at 3 robots, T = 4." in text and "`icco_seed1`" in text
     assert "| QMIX (FULL) (2-4) | 8.00 ± 0.20 | 7.65 ± 0.17 |" in text
     assert "| 1 | 280.0 ± 2.0 | 93.33 | 0.050 | 20 % | 93 % |" in text
     assert (
@@ -249,7 +261,11 @@ def test_team_size_readme_says_it_has_not_been_run_until_results_exist():
     if (ROOT / "experiments" / "team_size" / "results.json").is_file():
         return  # rendered from results: the other test covers the rendering
     readme = (ROOT / "experiments" / "team_size" / "README.md").read_text()
-    assert readme == report.render(None), "stale: run python experiments/team_size/report.py"
+    screen = ROOT / "experiments" / "team_size" / "beta_screen.json"
+    screen = json.loads(screen.read_text()) if screen.is_file() else None
+    assert readme == report.render(None, screen=screen), (
+        "stale: run python experiments/team_size/report.py"
+    )
     assert "Not run yet at its budget" in readme
 
 

@@ -170,7 +170,7 @@ def beta_table(results: dict) -> str:
     sweep = results["beta_sweep"]
     base = next((p for p in sweep["points"] if p["beta"] == 0), None)
     lines = [
-        f"ICCO (2-4) at {sweep['team_size']} robots, T = {period}.",
+        f"{sweep.get('policy', 'ICCO (2-4)')} at {sweep['team_size']} robots, T = {period}.",
         "",
         "| beta | team reward | reward per robot | broadcast rate (robot-steps) | "
         "share of every-T broadcasts | share of every-T reward |",
@@ -280,9 +280,25 @@ def budget_section(results: dict) -> str:
     )
 
 
-def render(results: dict | None, figures: dict[str, str] | None = None) -> str:
+def screen_section(screen: dict | None) -> str:
+    """``run.py --beta-screen``'s sweep on checkpoints trained elsewhere, with the broadcast
+    target read on it (a screen: not the experiment's own policy)."""
+    if not screen:
+        return "Not run (`run.py --beta-screen CHECKPOINT...`)."
+    target = beta_target(screen).replace("- **Adaptive broadcast", "- **Screen", 1)
+    return (
+        f"{target}\n\n{beta_table(screen)}\n\nCheckpoints: "
+        + ", ".join(f"`{Path(p).parent.name}`" for p in screen["checkpoints"])
+        + f"; `{' '.join(screen['eval_overrides'])}`. "
+        + f"Command: `{screen['commands'][0]}` (one per beta)."
+    )
+
+
+def render(
+    results: dict | None, figures: dict[str, str] | None = None, screen: dict | None = None
+) -> str:
     """The README for ``results`` (None: not run yet); ``figures`` maps ``sizes`` and ``beta`` to
-    the figures' paths relative to the README."""
+    the figures' paths relative to the README; ``screen`` is ``beta_screen.json``."""
     figures = figures or {}
     if results is None:
         pending = "Not run yet: run the command above."
@@ -299,6 +315,7 @@ def render(results: dict | None, figures: dict[str, str] | None = None) -> str:
             budget=pending,
             sizes=pending,
             beta=pending,
+            screen=screen_section(screen),
         )
     banner = (
         "> **Smoke budget: these numbers only show that the pipeline runs end to end; the policies "
@@ -324,6 +341,7 @@ def render(results: dict | None, figures: dict[str, str] | None = None) -> str:
         budget=budget_section(results),
         sizes=sizes,
         beta=beta,
+        screen=screen_section(screen),
     )
 
 
@@ -334,8 +352,10 @@ def main(argv=None) -> int:
     parser.add_argument("results", type=Path, nargs="?", default=HERE / "results.json")
     parser.add_argument("--readme", type=Path, default=HERE / "README.md")
     args = parser.parse_args(argv)
+    screen_path = args.results.with_name("beta_screen.json")
+    screen = json.loads(screen_path.read_text()) if screen_path.is_file() else None
     if not args.results.is_file():
-        args.readme.write_text(render(None))
+        args.readme.write_text(render(None, screen=screen))
         print(f"{args.results} not found: wrote {args.readme} as not run yet")
         return 0
     results = json.loads(args.results.read_text())
@@ -345,7 +365,7 @@ def main(argv=None) -> int:
         "beta": plot_beta(results, folder / "beta_sweep.png"),
     }
     rel = {k: str(p.relative_to(args.readme.parent)) for k, p in made.items()}
-    args.readme.write_text(render(results, rel))
+    args.readme.write_text(render(results, rel, screen))
     print(f"wrote {args.readme} and {', '.join(rel.values())}")
     return 0
 

@@ -19,6 +19,10 @@ and sweep the coordinator's broadcast threshold beta.
 4. ``results.json`` (the budget's frames, the commands, the machine) in ``--out`` (default: this
    folder; with ``--smoke``: ``<sweep>/report``, never this folder), then ``report.py`` renders
    the README and figures there.
+
+``--beta-screen CHECKPOINT... --beta-label LABEL`` runs step 3 alone on other ICCO checkpoints
+(no training, no team sizes) into ``beta_screen.json`` in ``--out``: a first read of the
+broadcast target from policies trained elsewhere, rendered in its own section.
 """
 
 from __future__ import annotations
@@ -131,6 +135,26 @@ def point(row: dict, team: int, **labels) -> dict:
     )
 
 
+def beta_sweep(sweep: Path, checkpoints, betas, team: int, label: str, quick, commands) -> list:
+    """ICCO ``checkpoints`` (seeds pooled) at ``team`` robots with ``eval.broadcast_threshold=b``
+    for each b: one results.json point per beta, labelled ``label``."""
+    points = []
+    for beta in betas:
+        payload = evaluate(
+            sweep,
+            f"eval_beta{beta:g}",
+            checkpoints,
+            *quick,
+            f"eval.team_size={team}",
+            f"eval.broadcast_threshold={beta}",
+            "eval.references=[]",
+            commands=commands,
+        )
+        row = episode_rows(payload)[methods.label("icco")]
+        points.append(point(row, team, method=label, beta=beta))
+    return points
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -153,6 +177,10 @@ def main(argv=None) -> None:
     )
     parser.add_argument("--jobs", type=int, default=2, help="training runs side by side")
     parser.add_argument("--out", type=Path, help="results.json, README.md and figures/")
+    parser.add_argument(
+        "--beta-screen", nargs="+", type=Path, help="ICCO checkpoints: run only the beta sweep"
+    )
+    parser.add_argument("--beta-label", default="ICCO", help="their label in the screen")
     args = parser.parse_args(argv)
     if any(k < 1 for k in [*args.team_sizes, args.beta_team_size]):
         parser.error("team sizes must be >= 1")
@@ -163,6 +191,9 @@ def main(argv=None) -> None:
     sweep = (args.sweep or Path("multirun/team_size" + "_smoke" * args.smoke)).resolve()
     out = args.out or (sweep / "report" if args.smoke else HERE)
     sweep.mkdir(parents=True, exist_ok=True)
+    if args.beta_screen:
+        screen(args, sweep, out, [f"eval.trials={trials}", f"eval.steps={steps}"])
+        return
 
     start = time.time()
     frames = train(sweep, args.seeds, budget, args.jobs)
@@ -207,23 +238,16 @@ def main(argv=None) -> None:
                         trained_on=None if reference else spec["sizes"],
                     )
                 )
-    sweep_points = []
-    icco_label = methods.label("icco")
-    for beta in args.betas:
-        payload = evaluate(
-            sweep,
-            f"eval_beta{beta:g}",
-            checkpoints[("icco", "mixed")],
-            *quick,
-            f"eval.team_size={args.beta_team_size}",
-            f"eval.broadcast_threshold={beta}",
-            "eval.references=[]",
-            commands=commands,
-        )
-        row = episode_rows(payload)[icco_label]
-        sweep_points.append(
-            point(row, args.beta_team_size, method=f"{icco_label} (2-4)", beta=beta)
-        )
+    label = f"{methods.label('icco')} (2-4)"
+    points = beta_sweep(
+        sweep,
+        checkpoints[("icco", "mixed")],
+        args.betas,
+        args.beta_team_size,
+        label,
+        quick,
+        commands,
+    )
     eval_wall = time.time() - start
 
     cfg = compose_config(run_overrides("icco", "mixed", 0, budget))
@@ -244,13 +268,39 @@ def main(argv=None) -> None:
         networks=list(ANY_TEAM),
         team_sizes=args.team_sizes,
         sizes=sizes,
-        beta_sweep=dict(team_size=args.beta_team_size, points=sweep_points),
+        beta_sweep=dict(team_size=args.beta_team_size, policy=label, points=points),
         commands=commands,
         machine=machine(),
         wall_s=dict(train=train_wall, eval=eval_wall),
         sweep=str(sweep),
     )
     write_json(results, out / "results.json")
+    report = _script(HERE / "report.py", "team_size_report")
+    report.main([str(out / "results.json"), "--readme", str(out / "README.md")])
+
+
+def screen(args, sweep: Path, out: Path, quick: list[str]) -> None:
+    """``--beta-screen``: the beta sweep alone on given checkpoints, into ``beta_screen.json``."""
+    missing = [str(p) for p in args.beta_screen if not p.is_file()]
+    if missing:
+        raise SystemExit(f"--beta-screen: no checkpoint at {', '.join(missing)}")
+    start, commands = time.time(), []
+    points = beta_sweep(
+        sweep, args.beta_screen, args.betas, args.beta_team_size, args.beta_label, quick, commands
+    )
+    cfg = compose_config(["method=icco"])
+    write_json(
+        dict(
+            period=int(cfg.method.period),
+            checkpoints=[str(p) for p in args.beta_screen],
+            eval_overrides=quick,
+            beta_sweep=dict(team_size=args.beta_team_size, policy=args.beta_label, points=points),
+            commands=commands,
+            machine=machine(),
+            wall_s=time.time() - start,
+        ),
+        out / "beta_screen.json",
+    )
     report = _script(HERE / "report.py", "team_size_report")
     report.main([str(out / "results.json"), "--readme", str(out / "README.md")])
 
