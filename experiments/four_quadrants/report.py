@@ -283,6 +283,8 @@ def main(argv=None) -> int:
         ]
     info_path = args.sweep / "sweep.json"
     info = json.loads(info_path.read_text()) if info_path.is_file() else {}
+    if args.records is not None:  # the seeds of the records, not of this machine's invocation
+        info["seeds"] = sorted({c["seed"] for c in payload["checkpoints"]})
     present = {r["method"] for r in summary}
     missing = [label for label in EXPECTED if label not in present]
 
