@@ -120,9 +120,31 @@ RECORD_FILES = ("config.yaml", "eval.csv", "timing.csv", "references.json")
 REFERENCES_TRIALS = "references_trials.csv"
 
 
+def _thin_timing(timing: Path, evals: Path, dest: Path) -> None:
+    """``timing.csv`` (one cumulative row per collector batch, ~10k rows at 5M frames) cut to
+    the first row at or past each evaluation and the last row: what the clock is read at."""
+    with evals.open() as handle:
+        marks = sorted(int(float(r["frames"])) for r in csv.DictReader(handle))
+    with timing.open() as handle:
+        reader = csv.DictReader(handle)
+        fields, rows = reader.fieldnames, list(reader)
+    kept, i = [], 0
+    for n, row in enumerate(rows):
+        frames = int(float(row["frames"]))
+        if (i < len(marks) and frames >= marks[i]) or n == len(rows) - 1:
+            kept.append(row)
+            while i < len(marks) and frames >= marks[i]:
+                i += 1
+    with dest.open("w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=fields)
+        writer.writeheader()
+        writer.writerows(kept)
+
+
 def keep_records(results: Path, trials: Path, records: Path) -> list[Path]:
     """File each checkpoint of an ``icco eval`` (``results``: its JSON, ``trials``: its trials
-    CSV) as a record ``records/<run>/``: the run's :data:`RECORD_FILES`, ``checkpoint.json``
+    CSV) as a record ``records/<run>/``: the run's :data:`RECORD_FILES` (``timing.csv`` cut to
+    the rows at its evaluations and its last), ``checkpoint.json``
     (its entry in the evaluation) and ``trials.csv`` (its own rows). The scripted references'
     rows go to ``records/references_trials.csv``; every evaluation plays the same initial
     configurations, so they are the same rows whichever evaluation wrote them. Returns the
@@ -145,6 +167,8 @@ def keep_records(results: Path, trials: Path, records: Path) -> list[Path]:
         for name in RECORD_FILES:
             if (run / name).is_file():
                 shutil.copyfile(run / name, dest / name)
+        if (run / "timing.csv").is_file() and (run / "eval.csv").is_file():
+            _thin_timing(run / "timing.csv", run / "eval.csv", dest / "timing.csv")
         (dest / "checkpoint.json").write_text(
             json.dumps({k: v for k, v in entry.items() if k != "path"}, indent=1) + "\n"
         )

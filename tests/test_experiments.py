@@ -295,6 +295,7 @@ def test_run_records_from_two_machines_pool_like_one_evaluation(tmp_path):
         run.mkdir(parents=True)
         (run / "config.yaml").write_text("seed: 0\n")
         (run / "eval.csv").write_text("frames,reward\n1,2.0\n")
+        (run / "timing.csv").write_text("frames,time_train\n1,1.0\n2,2.0\n3,3.0\n")
         own = rows("ICCO", seed, str(run / "checkpoint.pt"))
         joint += own
         entry = dict(path=str(run / "checkpoint.pt"), method="ICCO", seed=seed, frames=5_000_000)
@@ -304,6 +305,9 @@ def test_run_records_from_two_machines_pool_like_one_evaluation(tmp_path):
         kept = jobs.keep_records(results, tmp_path / f"machine{seed}" / "trials.csv", records)
         assert kept == [records / run.name]
         assert (records / run.name / "eval.csv").read_text() == "frames,reward\n1,2.0\n"
+        # timing: the row at the evaluation (frames 1) and the last one
+        timing = (records / run.name / "timing.csv").read_text().split()
+        assert timing == ["frames,time_train", "1,1.0", "3,3.0"]
 
     pooled, checkpoints, runs = report.pooled_records(records)
     assert [c["seed"] for c in checkpoints] == [0, 1] and "path" not in checkpoints[0]
