@@ -324,6 +324,8 @@ def main(argv=None) -> int:
     if args.records is not None:
         page += ["--records", os.path.relpath(args.records)]
     page_args = "".join(" " + shlex.quote(a) for a in page)
+    if os.path.relpath(args.sweep) != os.path.join("multirun", "four_quadrants"):
+        budget_args += " --sweep " + shlex.quote(os.path.relpath(args.sweep))
     text = Template((HERE / "README.template.md").read_text()).substitute(
         banner=banner,
         steps=steps,
