@@ -15,7 +15,7 @@
 With ``--records DIR`` each evaluated run also leaves its record in ``DIR/<run>/`` (its config,
 greedy-eval curve, timing, references and its own quadrant trials), and the report pools every
 record there. Checkpoints stay on the machine that trained them, so seeds trained on different
-machines (one sitting each) meet in one report: the 5M reproduction keeps its records in
+machines meet in one report: the 5M reproduction keeps its records in
 ``records_5m/`` here.
 
 ``--train-only`` stops after step 1 (the language experiment uses it to train its agents).
