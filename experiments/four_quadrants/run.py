@@ -15,8 +15,8 @@
 With ``--records DIR`` each evaluated run also leaves its record in ``DIR/<run>/`` (its config,
 greedy-eval curve, timing, references and its own quadrant trials), and the report pools every
 record there. Checkpoints stay on the machine that trained them, so seeds trained on different
-machines meet in one report: the 5M reproduction keeps its records in
-``records_5m/`` here.
+machines meet in one report: the 5M reproduction keeps its records in ``5m/records/`` here
+and its page in ``5m/README.md``.
 
 ``--train-only`` stops after step 1 (the language experiment uses it to train its agents).
 """
