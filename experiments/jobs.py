@@ -16,6 +16,7 @@ import sys
 import time
 from pathlib import Path
 
+from icco_torchrl.evaluation.metrics import write_csv
 from icco_torchrl.training.checkpoint import load_checkpoint
 
 # The training recipe before sequence replay became the default (commit 396580d): 4-step items,
@@ -120,14 +121,13 @@ RECORD_FILES = ("config.yaml", "eval.csv", "timing.csv", "references.json")
 REFERENCES_TRIALS = "references_trials.csv"
 
 
-def _thin_timing(timing: Path, evals: Path, dest: Path) -> None:
-    """``timing.csv`` (one cumulative row per collector batch, ~10k rows at 5M frames) cut to
+def _thin_timing(timing: Path, evals: Path) -> list[dict]:
+    """``timing.csv``'s rows (one cumulative row per collector batch, ~10k at 5M frames) cut to
     the first row at or past each evaluation and the last row: what the clock is read at."""
     with evals.open() as handle:
         marks = sorted(int(float(r["frames"])) for r in csv.DictReader(handle))
     with timing.open() as handle:
-        reader = csv.DictReader(handle)
-        fields, rows = reader.fieldnames, list(reader)
+        rows = list(csv.DictReader(handle))
     kept, i = [], 0
     for n, row in enumerate(rows):
         frames = int(float(row["frames"]))
@@ -135,10 +135,7 @@ def _thin_timing(timing: Path, evals: Path, dest: Path) -> None:
             kept.append(row)
             while i < len(marks) and frames >= marks[i]:
                 i += 1
-    with dest.open("w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=fields)
-        writer.writeheader()
-        writer.writerows(kept)
+    return kept
 
 
 def keep_records(results: Path, trials: Path, records: Path) -> list[Path]:
@@ -151,31 +148,24 @@ def keep_records(results: Path, trials: Path, records: Path) -> list[Path]:
     record folders."""
     with trials.open() as handle:
         rows = list(csv.DictReader(handle))
-    fields = list(rows[0]) if rows else []
-
-    def write(path: Path, subset: list[dict]) -> None:
-        with path.open("w", newline="") as handle:
-            writer = csv.DictWriter(handle, fieldnames=fields)
-            writer.writeheader()
-            writer.writerows(subset)
-
     kept = []
     for entry in json.loads(results.read_text())["checkpoints"]:
         run = Path(entry["path"]).parent
         dest = records / run.name
         dest.mkdir(parents=True, exist_ok=True)
+        thin = (run / "timing.csv").is_file() and (run / "eval.csv").is_file()
         for name in RECORD_FILES:
-            if (run / name).is_file():
+            if name == "timing.csv" and thin:
+                write_csv(_thin_timing(run / name, run / "eval.csv"), dest / name)
+            elif (run / name).is_file():
                 shutil.copyfile(run / name, dest / name)
-        if (run / "timing.csv").is_file() and (run / "eval.csv").is_file():
-            _thin_timing(run / "timing.csv", run / "eval.csv", dest / "timing.csv")
         (dest / "checkpoint.json").write_text(
             json.dumps({k: v for k, v in entry.items() if k != "path"}, indent=1) + "\n"
         )
         own = [{**r, "checkpoint": run.name} for r in rows if r["checkpoint"] == entry["path"]]
-        write(dest / "trials.csv", own)
+        write_csv(own, dest / "trials.csv")
         kept.append(dest)
     references = [r for r in rows if not r["checkpoint"]]
     if references:
-        write(records / REFERENCES_TRIALS, references)
+        write_csv(references, records / REFERENCES_TRIALS)
     return kept

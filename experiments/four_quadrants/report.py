@@ -226,6 +226,15 @@ def _number(value: str):
         return value
 
 
+def _read_trials(path: Path) -> list[dict]:
+    """A trials CSV back to rows: numbers as floats, labels as strings."""
+    with path.open() as handle:
+        rows = [{k: _number(v) for k, v in r.items()} for r in csv.DictReader(handle)]
+    for row in rows:
+        row["method"], row["segment"] = str(row["method"]), str(row["segment"])
+    return rows
+
+
 def pooled_records(records: Path) -> tuple[list[dict], list[dict], list[Path]]:
     """Trial rows, checkpoint entries and run folders of every record in ``records`` (see
     ``jobs.keep_records``), methods in the paper's order, then the scripted references."""
@@ -235,16 +244,10 @@ def pooled_records(records: Path) -> tuple[list[dict], list[dict], list[Path]]:
         entry = json.loads(path.read_text())
         entries.append((order.get(entry["method"], len(order)), entry["seed"], path.parent, entry))
     entries.sort(key=lambda e: e[:2])
-    rows = []
-    for *_, folder, _ in entries:
-        with (folder / "trials.csv").open() as handle:
-            rows += [{k: _number(v) for k, v in r.items()} for r in csv.DictReader(handle)]
+    rows = [row for *_, folder, _ in entries for row in _read_trials(folder / "trials.csv")]
     references = records / jobs.REFERENCES_TRIALS
     if references.is_file():
-        with references.open() as handle:
-            rows += [{k: _number(v) for k, v in r.items()} for r in csv.DictReader(handle)]
-    for row in rows:
-        row["method"], row["segment"] = str(row["method"]), str(row["segment"])
+        rows += _read_trials(references)
     return rows, [e[-1] for e in entries], [e[2] for e in entries]
 
 
