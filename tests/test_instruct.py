@@ -212,3 +212,56 @@ def test_with_fallbacks_instruct_runs_on_and_counts_them(checkpoint, tmp_path, c
     )  # the default folder, beside the checkpoint
     summary = json.loads((out / "instruct.json").read_text())
     assert summary["sources"] and all(s["fallbacks"] == s["plans"] > 0 for s in summary["sources"])
+
+
+def test_language_report_without_table_two_runs_reports_fig5b_and_lists_qmix_tap_missing(
+    checkpoint, tmp_path, capsys
+):
+    """``experiments/language/run.py --methods icco qmix_full`` writes no Table II runs: the report
+    still renders Fig. 5b, ICCO's Table II row, and names the missing QMIX-TAP rows; its reproduce
+    line carries the narrowed agents and folders."""
+    import importlib.util
+    import os
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "experiments" / "language" / "report.py"
+    spec = importlib.util.spec_from_file_location("language_report", path)
+    report = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(report)
+
+    out = tmp_path / "language"
+    code = icco(
+        "instruct",
+        "Go right; Spread out",
+        f"eval.checkpoints=[{checkpoint}]",
+        "eval.trials=2",
+        "eval.steps=6",
+        f"eval.out_dir={out / 'fig5b'}",
+        f"hydra.run.dir={tmp_path / 'hydra'}",
+    )
+    assert code == 0, capsys.readouterr().err
+    (out / "run.json").write_text(
+        json.dumps(
+            {
+                "budget": ["experiment=repro_5m"],
+                "seeds": [0],
+                "llm": "offline",
+                "methods": ["icco", "qmix_full"],
+                "sweep": "multirun/four_quadrants_5m",
+            }
+        )
+    )
+    readme = tmp_path / "5m" / "README.md"
+    assert report.main([str(out), "--readme", str(readme)]) == 0
+    text = readme.read_text()
+    assert "| QMIX-TAP | missing |" in text and "| QMIX-TAP w/o TR | missing |" in text
+    assert "| ICCO | 4 |" in text  # 2 trials x 2 instructions, seed 0
+    assert "Table II: missing QMIX-TAP, QMIX-TAP w/o TR; no comparison." in text
+    assert "**Recipe.**" not in text  # the default page's history only
+    assert (readme.parent / "figures" / "fig5b_reward.png").stat().st_size > 0
+    results = json.loads((readme.parent / "results.json").read_text())
+    assert list(results["table2"]["methods"]) == ["icco"]
+    words = report.run_arguments(out, None, readme)
+    assert words.startswith("--budget experiment=repro_5m --seeds 0 --methods icco qmix_full")
+    assert "--sweep multirun/four_quadrants_5m" in words
+    assert words.endswith(f"--out {os.path.relpath(out)} --readme {os.path.relpath(readme)}")

@@ -43,6 +43,14 @@ PAPER_TABLE2 = {
 }
 COUNTS = ("pick", "collect", "defense")
 SMOKE_FRAMES = 100_000
+AGENTS = ("icco", "qmix", "qmix_full", "qmix_full_flat")  # as run.py's --methods
+RECIPE_NOTE = (  # the default page's history; other pages (5m/) have none
+    "> **Recipe.** Today's defaults: 16-step replay items, lambda-returns (0.6), collect\n"
+    "> shaping in the training env, chosen by the\n"
+    "> [sequence-replay screens](../sequence_replay/README.md). This page at the recipe\n"
+    "> before them (commit 396580d) is\n"
+    "> `git show ae04e50:experiments/language/README.md`.\n"
+)
 
 
 def load(folder: Path) -> tuple[dict, list[dict]]:
@@ -158,11 +166,11 @@ def _frames(*payloads: dict) -> dict[str, int]:
 
 
 def language_results(
-    fig5b: dict, fig5b_rows: list[dict], tap: dict, tap_rows: list[dict], steps: int
+    fig5b: dict, fig5b_rows: list[dict], tap: dict | None, tap_rows: list[dict], steps: int
 ) -> dict:
     """results.json: Fig. 5b (whole 4-instruction episode) and, under ``table2``, the
     per-instruction means of Table II (ICCO with the plain prompt, QMIX-TAP and QMIX-TAP w/o TR with
-    the task-aligned one)."""
+    the task-aligned one; ICCO's alone without ``tap``)."""
     n_segments = len(fig5b["segment_steps"])
     out = results_json(
         fig5b["summary"],
@@ -190,18 +198,27 @@ def language_results(
         summarize(per_instruction),
         protocol="language_tap",
         steps=steps,
-        trials=tap["trials"] * n_segments,
-        frames=_frames(fig5b, tap),
+        trials=fig5b["trials"] * n_segments,
+        frames=_frames(fig5b, *([tap] if tap else [])),
         segment="instruction",
     )
     return out
 
 
-def run_arguments(out: Path, llm: str | None) -> str:
-    """``run.py``'s arguments for this folder: budget and seeds (``run.json``, if written)."""
+def run_arguments(out: Path, llm: str | None, readme: Path) -> str:
+    """``run.py``'s arguments for this folder: budget, seeds, agents and folders (``run.json``, if
+    written)."""
     saved = json.loads((out / "run.json").read_text()) if (out / "run.json").is_file() else {}
     words = ["--budget", *saved["budget"]] if saved.get("budget") else []
     words += ["--seeds", *map(str, saved["seeds"])] if saved.get("seeds") else []
+    if saved.get("methods") and len(saved["methods"]) < len(AGENTS):
+        words += ["--methods", *saved["methods"]]
+    if saved.get("sweep") and Path(saved["sweep"]) != Path("multirun/four_quadrants"):
+        words += ["--sweep", saved["sweep"]]
+    if out.resolve() != Path("multirun/language").resolve():
+        words += ["--out", os.path.relpath(out)]
+    if readme.resolve() != (HERE / "README.md").resolve():
+        words += ["--readme", os.path.relpath(readme)]
     if llm:
         words += ["--llm", llm]
     return " ".join(shlex.quote(w) for w in words)
@@ -214,16 +231,21 @@ def main(argv=None) -> int:
     parser.add_argument("out", type=Path, help="the results folder written by run.py")
     parser.add_argument("--readme", type=Path, default=HERE / "README.md")
     args = parser.parse_args(argv)
-    for sub in ("fig5b", "table2_tap"):
-        if not (args.out / sub / "instruct.json").is_file():
-            print(
-                f"report.py: {args.out / sub / 'instruct.json'} not found: run "
-                "experiments/language/run.py first",
-                file=sys.stderr,
-            )
-            return 2
+    if not (args.out / "fig5b" / "instruct.json").is_file():
+        print(
+            f"report.py: {args.out / 'fig5b' / 'instruct.json'} not found: run "
+            "experiments/language/run.py first",
+            file=sys.stderr,
+        )
+        return 2
     fig5b, fig5b_rows = load(args.out / "fig5b")
-    tap, tap_rows = load(args.out / "table2_tap")
+    # Table II's QMIX-TAP runs exist only when run.py's --methods had qmix.
+    tap, tap_rows = (
+        load(args.out / "table2_tap")
+        if (args.out / "table2_tap" / "instruct.json").is_file()
+        else (None, [])
+    )
+    payloads = {"fig5b": fig5b, **({"table2_tap": tap} if tap else {})}
     figures = args.readme.parent / "figures"
     figures.mkdir(parents=True, exist_ok=True)
     shutil.copyfile(args.out / "fig5b" / "instruct_reward.png", figures / "fig5b_reward.png")
@@ -232,7 +254,7 @@ def main(argv=None) -> int:
     )
 
     table, means = table2([r for r in fig5b_rows if r["method"] == "ICCO"] + tap_rows)
-    frames = [c["frames"] or 0 for p in (fig5b, tap) for c in p["checkpoints"]]
+    frames = [c["frames"] or 0 for p in payloads.values() for c in p["checkpoints"]]
     smoke = min(frames) < SMOKE_FRAMES
     model = fig5b["model"]
     offline = model.startswith("offline/")
@@ -262,7 +284,7 @@ def main(argv=None) -> int:
         ),
         run_args="--smoke"
         if smoke
-        else run_arguments(args.out, None if offline else fig5b["llm_backend"]),
+        else run_arguments(args.out, None if offline else fig5b["llm_backend"], args.readme),
         out=shlex.quote(os.path.relpath(args.out)),
         fig5b_table=segment_table(fig5b["summary"], "reward")
         + "\n\nWhole episode:\n\n"
@@ -272,7 +294,8 @@ def main(argv=None) -> int:
             missing=fig5b_missing,
         ),
         table2=table,
-        planner_stats=planner_stats({"fig5b": fig5b, "table2_tap": tap}),
+        recipe_note=RECIPE_NOTE if args.readme.resolve() == (HERE / "README.md").resolve() else "",
+        planner_stats=planner_stats(payloads),
         comparison=comparison(fig5b["summary"], means),
     )
     args.readme.write_text(text)

@@ -18,18 +18,31 @@
    Fig. 5b run (ICCO gets the paper's plain prompt: its coordinator does the task alignment).
    Counts are per 145-step instruction segment.
 4. ``report.py <out>`` fills ``README.md`` here.
+
+``--methods`` narrows the agents: without ``qmix`` there is no Table II run (its QMIX-TAP rows are
+then reported missing), so ``--methods icco qmix_full`` evaluates Fig. 5b on a sweep that holds only
+those two, as the 5M reproduction does:
+
+    python experiments/language/run.py --budget experiment=repro_5m --methods icco qmix_full \
+        --sweep multirun/four_quadrants_5m --out multirun/language_5m \
+        --readme experiments/language/5m/README.md
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 INSTRUCTIONS = ("Go right", "Move top", "Gather center", "Spread out")
+# The four-quadrant agents this experiment reads; Fig. 5b compares the last three's first two
+# (and the paper's flat QMIX (FULL)), Table II drives QMIX.
+AGENTS = ("icco", "qmix", "qmix_full", "qmix_full_flat")
+FIG5B = ("icco", "qmix_full", "qmix_full_flat")
 NO_TASK_REWARD = (
     "env.params.pick_reward=0",
     "env.params.collect_reward=0",
@@ -105,6 +118,13 @@ def main(argv=None) -> None:
     )
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     parser.add_argument(
+        "--methods",
+        nargs="+",
+        choices=AGENTS,
+        default=list(AGENTS),
+        help="four-quadrant agents to train and evaluate (Table II needs qmix)",
+    )
+    parser.add_argument(
         "--llm", default="offline", help="conf/llm group: offline | openai | ollama"
     )
     parser.add_argument("--trials", type=int, default=20, help="trials per checkpoint (paper: 20)")
@@ -125,39 +145,46 @@ def main(argv=None) -> None:
     out = (args.out or Path(f"multirun/language{tag}")).resolve()
     trials, steps = (4, 20) if args.smoke else (args.trials, args.steps)
 
-    train(
-        sweep, ["icco", "qmix", "qmix_full", "qmix_full_flat"], args.seeds, args.budget, args.smoke
-    )
-    train(
-        wo_tr,
-        ["qmix"],
-        args.seeds,
-        [*(args.budget or ([] if args.smoke else ["experiment=default"])), *NO_TASK_REWARD],
-        args.smoke,
-    )
+    table2 = "qmix" in args.methods
+    train(sweep, args.methods, args.seeds, args.budget, args.smoke)
+    if table2:
+        train(
+            wo_tr,
+            ["qmix"],
+            args.seeds,
+            [*(args.budget or ([] if args.smoke else ["experiment=default"])), *NO_TASK_REWARD],
+            args.smoke,
+        )
     replan = [f"eval.replan_every={args.replan_every}"] if args.replan_every else []
     instruct(
         out / "fig5b",
-        checkpoints(sweep, "icco")
-        + checkpoints(sweep, "qmix_full")
-        + checkpoints(sweep, "qmix_full_flat"),
+        [path for m in FIG5B if m in args.methods for path in checkpoints(sweep, m)],
         trials,
         steps,
         args.llm,
         replan,
     )
-    instruct(
-        out / "table2_tap",
-        checkpoints(sweep, "qmix") + checkpoints(wo_tr, "qmix"),
-        trials,
-        steps,
-        args.llm,
-        ["llm.prompt=tap", *replan],
-    )
+    if table2:
+        instruct(
+            out / "table2_tap",
+            checkpoints(sweep, "qmix") + checkpoints(wo_tr, "qmix"),
+            trials,
+            steps,
+            args.llm,
+            ["llm.prompt=tap", *replan],
+        )
     # What the report cannot read from the checkpoints: the command line that reproduces this
     # folder.
     (out / "run.json").write_text(
-        json.dumps({"budget": args.budget or [], "seeds": args.seeds, "llm": args.llm})
+        json.dumps(
+            {
+                "budget": args.budget or [],
+                "seeds": args.seeds,
+                "llm": args.llm,
+                "methods": args.methods,
+                "sweep": os.path.relpath(sweep),
+            }
+        )
     )
     run(sys.executable, str(HERE / "report.py"), str(out), "--readme", str(args.readme))
 
