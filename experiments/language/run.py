@@ -74,11 +74,14 @@ def train(sweep: Path, methods, seeds, budget, smoke: bool) -> None:
     )
 
 
-def checkpoints(sweep: Path, method: str) -> list[str]:
-    found = sorted(str(p) for p in sweep.glob(f"{method}_seed*/checkpoint.pt"))
-    if not found:
-        raise SystemExit(f"no {method} checkpoint under {sweep}: training failed?")
-    return found
+def checkpoints(sweep: Path, method: str, seeds) -> list[str]:
+    """The checkpoints of ``method``'s runs at ``seeds`` (other seeds in the sweep, finished or
+    still training, are not this experiment's)."""
+    found = [sweep / f"{method}_seed{s}" / "checkpoint.pt" for s in seeds]
+    missing = [str(p) for p in found if not p.is_file()]
+    if missing:
+        raise SystemExit(f"no checkpoint {', '.join(missing)}: training failed?")
+    return [str(p) for p in found]
 
 
 def instruct(out: Path, paths, trials: int, steps: int, llm: str, extra=()) -> None:
@@ -158,7 +161,7 @@ def main(argv=None) -> None:
     replan = [f"eval.replan_every={args.replan_every}"] if args.replan_every else []
     instruct(
         out / "fig5b",
-        [path for m in FIG5B if m in args.methods for path in checkpoints(sweep, m)],
+        [path for m in FIG5B if m in args.methods for path in checkpoints(sweep, m, args.seeds)],
         trials,
         steps,
         args.llm,
@@ -167,7 +170,7 @@ def main(argv=None) -> None:
     if table2:
         instruct(
             out / "table2_tap",
-            checkpoints(sweep, "qmix") + checkpoints(wo_tr, "qmix"),
+            checkpoints(sweep, "qmix", args.seeds) + checkpoints(wo_tr, "qmix", args.seeds),
             trials,
             steps,
             args.llm,
