@@ -258,6 +258,8 @@ def test_language_report_without_table_two_runs_reports_fig5b_and_lists_qmix_tap
     assert "| ICCO | 4 |" in text  # 2 trials x 2 instructions, seed 0
     assert "Table II: missing QMIX-TAP, QMIX-TAP w/o TR; no comparison." in text
     assert "**Recipe.**" not in text  # the default page's history only
+    # its own "only rewrite this file" line writes this page, not the default one
+    assert f"report.py {os.path.relpath(out)} --readme {os.path.relpath(readme)}" in text
     assert (readme.parent / "figures" / "fig5b_reward.png").stat().st_size > 0
     results = json.loads((readme.parent / "results.json").read_text())
     assert list(results["table2"]["methods"]) == ["icco"]

@@ -285,7 +285,12 @@ def main(argv=None) -> int:
         run_args="--smoke"
         if smoke
         else run_arguments(args.out, None if offline else fig5b["llm_backend"], args.readme),
-        out=shlex.quote(os.path.relpath(args.out)),
+        out=shlex.quote(os.path.relpath(args.out))
+        + (
+            ""
+            if args.readme.resolve() == (HERE / "README.md").resolve()
+            else " --readme " + shlex.quote(os.path.relpath(args.readme))
+        ),
         fig5b_table=segment_table(fig5b["summary"], "reward")
         + "\n\nWhole episode:\n\n"
         + markdown_table(
