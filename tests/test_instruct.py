@@ -220,14 +220,11 @@ def test_language_report_without_table_two_runs_reports_fig5b_and_lists_qmix_tap
     """``experiments/language/run.py --methods icco qmix_full`` writes no Table II runs: the report
     still renders Fig. 5b, ICCO's Table II row, and names the missing QMIX-TAP rows; its reproduce
     line carries the narrowed agents and folders."""
-    import importlib.util
     import os
-    from pathlib import Path
 
-    path = Path(__file__).resolve().parents[1] / "experiments" / "language" / "report.py"
-    spec = importlib.util.spec_from_file_location("language_report", path)
-    report = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(report)
+    from test_experiments import ROOT, _load
+
+    report = _load(ROOT / "experiments" / "language" / "report.py")
 
     out = tmp_path / "language"
     code = icco(
@@ -248,6 +245,7 @@ def test_language_report_without_table_two_runs_reports_fig5b_and_lists_qmix_tap
                 "llm": "offline",
                 "methods": ["icco", "qmix_full"],
                 "sweep": "multirun/four_quadrants_5m",
+                "out": os.path.relpath(out),
             }
         )
     )

@@ -43,7 +43,6 @@ PAPER_TABLE2 = {
 }
 COUNTS = ("pick", "collect", "defense")
 SMOKE_FRAMES = 100_000
-AGENTS = ("icco", "qmix", "qmix_full", "qmix_full_flat")  # as run.py's --methods
 RECIPE_NOTE = (  # the default page's history; other pages (5m/) have none
     "> **Recipe.** Today's defaults: 16-step replay items, lambda-returns (0.6), collect\n"
     "> shaping in the training env, chosen by the\n"
@@ -205,20 +204,16 @@ def language_results(
     return out
 
 
-def run_arguments(out: Path, llm: str | None, readme: Path) -> str:
-    """``run.py``'s arguments for this folder: budget, seeds, agents and folders (``run.json``, if
-    written)."""
+def run_arguments(out: Path, llm: str | None, readme: Path | None) -> str:
+    """``run.py``'s arguments for this folder: budget, seeds, and the agents and folders it was
+    given (``run.json``, if written); ``readme``: this page, ``None`` for the default one."""
     saved = json.loads((out / "run.json").read_text()) if (out / "run.json").is_file() else {}
     words = ["--budget", *saved["budget"]] if saved.get("budget") else []
     words += ["--seeds", *map(str, saved["seeds"])] if saved.get("seeds") else []
-    if saved.get("methods") and len(saved["methods"]) < len(AGENTS):
-        words += ["--methods", *saved["methods"]]
-    if saved.get("sweep") and Path(saved["sweep"]) != Path("multirun/four_quadrants"):
-        words += ["--sweep", saved["sweep"]]
-    if out.resolve() != Path("multirun/language").resolve():
-        words += ["--out", os.path.relpath(out)]
-    if readme.resolve() != (HERE / "README.md").resolve():
-        words += ["--readme", os.path.relpath(readme)]
+    words += ["--methods", *saved["methods"]] if saved.get("methods") else []
+    for folder in ("sweep", "out"):
+        words += [f"--{folder}", saved[folder]] if saved.get(folder) else []
+    words += ["--readme", os.path.relpath(readme)] if readme else []
     if llm:
         words += ["--llm", llm]
     return " ".join(shlex.quote(w) for w in words)
@@ -246,6 +241,8 @@ def main(argv=None) -> int:
         else (None, [])
     )
     payloads = {"fig5b": fig5b, **({"table2_tap": tap} if tap else {})}
+    # a page other than the default one: named in its reproduce lines, without the default's history
+    page = None if args.readme.resolve() == (HERE / "README.md").resolve() else args.readme
     figures = args.readme.parent / "figures"
     figures.mkdir(parents=True, exist_ok=True)
     shutil.copyfile(args.out / "fig5b" / "instruct_reward.png", figures / "fig5b_reward.png")
@@ -284,12 +281,13 @@ def main(argv=None) -> int:
         ),
         run_args="--smoke"
         if smoke
-        else run_arguments(args.out, None if offline else fig5b["llm_backend"], args.readme),
-        out=shlex.quote(os.path.relpath(args.out))
-        + (
-            ""
-            if args.readme.resolve() == (HERE / "README.md").resolve()
-            else " --readme " + shlex.quote(os.path.relpath(args.readme))
+        else run_arguments(args.out, None if offline else fig5b["llm_backend"], page),
+        out=" ".join(
+            shlex.quote(w)
+            for w in [
+                os.path.relpath(args.out),
+                *(["--readme", os.path.relpath(page)] if page else []),
+            ]
         ),
         fig5b_table=segment_table(fig5b["summary"], "reward")
         + "\n\nWhole episode:\n\n"
@@ -299,7 +297,7 @@ def main(argv=None) -> int:
             missing=fig5b_missing,
         ),
         table2=table,
-        recipe_note=RECIPE_NOTE if args.readme.resolve() == (HERE / "README.md").resolve() else "",
+        recipe_note="" if page else RECIPE_NOTE,
         planner_stats=planner_stats(payloads),
         comparison=comparison(fig5b["summary"], means),
     )

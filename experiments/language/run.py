@@ -39,8 +39,8 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 INSTRUCTIONS = ("Go right", "Move top", "Gather center", "Spread out")
-# The four-quadrant agents this experiment reads; Fig. 5b compares the last three's first two
-# (and the paper's flat QMIX (FULL)), Table II drives QMIX.
+# The four-quadrant agents this experiment reads: Fig. 5b compares ICCO with QMIX (FULL) (and the
+# paper's flat QMIX (FULL)), Table II drives QMIX.
 AGENTS = ("icco", "qmix", "qmix_full", "qmix_full_flat")
 FIG5B = ("icco", "qmix_full", "qmix_full_flat")
 NO_TASK_REWARD = (
@@ -124,8 +124,7 @@ def main(argv=None) -> None:
         "--methods",
         nargs="+",
         choices=AGENTS,
-        default=list(AGENTS),
-        help="four-quadrant agents to train and evaluate (Table II needs qmix)",
+        help="four-quadrant agents to train and evaluate (default: all; Table II needs qmix)",
     )
     parser.add_argument(
         "--llm", default="offline", help="conf/llm group: offline | openai | ollama"
@@ -148,8 +147,9 @@ def main(argv=None) -> None:
     out = (args.out or Path(f"multirun/language{tag}")).resolve()
     trials, steps = (4, 20) if args.smoke else (args.trials, args.steps)
 
-    table2 = "qmix" in args.methods
-    train(sweep, args.methods, args.seeds, args.budget, args.smoke)
+    agents = args.methods or list(AGENTS)
+    table2 = "qmix" in agents
+    train(sweep, agents, args.seeds, args.budget, args.smoke)
     if table2:
         train(
             wo_tr,
@@ -161,7 +161,7 @@ def main(argv=None) -> None:
     replan = [f"eval.replan_every={args.replan_every}"] if args.replan_every else []
     instruct(
         out / "fig5b",
-        [path for m in FIG5B if m in args.methods for path in checkpoints(sweep, m, args.seeds)],
+        [path for m in FIG5B if m in agents for path in checkpoints(sweep, m, args.seeds)],
         trials,
         steps,
         args.llm,
@@ -177,15 +177,15 @@ def main(argv=None) -> None:
             ["llm.prompt=tap", *replan],
         )
     # What the report cannot read from the checkpoints: the command line that reproduces this
-    # folder.
+    # folder (agents and folders only where they were given).
+    given = {"methods": args.methods, "sweep": args.sweep, "out": args.out}
     (out / "run.json").write_text(
         json.dumps(
             {
                 "budget": args.budget or [],
                 "seeds": args.seeds,
                 "llm": args.llm,
-                "methods": args.methods,
-                "sweep": os.path.relpath(sweep),
+                **{k: v if k == "methods" else os.path.relpath(v) for k, v in given.items() if v},
             }
         )
     )
