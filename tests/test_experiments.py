@@ -7,6 +7,8 @@ import importlib.util
 import json
 from pathlib import Path
 
+import pytest
+
 from icco_torchrl.training.build import compose_config
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -130,6 +132,14 @@ def test_team_size_runs_compose_with_the_any_team_networks_and_their_team_sizes(
         ]
         == 800_000
     )
+    # --train-beta: the same run with the threshold in training, in its own folder.
+    trained = compose_config(run.run_overrides("icco", "mixed", 1, ["experiment=repro_cpu"], 4.0))
+    assert trained.method.broadcast_threshold == 4.0 and list(trained.train.team_sizes) == [2, 3, 4]
+    assert mixed.method.broadcast_threshold == 0.0
+    assert run.run_dir(ROOT, "icco", "mixed", 1, 4.0).name == "icco_mixed_beta4_seed1"
+    assert run.run_dir(ROOT, "icco", "mixed", 1).name == "icco_mixed_seed1"
+    with pytest.raises(SystemExit):
+        run.main(["--train-beta", "0"])
 
 
 def _team_size_results(points_5_6: dict, betas: list[tuple[float, float, float]]) -> dict:
@@ -254,6 +264,39 @@ def test_team_size_report_checks_both_targets_from_the_numbers(tmp_path):
     )
     for name in ("reward_per_robot.png", "beta_sweep.png"):
         assert (tmp_path / "figures" / name).stat().st_size > 0
+    assert "Not run (`run.py --train-beta B`)." in text
+
+    # --train-beta's sweep: read against its own every-T reward (270) and the beta = 0 policy's.
+    trained = dict(
+        screen,
+        train_beta=4.0,
+        seeds=[0, 1],
+        frames=800_256,
+        train_command="icco train ... method.broadcast_threshold=4 hydra.run.dir=...",
+        beta_sweep=dict(
+            team_size=3,
+            policy="ICCO (2-4, trained at beta = 4)",
+            points=[
+                dict(p, beta=b, reward=r, broadcast_rate=rate)
+                for p, (b, r, rate) in zip(
+                    results["beta_sweep"]["points"], [(0.0, 270.0, 0.25), (4.0, 255.0, 0.05)]
+                )
+            ],
+        ),
+    )
+    (tmp_path / "beta_trained.json").write_text(json.dumps(trained))
+    assert report.main([str(path), "--readme", str(readme)]) == 0
+    text = readme.read_text()
+    assert (
+        "- **Trained at beta = 4: at a broadcast rate <= 25 % ICCO keeps >= 90 % of its every-T "
+        "team reward**: met: beta = 4 sends 20 % of the every-T broadcasts" in text
+    )
+    assert "keeps 255.0 of 270.0 (94 %)." in text
+    assert (
+        "- **Against the beta = 0 policy's every-T reward** (300.0, ICCO (2-4)): not met, 255.0 "
+        "at beta = 4 (85 %)." in text
+    )
+    assert "seeds [0, 1], checkpoints at 800,256 env steps" in text and "$" not in text
 
 
 def test_team_size_readme_says_it_has_not_been_run_until_results_exist():
@@ -263,7 +306,9 @@ def test_team_size_readme_says_it_has_not_been_run_until_results_exist():
     readme = (ROOT / "experiments" / "team_size" / "README.md").read_text()
     screen = ROOT / "experiments" / "team_size" / "beta_screen.json"
     screen = json.loads(screen.read_text()) if screen.is_file() else None
-    assert readme == report.render(None, screen=screen), (
+    trained = ROOT / "experiments" / "team_size" / "beta_trained.json"
+    trained = json.loads(trained.read_text()) if trained.is_file() else None
+    assert readme == report.render(None, screen=screen, trained=trained), (
         "stale: run python experiments/team_size/report.py"
     )
     assert "Not run yet at its budget" in readme

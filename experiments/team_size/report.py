@@ -294,11 +294,48 @@ def screen_section(screen: dict | None) -> str:
     )
 
 
+def trained_section(trained: dict | None, results: dict | None) -> str:
+    """``run.py --train-beta B``'s sweep: ICCO (2-4) trained with the threshold, its broadcast
+    target read against its own every-T reward and against the beta = 0 policy's."""
+    if not trained:
+        return "Not run (`run.py --train-beta B`)."
+    beta = trained["train_beta"]
+    target = beta_target(trained).replace(
+        "- **Adaptive broadcast", f"- **Trained at beta = {beta:g}", 1
+    )
+    period = int(trained.get("period", 1))
+    points = trained["beta_sweep"]["points"]
+    low = [p for p in points if relative_rate(p, period) <= RATE_BOUND]
+    base = next(
+        (p for p in (results or {}).get("beta_sweep", {}).get("points", []) if p["beta"] == 0), None
+    )
+    against = ""
+    if low and base and _finite(base["reward"]) and base["reward"] > 0:
+        best = max(low, key=lambda p: p["reward"])
+        share = best["reward"] / base["reward"]
+        against = (
+            f"\n- **Against the beta = 0 policy's every-T reward** ({base['reward']:.1f}, "
+            f"{base['method']}): {'met' if share >= KEPT_SHARE else 'not met'}, "
+            f"{best['reward']:.1f} at beta = {best['beta']:g} ({_pct(share)})."
+        )
+    return (
+        f"{target}{against}\n\n{beta_table(trained)}\n\nTrained: `{trained['train_command']}`, "
+        f"seeds {trained['seeds']}, checkpoints at {_frames(trained.get('frames'))} env steps "
+        f"({trained.get('train_wall_s', 0) / 60:.1f} min training in this invocation). "
+        f"Evaluation: `{' '.join(trained['eval_overrides'])}`, "
+        f"`{trained['commands'][0]}` (one per beta)."
+    )
+
+
 def render(
-    results: dict | None, figures: dict[str, str] | None = None, screen: dict | None = None
+    results: dict | None,
+    figures: dict[str, str] | None = None,
+    screen: dict | None = None,
+    trained: dict | None = None,
 ) -> str:
     """The README for ``results`` (None: not run yet); ``figures`` maps ``sizes`` and ``beta`` to
-    the figures' paths relative to the README; ``screen`` is ``beta_screen.json``."""
+    the figures' paths relative to the README; ``screen`` is ``beta_screen.json``, ``trained``
+    ``beta_trained.json``."""
     figures = figures or {}
     if results is None:
         pending = "Not run yet: run the command above."
@@ -316,6 +353,7 @@ def render(
             sizes=pending,
             beta=pending,
             screen=screen_section(screen),
+            trained=trained_section(trained, None),
         )
     banner = (
         "> **Smoke budget: these numbers only show that the pipeline runs end to end; the policies "
@@ -342,6 +380,7 @@ def render(
         sizes=sizes,
         beta=beta,
         screen=screen_section(screen),
+        trained=trained_section(trained, results),
     )
 
 
@@ -354,8 +393,10 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     screen_path = args.results.with_name("beta_screen.json")
     screen = json.loads(screen_path.read_text()) if screen_path.is_file() else None
+    trained_path = args.results.with_name("beta_trained.json")
+    trained = json.loads(trained_path.read_text()) if trained_path.is_file() else None
     if not args.results.is_file():
-        args.readme.write_text(render(None, screen=screen))
+        args.readme.write_text(render(None, screen=screen, trained=trained))
         print(f"{args.results} not found: wrote {args.readme} as not run yet")
         return 0
     results = json.loads(args.results.read_text())
@@ -365,7 +406,7 @@ def main(argv=None) -> int:
         "beta": plot_beta(results, folder / "beta_sweep.png"),
     }
     rel = {k: str(p.relative_to(args.readme.parent)) for k, p in made.items()}
-    args.readme.write_text(render(results, rel, screen))
+    args.readme.write_text(render(results, rel, screen, trained))
     print(f"wrote {args.readme} and {', '.join(rel.values())}")
     return 0
 

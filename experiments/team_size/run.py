@@ -23,6 +23,11 @@ and sweep the coordinator's broadcast threshold beta.
 ``--beta-screen CHECKPOINT... --beta-label LABEL`` runs step 3 alone on other ICCO checkpoints
 (no training, no team sizes) into ``beta_screen.json`` in ``--out``: a first read of the
 broadcast target from policies trained elsewhere, rendered in its own section.
+
+``--train-beta B`` trains ICCO (2-4) with the threshold itself (``method.broadcast_threshold=B``,
+so the agents learn with the z they would hold) at ``--seeds`` into
+``<sweep>/icco_mixed_beta<B>_seed<seed>``, then runs step 3 alone on those checkpoints into
+``beta_trained.json``, rendered in its own section beside the beta = 0 policy's sweep.
 """
 
 from __future__ import annotations
@@ -72,13 +77,21 @@ TEAM_SIZES = (1, 2, 3, 4, 5, 6)
 BETAS = (0.0, 0.25, 0.5, 1.0, 2.0, 4.0)
 
 
-def run_overrides(method: str, group: str, seed: int, budget) -> list[str]:
-    """The ``icco train`` overrides of one run."""
-    return [f"method={method}", f"seed={seed}", *ANY_TEAM, *GROUPS[group]["overrides"], *budget]
+def run_overrides(method: str, group: str, seed: int, budget, beta: float = 0.0) -> list[str]:
+    """The ``icco train`` overrides of one run (``beta``: trained with that broadcast threshold)."""
+    trained_beta = [f"method.broadcast_threshold={beta:g}"] if beta else []
+    return [
+        f"method={method}",
+        f"seed={seed}",
+        *ANY_TEAM,
+        *GROUPS[group]["overrides"],
+        *trained_beta,
+        *budget,
+    ]
 
 
-def run_dir(sweep: Path, method: str, group: str, seed: int) -> Path:
-    return sweep / f"{method}_{group}_seed{seed}"
+def run_dir(sweep: Path, method: str, group: str, seed: int, beta: float = 0.0) -> Path:
+    return sweep / f"{method}_{group}{f'_beta{beta:g}' * bool(beta)}_seed{seed}"
 
 
 def train(sweep: Path, seeds, budget, jobs: int = 2) -> int:
@@ -135,14 +148,17 @@ def point(row: dict, team: int, **labels) -> dict:
     )
 
 
-def beta_sweep(sweep: Path, checkpoints, betas, team: int, label: str, quick, commands) -> list:
+def beta_sweep(
+    sweep: Path, checkpoints, betas, team: int, label: str, quick, commands, prefix: str = "eval"
+) -> list:
     """ICCO ``checkpoints`` (seeds pooled) at ``team`` robots with ``eval.broadcast_threshold=b``
-    for each b: one results.json point per beta, labelled ``label``."""
+    for each b into ``<sweep>/<prefix>_beta<b>``: one results.json point per beta, labelled
+    ``label``."""
     points = []
     for beta in betas:
         payload = evaluate(
             sweep,
-            f"eval_beta{beta:g}",
+            f"{prefix}_beta{beta:g}",
             checkpoints,
             *quick,
             f"eval.team_size={team}",
@@ -181,18 +197,32 @@ def main(argv=None) -> None:
         "--beta-screen", nargs="+", type=Path, help="ICCO checkpoints: run only the beta sweep"
     )
     parser.add_argument("--beta-label", default="ICCO", help="their label in the screen")
+    parser.add_argument(
+        "--train-beta",
+        type=float,
+        help="train ICCO (2-4) with this broadcast threshold, then run only the beta sweep on it",
+    )
     args = parser.parse_args(argv)
     if any(k < 1 for k in [*args.team_sizes, args.beta_team_size]):
         parser.error("team sizes must be >= 1")
     if any(b < 0 for b in args.betas):
         parser.error("--betas must be >= 0")
+    if args.train_beta is not None and not args.train_beta > 0:
+        parser.error("--train-beta must be > 0 (beta = 0 is the experiment's own ICCO (2-4))")
     budget = jobs.budget(args.smoke, args.budget, ["experiment=repro_cpu"])
     trials, steps = (2, 10) if args.smoke else (args.trials, args.steps)
     sweep = (args.sweep or Path("multirun/team_size" + "_smoke" * args.smoke)).resolve()
     out = args.out or (sweep / "report" if args.smoke else HERE)
     sweep.mkdir(parents=True, exist_ok=True)
+    quick = [f"eval.trials={trials}", f"eval.steps={steps}"]
     if args.beta_screen:
-        screen(args, sweep, out, [f"eval.trials={trials}", f"eval.steps={steps}"])
+        missing = [str(p) for p in args.beta_screen if not p.is_file()]
+        if missing:
+            raise SystemExit(f"--beta-screen: no checkpoint at {', '.join(missing)}")
+        screen(args, sweep, out / "beta_screen.json", args.beta_screen, args.beta_label, quick)
+        return
+    if args.train_beta is not None:
+        trained_beta(args, sweep, out, budget, quick)
         return
 
     start = time.time()
@@ -210,7 +240,6 @@ def main(argv=None) -> None:
         for g in GROUPS
         for m in METHODS
     ]
-    quick = [f"eval.trials={trials}", f"eval.steps={steps}"]
     start = time.time()
     sizes, trained_frames = [], []
     for team in args.team_sizes:
@@ -279,30 +308,67 @@ def main(argv=None) -> None:
     report.main([str(out / "results.json"), "--readme", str(out / "README.md")])
 
 
-def screen(args, sweep: Path, out: Path, quick: list[str]) -> None:
-    """``--beta-screen``: the beta sweep alone on given checkpoints, into ``beta_screen.json``."""
-    missing = [str(p) for p in args.beta_screen if not p.is_file()]
-    if missing:
-        raise SystemExit(f"--beta-screen: no checkpoint at {', '.join(missing)}")
+def screen(args, sweep: Path, path: Path, checkpoints, label: str, quick, **extra) -> None:
+    """The beta sweep alone on ICCO ``checkpoints`` into ``path`` (``beta_screen.json``,
+    ``beta_trained.json``), then the README re-rendered."""
     start, commands = time.time(), []
+    prefix = "eval" if path.stem == "beta_screen" else f"eval_{path.stem}"
     points = beta_sweep(
-        sweep, args.beta_screen, args.betas, args.beta_team_size, args.beta_label, quick, commands
+        sweep, checkpoints, args.betas, args.beta_team_size, label, quick, commands, prefix
     )
     cfg = compose_config(["method=icco"])
     write_json(
         dict(
+            **extra,
             period=int(cfg.method.period),
-            checkpoints=[str(p) for p in args.beta_screen],
+            checkpoints=[str(p) for p in checkpoints],
             eval_overrides=quick,
-            beta_sweep=dict(team_size=args.beta_team_size, policy=args.beta_label, points=points),
+            beta_sweep=dict(team_size=args.beta_team_size, policy=label, points=points),
             commands=commands,
             machine=machine(),
             wall_s=time.time() - start,
         ),
-        out / "beta_screen.json",
+        path,
     )
     report = _script(HERE / "report.py", "team_size_report")
+    out = path.parent
     report.main([str(out / "results.json"), "--readme", str(out / "README.md")])
+
+
+def trained_beta(args, sweep: Path, out: Path, budget, quick) -> None:
+    """``--train-beta B``: ICCO (2-4) trained with the threshold B at ``--seeds``, then the beta
+    sweep on those checkpoints into ``beta_trained.json``."""
+    beta = args.train_beta
+    runs = {}
+    for s in args.seeds:
+        overrides = run_overrides("icco", "mixed", s, budget, beta)
+        runs[run_dir(sweep, "icco", "mixed", s, beta)] = (
+            overrides,
+            compose_config(overrides).train.total_frames,
+        )
+    start = time.time()
+    train_runs(runs, args.jobs)
+    train_wall = time.time() - start
+    checkpoints = [run / "checkpoint.pt" for run in runs]
+    label = f"{methods.label('icco')} (2-4, trained at beta = {beta:g})"
+    overrides = " ".join(run_overrides("icco", "mixed", "S", budget, beta))
+    screen(
+        args,
+        sweep,
+        out / "beta_trained.json",
+        checkpoints,
+        label,
+        quick,
+        train_beta=beta,
+        seeds=args.seeds,
+        frames=min(load_frames(c) for c in checkpoints),
+        train_command=f"icco train {overrides} hydra.run.dir=...",
+        train_wall_s=train_wall,
+    )
+
+
+def load_frames(checkpoint: Path) -> int:
+    return int(jobs.load_checkpoint(checkpoint).get("frames", 0))
 
 
 if __name__ == "__main__":
