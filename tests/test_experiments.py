@@ -365,3 +365,26 @@ def test_run_records_from_two_machines_pool_like_one_evaluation(tmp_path):
         for metric in METRICS:
             assert got[key][metric] == row[metric], (key, metric)
     assert got[("ICCO", EPISODE)]["seeds"] == 2 and got[("follower", EPISODE)]["n"] == 3
+
+
+def test_team_size_keeps_an_evaluation_only_with_its_overrides_and_newer_than_its_checkpoints(
+    tmp_path,
+):
+    import os
+
+    run = _load(ROOT / "experiments" / "team_size" / "run.py")
+    checkpoint = tmp_path / "checkpoint.pt"
+    checkpoint.write_bytes(b"x")
+    out = tmp_path / "eval_beta4"
+    overrides = [f"eval.checkpoints=[{checkpoint}]", "eval.broadcast_threshold=4.0"]
+    assert not run.is_current(out, overrides, [checkpoint])  # nothing there
+    (out / ".hydra").mkdir(parents=True)
+    (out / ".hydra" / "overrides.yaml").write_text("".join(f"- {o}\n" for o in overrides))
+    assert not run.is_current(out, overrides, [checkpoint])  # no result
+    (out / "quadrants.json").write_text("{}")
+    os.utime(checkpoint, (1e9, 1e9))
+    assert run.is_current(out, overrides, [checkpoint])
+    assert not run.is_current(out, [*overrides[:1], "eval.broadcast_threshold=6.0"], [checkpoint])
+    os.utime(checkpoint, None)  # retrained after the evaluation
+    os.utime(out / "quadrants.json", (1e9 - 1, 1e9 - 1))
+    assert not run.is_current(out, overrides, [checkpoint])

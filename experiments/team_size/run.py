@@ -40,6 +40,8 @@ import sys
 import time
 from pathlib import Path
 
+from omegaconf import OmegaConf
+
 from icco_torchrl import methods
 from icco_torchrl.evaluation.metrics import write_json
 from icco_torchrl.training.build import compose_config
@@ -74,7 +76,7 @@ GROUPS = {
 }
 REFERENCES = ("follower", "heuristic", "blend")
 TEAM_SIZES = (1, 2, 3, 4, 5, 6)
-BETAS = (0.0, 0.25, 0.5, 1.0, 2.0, 4.0)
+BETAS = (0.0, 0.25, 0.5, 1.0, 2.0, 3.0, 4.0, 6.0, 8.0)  # down to COPA's 13 % and below
 
 
 def run_overrides(method: str, group: str, seed: int, budget, beta: float = 0.0) -> list[str]:
@@ -108,7 +110,12 @@ def train(sweep: Path, seeds, budget, jobs: int = 2) -> int:
 
 
 def evaluate(sweep: Path, name: str, checkpoints, *overrides: str, commands: list) -> dict:
-    """One ``icco eval`` (quadrants) into ``<sweep>/<name>``; returns its JSON."""
+    """One ``icco eval`` (quadrants) into ``<sweep>/<name>``; returns its JSON.
+
+    An evaluation already in that folder is kept when it ran with the same overrides (Hydra's
+    ``.hydra/overrides.yaml``) after every checkpoint was last written, so a rerun (more
+    ``--betas``, an interrupted evaluation) evaluates only what is new.
+    """
     out = sweep / name
     args = [
         "eval",
@@ -119,8 +126,21 @@ def evaluate(sweep: Path, name: str, checkpoints, *overrides: str, commands: lis
         f"hydra.run.dir={out}",
     ]
     commands.append("icco " + " ".join(args))
-    icco(*args)
+    if not is_current(out, args[1:-1], checkpoints):
+        icco(*args)
+    else:
+        print(f"kept {out} (same overrides, newer than its checkpoints)", flush=True)
     return json.loads((out / "quadrants.json").read_text())
+
+
+def is_current(out: Path, overrides: list[str], checkpoints) -> bool:
+    """Whether ``out`` holds an evaluation run with ``overrides`` after ``checkpoints``."""
+    result, recorded = out / "quadrants.json", out / ".hydra" / "overrides.yaml"
+    if not (result.is_file() and recorded.is_file()):
+        return False
+    if OmegaConf.to_container(OmegaConf.load(recorded)) != list(overrides):
+        return False
+    return all(result.stat().st_mtime > Path(c).stat().st_mtime for c in checkpoints)
 
 
 def episode_rows(payload: dict) -> dict[str, dict]:
