@@ -258,7 +258,7 @@ def test_team_size_report_checks_both_targets_from_the_numbers(tmp_path):
     assert "- **Screen: at a broadcast rate <= 25 % ICCO keeps >= 90 % of its every-T team " in text
     assert "ICCO (3, 5M) at 3 robots, T = 4." in text and "`icco_seed1`" in text
     assert "| QMIX (FULL) (2-4) | 8.00 ± 0.20 | 7.65 ± 0.17 |" in text
-    assert "| 1 | 280.0 ± 2.0 | 93.33 | 0.050 | 20 % | 93 % |" in text
+    assert "| 1 | 280.0 ± 2.0 | 93.33 | 0.050 | 20 % | 93 % | – |" in text  # no in_quadrant
     assert (
         "![team reward against broadcast rate](figures/beta_sweep.png)" in text and "$" not in text
     )
@@ -297,6 +297,19 @@ def test_team_size_report_checks_both_targets_from_the_numbers(tmp_path):
         "at beta = 4 (85 %)." in text
     )
     assert "seeds [0, 1], checkpoints at 800,256 env steps" in text and "$" not in text
+    assert "Read with care" not in text  # 0.05 of robot-steps: 29 z per 580-step episode
+
+    # A rate of one z per robot per episode (the first, at t = 0) is flagged.
+    trained["episode_steps"] = 580
+    trained["beta_sweep"]["points"][1].update(broadcast_rate=1 / 580, in_quadrant=0.47)
+    (tmp_path / "beta_trained.json").write_text(json.dumps(trained))
+    assert report.main([str(path), "--readme", str(readme)]) == 0
+    text = readme.read_text()
+    assert (
+        "- **Read with care:** at beta = 4 a robot receives 1.0 z per 580-step episode (one z is "
+        "0.0017 of robot-steps): little more than the first." in text
+    )
+    assert "| 4 | 255.0 ± 2.0 | 103.33 | 0.002 | 1 % | 94 % | 0.47 |" in text
 
 
 def test_team_size_readme_says_it_has_not_been_run_until_results_exist():

@@ -173,15 +173,15 @@ def beta_table(results: dict) -> str:
         f"{sweep.get('policy', 'ICCO (2-4)')} at {sweep['team_size']} robots, T = {period}.",
         "",
         "| beta | team reward | reward per robot | broadcast rate (robot-steps) | "
-        "share of every-T broadcasts | share of every-T reward |",
-        "|---|---|---|---|---|---|",
+        "share of every-T broadcasts | share of every-T reward | in quadrant |",
+        "|---|---|---|---|---|---|---|",
     ]
     for p in sweep["points"]:
         kept = p["reward"] / base["reward"] if base and base["reward"] > 0 else math.nan
         lines.append(
             f"| {p['beta']:g} | {_num(p['reward'])} ± {_num(p['reward_std'])} | "
             f"{_num(p['reward_per_robot'], 2)} | {_num(p['broadcast_rate'], 3)} | "
-            f"{_pct(relative_rate(p, period))} | {_pct(kept)} |"
+            f"{_pct(relative_rate(p, period))} | {_pct(kept)} | {_num(p.get('in_quadrant'), 2)} |"
         )
     return "\n".join(lines)
 
@@ -318,8 +318,24 @@ def trained_section(trained: dict | None, results: dict | None) -> str:
             f"{base['method']}): {'met' if share >= KEPT_SHARE else 'not met'}, "
             f"{best['reward']:.1f} at beta = {best['beta']:g} ({_pct(share)})."
         )
+    first_only = ""
+    steps = trained.get("episode_steps")
+    if low and steps:
+        best = max(low, key=lambda p: p["reward"])
+        if _finite(best["broadcast_rate"]) and best["broadcast_rate"] <= 1.5 / steps:
+            # One z per robot per episode is the first one, at t = 0: nothing after it moved by
+            # more than beta, so the agents acted on their first z alone.
+            first_only = (
+                f"\n- **Read with care:** at beta = {best['beta']:g} a robot receives "
+                f"{best['broadcast_rate'] * steps:.1f} z per {steps}-step episode (one z is "
+                f"{1 / steps:.4f} of robot-steps): little more than the first. This policy's z "
+                "moves by less than beta within an episode, so its agents act on their first z "
+                "alone; the target is met by a coordinator that has stopped speaking, not by one "
+                "that speaks only when it has something new."
+            )
     return (
-        f"{target}{against}\n\n{beta_table(trained)}\n\nTrained: `{trained['train_command']}`, "
+        f"{target}{against}{first_only}\n\n{beta_table(trained)}\n\n"
+        f"Trained: `{trained['train_command']}`, "
         f"seeds {trained['seeds']}, checkpoints at {_frames(trained.get('frames'))} env steps "
         f"({trained.get('train_wall_s', 0) / 60:.1f} min training in this invocation). "
         f"Evaluation: `{' '.join(trained['eval_overrides'])}`, "

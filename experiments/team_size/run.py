@@ -153,7 +153,8 @@ def episode_rows(payload: dict) -> dict[str, dict]:
 
 
 def point(row: dict, team: int, **labels) -> dict:
-    """A results.json entry: team reward, reward per robot, broadcast rate (mean and std)."""
+    """A results.json entry: team reward, reward per robot, broadcast rate (mean and std), and
+    the share of steps spent in the instructed quadrant."""
     return dict(
         **labels,
         team_size=team,
@@ -165,6 +166,7 @@ def point(row: dict, team: int, **labels) -> dict:
         reward_per_robot_std=row["reward_std"] / team,
         broadcast_rate=row["broadcast_rate"],
         broadcast_rate_std=row["broadcast_rate_std"],
+        in_quadrant=row["in_quadrant"],
     )
 
 
@@ -343,6 +345,7 @@ def screen(args, sweep: Path, path: Path, checkpoints, label: str, quick, **extr
             period=int(cfg.method.period),
             checkpoints=[str(p) for p in checkpoints],
             eval_overrides=quick,
+            episode_steps=4 * (10 if args.smoke else args.steps),
             beta_sweep=dict(team_size=args.beta_team_size, policy=label, points=points),
             commands=commands,
             machine=machine(),
