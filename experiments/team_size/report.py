@@ -306,33 +306,32 @@ def trained_section(trained: dict | None, results: dict | None) -> str:
     period = int(trained.get("period", 1))
     points = trained["beta_sweep"]["points"]
     low = [p for p in points if relative_rate(p, period) <= RATE_BOUND]
+    best = max(low, key=lambda p: p["reward"]) if low else None
     base = next(
-        (p for p in (results or {}).get("beta_sweep", {}).get("points", []) if p["beta"] == 0), None
+        (p for p in (results or {}).get("beta_sweep", {}).get("points", []) if p["beta"] == 0),
+        None,
     )
-    against = ""
-    if low and base and _finite(base["reward"]) and base["reward"] > 0:
-        best = max(low, key=lambda p: p["reward"])
+    against = first_only = ""
+    if best and base and _finite(base["reward"]) and base["reward"] > 0:
         share = best["reward"] / base["reward"]
         against = (
             f"\n- **Against the beta = 0 policy's every-T reward** ({base['reward']:.1f}, "
             f"{base['method']}): {'met' if share >= KEPT_SHARE else 'not met'}, "
             f"{best['reward']:.1f} at beta = {best['beta']:g} ({_pct(share)})."
         )
-    first_only = ""
     steps = trained.get("episode_steps")
-    if low and steps:
-        best = max(low, key=lambda p: p["reward"])
-        if _finite(best["broadcast_rate"]) and best["broadcast_rate"] <= 1.5 / steps:
-            # One z per robot per episode is the first one, at t = 0: nothing after it moved by
-            # more than beta, so the agents acted on their first z alone.
-            first_only = (
-                f"\n- **Read with care:** at beta = {best['beta']:g} a robot receives "
-                f"{best['broadcast_rate'] * steps:.1f} z per {steps}-step episode (one z is "
-                f"{1 / steps:.4f} of robot-steps): little more than the first. This policy's z "
-                "moves by less than beta within an episode, so its agents act on their first z "
-                "alone; the target is met by a coordinator that has stopped speaking, not by one "
-                "that speaks only when it has something new."
-            )
+    rate = best["broadcast_rate"] if best else math.nan
+    if steps and _finite(rate) and rate <= 1.5 / steps:
+        # One z per robot per episode is the first one, at t = 0: nothing after it moved by more
+        # than beta, so the agents acted on their first z alone.
+        first_only = (
+            f"\n- **Read with care:** at beta = {best['beta']:g} a robot receives "
+            f"{rate * steps:.1f} z per {steps}-step episode (one z is {1 / steps:.4f} of "
+            "robot-steps): little more than the first. This policy's z moves by less than beta "
+            "within an episode, so its agents act on their first z alone; the target is met by "
+            "a coordinator that has stopped speaking, not by one that speaks only when it has "
+            "something new."
+        )
     return (
         f"{target}{against}{first_only}\n\n{beta_table(trained)}\n\n"
         f"Trained: `{trained['train_command']}`, "
