@@ -1,6 +1,6 @@
 """Per-env team sizes: ``team_sizes`` drawn at reset, robots removed and added mid-episode, and
 the absent-robot contract (masked out of observations, rewards, events, others' views and the
-state). The fixed-team env (``team_sizes=None``) must stay bit-identical to the env before team
+state). The fixed-team env (``team_sizes=None``) must keep the dynamics of the env before team
 sizes existed: :data:`FINGERPRINTS` was recorded from that env.
 """
 
@@ -19,8 +19,12 @@ torch.set_num_threads(1)
 
 PRESENT = ("agents", "present")
 
-# sha256 (first 16 hex digits) of every tensor of a seeded 300-step rollout (auto-reset, so the
-# partial resets are in it) of the env at commit 91df3ae, before team sizes: see `fingerprint`.
+# Every tensor of a seeded 300-step rollout (auto-reset, so the partial resets are in it) of the
+# env at commit 91df3ae, before team sizes: see `fingerprint`. Integer and bool tensors (actions,
+# events, dones, step counts) are held exactly, by sha256 (first 16 hex digits); float tensors by
+# (sum, norm, projection on a seeded random vector) in float64, to FLOAT_RTOL. Float bits are not
+# held: Intel and AMD cores round the last bit of the same float32 sums differently (docs/task.md,
+# "Reproducibility"), while the discrete outcomes agree on both.
 FINGERPRINT_CASES = (
     dict(seed=0, num_envs=16, kwargs={}),
     dict(seed=1, num_envs=5, kwargs={}),
@@ -29,87 +33,87 @@ FINGERPRINT_CASES = (
 FINGERPRINTS = (
     {
         "agents/action": "9c43806f43275d5c",
-        "agents/observation": "d12f900292e855e8",
-        "agents/waypoints": "858968aff72437f7",
+        "agents/observation": (512.547834, 355.07617, 589.940254),
+        "agents/waypoints": (-35160.046011, 625.383143, 766.126179),
         "events/collect": "d2812ab51a470ceb",
         "events/defense": "29ada1c88bb24dba",
-        "events/inst_reward": "71a6b95a3675e783",
+        "events/inst_reward": (-1800.279368, 112.707866, 77.650108),
         "events/invasion": "35c196b67ce07806",
         "events/pick": "42f8a198d0f08b53",
-        "next/agents/observation": "b24e5e94129affcd",
-        "next/agents/reward": "ba1e0941d4398cfe",
-        "next/agents/waypoints": "f55416b503f56cf7",
+        "next/agents/observation": (475.32626, 355.355283, 608.15275),
+        "next/agents/reward": (-2401.16087, 123.379402, -98.922667),
+        "next/agents/waypoints": (-35406.997779, 625.651382, 818.826292),
         "next/done": "297907d49dfd2334",
         "next/events/collect": "1f31187e0bd159de",
         "next/events/defense": "974ff9714a384e99",
-        "next/events/inst_reward": "b7949a4cc1659d37",
+        "next/events/inst_reward": (-1808.16084, 113.256317, 114.986468),
         "next/events/invasion": "04831f8bb5ff9c73",
         "next/events/pick": "e234787f1a648fe9",
-        "next/reward": "7eb2b532cab858b8",
-        "next/state": "c29290ef3a5c5d1a",
+        "next/reward": (-2401.160867, 136.069337, 175.37944),
+        "next/state": (9696.747985, 865.498822, 2121.415294),
         "next/step_count": "054d72e7744b4787",
         "next/terminated": "24ddaa4710480313",
         "next/truncated": "297907d49dfd2334",
         "done": "24ddaa4710480313",
-        "state": "2df1a04c18a1aabf",
+        "state": (9970.257526, 865.267841, 2300.507396),
         "step_count": "5fd60496b9574903",
         "terminated": "24ddaa4710480313",
         "truncated": "24ddaa4710480313",
     },
     {
         "agents/action": "92c498a45131f630",
-        "agents/observation": "5c644f198c6312e0",
-        "agents/waypoints": "92bf78ffbda8bd5f",
+        "agents/observation": (3887.368469, 197.999218, 279.840898),
+        "agents/waypoints": (3283.37353, 347.166474, -321.574326),
         "events/collect": "c343e2bd32f31f78",
         "events/defense": "bccccfa7db35957c",
-        "events/inst_reward": "ff37083c66152dd7",
+        "events/inst_reward": (-586.438544, 61.459716, -22.829574),
         "events/invasion": "474e7170358cef29",
         "events/pick": "89b90248e99db73d",
-        "next/agents/observation": "00ec499a3bdb3cad",
-        "next/agents/reward": "d72ef82ae087e9e9",
-        "next/agents/waypoints": "2084d36ae6341ca9",
+        "next/agents/observation": (3876.777315, 198.167028, 262.863681),
+        "next/agents/reward": (-776.674177, 68.818153, -89.459066),
+        "next/agents/waypoints": (3258.394816, 347.440702, -337.137268),
         "next/done": "78f1037002a0b2a8",
         "next/events/collect": "18b67d9cb9dd6c22",
         "next/events/defense": "3014a1ff77debb2e",
-        "next/events/inst_reward": "f61fd500a5c9032d",
+        "next/events/inst_reward": (-587.674166, 61.61484, -2.870563),
         "next/events/invasion": "a62029e8c41d1e3c",
         "next/events/pick": "2ab38fe2525af201",
-        "next/reward": "86485d2ecbb2c3cd",
-        "next/state": "07e07c3aa340f376",
+        "next/reward": (-776.674175, 73.967062, 26.440673),
+        "next/state": (24638.066546, 479.675899, -196.168403),
         "next/step_count": "14590d8e72c9f604",
         "next/terminated": "6249da5c681dd8a5",
         "next/truncated": "78f1037002a0b2a8",
         "done": "6249da5c681dd8a5",
-        "state": "142b71483250ab72",
+        "state": (24645.007311, 479.413862, -197.019838),
         "step_count": "430c55a5cea27409",
         "terminated": "6249da5c681dd8a5",
         "truncated": "6249da5c681dd8a5",
     },
     {
         "agents/action": "31d78449faeb4186",
-        "agents/observation": "33d2c4c6129fd490",
-        "agents/waypoints": "bb1121f3d744bc82",
+        "agents/observation": (2400.438269, 373.729188, 85.682285),
+        "agents/waypoints": (-331.492186, 441.108567, 134.554002),
         "events/collect": "17744bb6a4ed1d9d",
         "events/defense": "6cdcfd6788aaf7c5",
-        "events/inst_reward": "3f791d2147aaeb59",
+        "events/inst_reward": (-1412.075798, 83.675978, -28.995279),
         "events/invasion": "1c0a6d20ed9ae9e3",
         "events/pick": "45869658ea7dedfe",
-        "next/agents/observation": "3340596706784c22",
-        "next/agents/reward": "fd1992c52b022ccb",
-        "next/agents/waypoints": "ae845bcfab9d57b7",
+        "next/agents/observation": (2409.969381, 374.242487, 147.091234),
+        "next/agents/reward": (-1623.793339, 87.884964, 64.597706),
+        "next/agents/waypoints": (-311.017853, 441.533827, 130.607509),
         "next/done": "8cf10cd1e78fe1f7",
         "next/events/collect": "17744bb6a4ed1d9d",
         "next/events/defense": "e71a0245f598f7ae",
-        "next/events/inst_reward": "e071885328ab9158",
+        "next/events/inst_reward": (-1425.793324, 84.258799, 37.097824),
         "next/events/invasion": "409d370a7eb40928",
         "next/events/pick": "e9e08c6317f2f82b",
-        "next/reward": "02b6441a192991bb",
-        "next/state": "d55a30616402468d",
+        "next/reward": (-1623.793331, 95.886825, 57.266961),
+        "next/state": (28979.527386, 609.212677, -1176.716732),
         "next/step_count": "8b238c9c161d4ba2",
         "next/terminated": "a0ee989ed2a0a2e3",
         "next/truncated": "8cf10cd1e78fe1f7",
         "done": "a0ee989ed2a0a2e3",
-        "state": "049ebefd7d077acf",
+        "state": (28893.618433, 608.605228, -1089.632796),
         "step_count": "6728502ec69bb852",
         "terminated": "a0ee989ed2a0a2e3",
         "truncated": "a0ee989ed2a0a2e3",
@@ -132,15 +136,39 @@ def fingerprint(seed, num_envs, kwargs, steps=300):
             continue  # new with team sizes; checked below
         t = ro.get(key).contiguous()
         name = "/".join(key) if isinstance(key, tuple) else key
-        out[name] = hashlib.sha256(t.numpy().tobytes()).hexdigest()[:16]
+        if t.is_floating_point():
+            x = t.double().flatten()
+            gen64 = torch.Generator().manual_seed(7)
+            proj = torch.randn(x.numel(), generator=gen64, dtype=torch.float64)
+            out[name] = (x.sum().item(), x.norm().item(), (x @ proj).item())
+        else:
+            out[name] = hashlib.sha256(t.numpy().tobytes()).hexdigest()[:16]
     return out, ro
 
 
+# float32 roundoff over a 300-step rollout, relative to each tensor's norm: a last-bit difference
+# per element moves the sums by ~1e-7 of the norm; a changed dynamic moves them by far more.
+FLOAT_RTOL = 1e-5
+
+
 @pytest.mark.parametrize("case, expected", list(zip(FINGERPRINT_CASES, FINGERPRINTS)))
-def test_fixed_team_env_is_bit_identical_to_the_env_before_team_sizes(case, expected):
+def test_fixed_team_env_keeps_the_dynamics_of_the_env_before_team_sizes(case, expected):
     got, ro = fingerprint(**case)
-    assert got == expected
+    assert got.keys() == expected.keys()
+    for name, want in expected.items():
+        if isinstance(want, str):
+            assert got[name] == want, name  # discrete: exact on every CPU
+        else:
+            tol = FLOAT_RTOL * max(want[1], 1.0)
+            assert got[name] == pytest.approx(want, rel=FLOAT_RTOL, abs=tol), name
     assert ro["agents", "present"].all() and ro["next", "agents", "present"].all()
+
+
+def test_a_seeded_rollout_is_bit_identical_when_repeated_on_one_machine():
+    """Same machine, same thread count: every bit repeats (what docs/task.md promises)."""
+    case = FINGERPRINT_CASES[1]
+    (_, first), (_, second) = fingerprint(**case, steps=60), fingerprint(**case, steps=60)
+    assert (first == second).all()
 
 
 def random_policy(env, seed=0):
