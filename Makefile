@@ -10,7 +10,8 @@ PYTEST_WORKERS ?= 2
 # Modules whose docstring examples run with the tests (the runnable Examples: of the loss).
 DOCTESTS   := icco_torchrl/objectives/icco_loss.py icco_torchrl/objectives/returns.py \
               icco_torchrl/envs/shaping.py icco_torchrl/modules/policy.py \
-              icco_torchrl/modules/gru.py icco_torchrl/training/update.py
+              icco_torchrl/modules/gru.py icco_torchrl/training/update.py \
+              icco_torchrl/modules/activations.py
 
 .PHONY: install test bench train eval sweep clean
 

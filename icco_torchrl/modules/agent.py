@@ -20,6 +20,7 @@ from tensordict.nn import TensorDictModule
 from torch import nn
 from torchrl.modules import recurrent_mode
 
+from icco_torchrl.modules.activations import ReLU, relu
 from icco_torchrl.modules.encoders import MLPEncoder, make_encoder
 from icco_torchrl.modules.gru import GRU
 from icco_torchrl.modules.relative import STATE_ENCODERS, RelativeStateEncoder
@@ -150,9 +151,7 @@ class RecurrentQNet(nn.Module):
         nn.init.uniform_(self.prev_action_embed.weight, -bound, bound)
         self.gru = GRU(hidden, hidden)
         head_in = hidden + z_dim  # COPA's player: the Q head reads [GRU output; z]
-        self.head = nn.Sequential(
-            nn.Linear(head_in, hidden), nn.ReLU(), nn.Linear(hidden, n_actions)
-        )
+        self.head = nn.Sequential(nn.Linear(head_in, hidden), ReLU(), nn.Linear(hidden, n_actions))
 
     def _path(self, obs):
         # own features are [x, y, vx, vy, carry, K relative waypoints] (ObsLayout)
@@ -161,7 +160,7 @@ class RecurrentQNet(nn.Module):
     def _features(self, obs, prev_action, state, z=None):
         x = self._encode(obs, state)
         x = self.embed(x) + self.prev_action_embed(prev_action.long())
-        return torch.relu(x)
+        return relu(x)
 
     def _encode(self, obs, state):
         if self.relative:

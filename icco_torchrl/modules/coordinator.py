@@ -17,6 +17,7 @@ from tensordict.nn import TensorDictModule
 from torch import nn
 from torchrl.envs.utils import ExplorationType, exploration_type
 
+from icco_torchrl.modules.activations import ReLU
 from icco_torchrl.modules.encoders import EntityAttentionEncoder
 from icco_torchrl.modules.relative import STATE_ENCODERS, RelativeStateEncoder
 from icco_torchrl.modules.tdmodule import TensorModule
@@ -61,9 +62,9 @@ class StateTokenEncoder(nn.Module):
             width = layout.state_dim if layout is not None else state_dim
             self.net = nn.Sequential(
                 nn.Linear(width, hidden),
-                nn.ReLU(),
+                ReLU(),
                 nn.Linear(hidden, self.n_agents * hidden),
-                nn.ReLU(),
+                ReLU(),
             )
         else:
             raise ValueError(f"encoder must be 'attention' or 'mlp', got {kind!r}")

@@ -12,6 +12,8 @@ import math
 import torch
 from torch import nn
 
+from icco_torchrl.modules.activations import ReLU, relu
+
 
 class EntityAttentionEncoder(nn.Module):
     """One "self" token attends over entity tokens; returns ``[..., hidden]``.
@@ -42,13 +44,13 @@ class EntityAttentionEncoder(nn.Module):
         self.key = nn.Linear(entity_dim, hidden, bias=False)
         self.value = nn.Linear(entity_dim, hidden)
         self.query = nn.Linear(hidden, hidden)
-        self.out = nn.Sequential(nn.Linear(2 * hidden, hidden), nn.ReLU())
+        self.out = nn.Sequential(nn.Linear(2 * hidden, hidden), ReLU())
         self.scale = 1.0 / math.sqrt(hidden)
 
     def forward(self, x: torch.Tensor, visible: torch.Tensor | None = None) -> torch.Tensor:
         own, tokens = x[..., : self.own_dim], x[..., self.own_dim :]
         tokens = tokens.unflatten(-1, (self.n_entities, self.entity_dim))
-        h = torch.relu(self.own(own))
+        h = relu(self.own(own))
         q = self.query(h) @ self.key.weight * self.scale  # the query in token space
         logits = (tokens @ q.unsqueeze(-1)).squeeze(-1)
         if self.masked or visible is not None:
@@ -68,7 +70,7 @@ class MLPEncoder(nn.Module):
     def __init__(self, in_dim: int, hidden: int):
         super().__init__()
         self.net = nn.Sequential(
-            nn.Linear(in_dim, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU()
+            nn.Linear(in_dim, hidden), ReLU(), nn.Linear(hidden, hidden), ReLU()
         )
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:

@@ -23,6 +23,7 @@ from tensordict.nn import TensorDictModule
 from torch import nn
 from torchrl.modules import QMixer
 
+from icco_torchrl.modules.activations import ReLU
 from icco_torchrl.modules.encoders import EntityAttentionEncoder
 from icco_torchrl.modules.relative import robot_mask
 
@@ -53,7 +54,7 @@ class TokenMixer(nn.Module):
         self.hyper_w_1 = nn.Linear(hidden, embed_dim)
         self.hyper_b_1 = nn.Linear(hidden, embed_dim)
         self.hyper_w_final = nn.Linear(hidden, embed_dim)
-        self.V = nn.Sequential(nn.Linear(hidden, embed_dim), nn.ReLU(), nn.Linear(embed_dim, 1))
+        self.V = nn.Sequential(nn.Linear(hidden, embed_dim), ReLU(), nn.Linear(embed_dim, 1))
 
     def forward(self, chosen_action_value: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
         L = self.layout
@@ -106,4 +107,5 @@ def make_mixer(
         net = QMixer(
             state_shape=(state_dim,), mixing_embed_dim=embed_dim, n_agents=n_agents, device=device
         )
+        net.V[1] = ReLU()  # the compiled update's ReLU (modules/activations.py), same function
     return TensorDictModule(net, in_keys=[local_value_key, state_key], out_keys=[global_value_key])

@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING
 import torch
 from torch import nn
 
+from icco_torchrl.modules.activations import ReLU
 from icco_torchrl.modules.coordinator import LOGVAR_MAX, LOGVAR_MIN
 from icco_torchrl.modules.encoders import EntityAttentionEncoder
 from icco_torchrl.modules.relative import relative_dims, relative_tokens
@@ -37,9 +38,9 @@ POSTERIOR_INPUTS = ("flat", "tokens")
 def _gaussian_head(in_dim: int, hidden: int, z_dim: int) -> nn.Module:
     return nn.Sequential(
         nn.Linear(in_dim, hidden),
-        nn.ReLU(),
+        ReLU(),
         nn.Linear(hidden, hidden),
-        nn.ReLU(),
+        ReLU(),
         nn.Linear(hidden, 2 * z_dim),
     )
 
