@@ -80,7 +80,8 @@ def main() -> None:
     torch.set_num_threads(1)
     from benchmarks.live_latency import make_loop
 
-    server = LiveServer(make_loop(), rate_hz=RATE)
+    # Past the default cap on tabs (web.MAX_CLIENTS): this measures the loop, not the cap.
+    server = LiveServer(make_loop(), rate_hz=RATE, max_clients=4096)
     host, port = server.start_in_thread()
     url = f"http://{host}:{port}/ws"
     rows = []

@@ -251,7 +251,10 @@ def test_icco_bridge_without_a_checkpoint_uses_the_demo_policy():
         "live.port=0",
         "live.web=true",  # and the page watching the fleet, closed when live.seconds runs out
         "live.web_port=0",
+        "live.token=fleet-s3cret",  # the fleet's states carry it: none refused
         timeout=120,
     )
     assert "using the demo policy" in proc.stdout and " 0 malformed" in proc.stdout
+    commands = int(proc.stdout.split(" commands,")[0].rsplit(" ", 1)[-1])
+    assert commands >= 5
     assert "icco bridge: watch it at http://127.0.0.1:" in proc.stdout

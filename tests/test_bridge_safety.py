@@ -49,10 +49,10 @@ class _Planner:
         return Result()
 
 
-def _bridge(rate_hz: float = 20.0, planner=None) -> Bridge:
+def _bridge(rate_hz: float = 20.0, planner=None, token: str | None = None) -> Bridge:
     env = ResourceCollectionEnv(num_envs=1, seed=0, waypoint_mode="external", max_steps=10**6)
     loop = LiveLoop(env, make_reference_policy("heuristic", env), planner)
-    return Bridge(loop, rate_hz=rate_hz, timeout=0.5, limits=LIMITS)
+    return Bridge(loop, rate_hz=rate_hz, timeout=0.5, limits=LIMITS, token=token)
 
 
 class _Robots:
@@ -308,29 +308,69 @@ def _random_bytes(rng: random.Random) -> bytes:
 HOSTILE = [_deep, _huge, _wrong_type, _non_finite, _oversize, _bad_unicode, _random_bytes]
 
 
+def _crowd(n: int = 64) -> list[socket.socket]:
+    """``n`` other senders on 127.0.0.1 (a crowded network: other devices, other programs)."""
+    crowd = []
+    for _ in range(n):
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        sock.bind(("127.0.0.1", 0))
+        crowd.append(sock)
+    return crowd
+
+
+EMPTY = json.dumps({"type": "state", "robots": []}).encode()
+
+
 def test_fuzzed_hostile_datagrams_are_all_refused_and_the_bridge_keeps_commanding(caplog):
+    """Hostile datagrams from the robots' address and from a crowd of 64 other senders, among
+    empty states from the crowd: all refused, and the robots keep getting every command and
+    then the exit stop, first."""
     caplog.set_level(logging.INFO, logger="icco.bridge")
     rng = random.Random(25)
     hostile = [HOSTILE[k % len(HOSTILE)](rng) for k in range(280)]
     bridge = _bridge()
-    robots = _Robots(bridge.address)
+    robots, crowd = _Robots(bridge.address), _crowd()
     try:
         with _serving(bridge) as (_, errors, thread):
             assert _moving(robots.drive(0.3)), "no command before the fuzz"
             commands_before, start = bridge.stats["commands"], time.monotonic()
             for k, data in enumerate(hostile):
-                robots.send(data)
+                sender = crowd[k % len(crowd)] if k % 2 else robots.sock
+                sender.sendto(data, bridge.address)
                 # One at a time, so that no datagram is lost to a full socket buffer.
                 assert _wait(lambda k=k: bridge.stats["malformed"] == k + 1), (k, data[:200])
                 if k % 10 == 0:
                     robots.state()
                     robots.receive()
+                if k % 4 == 0:  # the crowd's states name no robot
+                    messages = bridge.stats["messages"]
+                    crowd[(k // 4) % len(crowd)].sendto(EMPTY, bridge.address)
+                    assert _wait(lambda m=messages: bridge.stats["messages"] > m)
             fuzz_s = time.monotonic() - start
-            after = robots.drive(0.5)
+            assert len(bridge.peers) == 32  # the crowd: senders of states, none a robot's
+            sent, after, end = bridge.stats["commands"], [], time.monotonic() + 0.5
+            for j in range(1000):  # the robots stream, and so does the crowd (bounded: 0.5 s)
+                if time.monotonic() >= end:
+                    break
+                robots.state()
+                crowd[j % len(crowd)].sendto(EMPTY, bridge.address)
+                after += robots.receive(0.05)
+            sent = bridge.stats["commands"] - sent
             assert thread.is_alive() and not errors
+            robots.commands.clear()
         assert (
             bridge.stats["malformed"] == len(hostile) and bridge.stats["commands"] > commands_before
         )
+        assert len(after) >= sent - 1  # every command reached the robots (one may be in flight)
+        time.sleep(0.1)
+        robots.receive(0.2)
+        stops = [m for m in robots.commands if _stops_all(m, "bridge stopped")]
+        assert len(stops) == 3  # every copy of the exit stop, the crowd notwithstanding
+        said = [r.getMessage() for r in caplog.records if "sent a stop command" in r.message]
+        assert said == [
+            "bridge: sent a stop command (v = w = 0) to all 3 robots at 1 address and 32 other "
+            "senders of states (bridge stopped)"
+        ]
         kinds = bridge.stats["refused_by"]
         assert set(kinds) == {
             "oversize",
@@ -354,6 +394,8 @@ def test_fuzzed_hostile_datagrams_are_all_refused_and_the_bridge_keeps_commandin
             assert "more since the last line" in lines[-1]  # ... and says how many it held back
     finally:
         robots.close()
+        for sock in crowd:
+            sock.close()
 
 
 # ---------------------------------------------------------------------- stop on every exit
@@ -461,6 +503,8 @@ print("ended by", bridge.stop_cause, flush=True)
 
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
 def test_a_signal_stops_every_robot_before_the_process_exits(sig):
+    """SIGTERM comes after a crowd of 64 other senders sent empty states, after the robots' last
+    datagram: the robots' own addresses still get every copy of the stop."""
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     proc = subprocess.Popen(
         [sys.executable, "-c", SCRIPT],
@@ -471,6 +515,7 @@ def test_a_signal_stops_every_robot_before_the_process_exits(sig):
         text=True,
     )
     first = others = None
+    crowd = _crowd() if sig == signal.SIGTERM else []
     try:
         ready, _, _ = select.select([proc.stdout], [], [], 120)
         assert ready, "the bridge did not start"
@@ -482,14 +527,25 @@ def test_a_signal_stops_every_robot_before_the_process_exits(sig):
             others.drive(0.05)
             first.receive()
         assert _moving(first.commands + others.commands), "no command before the signal"
+        for sock in crowd:
+            sock.sendto(EMPTY, ("127.0.0.1", port))
+        time.sleep(0.05 if crowd else 0.0)
+        first.commands.clear()
+        others.commands.clear()
         proc.send_signal(sig)
         for robots in (first, others):
             assert robots.wait_for_stop("bridge stopped") is not None
         out, err = proc.communicate(timeout=30)
         assert proc.returncode == 0, err[-2000:]
         assert f"ended by {sig.name}" in out
-        assert "bridge: sent a stop command (v = w = 0) to all 3 robots at 2 addresses" in err
+        line = "bridge: sent a stop command (v = w = 0) to all 3 robots at 2 addresses"
+        assert line + (" and 32 other senders of states" if crowd else " (") in err
+        for robots in (first, others):  # every copy: the crowd displaced none
+            robots.receive(0.1)
+            assert len([m for m in robots.commands if _stops_all(m, "bridge stopped")]) == 3
     finally:
+        for sock in crowd:
+            sock.close()
         if proc.poll() is None:
             proc.kill()
             proc.communicate(timeout=10)

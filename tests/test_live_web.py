@@ -1059,8 +1059,23 @@ def test_the_page_watches_a_bridge_driven_fleet_and_relays_instructions(served):
 def test_icco_live_through_the_cli_serves_the_demo_policy_and_refuses_a_bad_checkpoint(tmp_path):
     from conftest import run_cli
 
-    proc = run_cli("live", "live.seconds=2", "live.web_port=0", timeout=120)
+    run = tmp_path / "run"
+    token = "cli-s3cret-token"
+    proc = run_cli(
+        "live",
+        "live.seconds=2",
+        "live.web_port=0",
+        f"live.token={token}",
+        f"hydra.run.dir={run}",
+        timeout=120,
+    )
     assert "using the demo policy" in proc.stdout and "open http://127.0.0.1:" in proc.stdout
+    assert f"?token={token}" in proc.stdout  # printed, never written: Hydra's files redacted
+    files = [p for p in run.rglob("*") if p.is_file()]
+    assert (run / ".hydra" / "config.yaml") in files
+    for path in [run, *run.rglob("*")]:
+        assert (path.stat().st_mode & 0o077) == 0, path  # its owner's only
+        assert path.is_dir() or token not in path.read_text(errors="replace"), path
     ticks = int(proc.stdout.split("icco live: ")[-1].split(" ticks")[0])
     assert 10 <= ticks <= 25  # 2 s at 10 Hz (real time), after a start-up of unknown length
     bad = tmp_path / "bad.pt"

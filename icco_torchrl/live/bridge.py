@@ -9,11 +9,17 @@ metres, angles in radians, field frame centred on home, +x right, +y up):
   are optional (kept from the last message; ``"invader": []`` means none on the field).
 * in, ``{"type": "instruct", "text": "Go right"}``: a language instruction for the team (at most
   ``MAX_INSTRUCTION`` characters).
-* out, to the sender of the latest state: ``{"type": "command", "time": t, "robots": [{"id": i,
+* in, on either: ``"token": "..."``. With a ``token`` (``live.token``) every datagram must carry
+  it; one without it or with a wrong one is refused (kind ``token``), and wrong ones are limited
+  (:class:`~icco_torchrl.live.guard.TokenCheck`: beyond, refused unchecked).
+* out, to the robots' own addresses: ``{"type": "command", "time": t, "robots": [{"id": i,
   "target": [x, y], "v": v, "w": w, "stopped": bool, "reason": null | "stale" | "team full" |
   "control error" | "bridge stopped"}, ...]}`` at the control rate: the policy's next point for
   each robot and a unicycle velocity command toward it from the Dynamic Window Approach
-  (``dwa.py``) within the robot's limits.
+  (``dwa.py``) within the robot's limits. A robot's addresses are the senders of its pose (the
+  ``ROBOT_ADDRESSES`` most recent); each command goes to those of every robot it lists, so
+  robots reported from several addresses all hear it. A state that gives no robot's pose makes
+  its sender no robot's address: it gets the exit stop only, after the robots.
 
 The team is the robots that report. A robot ``id`` is any integer in ``0..MAX_ROBOT_ID``; each
 one in the team holds one of the env's ``n_agents`` places (its own index when that is free, so
@@ -42,8 +48,13 @@ Safety contract (``docs/live.md``, "Bridge safety contract"):
   A control tick that fails stops every robot (``"reason": "control error"``) until one works.
 * However :meth:`Bridge.serve` ends (``stop`` set, ``max_seconds`` out, SIGINT, SIGTERM or
   SIGHUP when it runs in the main thread, an exception), and on :meth:`Bridge.close`, every robot
-  is sent a stop command (``"reason": "bridge stopped"``, ``STOP_REPEATS`` times) at every
-  address that sent a state, before the socket closes.
+  is sent a stop command (``"reason": "bridge stopped"``, ``STOP_REPEATS`` times) before the
+  socket closes: in each round at the robots' own addresses first, then at the other senders of
+  states (the ``MAX_PEERS`` most recent), which can never displace the robots' addresses.
+* With a ``token``, a datagram without it is refused: nobody who lacks it can report poses or
+  instruct the team (UDP is not encrypted: anyone who reads the network can read the token).
+* Joins, leaves, stale stops and refusals are each logged at most once per ``LOG_EVERY``
+  seconds (the next line says how many were held back).
 """
 
 from __future__ import annotations
@@ -60,6 +71,8 @@ from collections import OrderedDict, deque
 import numpy as np
 
 from icco_torchrl.live.dwa import DEFAULT_LIMITS, RobotLimits, dwa_command
+from icco_torchrl.live.guard import LOG_EVERY as LOG_EVERY
+from icco_torchrl.live.guard import MAX_ECHO, Throttle, TokenCheck, held, one_line
 from icco_torchrl.live.loop import MAX_INSTRUCTION, LiveLoop
 
 log = logging.getLogger("icco.bridge")
@@ -67,9 +80,9 @@ MAX_DATAGRAM = 65_507  # the largest UDP payload over IPv4
 MAX_MESSAGE = 16_384  # bytes: a longer datagram is refused before it is decoded
 MAX_DIGITS = 40  # characters of one JSON number (longer ones are refused, not converted)
 MAX_COORD = 1e4  # metres (and radians): the largest coordinate a state may carry
-MAX_PEERS = 32  # addresses remembered for the stop command (the most recent ones)
-MAX_ECHO = 160  # characters of a refusal's reason echoed in its log line
-LOG_EVERY = 1.0  # seconds between two log lines about refused datagrams (or failed ticks)
+MAX_PEERS = 32  # other senders of states (no robot's pose) remembered for the exit stop
+ROBOT_ADDRESSES = 4  # senders of one robot's pose remembered (the most recent ones)
+MAX_TOKEN = 256  # characters of a datagram's "token"
 STOP_REPEATS = 3  # copies of the final stop command (UDP may drop one), 10 ms apart
 RATE_WINDOW = 2.0  # seconds over which the actual control rate is measured (or 3 periods)
 MAX_BATCH = 256  # datagrams read in one go between two control ticks
@@ -158,6 +171,9 @@ def parse_message(data: bytes) -> dict:
     msg = _decode(data)
     if not isinstance(msg, dict) or msg.get("type") not in ("state", "instruct"):
         raise ProtocolError("a message must be a JSON object with type 'state' or 'instruct'")
+    token = msg.get("token")
+    if token is not None and not (isinstance(token, str) and 0 < len(token) <= MAX_TOKEN):
+        raise ProtocolError(f"'token' must be a string of 1 to {MAX_TOKEN} characters", "token")
     if msg["type"] == "instruct":
         text = msg.get("text")
         if not isinstance(text, str) or not text.strip():
@@ -198,9 +214,7 @@ def parse_message(data: bytes) -> dict:
 
 def _one_line(text: str, limit: int = MAX_ECHO) -> str:
     """``text`` on one line of at most ``limit`` characters, printable."""
-    text = " ".join(str(text).split())
-    text = text.encode("ascii", "backslashreplace").decode("ascii")
-    return text if len(text) <= limit else text[: limit - 3] + "..."
+    return one_line(text, limit)
 
 
 def _peer(sender) -> str:
@@ -211,20 +225,7 @@ def _peer(sender) -> str:
         return _one_line(repr(sender), 60)
 
 
-class _Throttle:
-    """At most one log line per ``every`` seconds; :meth:`due` says whether one may be written now
-    and how many were held back since the last."""
-
-    def __init__(self, every: float = LOG_EVERY):
-        self.every, self.next_at, self.held = every, -math.inf, 0
-
-    def due(self) -> tuple[bool, int]:
-        now = time.monotonic()
-        if now < self.next_at:
-            self.held += 1
-            return False, 0
-        held, self.held, self.next_at = self.held, 0, now + self.every
-        return True, held
+_Throttle = Throttle
 
 
 def _stop(rid: int, target, reason: str) -> dict:
@@ -236,8 +237,7 @@ def _ids(ids) -> str:
     return ", ".join(str(i) for i in ids)
 
 
-def _held(n: int) -> str:
-    return f" ({n} more since the last line)" if n else ""
+_held = held
 
 
 class Bridge:
@@ -253,9 +253,13 @@ class Bridge:
         rate_hz: float = 10.0,
         timeout: float = 0.5,
         limits: RobotLimits = DEFAULT_LIMITS,
+        token: str | None = None,
     ):
         if not rate_hz > 0 or not timeout > 0:
             raise ValueError(f"rate_hz and timeout must be > 0, got {rate_hz!r} and {timeout!r}")
+        if token is not None and not str(token).strip():
+            raise ValueError("live.token must be a non-empty string, or null for none")
+        self.token = None if token is None else TokenCheck(str(token))
         self.loop, self.rate_hz, self.timeout, self.limits = (
             loop,
             float(rate_hz),
@@ -275,8 +279,11 @@ class Bridge:
         self.velocity = np.zeros((self.n, 2))  # measured, m/s (for the policy)
         self.command = np.zeros((self.n, 2))  # last (v, w) sent
         self.resources = self.invader = None
-        self.reply_to = None
-        self.peers: OrderedDict = OrderedDict()  # addresses that sent a state (the stop goes there)
+        self.reply_to = None  # the latest sender of a robot's pose
+        # Each known robot's addresses: the senders of its pose (the most recent last). Commands
+        # and the exit stop go there first; no other sender can displace them.
+        self.robot_addresses: dict[int, OrderedDict] = {}
+        self.peers: OrderedDict = OrderedDict()  # other senders of states (the exit stop too)
         self.stale_logged = np.zeros(self.n, bool)
         # The team: the robot id in each place (None: unclaimed), and robots outside it.
         self.slot_id: list[int | None] = [None] * self.n
@@ -303,6 +310,7 @@ class Bridge:
         self._command_times: deque = deque(maxlen=4096)  # monotonic times of recent commands
         self._first_command_at = self._last_command_at = None
         self._refusals, self._failures, self._full = _Throttle(), _Throttle(), _Throttle()
+        self._joins, self._leaves, self._stale = _Throttle(), _Throttle(), _Throttle()
         self._closed = False
         self.on_command = None  # called with each command message (e.g. the live page)
 
@@ -312,6 +320,8 @@ class Bridge:
         datagram that cannot be used is refused (counted and logged), never raised."""
         try:
             msg = parse_message(data)
+            if self.token is not None:
+                self._check_token(msg, sender)
             if msg["type"] == "instruct":
                 self.loop.instruct(msg["text"])
             else:
@@ -324,17 +334,37 @@ class Bridge:
             return
         self.stats["messages"] += 1
 
+    def _check_token(self, msg: dict, sender) -> None:
+        """With ``token``, a datagram must carry it (``"token"``); wrong ones are limited."""
+        given = msg.get("token")
+        if given is None:
+            raise ProtocolError(
+                'no "token": live.token is set, so every state and instruct datagram must carry it',
+                "token",
+            )
+        try:
+            source = str(sender[0])
+        except (TypeError, IndexError):
+            source = repr(sender)
+        refusal = self.token.check(given, source)
+        if refusal is not None:
+            raise ProtocolError(f"{refusal} (live.token)", "token")
+
     def _apply_state(self, msg: dict, sender) -> None:
         now = time.monotonic()
         if self._first_state_at is None:
             self._first_state_at = now
+        posed = False  # whether the sender gave the pose of a robot the bridge knows
         for r in msg.get("robots", []):
             rid, pose = r["id"], np.asarray(r["pose"], float)
             i = self.slot_of.get(rid)
             if i is None:
                 i = self._join(rid, pose, now)
-                if i is None:
-                    continue
+            if rid in self.slot_of or rid in self.outside:
+                self._address(rid, sender)
+                posed = True
+            if i is None:
+                continue
             if np.isfinite(self.seen[i]) and now > self.seen[i]:
                 self.velocity[i] = (pose[:2] - self.poses[i, :2]) / (now - self.seen[i])
             self.poses[i], self.seen[i] = pose, now
@@ -343,11 +373,32 @@ class Bridge:
             self.resources = np.asarray(msg["resources"], float).reshape(-1, 2)
         if "invader" in msg:
             self.invader = np.asarray(msg["invader"], float).reshape(-1, 2)
-        self.peers[sender] = now
-        self.peers.move_to_end(sender)
-        while len(self.peers) > MAX_PEERS:
-            self.peers.popitem(last=False)
-        self.reply_to, self._received_at = sender, time.perf_counter()
+        if posed:
+            self.reply_to, self._received_at = sender, time.perf_counter()
+            self.peers.pop(sender, None)
+        else:  # a state with no robot: an address for the exit stop, after the robots'
+            self.peers[sender] = now
+            self.peers.move_to_end(sender)
+            while len(self.peers) > MAX_PEERS:
+                self.peers.popitem(last=False)
+
+    def _address(self, rid: int, sender) -> None:
+        """``sender`` gave robot ``rid``'s pose: one of its addresses (``ROBOT_ADDRESSES`` at
+        most, the most recent)."""
+        addresses = self.robot_addresses.setdefault(rid, OrderedDict())
+        addresses[sender] = None
+        addresses.move_to_end(sender)
+        while len(addresses) > ROBOT_ADDRESSES:
+            addresses.popitem(last=False)
+
+    def addresses(self) -> list:
+        """Where commands go: the addresses of the robots a command lists (the team's first,
+        each robot's latest first), without repeats."""
+        out: dict = {}
+        for rid in [*self.team(), *self.outside]:
+            for sender in reversed(self.robot_addresses.get(rid, ())):
+                out.setdefault(sender, None)
+        return list(out)
 
     # ------------------------------------------------------------------ the team
     def team(self) -> list[int]:
@@ -396,7 +447,14 @@ class Bridge:
         self.slot_id[i], self.slot_of[rid] = rid, i
         self.seen[i], self.velocity[i], self.command[i] = -np.inf, 0.0, 0.0
         self.stats["joined"] += 1
-        log.info("bridge: robot %d joined the team (team: %s)", rid, _ids(self.team()))
+        due, n = self._joins.due()
+        if due:
+            log.info(
+                "bridge: robot %d joined the team (team: %s)%s",
+                rid,
+                _one_line(_ids(self.team()), 120),
+                _held(n),
+            )
         return i
 
     def _remember(self, rid: int, entry: dict) -> None:
@@ -404,7 +462,8 @@ class Bridge:
         self.outside[rid] = entry
         self.outside.move_to_end(rid)
         while len(self.outside) > MAX_KNOWN:
-            self.outside.popitem(last=False)
+            forgotten, _ = self.outside.popitem(last=False)
+            self.robot_addresses.pop(forgotten, None)
 
     def _leave(self, now: float) -> None:
         """Robots silent for ``timeout`` s leave the team (the last one stays); after ``timeout``
@@ -431,12 +490,16 @@ class Bridge:
             self.stats["dropped"] += 1
             if not self.stale_logged[i]:
                 self.stats["stale_stops"] += 1
-            log.warning(
-                "bridge: robot %d sent no pose for %.2f s: stopped and out of the team (team: %s)",
-                rid,
-                now - self.seen[i],
-                _ids(self.team()) or "none",
-            )
+            due, n = self._leaves.due()
+            if due:
+                log.warning(
+                    "bridge: robot %d sent no pose for %.2f s: stopped and out of the team "
+                    "(team: %s)%s",
+                    rid,
+                    now - self.seen[i],
+                    _one_line(_ids(self.team()), 120) or "none",
+                    _held(n),
+                )
             self.command[i], self.stale_logged[i] = 0.0, False
 
     def _listed(self) -> list[tuple[int, int | None]]:
@@ -472,7 +535,7 @@ class Bridge:
     # ------------------------------------------------------------------ commands out
     def control(self) -> dict | None:
         """One control tick: the policy's targets and DWA commands; stale robots stopped."""
-        if self.reply_to is None:
+        if not self.robot_addresses:
             return None
         now = time.monotonic()
         self._leave(now)
@@ -504,11 +567,14 @@ class Bridge:
                 continue
             if not fresh[i]:
                 if not self.stale_logged[i]:
-                    log.warning(
-                        "bridge: robot %d sent no pose for %.2f s: stopping it",
-                        rid,
-                        now - self.seen[i],
-                    )
+                    due, n = self._stale.due()
+                    if due:
+                        log.warning(
+                            "bridge: robot %d sent no pose for %.2f s: stopping it%s",
+                            rid,
+                            now - self.seen[i],
+                            _held(n),
+                        )
                     self.stale_logged[i] = True
                     self.stats["stale_stops"] += 1
                 robots.append(_stop(rid, targets[i].tolist(), "stale"))
@@ -534,7 +600,12 @@ class Bridge:
                 }
             )
         message = {"type": "command", "time": time.time(), "robots": robots}
-        self.sock.sendto(json.dumps(message).encode(), self.reply_to)
+        data = json.dumps(message).encode()
+        for address in self.addresses():
+            try:
+                self.sock.sendto(data, address)
+            except OSError as err:  # one unreachable address must not keep the others waiting
+                self._failed(f"command to {_peer(address)}", err)
         self.command, self._last, self.halted = command, {r["id"]: r for r in robots}, None
         self.stats["commands"] += 1
         stamp = time.monotonic()
@@ -549,8 +620,10 @@ class Bridge:
         return message
 
     def halt(self, reason: str = "bridge stopped", repeats: int = STOP_REPEATS) -> dict:
-        """Send every robot a stop command (``v = w = 0``, ``"stopped": true``, ``reason``) at
-        every address that sent a state (``repeats`` copies, 10 ms apart); returns the message."""
+        """Send every robot a stop command (``v = w = 0``, ``"stopped": true``, ``reason``) at its
+        own addresses first (the senders of the poses of the robots the bridge knows), then at
+        the other addresses that sent a state (``repeats`` copies, 10 ms apart); returns the
+        message."""
         robots = []
         for rid, i in self._listed():
             last = self.poses[i, :2].tolist() if i is not None else self.outside[rid]["pose"][:2]
@@ -558,7 +631,10 @@ class Bridge:
             robots.append(_stop(rid, target, reason))
         message = {"type": "command", "time": time.time(), "robots": robots}
         data = json.dumps(message).encode()
-        peers = list(self.peers) if not self._closed else []
+        own = self.addresses() if not self._closed else []
+        mine = set(own)
+        others = [p for p in self.peers if p not in mine] if not self._closed else []
+        peers = own + others  # the robots' own addresses first, in every round
         delivered = 0
         for k in range(repeats if peers else 0):
             if k:
@@ -567,14 +643,17 @@ class Bridge:
                 try:
                     self.sock.sendto(data, peer)
                     delivered += 1
-                except OSError as err:
-                    log.error("bridge: stop command to %s failed: %s", _peer(peer), err)
+                except OSError as err:  # the next address still gets its copy
+                    self._failed(f"stop command to {_peer(peer)}", err)
         if self.halted != reason and peers:
             log.warning(
-                "bridge: sent a stop command (v = w = 0) to all %d robots at %d address%s (%s)",
+                "bridge: sent a stop command (v = w = 0) to all %d robots at %d address%s%s (%s)",
                 len(robots),
-                len(peers),
-                "" if len(peers) == 1 else "es",
+                len(own),
+                "" if len(own) == 1 else "es",
+                f" and {len(others)} other sender{'' if len(others) == 1 else 's'} of states"
+                if others
+                else "",
                 reason,
             )
         self.command[:] = 0.0

@@ -25,6 +25,7 @@ from omegaconf import DictConfig
 from icco_torchrl.live.bridge import Bridge
 from icco_torchrl.live.dwa import RobotLimits
 from icco_torchrl.live.fleet import SimulatedFleet
+from icco_torchrl.live.guard import redact_run_folder
 from icco_torchrl.live.loop import LiveLoop
 from icco_torchrl.live.web import LiveServer
 
@@ -48,14 +49,42 @@ def _checkpoint(cfg: DictConfig, command: str) -> Path:
     return DEMO_POLICY
 
 
-def _warn_if_exposed(host: str, token: str | None = None) -> None:
-    if host not in LOOPBACK:
-        guard = "with the page's token" if token else "(set live.token=SECRET to require one)"
-        print(
-            f"warning: live.host={host} is reachable from other machines; anyone who can reach "
-            f"it can watch and steer the team {guard}",
-            file=sys.stderr,
+def _warn_if_exposed(host: str, token: str | None = None, command: str = "live") -> None:
+    """Say on stderr who can steer the team when ``host`` is reachable from other machines."""
+    if host in LOOPBACK:
+        return
+    channels = (
+        "the page (live.web=true) and every state and instruct datagram of the UDP port"
+        if command == "bridge"
+        else "the page"
+    )
+    if token:
+        guard = (
+            f"live.token guards {channels}: only who has the token can steer the team (it "
+            "travels unencrypted: anyone who reads this network can read it)"
         )
+    else:
+        guard = (
+            f"anyone who can reach it can steer the team through {channels} (set "
+            "live.token=SECRET to require a token of them)"
+        )
+    print(f"warning: live.host={host} is reachable from other machines; {guard}", file=sys.stderr)
+
+
+def _keep_token_private(token: str | None) -> None:
+    """With a token, the run folder Hydra wrote (``.hydra/``, ``cli.log``): the token redacted
+    from its files, which only their owner may read (``guard.redact_run_folder``)."""
+    if token is None:
+        return
+    try:
+        from hydra.core.hydra_config import HydraConfig
+
+        if not HydraConfig.initialized():
+            return
+        folder = HydraConfig.get().runtime.output_dir
+    except Exception:  # not run by Hydra (a test calling run_live): no folder was written
+        return
+    redact_run_folder(folder, token)
 
 
 def _page_url(address, token: str | None) -> str:
@@ -90,6 +119,7 @@ def run_live(cfg: DictConfig) -> float:
     from icco_torchrl.instructions import LLMPlanner
 
     live = cfg.live
+    _keep_token_private(live.get("token"))
     checkpoint = _checkpoint(cfg, "live")
     _warn_if_exposed(live.host, live.get("token"))
     logging.basicConfig(level=logging.INFO, format="%(message)s")
@@ -141,8 +171,9 @@ def run_bridge(cfg: DictConfig) -> float:
     from icco_torchrl.instructions import LLMPlanner
 
     live = cfg.live
+    _keep_token_private(live.get("token"))
     checkpoint = _checkpoint(cfg, "bridge")
-    _warn_if_exposed(live.host, live.get("token"))
+    _warn_if_exposed(live.host, live.get("token"), "bridge")
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     limits = RobotLimits(
         max_speed=live.max_speed,
@@ -164,6 +195,7 @@ def run_bridge(cfg: DictConfig) -> float:
         rate_hz=live.rate_hz,
         timeout=live.timeout_s,
         limits=limits,
+        token=live.get("token"),
     )
     page = None
     if live.web:
@@ -195,6 +227,7 @@ def run_bridge(cfg: DictConfig) -> float:
             limits=limits,
             field_size=loop.raw.field_size,
             seed=cfg.seed,
+            token=live.get("token"),
         )
         threads.append(
             threading.Thread(target=fleet.run, args=(stop, live.seconds or 1e9), daemon=True)

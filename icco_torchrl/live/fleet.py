@@ -7,6 +7,7 @@ back after ``latency`` seconds, within the robots' limits, with Gaussian noise o
 ``silence(i)`` stops reporting robot ``i`` (a robot that drops off the network), ``resume(i)``
 brings it back, and ``join(i)`` adds a robot with a new id (a robot switched on mid-run). Robots
 carry any integer ids (``ids``; default ``0..n_robots-1``); commands for other ids are ignored.
+With ``token`` (the bridge's ``live.token``) every state carries it.
 """
 
 from __future__ import annotations
@@ -39,6 +40,7 @@ class SimulatedFleet:
         field_size: float = 6.5,
         seed: int = 0,
         ids=None,
+        token: str | None = None,
     ):
         self.bridge, self.rate_hz, self.latency, self.noise, self.limits = (
             bridge_address,
@@ -48,6 +50,7 @@ class SimulatedFleet:
             limits,
         )
         self.rng = np.random.default_rng(seed)
+        self.token = token  # carried by every state (the bridge's live.token)
         self.half = half = field_size / 2 - 0.5
         self.ids = list(range(n_robots)) if ids is None else [int(i) for i in ids]
         if len(set(self.ids)) != len(self.ids):
@@ -147,15 +150,16 @@ class SimulatedFleet:
                 for k, rid in enumerate(self.ids)
                 if rid not in self.silenced
             ]
-        return json.dumps(
-            {
-                "type": "state",
-                "time": time.time(),
-                "robots": robots,
-                "resources": self.resources.tolist(),
-                "invader": self.invader.tolist(),
-            }
-        ).encode()
+        msg = {
+            "type": "state",
+            "time": time.time(),
+            "robots": robots,
+            "resources": self.resources.tolist(),
+            "invader": self.invader.tolist(),
+        }
+        if self.token is not None:
+            msg["token"] = self.token
+        return json.dumps(msg).encode()
 
     def run(self, stop: threading.Event, max_seconds: float = 10.0) -> None:
         period = 1.0 / self.rate_hz

@@ -47,15 +47,28 @@ refused (403). A WebSocket upgrade that carries ``Origin`` (every browser sends 
 from the page's own origin, ``http://`` + its Host, so a page from any other origin (another
 port included) is refused (403); a client without ``Origin`` is not a web page and may connect.
 With a ``token`` every request must carry it (``?token=...``: the page passes it on to
-``/ws``). Work a request asks of the loop is bounded: a reset or a redraw waits at most once in
-the tick thread (requests coalesce), single steps queue at most ``MAX_STEPS``, and the planner
-takes one instruction at a time (:meth:`~icco_torchrl.live.loop.LiveLoop.instruct`).
+``/ws``); wrong ones are limited (:class:`~icco_torchrl.live.guard.TokenCheck`: one a second
+from one address after 10, ten a second from all): beyond, a request is refused unchecked (429),
+the right token included, until the allowance refills.
+
+No crowd stalls the server. At most ``max_clients`` tabs (``MAX_CLIENTS``) are served at once:
+one more is refused (503, one line) until one closes, and a connection beyond ``max_clients +
+SPARE_CONNECTIONS`` (idle ones included) is closed at once. Work a request asks of the loop is
+bounded: team changes are at most ``CHANGE_RATE`` a second from all tabs together (after
+``CHANGE_BURST``; beyond, an error reply), and they and instructions wait for the loop's lock in
+the tick thread (a worker thread in bridge mode), never in the event loop; a reset or a redraw
+waits at most once in the tick thread (requests coalesce), single steps queue at most
+``MAX_STEPS``, and the planner takes one instruction at a time
+(:meth:`~icco_torchrl.live.loop.LiveLoop.instruct`). A number of more than ``MAX_DIGITS``
+characters in a request is refused with an error reply, and a request that fails for any other
+reason is answered with a one-line error; the tab stays. Refused HTTP requests and failures are
+logged in one line each (a path cut short), at most one line a second per kind, the next one
+saying how many were held back.
 """
 
 from __future__ import annotations
 
 import asyncio
-import hmac
 import ipaddress
 import json
 import logging
@@ -69,6 +82,7 @@ from pathlib import Path
 
 from aiohttp import WSMsgType, web
 
+from icco_torchrl.live.guard import Bucket, Throttle, TokenCheck, held, one_line
 from icco_torchrl.live.loop import MAX_INSTRUCTION, LiveLoop
 
 log = logging.getLogger("icco.live")
@@ -83,6 +97,16 @@ MAX_REPLIES = 64  # replies queued for one tab; more are dropped (counted), neve
 MAX_STEPS = 10  # single steps queued while paused
 MAX_STATUS_CHARS = 400  # each text of a planner-status message is cut to this length
 RATE_WINDOW_S = 2.0  # the measured tick rate is over the ticks of the last 2 s
+MAX_CLIENTS = 256  # tabs (WebSockets) at once; one more is refused (503) until one closes
+SPARE_CONNECTIONS = 64  # HTTP connections beyond the tabs (page loads); more are closed at once
+CHANGE_RATE = 10.0  # team changes (add/remove a robot) a second, all tabs together, after
+CHANGE_BURST = 20  # a burst of CHANGE_BURST
+MAX_DIGITS = 40  # characters of one number in a request (longer ones are refused, not converted)
+LOOP_REQUESTS = (
+    "instruct",
+    "add_robot",
+    "remove_robot",
+)  # run beside the ticks, not in the event loop
 LOOPBACK_NAMES = ("localhost", "127.0.0.1", "::1")
 
 
@@ -92,6 +116,39 @@ def _hostname(host: str) -> str:
     if host.startswith("["):
         return host[1 : host.find("]")] if "]" in host else host
     return host.rsplit(":", 1)[0] if host.count(":") == 1 else host
+
+
+class _TooLong(ValueError):
+    pass
+
+
+def _bounded_int(text: str) -> int:
+    if len(text) > MAX_DIGITS:
+        raise _TooLong(f"a number of {len(text)} characters (at most {MAX_DIGITS})")
+    return int(text)
+
+
+def _bounded_float(text: str) -> float:
+    if len(text) > MAX_DIGITS:
+        raise _TooLong(f"a number of {len(text)} characters (at most {MAX_DIGITS})")
+    return float(text)
+
+
+def _parse(text: str) -> dict | str:
+    """A page request as a JSON object, or one line saying what is wrong with it."""
+    try:
+        msg = json.loads(text, parse_int=_bounded_int, parse_float=_bounded_float)
+    except _TooLong as err:
+        return f"a request may not hold {err}"
+    except json.JSONDecodeError:
+        return "a request must be a JSON object"
+    except RecursionError:
+        return "a request must be a JSON object, not nested this deeply"
+    except ValueError:
+        return "a request must be a JSON object of plain numbers and text"
+    if not isinstance(msg, dict):
+        return "a request must be a JSON object"
+    return msg
 
 
 def _is_ip(name: str) -> bool:
@@ -167,11 +224,15 @@ class LiveServer:
         policy: str = "",
         planner: str = "",
         token: str | None = None,
+        max_clients: int = MAX_CLIENTS,
     ):
         if not rate_hz > 0:
             raise ValueError(f"rate_hz must be > 0, got {rate_hz!r}")
         if token is not None and not str(token).strip():
             raise ValueError("live.token must be a non-empty string, or null for none")
+        if isinstance(max_clients, bool) or not isinstance(max_clients, int) or max_clients < 1:
+            raise ValueError(f"max_clients must be an integer >= 1, got {max_clients!r}")
+        self.max_clients = max_clients
         self.loop, self.host, self.port, self.rate_hz, self.drive = (
             loop,
             host,
@@ -181,6 +242,9 @@ class LiveServer:
         )
         self.policy, self.planner = policy, planner
         self.token = None if token is None else str(token)
+        self._tokens = None if token is None else TokenCheck(self.token)
+        self._changes = Bucket(CHANGE_RATE, CHANGE_BURST)  # team changes, all tabs together
+        self._refusals, self._failures = Throttle(), Throttle()  # log lines
         self.paused, self.speed = False, 1.0
         self.clients: set[_Client] = set()
         self.stats = {
@@ -190,7 +254,10 @@ class LiveServer:
             "errors": 0,
             "connections": 0,
             "refused": 0,  # requests over a tab's rate limit
+            "busy": 0,  # team changes over the server's CHANGE_RATE
             "forbidden": 0,  # HTTP requests and upgrades refused (Host, Origin, token)
+            "full": 0,  # connections refused: max_clients tabs or all connections in use
+            "failed": 0,  # requests whose handling raised (answered with an error)
             "latency_ms": [],
         }
         self.address: tuple[str, int] | None = None
@@ -198,6 +265,7 @@ class LiveServer:
         self._aio: asyncio.AbstractEventLoop | None = None
         self._runner: web.AppRunner | None = None
         self._ticker: ThreadPoolExecutor | None = None
+        self._worker: ThreadPoolExecutor | None = None  # instructions, team changes
         self._drive_task: asyncio.Task | None = None
         self._thread: threading.Thread | None = None
         self._closed = threading.Event()
@@ -218,6 +286,7 @@ class LiveServer:
         app.router.add_get("/ws", self._socket)
         self._runner = web.AppRunner(app, access_log=None, handle_signals=False)
         await self._runner.setup()
+        self._cap_connections(self._runner.server)
         site = web.TCPSite(self._runner, self.host, self.port)
         try:
             await site.start()
@@ -237,7 +306,25 @@ class LiveServer:
         if self.drive:
             self._ticker = ThreadPoolExecutor(1, thread_name_prefix="icco-live-tick")
             self._drive_task = asyncio.create_task(self._drive())
+        # Requests that reach the loop wait for its lock in this thread, never in the event loop:
+        # the tick thread itself when this server ticks (between two ticks), else a thread of
+        # their own (the bridge ticks the loop).
+        self._worker = self._ticker or ThreadPoolExecutor(1, thread_name_prefix="icco-live-req")
         return self.address
+
+    def _cap_connections(self, server) -> None:
+        """Close a new connection at once while ``max_clients + SPARE_CONNECTIONS`` are open
+        (idle ones included), so a crowd cannot hold every file descriptor."""
+        cap, made = self.max_clients + SPARE_CONNECTIONS, server.connection_made
+
+        def connection_made(handler, transport) -> None:
+            made(handler, transport)
+            if len(server.connections) > cap:
+                self.stats["full"] += 1
+                self._log_refusal(f"a connection: {cap} are open (the most this server keeps)")
+                asyncio.get_running_loop().call_soon(transport.close)  # once its handler started
+
+        server.connection_made = connection_made
 
     async def stop(self) -> None:
         """Stop ticking, tell every tab the run ended (``end_reason``) and close the connections."""
@@ -260,6 +347,8 @@ class LiveServer:
             await self._runner.cleanup()
         if self._ticker is not None:
             self._ticker.shutdown(wait=True)
+        if self._worker is not None and self._worker is not self._ticker:
+            self._worker.shutdown(wait=False)
 
     def serve(
         self, stop: threading.Event | None = None, max_seconds: float | None = None, on_start=None
@@ -446,15 +535,22 @@ class LiveServer:
         the token, or upgrades to a WebSocket from another page's origin (module docstring)."""
         refusal = self._refusal(request)
         if refusal is not None:
+            status, refusal = refusal if isinstance(refusal, tuple) else (403, refusal)
             self.stats["forbidden"] += 1
-            log.warning("live: refused %s %s: %s", request.method, request.path, refusal)
-            response = web.Response(status=403, text=refusal + "\n")
+            self._log_refusal(f"{request.method} {request.path}: {refusal}")
+            response = web.Response(status=status, text=refusal + "\n")
             response.force_close()  # a refused client gets no second request on this connection
             return response
         return await handler(request)
 
-    def _refusal(self, request: web.Request) -> str | None:
-        """Why ``request`` is refused, or None."""
+    def _log_refusal(self, what: str) -> None:
+        """One bounded line (the path cut short) about a refusal, at most one a second."""
+        due, n = self._refusals.due()
+        if due:
+            log.warning("live: refused %s%s", one_line(what, 240), held(n))
+
+    def _refusal(self, request: web.Request) -> str | tuple[int, str] | None:
+        """Why ``request`` is refused (with its status when not 403), or None."""
         host = request.headers.get("Host", "")
         name = _hostname(host)
         wildcard = self.host in ("0.0.0.0", "::", "")
@@ -466,10 +562,13 @@ class LiveServer:
                 f"refused: Host {host[:80]!r} is not this server's address (open "
                 f"http://{self._shown_host()}:{self.address[1]}/)"
             )
-        if self.token is not None:
+        if self._tokens is not None:
             given = request.query.get("token", "")
-            if not hmac.compare_digest(given.encode(), self.token.encode()):
+            why = self._tokens.check(given, str(request.remote)) if given else "no token"
+            if why == "wrong token" or why == "no token":
                 return "refused: this page needs its token: open the address with ?token= printed"
+            if why is not None:
+                return 429, f"refused: {why}"
         origin = request.headers.get("Origin")
         if request.path == "/ws" and origin is not None:
             allowed = {f"http://{host.strip().lower()}", f"https://{host.strip().lower()}"}
@@ -484,7 +583,17 @@ class LiveServer:
     async def _page(self, request: web.Request) -> web.StreamResponse:
         return web.FileResponse(PAGE, headers={"Cache-Control": "no-store"})
 
-    async def _socket(self, request: web.Request) -> web.WebSocketResponse:
+    async def _socket(self, request: web.Request) -> web.StreamResponse:
+        if len(self.clients) >= self.max_clients:
+            self.stats["full"] += 1
+            refusal = (
+                f"refused: {self.max_clients} tabs are open, the most this server serves: "
+                "close one, or try again later"
+            )
+            self._log_refusal(f"a tab: {self.max_clients} are open")
+            response = web.Response(status=503, text=refusal + "\n")
+            response.force_close()
+            return response
         ws = web.WebSocketResponse(heartbeat=10.0, max_msg_size=MAX_MESSAGE)
         await ws.prepare(request)
         client = _Client(ws)
@@ -503,7 +612,12 @@ class LiveServer:
                 if not client.admit():
                     self._refuse(client)
                     continue
-                error = self.handle(msg.data)
+                try:
+                    error = await self._request(msg.data)
+                except Exception as err:  # a bug must not close the tab: an error reply, one line
+                    self.stats["failed"] += 1
+                    self._failed("a request", err)
+                    error = f"the request failed: {one_line(type(err).__name__, 60)}"
                 if error:
                     self.stats["errors"] += 1
                 client.reply(json.dumps({"type": "error", "message": error} if error else OK))
@@ -551,15 +665,40 @@ class LiveServer:
             pass
         await client.ws.close(code=1000, message=b"run ended")
 
+    def _failed(self, what: str, err: Exception) -> None:
+        due, n = self._failures.due()
+        if due:
+            log.error(
+                "live: %s failed: %s%s", what, one_line(f"{type(err).__name__}: {err}"), held(n)
+            )
+
+    async def _request(self, text: str) -> str | None:
+        """Apply one page request from a tab; an error message for it, or None. Team changes are
+        at most ``CHANGE_RATE`` a second from all tabs together (after ``CHANGE_BURST``);
+        they and instructions wait for the loop in a worker thread, never in the event loop."""
+        msg = _parse(text)
+        if isinstance(msg, str):
+            return msg
+        kind = msg.get("type")
+        if kind == "instruct" or (self.drive and kind in LOOP_REQUESTS):
+            if kind != "instruct" and not self._changes.admit():
+                self.stats["busy"] += 1
+                return (
+                    f"busy: at most {CHANGE_RATE:g} team changes a second from all tabs together "
+                    f"(after {CHANGE_BURST}); this one was dropped, try again"
+                )
+            if self._worker is not None:
+                aio = asyncio.get_running_loop()
+                return await aio.run_in_executor(self._worker, self._apply, msg)
+        return self._apply(msg)
+
     def handle(self, text: str) -> str | None:
         """Apply one page request; returns an error message for the sender, or None."""
-        try:
-            msg = json.loads(text)
-        except json.JSONDecodeError:
-            return "a request must be a JSON object"
-        except RecursionError:
-            return "a request must be a JSON object, not nested this deeply"
-        kind = msg.get("type") if isinstance(msg, dict) else None
+        msg = _parse(text)
+        return msg if isinstance(msg, str) else self._apply(msg)
+
+    def _apply(self, msg) -> str | None:
+        kind = msg.get("type")
         if kind == "instruct":
             text = msg.get("text")
             if not isinstance(text, str) or not text.strip():
@@ -636,4 +775,11 @@ class LiveServer:
             state = self.loop.reset() if job == "reset" else self.loop.snapshot()
             self._soon(self._broadcast, state.to_dict())
 
-        self._aio.run_in_executor(self._ticker, run_and_show)
+        def schedule():  # on the event loop (a team change asks from the tick thread)
+            try:
+                self._aio.run_in_executor(self._ticker, run_and_show)
+            except RuntimeError:  # the server is stopping: nothing more to show
+                with self._show_lock:
+                    self._show_job = None
+
+        self._soon(schedule)
