@@ -17,11 +17,13 @@ update's shapes. Writes ``benchmarks/results/train_speed.json``.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import platform
 import statistics
 import time
 from pathlib import Path
+from unittest import mock
 
 import torch
 from torch.profiler import ProfilerActivity, profile
@@ -30,6 +32,7 @@ from torch.utils._pytree import tree_map
 from torch.utils.flop_counter import flop_registry
 from torchrl.collectors import Collector
 
+from icco_torchrl.modules import activations
 from icco_torchrl.trainer import TrainingRun
 from icco_torchrl.training.build import build
 from icco_torchrl.training.config import compose_config
@@ -37,9 +40,30 @@ from icco_torchrl.training.config import compose_config
 RESULTS = Path(__file__).resolve().parent / "results"
 PATHS = {
     "eager": ["train.compile=false", "train.cudagraphs=false"],
+    # The compiled update as it was before modules/activations.py: ReLUs saving a bool mask for
+    # their backward (see MaskReLU), kept here as the baseline of the speed-ups.
+    "compiled_mask": ["train.compile=true", "train.cudagraphs=false"],
     "compiled": ["train.compile=true", "train.cudagraphs=false"],
     "graphs": ["train.compile=true", "train.cudagraphs=true"],  # CUDA only
 }
+BASELINE = "compiled_mask"
+
+
+class MaskReLU:
+    """Stands in for ``activations.SignReLU`` on the ``compiled_mask`` path: ``torch.relu``,
+    whose compiled backward stores the bool mask ``x <= 0``."""
+
+    apply = staticmethod(torch.relu)
+
+
+def path_context(name: str):
+    """The context every call of a path runs in (Dynamo guards on the patched global, so each
+    path keeps its own graph)."""
+    if name == "compiled_mask":
+        return mock.patch.object(activations, "SignReLU", MaskReLU)
+    return contextlib.nullcontext()
+
+
 # The update's matrix products: [S*(L+1)*N, hidden] rows against the hidden and gate widths.
 GEMM_SHAPES = ((1632, 64, 64), (1632, 64, 192), (4096, 256, 256))
 
@@ -144,18 +168,24 @@ def gemm_rate(threads: int) -> dict[str, float]:
 
 def measure(threads: int, batches: int, method: str, run_dir: Path, paths, common) -> dict:
     torch.set_num_threads(threads)
-    steppers = {name: Stepper([*common, *PATHS[name]], method, run_dir / name) for name in paths}
+    steppers = {}
+    for name in paths:
+        with path_context(name):
+            steppers[name] = Stepper([*common, *PATHS[name]], method, run_dir / name)
     seconds = {name: [] for name in steppers}
-    for _ in range(batches):  # in turn, so both paths see the same load
+    for _ in range(batches):  # in turn, so every path sees the same load
         for name, stepper in steppers.items():
-            seconds[name].append(stepper.step())
+            with path_context(name):
+                seconds[name].append(stepper.step())
     ms = {name: [] for name in steppers}
     for _ in range(5):
         for name, stepper in steppers.items():
-            ms[name].append(stepper.updates(8))
+            with path_context(name):
+                ms[name].append(stepper.updates(8))
     rows, flops = {}, steppers["eager"].flops()
     for name, stepper in steppers.items():
-        ops = stepper.ops()
+        with path_context(name):
+            ops = stepper.ops()
         ms_update = statistics.median(ms[name])
         rows[name] = {
             "env_steps_per_s": stepper.frames / statistics.median(seconds[name]),
@@ -167,12 +197,19 @@ def measure(threads: int, batches: int, method: str, run_dir: Path, paths, commo
         }
         stepper.close()
     base, fast = rows["eager"], rows[paths[-1]]
+    before = rows.get(BASELINE)
     return {
         "threads": threads,
         "paths": rows,
         "fastest": paths[-1],
         "update_speedup": base["ms_per_update"] / fast["ms_per_update"],
         "end_to_end_speedup": fast["env_steps_per_s"] / base["env_steps_per_s"],
+        "update_speedup_vs_compiled": (
+            before["ms_per_update"] / fast["ms_per_update"] if before else None
+        ),
+        "end_to_end_speedup_vs_compiled": (
+            fast["env_steps_per_s"] / before["env_steps_per_s"] if before else None
+        ),
         "gemm_gflop_s": gemm_rate(threads) if "cpu" in common[0] else None,
     }
 
@@ -186,6 +223,15 @@ def cpu_name() -> str:
     return platform.processor() or platform.machine()
 
 
+def isa() -> dict:
+    """The vector ISA torch's kernels use here, and the matrix units bf16 would need."""
+    caps = torch.cpu.get_capabilities() if hasattr(torch.cpu, "get_capabilities") else {}
+    return {
+        "cpu_capability": torch.backends.cpu.get_cpu_capability(),
+        **{k: bool(caps.get(k)) for k in ("avx512_bf16", "amx_bf16", "amx_tile")},
+    }
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--threads", type=int, nargs="+", default=[1, 2])
@@ -194,7 +240,9 @@ def main(argv=None) -> None:
     parser.add_argument("--run-dir", default="runs/bench_train_speed")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--experiment", default="default", help="the recipe (conf/experiment/)")
-    parser.add_argument("--paths", nargs="+", default=["eager", "compiled"], choices=list(PATHS))
+    parser.add_argument(
+        "--paths", nargs="+", default=["eager", BASELINE, "compiled"], choices=list(PATHS)
+    )
     parser.add_argument("--out", default="train_speed.json", help="file in benchmarks/results/")
     args = parser.parse_args(argv)
     common = [f"device={args.device}", f"experiment={args.experiment}"]
@@ -225,6 +273,7 @@ def main(argv=None) -> None:
             f"{ratio:g}"
         ),
         "cpu": cpu_name(),
+        "isa": isa(),
         "torch": torch.__version__,
         "results": results,
     }

@@ -24,6 +24,25 @@ USAGE = """usage: icco {train,eval,instruct,live,bridge} [overrides...]
   icco bridge checkpoint=... [live.fleet=true] command robots over UDP (JSON), DWA velocities
 """
 COMMANDS = ("train", "eval", "instruct", "live", "bridge")
+# Third-party warnings a user can do nothing about, each silenced by category, message and the
+# module it is attributed to (any other warning still shows): ``(category, message, module)``.
+KNOWN_WARNINGS = (
+    # torch 2.13 deprecates a dynamo flag that tensordict still reads while the update compiles
+    # (``make train``): printed in the middle of the progress bar.
+    (
+        FutureWarning,
+        r"torch\._dynamo\.config\.inline_inbuilt_nn_modules is deprecated",
+        r"tensordict\.",
+    ),
+)
+
+
+def quiet_known_warnings() -> None:
+    """Filter :data:`KNOWN_WARNINGS` in this process (every ``icco`` command does, at start)."""
+    import warnings
+
+    for category, message, module in KNOWN_WARNINGS:
+        warnings.filterwarnings("ignore", message=message, category=category, module=module)
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -32,6 +51,10 @@ def main(argv: list[str] | None = None) -> None:
         print(USAGE)
         raise SystemExit(0 if argv and argv[0] in ("-h", "--help", "help") else 2)
     name, args = argv[0], argv[1:]
+    quiet_known_warnings()
+    from icco_torchrl.training import compile_cache
+
+    compile_cache.note_environment()  # before torch is imported: its import reads the variable
     from icco_torchrl.commands import find
     from icco_torchrl.training.config import check_command_line
 
@@ -104,15 +127,20 @@ def os_error_line(err: OSError) -> str:
 
 
 def _remove_if_only_hydra(folder: str) -> None:
-    """A command that failed before any work leaves no run folder behind (Hydra made it)."""
+    """A command that failed before any work leaves no run folder behind (Hydra made it); one
+    that another ``icco train`` holds (it has just begun writing) is left alone."""
     import shutil
     from pathlib import Path
 
     path = Path(folder)
-    from icco_torchrl.training.checkpoint import LOCK_FILE
+    from icco_torchrl.training.checkpoint import LOCK_FILE, CheckpointError, RunFolderLock
 
     if path.is_dir() and {p.name for p in path.iterdir()} <= {".hydra", "cli.log", LOCK_FILE}:
-        shutil.rmtree(path, ignore_errors=True)
+        try:
+            with RunFolderLock(path):
+                shutil.rmtree(path, ignore_errors=True)
+        except CheckpointError:  # held by another run, or its lock file is a link: not ours
+            pass
 
 
 def unknown_group_option(overrides: list[str]) -> str | None:

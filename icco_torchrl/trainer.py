@@ -12,6 +12,7 @@ import json
 import logging
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -41,7 +42,12 @@ from icco_torchrl.training.checkpoint import (  # noqa: F401 (check_resume*: the
     restore_replay,
     save_run,
 )
-from icco_torchrl.training.interrupt import GracefulInterrupt, Interrupted, StopAtOnce
+from icco_torchrl.training.interrupt import (
+    GracefulInterrupt,
+    Interrupted,
+    StopAtOnce,
+    UpdateAbandoned,
+)
 from icco_torchrl.training.logger import RunLogger
 from icco_torchrl.training.rng import rng_state, set_rng_state
 from icco_torchrl.training.update import metrics_row
@@ -100,10 +106,12 @@ class Progress:
     batches: int = 0
 
 
-def train(cfg: DictConfig, run_dir: str | Path) -> dict:
+def train(cfg: DictConfig, run_dir: str | Path, on_start: Callable[[], None] | None = None) -> dict:
     """Train ``cfg.method`` (a config :func:`~icco_torchrl.training.config.validate` checked) and
     return the final evaluation metrics; writes CSVs, checkpoints and ``learning_curve.png`` to
-    ``run_dir`` (with ``resume=``, to the checkpoint's folder)."""
+    ``run_dir`` (with ``resume=``, to the checkpoint's folder). ``on_start`` runs once the folder
+    is locked and the run started or its resume checked (the command's record of the run), so a
+    refused run writes nothing."""
     run_dir = Path(cfg.resume).resolve().parent if cfg.resume else Path(run_dir)
     # One writer per run folder; a signal before the loop stops at once (nothing to save yet).
     with RunFolderLock(run_dir), StopAtOnce() as stop:
@@ -114,6 +122,9 @@ def train(cfg: DictConfig, run_dir: str | Path) -> dict:
                 training.resume(cfg.resume)
             else:
                 training.start()
+            if on_start is not None:
+                with stop.held():
+                    on_start()
         except Interrupted as err:
             again = f"continue: icco train resume={cfg.resume}" if cfg.resume else "start it again"
             print(f"stopped by {err.signal_name} before training began: {again}", flush=True)
@@ -241,7 +252,8 @@ class TrainingRun:
             auto_register_policy_transforms=False,
             track_traj_ids=False,
         )
-        tracker = EpisodeTracker(self.cfg.env.num_envs, run.env.device)
+        taught = run.teacher.rows if run.teacher is not None else 0  # the teacher's env rows
+        tracker = EpisodeTracker(self.cfg.env.num_envs - taught, run.env.device)
         recent, episode_stats = (
             [],
             {k: float("nan") for k in EPISODE_COLUMNS},
@@ -256,13 +268,19 @@ class TrainingRun:
                 p.frames += batch.numel()
                 p.batches += 1
                 self.explore.eps.fill_(epsilon(p.frames, t))
-                recent.append(tracker.update(batch))
+                recent.append(tracker.update(batch[taught:]))  # the learner's episodes
                 # Only what the loss reads is replayed.
-                items = run.cutter(batch.select(*run.loss.in_keys, strict=False))
+                replayed = batch.select(*run.loss.in_keys, strict=False)
+                if run.teacher is not None:
+                    replayed = run.teacher.split(replayed)
+                items = run.cutter(replayed)
                 if items.shape[0]:  # items longer than a batch complete in a later one
                     run.buffer.extend(items)
                 tick = time.perf_counter()
-                row = self.learn()
+                try:
+                    row = self.learn()
+                except UpdateAbandoned:  # a stop cut an update's compile short: not applied
+                    row = {}
                 self.timers["train"] += time.perf_counter() - tick
                 if p.batches % self.cfg.logger.log_interval == 0:
                     episode_stats = self.log_train(row, recent) or episode_stats
@@ -320,8 +338,13 @@ class TrainingRun:
         run, t = self.run, self.cfg.train
         if len(run.buffer) < max(t.warmup_segments, t.batch_segments):
             return {}
+        teacher = run.teacher.buffer if run.teacher is not None else None
+        if teacher is not None and len(teacher) < teacher.batch_size:
+            return {}
         for _ in range(t.updates_per_batch):
-            metrics = run.update(run.buffer.sample())
+            # train.teacher: a fixed share of every batch from the teacher's buffer
+            sample = run.buffer.sample() if teacher is None else run.teacher.sample(run.buffer)
+            metrics = run.update(sample)
             run.updater.step()
             self.progress.updates += 1
         return metrics_row(metrics)
@@ -433,7 +456,6 @@ class TrainingRun:
             "optimizer": run.optim.state_dict(),
             "updater": run.updater.state_dict(),
             "rng": rng_state(run.env),
-            "epsilon": float(self.explore.eps),
             "outputs": dict(self.outputs),
         }
         if t.checkpoint_buffer and dump:
@@ -469,7 +491,7 @@ def finish_message(
     curve = (outputs or {}).get("learning_curve", True) and (
         run_dir / "learning_curve.png"
     ).is_file()
-    written = ([f"metrics: {', '.join(metrics)}"] if metrics else []) + (
+    written = ([f"metrics: {', '.join(metrics)} (columns: docs/metrics.md)"] if metrics else []) + (
         ["figure: learning_curve.png"] if curve else []
     )
     if written:

@@ -324,6 +324,11 @@ def _a_dict_of_the_wrong_shape(path):
     return "its cfg has no method and env"
 
 
+def _a_string_version(path):
+    torch.save({"format_version": str(FORMAT_VERSION), "cfg": {}, "layout": {}, "loss": {}}, path)
+    return f"its format_version is '{FORMAT_VERSION}', a str, where icco-torchrl writes an integer"
+
+
 def _truncated(path):
     save_checkpoint(path, {"cfg": {}, "loss": {"w": torch.zeros(1000)}})
     path.write_bytes(path.read_bytes()[:700])
@@ -350,6 +355,7 @@ def _crafted_torch_file(path):
         _empty,
         _only_a_format_version,
         _a_dict_of_the_wrong_shape,
+        _a_string_version,
         _truncated,
         _crafted_pickle,
         _crafted_torch_file,
@@ -448,6 +454,34 @@ def test_a_second_writer_of_a_run_folder_is_refused_in_one_line(tmp_path):
         assert f"pid {os.getpid()}" in message
     with RunFolderLock(tmp_path):  # released with its holder
         pass
+
+
+@pytest.mark.parametrize("target", ["a file", "no file"])
+def test_a_lock_file_that_is_a_link_is_refused_and_its_target_left_untouched(tmp_path, target):
+    """A run folder received from elsewhere may hold a ``.train.lock`` that links anywhere: the
+    lock is opened without following it (the target is neither truncated nor created)."""
+    victim = tmp_path / "victim.txt"
+    if target == "a file":
+        victim.write_text("keep me\n")
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / checkpoint.LOCK_FILE).symlink_to(victim)
+    with pytest.raises(RunFolderBusy) as info:
+        with RunFolderLock(run):
+            pass
+    message = str(info.value)
+    assert "\n" not in message and "is a symbolic link" in message and str(run) in message
+    if target == "a file":
+        assert victim.read_text() == "keep me\n"
+    else:
+        assert not victim.exists()
+    assert (run / checkpoint.LOCK_FILE).is_symlink()
+    fifo = tmp_path / "fifo"
+    fifo.mkdir()
+    os.mkfifo(fifo / checkpoint.LOCK_FILE)
+    with pytest.raises(RunFolderBusy, match="is no plain file"):
+        with RunFolderLock(fifo):
+            pass
 
 
 def _run_payload(frames):

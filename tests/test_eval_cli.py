@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 
 from icco_torchrl.cli import main
+from icco_torchrl.envs.reference_policies import reference_label
 from icco_torchrl.evaluation.metrics import learning_curves
 from icco_torchrl.evaluation.plots import plot_curves
 from icco_torchrl.evaluation.runner import find_checkpoints
@@ -100,13 +101,14 @@ def test_eval_compares_two_methods_and_writes_tables_and_figures(checkpoints, tm
         "follower",
         "heuristic",
         "blend (r=1.75 m)",
+        reference_label("best_scripted"),
     ]  # eval.references, on the same episodes
     assert [row.split(" | ")[0] for row in whole[1:]] == ["| ICCO", "| QMIX"] + [
         f"| {r}" for r in refs
     ]
     assert "| ICCO | 2 (1 seed) |" in printed.out  # the table is printed too
     rows = list(csv.DictReader((out / "quadrants_trials.csv").open()))
-    assert len(rows) == 6 * 2 * 5  # (methods + references) x trials x (4 quadrants + episode)
+    assert len(rows) == 7 * 2 * 5  # (methods + references) x trials x (4 quadrants + episode)
     assert {r["method"] for r in rows} == {"ICCO", "QMIX", *refs}
     summary = json.loads((out / "quadrants.json").read_text())
     assert [c["method"] for c in summary["checkpoints"]] == ["ICCO", "QMIX"]
@@ -353,3 +355,33 @@ def test_the_broadcast_threshold_override_reaches_the_coordinator(checkpoints):
     qmix = schedule_env(checkpoints["qmix"], 16, 2, broadcast_threshold=0.5)  # nothing to set
     run = run_schedule(qmix.env, qmix.policy, quadrant_schedule(4), 2)
     assert all(r["broadcast_rate"] != r["broadcast_rate"] for r in run.rows)  # NaN: no coordinator
+
+
+def test_without_any_checkpoint_the_error_says_how_to_evaluate_the_demo_policy(
+    tmp_path, monkeypatch
+):
+    monkeypatch.chdir(Path(__file__).resolve().parents[1])  # the checkout, as `make eval` runs
+    with pytest.raises(ValueError) as err:
+        find_checkpoints(compose_config([]), root=tmp_path)
+    message = str(err.value)
+    assert "\n" not in message and "run `make train` first" in message
+    assert "icco eval checkpoint=assets/demo_icco.pt (assets/README.md)" in message
+
+
+def test_the_env_difference_note_says_which_differences_change_the_scores():
+    import inspect
+
+    from icco_torchrl.envs import ResourceCollectionEnv
+    from icco_torchrl.evaluation.runner import REWARD_WEIGHTS, UNUSED_IN_EVAL, difference_effect
+
+    text = difference_effect(["n_agents", "pick_reward", "waypoint_path_prob", "accel"])
+    assert text.startswith("changed by n_agents, accel (the task differs")
+    assert "; reward columns only, by pick_reward (counts and behaviour unchanged)" in text
+    assert text.endswith(
+        "; unchanged by waypoint_path_prob (the protocol sets the episode length "
+        "and writes the waypoints)"
+    )
+    assert difference_effect(["waypoint_sigma"]).startswith("unchanged by waypoint_sigma")
+    # both lists name env parameters (a renamed one would silently count as score-changing)
+    params = inspect.signature(ResourceCollectionEnv.__init__).parameters
+    assert set(UNUSED_IN_EVAL + REWARD_WEIGHTS) <= set(params)

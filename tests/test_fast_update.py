@@ -3,14 +3,22 @@ loss against the eager one (same loss terms and gradients on a fixed batch), the
 input and one training run through the CLI with the compiled update.
 
 The two compiling tests share one Inductor cache and one xdist group (``make test`` runs with
-``--dist loadgroup``), so the CLI run loads what the first test compiled.
+``--dist loadgroup``), so the CLI run loads what the first test compiled. A cache that cannot be
+used, a failing compile and a stop during a cold compile (cut short after seconds) are checked
+too.
 """
 
 from __future__ import annotations
 
+import errno
+import logging
 import os
+import pickle
+import signal
 import subprocess
 import sys
+import time
+from collections import namedtuple
 from pathlib import Path
 
 import pytest
@@ -20,8 +28,10 @@ from torch import nn
 
 from icco_torchrl.modules.gru import GRU
 from icco_torchrl.objectives import total_loss
+from icco_torchrl.training import compile_cache
 from icco_torchrl.training import update as update_module
 from icco_torchrl.training.build import build, build_components, compose_config
+from icco_torchrl.training.checkpoint import load_checkpoint
 from icco_torchrl.training.config import ConfigError, validate
 from icco_torchrl.training.segments import SegmentCutter
 from icco_torchrl.training.update import Update
@@ -138,12 +148,179 @@ def test_compiled_training_through_the_cli(tmp_path, inductor_cache):
         f"hydra.run.dir={tmp_path}",
         timeout=600,
     )
-    assert "done: 2,048 env steps" in out.stdout
+    assert "done: 2,048 env steps" in out.stdout and "runs eagerly" not in out.stdout
     assert (tmp_path / "checkpoint.pt").exists() and (tmp_path / "eval.csv").exists()
     rows = (tmp_path / "train.csv").read_text().splitlines()
     header = rows[0].split(",")
     last = dict(zip(header, rows[-1].split(",")))
     assert float(last["updates"]) > 0 and float(last["loss_td"]) == float(last["loss_td"])
+
+
+def _update_and_batch(compile: bool):
+    torch.manual_seed(0)
+    run = build_components(method="qmix", num_envs=2)
+    with torch.no_grad():
+        batch = SegmentCutter(length=16)(run.env.rollout(32, run.policy))
+    update = Update(run.loss, torch.optim.Adam(run.loss.parameters()), compile=compile)
+    return update, batch
+
+
+_full_disk = namedtuple("usage", "total used free")(1 << 40, 1 << 40, 1 << 20)
+
+
+@pytest.mark.parametrize("case", ["not a folder", "read-only", "full", "set aside at import"])
+def test_an_unusable_compile_cache_gives_one_line_then_the_eager_update(
+    tmp_path, monkeypatch, capsys, case
+):
+    """Found before compiling: a cache path through a file (torch's own import fails on one:
+    the command sets it aside first), a read-only folder (even a warm one), a full disk."""
+    folder = tmp_path / "cache"
+    monkeypatch.setattr(compile_cache, "_noted", True)
+    monkeypatch.setattr(compile_cache, "_given", str(folder))
+    monkeypatch.setattr(compile_cache, "_set_aside", None)
+    said = {
+        "not a folder": f"{folder}: not a folder",
+        "read-only": f"{folder}: Read-only file system",
+        "full": f"{folder}: only 1 MB free on its disk",
+        "set aside at import": f"TORCHINDUCTOR_CACHE_DIR={tmp_path / 'file' / 'cache'}: ",
+    }[case]
+    if case == "not a folder":
+        folder.write_text("a file")
+    elif case == "read-only":
+
+        def read_only(**kwargs):
+            raise OSError(errno.EROFS, "Read-only file system")
+
+        monkeypatch.setattr(compile_cache.tempfile, "mkstemp", read_only)
+    elif case == "full":
+        monkeypatch.setattr(compile_cache.shutil, "disk_usage", lambda path: _full_disk)
+    else:
+        (tmp_path / "file").write_text("a file")
+        monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", str(tmp_path / "file" / "cache"))
+        compile_cache.note_environment()  # what `icco` does before importing torch
+        assert "TORCHINDUCTOR_CACHE_DIR" not in os.environ  # so torch's import succeeds
+        said += "Not a directory"
+    env_before = os.environ.get("TORCHINDUCTOR_CACHE_DIR")
+    update, batch = _update_and_batch(compile=True)
+    assert not update.compiled
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert lines == [
+        f"note: train.compile=true but its Inductor cache cannot be used ({said}): the update "
+        "runs eagerly"
+    ]
+    assert "loss_td" in update(batch).keys()
+    assert os.environ.get("TORCHINDUCTOR_CACHE_DIR") == env_before
+
+
+@pytest.mark.parametrize("case", ["a compile failure", "a warning", "the loss's own error"])
+def test_a_failing_compile_gives_one_line_then_the_eager_update(tmp_path, monkeypatch, capfd, case):
+    """A compile that fails at the first update (a damaged cache: torch's error for a damaged
+    kernel module; a compiler error): one line, then this update and the next run eagerly,
+    stepping the weights as the eager update does. A warning torch logs while compiling (an
+    unreadable cache entry it compiles again, with its traceback) is one line. An error of the
+    loss itself is raised as it is."""
+    from torch._dynamo.exc import BackendCompilerFailed
+
+    def inductor():
+        pass
+
+    def fail_once(fn, **kwargs):
+        calls = []
+
+        def compiled(*args, **kw):
+            calls.append(1)
+            if case == "the loss's own error":
+                raise ValueError("not the compiler")
+            if len(calls) == 1 and case == "a compile failure":
+                error = RuntimeError(f"Failed to import {tmp_path}/ab/cab.py")
+                raise BackendCompilerFailed(inductor, error, None)
+            if len(calls) == 1 and case == "a warning":
+                try:
+                    raise pickle.UnpicklingError("could not find MARK")
+                except pickle.UnpicklingError:
+                    logging.getLogger("torch._inductor.codecache").warning(
+                        "fx graph cache unable to load compiled graph", exc_info=True
+                    )
+            return fn(*args, **kw)
+
+        return compiled
+
+    monkeypatch.setattr(compile_cache, "chosen", lambda: (tmp_path, None))
+    monkeypatch.setattr(torch, "compile", fail_once)
+    eager, batch = _update_and_batch(compile=False)
+    eager(batch), eager(batch)
+    compiled, _ = _update_and_batch(compile=True)
+    assert compiled.compiled and capfd.readouterr() == ("", "")
+    if case == "the loss's own error":
+        with pytest.raises(ValueError, match="not the compiler"):
+            compiled(batch)
+        assert "note:" not in capfd.readouterr().out
+        return
+    compiled(batch), compiled(batch)
+    out, err = capfd.readouterr()
+    lines = out.strip().splitlines()
+    assert lines[0].startswith("compiling the update") and len(lines) == 2, lines
+    assert err == ""
+    assert (
+        lines[1]
+        == {
+            "a compile failure": (
+                f"note: train.compile=true but the compile failed (RuntimeError: Failed to import "
+                f"{tmp_path}/ab/cab.py; if its cache is damaged, delete {tmp_path}): the update "
+                "runs eagerly"
+            ),
+            "a warning": (
+                "note: torch.compile: fx graph cache unable to load compiled graph "
+                "(UnpicklingError: could not find MARK)"
+            ),
+        }[case]
+    )
+    assert compiled.compiled == (case == "a warning")
+    for a, b in zip(compiled.loss.parameters(), eager.loss.parameters()):
+        torch.testing.assert_close(a, b)
+
+
+@pytest.mark.fault
+def test_sigterm_during_a_cold_compile_stops_the_run_within_seconds_with_its_checkpoint(
+    tmp_path,
+):
+    """A cold compile blocks the first update for a minute or more: SIGTERM cuts it short (the
+    update is abandoned before its optimiser step) and the run saves its checkpoint and exits
+    within Docker's 10 s grace period."""
+    env = {
+        **os.environ,
+        "OMP_NUM_THREADS": "1",
+        "WANDB_MODE": "disabled",
+        "PYTHONUNBUFFERED": "1",
+        "TORCHINDUCTOR_CACHE_DIR": str(tmp_path / "cold-cache"),
+    }
+    run = tmp_path / "run"
+    cmd = [sys.executable, "-m", "icco_torchrl", "train", *COMPILE_RECIPE, "train.compile=true"]
+    proc = subprocess.Popen(
+        [*cmd, "logger.progress=false", f"hydra.run.dir={run}"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
+    try:
+        for line in proc.stdout:
+            if line.startswith("compiling the update"):
+                break
+        else:
+            pytest.fail(f"the run ended before compiling: {proc.stderr.read()[-3000:]}")
+        time.sleep(3)  # well inside the cold compile
+        sent = time.monotonic()
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=60)
+        took = time.monotonic() - sent
+    finally:
+        proc.kill()
+    assert proc.returncode == 0, err[-3000:]
+    assert took < 10, f"stopped {took:.1f} s after SIGTERM"
+    assert "interrupted by SIGTERM" in out and "Traceback" not in err, out + err[-3000:]
+    ckpt = load_checkpoint(run / "checkpoint.pt")
+    assert ckpt["frames"] > 0 and ckpt["updates"] == 0  # the abandoned update was not applied
 
 
 def test_cudagraphs_on_a_cpu_fails_naming_the_field():

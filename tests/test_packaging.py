@@ -1,13 +1,74 @@
-"""A built wheel carries the Hydra configs: `icco train` works from outside the repository."""
+"""What ships: a built wheel carries the Hydra configs (`icco train` works from outside the
+repository), the tracked files name no path of one machine, the README stays short, and the
+commands print no third-party warning."""
 
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import subprocess
 import sys
+import warnings
 
+import pytest
 from conftest import ROOT
+
+# An absolute path of one machine: a checkout, a home folder, a scratch folder (not one inside a
+# URL or a longer path: "github.com/org/work/" is fine).
+MACHINE_PATH = re.compile(r"(?<![\w./-])(/work/|/root/|/home/[\w.-]+/|/tmp/[\w.-]+)")
+CHECKED = (".md", ".py", ".yaml", ".json")
+
+
+def test_no_absolute_machine_paths_in_tracked_files():
+    """Pages, code, configs and recorded results use repository-relative paths (tests may build
+    such paths on purpose and are left out)."""
+    listed = subprocess.run(
+        ["git", "ls-files", "--cached", "--others", "--exclude-standard", "-z"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+    )
+    if listed.returncode != 0:
+        pytest.skip("not a git checkout")
+    found = []
+    for name in listed.stdout.split("\0"):
+        path = ROOT / name
+        if not name.endswith(CHECKED) or name.startswith("tests/") or not path.is_file():
+            continue
+        for number, line in enumerate(path.read_text(errors="replace").splitlines(), 1):
+            found += [f"{name}:{number}: {m.group(1)}" for m in MACHINE_PATH.finditer(line)]
+    assert not found, f"{len(found)} absolute machine paths:\n" + "\n".join(found[:20])
+
+
+def test_the_readme_stays_short():
+    """At most 160 lines: details live in docs/ and the experiment pages, linked from it."""
+    lines = (ROOT / "README.md").read_text().splitlines()
+    assert len(lines) <= 160, f"README.md has {len(lines)} lines; move details to docs/"
+
+
+def test_the_machine_path_pattern_spares_urls_and_relative_paths():
+    hits = ["/work/main/x", "see /root/.cache", "at /home/alice/runs", "--out /tmp/cal"]
+    misses = ["https://github.com/org/work/x", "runs/tmp/x", "multirun/team_size", "/tmp"]
+    assert all(MACHINE_PATH.search(text) for text in hits)
+    assert not any(MACHINE_PATH.search(text) for text in misses)
+
+
+def test_known_third_party_warnings_are_filtered_at_startup_and_others_still_show():
+    from icco_torchrl.cli import KNOWN_WARNINGS, quiet_known_warnings
+
+    category, message, _ = KNOWN_WARNINGS[0]
+    text = message.replace("\\", "") + " and does not do anything"
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        quiet_known_warnings()
+        warnings.warn_explicit(text, category, "tensordict/utils.py", 1, module="tensordict.utils")
+        warnings.warn_explicit(text, category, "mine.py", 1, module="mine")  # not the known source
+        warnings.warn_explicit("another", category, "tensordict/utils.py", 1, "tensordict.utils")
+    assert [(str(w.message), w.filename) for w in caught] == [
+        (text, "mine.py"),
+        ("another", "tensordict/utils.py"),
+    ]
 
 
 def test_wheel_installs_and_trains_from_outside_the_repo(tmp_path):

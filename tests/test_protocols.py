@@ -8,7 +8,18 @@ import pytest
 import torch
 
 from icco_torchrl.envs import FixedSource, QuadrantSource, RandomWalkSource, ResourceCollectionEnv
-from icco_torchrl.evaluation.metrics import ADDITIVE, EPISODE, markdown_table, summarize
+from icco_torchrl.envs.reference_policies import reference_label
+from icco_torchrl.evaluation.metrics import (
+    ADDITIVE,
+    EPISODE,
+    METRICS,
+    SHARE,
+    SHARE_KEY,
+    best_scripted_shares,
+    markdown_table,
+    results_json,
+    summarize,
+)
 from icco_torchrl.evaluation.protocols import quadrant_schedule, run_schedule
 
 TRIALS, STEPS = 6, 30
@@ -156,3 +167,75 @@ def test_summary_table_has_a_row_per_method_and_reports_missing_ones(runs):
     assert len(lines) == 2 + 3
     assert lines[2].startswith("| follower | 6 (1 seed) | ") and " ± " in lines[2]
     assert lines[4] == "| ICCO | missing | – | – |"
+
+
+def test_reports_state_each_team_reward_as_a_share_of_the_best_scripted_team():
+    best = reference_label("best_scripted")
+    rows = [
+        dict(
+            method=method,
+            seed=seed,
+            trial=t,
+            segment=EPISODE,
+            steps=4,
+            **dict.fromkeys(METRICS, 0.0),
+        )
+        for method, seed, reward in (("ICCO", 0, 300.0), (best, -1, 400.0), ("follower", -1, 280.0))
+        for t in range(2)
+    ]
+    for row, reward in zip(rows, [300.0, 300.0, 400.0, 400.0, 280.0, 280.0]):
+        row["reward"] = reward
+    summary = summarize(rows)
+    assert best_scripted_shares(summary) == {"ICCO": 0.75, best: 1.0, "follower": 0.7}
+    lines = markdown_table(summary, ("reward",), missing=["QMIX"]).splitlines()
+    assert lines[0] == f"| method | trials | reward | {SHARE} |"
+    assert lines[2].endswith("| 300.0 ± 0.0 | 75 % |") and lines[5] == "| QMIX | missing | – | – |"
+    report = results_json(summary, protocol="quadrants", steps=4, trials=2)["methods"]
+    assert set(report) == {"icco", "best_scripted", "follower"}
+    assert report["icco"][SHARE_KEY] == 0.75 and report["icco"]["seeds"] == 1
+    assert report["best_scripted"]["label"] == best and report["best_scripted"]["seeds"] == 0
+    # without a best scripted row, no share column and no share key
+    plain = [r for r in summary if r["method"] != best]
+    assert SHARE not in markdown_table(plain, ("reward",))
+    assert SHARE_KEY not in results_json(plain, protocol="q", steps=4, trials=2)["methods"]["icco"]
+
+
+def test_trajectory_figure_titles_clear_the_row_above(runs, tmp_path, monkeypatch):
+    """Each row's panel titles sit below the panels of the row above (three-line first-row
+    titles once overlapped the second row's with tight_layout)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    from icco_torchrl.evaluation import plots
+
+    figures, save = [], plots.save
+    monkeypatch.setattr(plots, "save", lambda fig, stem: figures.append(fig) or save(fig, stem))
+    # six columns and two rows, as `icco instruct` draws one method and its five references
+    six = {f"{name} {i}": run for i in range(3) for name, run in runs.items()}
+    plots.plot_trajectories(six, tmp_path / "trajectories", segments=(0, 1))
+    fig = figures[0]
+    FigureCanvasAgg(fig).draw()
+    renderer = fig.canvas.get_renderer()
+    axes = np.array(fig.axes).reshape(2, len(six))
+    for above, below in zip(axes[:-1], axes[1:]):
+        for top, bottom in zip(above, below):
+            title = bottom.title.get_window_extent(renderer)
+            assert title.y1 < top.get_window_extent(renderer).y0, bottom.get_title()
+
+
+def test_learning_curve_states_the_last_reward_as_a_share_of_the_best_scripted_team(
+    tmp_path, monkeypatch
+):
+    from icco_torchrl.evaluation import plots
+
+    columns = ("frames", "reward", "reward_std", "task_reward", "task_reward_std")
+    rows = ["1000,200,10,50,5", "2000,300,10,80,5"]
+    (tmp_path / "eval.csv").write_text("\n".join([",".join(columns), *rows]) + "\n")
+    titles = []
+    monkeypatch.setattr(
+        plots.Figure,
+        "savefig",
+        lambda fig, *a, **k: titles.extend(ax.get_title() for ax in fig.axes),
+    )
+    refs = {reference_label("best_scripted"): {"reward": 400.0, "task_reward": 190.0}}
+    plots.plot_learning_curve(tmp_path, refs)
+    assert titles[0].endswith("last: 75 % of the best scripted team's")

@@ -16,6 +16,7 @@ import torch
 from conftest import run_cli
 
 from icco_torchrl import methods
+from icco_torchrl.envs.reference_policies import reference_label
 from icco_torchrl.training.build import compose_config
 from icco_torchrl.training.checkpoint import FORMAT_VERSION, CheckpointError, load_checkpoint
 
@@ -53,7 +54,13 @@ def test_training_reports_the_reference_policies(tmp_path):
 
     run_cli("train", *SMOKE, f"hydra.run.dir={tmp_path}")
     refs = json.loads((tmp_path / "references.json").read_text())
-    assert list(refs) == ["random", "follower", "heuristic", "blend (r=1.75 m)"]
+    assert list(refs) == [
+        "random",
+        "follower",
+        "heuristic",
+        "blend (r=1.75 m)",
+        reference_label("best_scripted"),
+    ]
     assert refs["heuristic"]["task_reward"] > refs["random"]["task_reward"] + 30
     assert refs["follower"]["inst_reward"] > refs["random"]["inst_reward"] + 30
     rows = read_csv(tmp_path / "eval.csv")
@@ -413,12 +420,18 @@ def test_resume_continues_in_the_checkpoint_folder():
     def overrides(*args):
         return prepare_train("train", list(args))[0]
 
+    # Hydra's .hydra/ record is written by the command once the run folder is locked.
+    quiet = "hydra.output_subdir=null"
     assert overrides("resume=/a/b/checkpoint.pt") == [
         "resume=/a/b/checkpoint.pt",
+        quiet,
         "hydra.run.dir=/a/b",
     ]
-    assert overrides("resume=x.pt", "hydra.run.dir=D") == ["resume=x.pt", "hydra.run.dir=D"]
-    assert overrides("seed=1") == ["seed=1"]
+    assert overrides("resume=x.pt", "hydra.run.dir=D") == ["resume=x.pt", "hydra.run.dir=D", quiet]
+    assert overrides("seed=1") == ["seed=1", quiet]
+    assert prepare_train("train", ["seed=1"])[1] == {"record": ".hydra"}
+    assert prepare_train("train", ["hydra.output_subdir=rec"]) == ([quiet], {"record": "rec"})
+    assert prepare_train("train", ["hydra.output_subdir=null"])[1] == {"record": None}
 
 
 @pytest.mark.parametrize(
@@ -533,11 +546,17 @@ def test_two_resumes_of_one_checkpoint_at_once_the_second_is_refused_in_one_line
             break
         time.sleep(0.2)
     try:
-        second = run_cli("train", "logger.progress=false", f"resume={ckpt}", check=False)
+        second = run_cli(
+            "train", "logger.progress=false", f"resume={ckpt}", "train.lr=0.5", check=False
+        )
     finally:
         first.send_signal(signal.SIGTERM)
         out, err = first.communicate(timeout=180)
     assert second.returncode == 2, second.stderr
+    # The refused resume wrote nothing: Hydra's record is the running run's.
+    record = (tmp_path / ".hydra" / "overrides.yaml").read_text()
+    assert "train.total_frames=10000000" in record and "train.lr=0.5" not in record, record
+    assert "lr: 0.5" not in (tmp_path / ".hydra" / "config.yaml").read_text()
     assert len(second.stderr.strip().splitlines()) == 1, second.stderr
     assert f"run folder {tmp_path} is in use by another icco train (pid {first.pid})" in (
         second.stderr
@@ -588,7 +607,8 @@ def test_the_finish_message_names_only_files_that_exist(tmp_path):
     message = finish_message(
         tmp_path, tmp_path / "checkpoint.pt", 1024, True, {}, outputs, pending=True
     )
-    assert "metrics: train.csv\n" in message + "\n" and "eval.csv" not in message
+    assert "metrics: train.csv (columns: docs/metrics.md)\n" in message + "\n"
+    assert "eval.csv" not in message
     assert "learning_curve.png" not in message and "checkpoint:" not in message
     assert "(writes the final evaluation and the learning curve)" in message
     (tmp_path / "checkpoint.pt").write_bytes(b"x")

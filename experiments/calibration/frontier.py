@@ -48,13 +48,13 @@ class AnchoredBlend(BlendPolicy):
 
     def __init__(self, env, radius: float, robot_radius: float = 0.0):
         super().__init__(env, radius)
-        self.robot_radius = robot_radius
+        self.anchor_radius, self.robot_radius = radius, robot_radius
 
     def act(self) -> torch.Tensor:
         e = self.env
         new_pos, r_inst = lookahead(e)
         target, dist = self.targets()
-        near_instruction = (target - e.waypoints.mean(-2)).norm(dim=-1) <= self.radius
+        near_instruction = (target - e.waypoints.mean(-2)).norm(dim=-1) <= self.anchor_radius
         work = near_instruction | e.carry | (dist <= self.robot_radius)
         return torch.where(work, steer(new_pos, target), r_inst.argmax(-1))
 

@@ -11,7 +11,7 @@ both ends. We pick the scale that maximises that margin, ``min(best - follower, 
 heuristic)``, and report the radius that wins there.
 
     python experiments/calibration/run.py               # 512 episodes x 145 steps, ~1 min
-    python experiments/calibration/run.py --episodes 64 --out /tmp/cal   # quick look
+    python experiments/calibration/run.py --episodes 64 --out runs/cal   # quick look
 """
 
 from __future__ import annotations

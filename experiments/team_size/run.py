@@ -36,6 +36,7 @@ import argparse
 import importlib.util
 import json
 import math
+import os
 import sys
 import time
 from pathlib import Path
@@ -47,6 +48,7 @@ from icco_torchrl.evaluation.metrics import write_json
 from icco_torchrl.training.build import compose_config
 
 HERE = Path(__file__).resolve().parent
+ROOT = HERE.parents[1]
 sys.path.insert(0, str(HERE.parent))
 import jobs  # noqa: E402  (experiments/jobs.py, a sibling script)
 from jobs import train_runs  # noqa: E402
@@ -77,6 +79,12 @@ GROUPS = {
 REFERENCES = ("follower", "heuristic", "blend")
 TEAM_SIZES = (1, 2, 3, 4, 5, 6)
 BETAS = (0.0, 0.25, 0.5, 1.0, 2.0, 3.0, 4.0, 6.0, 8.0)  # down to COPA's 13 % and below
+
+
+def repo_relative(text: str) -> str:
+    """``text`` (a path or a command) with this checkout's location dropped: what results.json
+    records reads from the repository root on any machine."""
+    return text.replace(f"{ROOT}{os.sep}", "")
 
 
 def run_overrides(method: str, group: str, seed: int, budget, beta: float = 0.0) -> list[str]:
@@ -125,7 +133,7 @@ def evaluate(sweep: Path, name: str, checkpoints, *overrides: str, commands: lis
         f"eval.out_dir={out}",
         f"hydra.run.dir={out}",
     ]
-    commands.append("icco " + " ".join(args))
+    commands.append(repo_relative("icco " + " ".join(args)))
     if not is_current(out, args[1:-1], checkpoints):
         icco(*args)
     else:
@@ -323,7 +331,7 @@ def main(argv=None) -> None:
         commands=commands,
         machine=machine(),
         wall_s=dict(train=train_wall, eval=eval_wall),
-        sweep=str(sweep),
+        sweep=repo_relative(str(sweep)),
     )
     write_json(results, out / "results.json")
     report = _script(HERE / "report.py", "team_size_report")
@@ -343,7 +351,7 @@ def screen(args, sweep: Path, path: Path, checkpoints, label: str, quick, **extr
         dict(
             **extra,
             period=int(cfg.method.period),
-            checkpoints=[str(p) for p in checkpoints],
+            checkpoints=[repo_relative(str(Path(p).resolve())) for p in checkpoints],
             eval_overrides=quick,
             episode_steps=4 * (10 if args.smoke else args.steps),
             beta_sweep=dict(team_size=args.beta_team_size, policy=label, points=points),

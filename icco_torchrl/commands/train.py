@@ -7,13 +7,20 @@
 
 ``resume=PATH`` continues the run as it was last saved, in the checkpoint's folder
 (:func:`prepare_train`); the trainer then refuses what a resumed run cannot honour.
+
+Hydra's record of the run (``.hydra/``: the config, Hydra's own, the overrides) is written by
+this command once the trainer holds the run folder's lock and the run has started or its resume
+was checked (:func:`write_hydra_record`), not by Hydra before the task runs: a refused run (the
+folder in use by another ``icco train``, a resume that cannot continue) writes nothing there.
 """
 
 from __future__ import annotations
 
+import os
+import tempfile
 from pathlib import Path
 
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from icco_torchrl.commands import Command
 from icco_torchrl.training.config import set_env_params
@@ -25,9 +32,10 @@ def prepare_train(command: str, args: list[str]) -> tuple[list[str], dict]:
     this command line's overrides win; a ``method=`` given picks that method's own fields), and
     Hydra's run folder is set to the checkpoint's (unless given), so a resume never leaves an
     empty ``runs/<method>/seed*_<time>/`` behind."""
+    args, options = _record_after_the_lock(args)
     resume = next((a.split("=", 1)[1] for a in args if a.startswith("resume=")), None)
     if not resume or resume == "null" or any(a.startswith(("-m", "--multirun")) for a in args):
-        return args, {}
+        return args, options
     from icco_torchrl.training.checkpoint import CheckpointError, load_checkpoint
 
     try:
@@ -35,8 +43,25 @@ def prepare_train(command: str, args: list[str]) -> tuple[list[str], dict]:
     except (CheckpointError, KeyError, TypeError):
         saved = []  # the trainer reports a missing or damaged checkpoint in one line
     if any(a.startswith("hydra.run.dir=") for a in args):
-        return [*saved, *args], {}
-    return [*saved, *args, f"hydra.run.dir={Path(resume).resolve().parent}"], {}
+        return [*saved, *args], options
+    return [*saved, *args, f"hydra.run.dir={Path(resume).resolve().parent}"], options
+
+
+# Hydra's default ``hydra.output_subdir``: where it records a run's config in the run folder.
+HYDRA_RECORD = ".hydra"
+
+
+def _record_after_the_lock(args: list[str]) -> tuple[list[str], dict]:
+    """Hydra writes ``.hydra/`` into the run folder before the task runs, so a run refused by
+    the folder's lock would rewrite the running run's record: Hydra's is turned off
+    (``hydra.output_subdir=null``) and :func:`run_train` writes the same files once the lock is
+    held. A ``hydra.output_subdir`` given on the command line is honoured (null: no record)."""
+    given = [a for a in args if a.lstrip("+").startswith("hydra.output_subdir=")]
+    subdir = given[-1].split("=", 1)[1].strip("'\"") if given else HYDRA_RECORD
+    kept = [a for a in args if a not in given]
+    return [*kept, "hydra.output_subdir=null"], {
+        "record": None if subdir in ("", "null") else subdir
+    }
 
 
 def saved_run_overrides(saved: dict, given: list[str]) -> list[str]:
@@ -86,12 +111,43 @@ def _override_value(value) -> str:
     return repr(value)
 
 
-def run_train(cfg: DictConfig, run_dir: str | Path) -> float | None:
+def run_train(cfg: DictConfig, run_dir: str | Path, record: str | None = None) -> float | None:
     """The final greedy evaluation's team reward (a sweep's objective); None when the run was
-    stopped early or had nothing left to train."""
+    stopped early or had nothing left to train. With ``record``, Hydra's record of the run goes
+    to ``run_dir/record`` once the trainer holds the lock (:func:`write_hydra_record`)."""
     from icco_torchrl.trainer import train
 
-    return train(cfg, run_dir).get("reward")
+    on_start = (lambda: write_hydra_record(cfg, Path(run_dir) / record)) if record else None
+    return train(cfg, run_dir, on_start=on_start).get("reward")
+
+
+def write_hydra_record(cfg: DictConfig, folder: Path) -> None:
+    """What Hydra writes into ``.hydra/`` (``config.yaml``, ``hydra.yaml``, ``overrides.yaml``),
+    each file replaced atomically (a link in a folder received from elsewhere is replaced, never
+    followed). A ``folder`` that is a link is left alone, and said."""
+    from hydra.core.hydra_config import HydraConfig
+
+    if folder.is_symlink() or (folder.exists() and not folder.is_dir()):
+        print(f"note: {folder} is not a folder: Hydra's record of the run is not written")
+        return
+    hydra = HydraConfig.instance().cfg  # {"hydra": ...}, as Hydra saves it
+    hydra = OmegaConf.create(OmegaConf.to_container(hydra, resolve=False))
+    hydra.hydra.output_subdir = folder.name  # what Hydra would have recorded
+    files = {
+        "config.yaml": cfg,
+        "hydra.yaml": hydra,
+        "overrides.yaml": HydraConfig.get().overrides.task,
+    }
+    folder.mkdir(parents=True, exist_ok=True)
+    for name, content in files.items():
+        fd, tmp = tempfile.mkstemp(dir=folder, prefix=f".{name}.", suffix=".tmp")
+        try:
+            with os.fdopen(fd, "w", encoding="utf-8") as handle:
+                handle.write(OmegaConf.to_yaml(content))
+            os.replace(tmp, folder / name)
+        except BaseException:
+            os.unlink(tmp)
+            raise
 
 
 TRAIN = Command(run=run_train, prepare=prepare_train)

@@ -1,6 +1,6 @@
 """Scripted reference policies: the yardsticks every trained method is reported beside.
 
-All four drive a :class:`~icco_torchrl.envs.ResourceCollectionEnv` (or a ``TransformedEnv``
+Each drives a :class:`~icco_torchrl.envs.ResourceCollectionEnv` (or a ``TransformedEnv``
 over one) through its public state, batched over envs in pure torch:
 
 * ``random``: uniform random actions (its own seeded generator).
@@ -14,6 +14,23 @@ over one) through its public state, batched over envs in pure torch:
 * ``blend`` (radius ``r``): each robot acts as the heuristic when its heuristic target is within
   ``r`` metres and follows the waypoints otherwise. ``r = 0`` is the follower, ``r = inf`` the
   heuristic; ``r = vision_radius`` is roughly "do the task you can see".
+* ``blend(defend=R, collect=R, deliver=R)``: the blend with a radius per role (:data:`ROLES`):
+  ``defend``, the robot the heuristic sends to intercept the invader; ``collect``, the robots it
+  sends to a resource; ``deliver``, the carriers it sends home. A role left out follows (radius 0);
+  ``blend(R)`` and the bare ``blend`` (radius ``eval.blend_radius``) give every role one radius.
+* ``best_scripted``: the role blend :data:`BEST_SCRIPTED`, the best point of the scripted frontier
+  at the calibrated reward (``experiments/calibration/best_scripted.py``). Every report states a
+  learned team's reward as a share of it.
+
+Names parse in one place (:func:`parse_reference`) and fail in one line naming the bad field:
+
+    >>> parse_reference("blend(defend=1.75)")
+    ('blend', RoleRadii(defend=1.75, collect=0.0, deliver=0.0))
+    >>> reference_label("blend(defend=1.75, collect=1)")
+    'blend (defend=1.75, collect=1, deliver=0 m)'
+    >>> parse_reference("blend(defend=-1)")  # doctest: +ELLIPSIS
+    Traceback (most recent call last):
+    ValueError: reference 'blend(defend=-1)': radius 'defend' must be a number >= 0 ...
 
 A policy is a callable ``td -> td`` writing ``("agents", "action")``, like a trained policy,
 so it plugs into ``env.rollout``, :func:`~icco_torchrl.evaluation.protocols.run_schedule`
@@ -27,6 +44,9 @@ env ignores; the heuristic neither sends one to an invader nor lets one claim a 
 from __future__ import annotations
 
 import math
+import re
+from collections.abc import Mapping
+from typing import NamedTuple
 
 import torch
 from tensordict import TensorDictBase
@@ -34,10 +54,27 @@ from tensordict import TensorDictBase
 from icco_torchrl.envs._kernels import batch_last, motion
 from icco_torchrl.envs.resource_collection import N_ACTIONS, ResourceCollectionEnv
 
-REFERENCE_POLICIES = ("random", "follower", "heuristic", "blend")
+REFERENCE_POLICIES = ("random", "follower", "heuristic", "blend", "best_scripted")
+ROLES = ("defend", "collect", "deliver")  # a role blend's radii, in this order
+DEFEND, COLLECT, DELIVER = range(len(ROLES))
+ACTION_KEY = ("agents", "action")
+
+
+class RoleRadii(NamedTuple):
+    """A blend's radius (m) per role: within it the robot does its heuristic task, else it
+    follows. ``0`` never works, ``inf`` always does."""
+
+    defend: float = 0.0
+    collect: float = 0.0
+    deliver: float = 0.0
+
+
 # The blend radius that wins at the calibrated reward (experiments/calibration/README.md).
 BEST_BLEND_RADIUS = 1.75
-ACTION_KEY = ("agents", "action")
+# The best role blend at the calibrated reward: the scripted frontier's best point, searched on
+# episodes no evaluation plays (experiments/calibration/results/best_scripted.json, README.md).
+BEST_SCRIPTED = RoleRadii(defend=math.inf, collect=1.0, deliver=2.0)
+BEST_SCRIPTED_LABEL = "best scripted"
 
 
 def raw_env(env) -> ResourceCollectionEnv:
@@ -134,11 +171,18 @@ class HeuristicPolicy(ReferencePolicy):
 
     def targets(self) -> tuple[torch.Tensor, torch.Tensor]:
         """Each robot's task target ``[B, N, 2]`` and its distance ``[B, N]``."""
+        return self.plan()[:2]
+
+    def plan(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Each robot's task target ``[B, N, 2]``, its distance ``[B, N]`` and its role ``[B, N]``
+        (an index into :data:`ROLES`: the interceptor defends, other carriers deliver, the rest
+        collect)."""
         e = self.env
         pos, carry, present = e.pos, e.carry, e.present  # [B, N, 2], [B, N], [B, N]
         B, N = carry.shape
         target = torch.zeros(B, N, 2, device=e.device)  # carriers: home (the origin)
         busy = carry | ~present  # absent robots take no part (their actions are ignored)
+        role = torch.where(carry, DELIVER, COLLECT)
         # Invaders: interception point of the robot that gets there first.
         step = e.max_speed * e.dt  # metres per robot step
         touch = e.agent_radius + e.invader_radius
@@ -167,6 +211,7 @@ class HeuristicPolicy(ReferencePolicy):
             ]
             sel = torch.nn.functional.one_hot(robot, N).bool() & active.unsqueeze(-1)  # [B, N]
             target = torch.where(sel.unsqueeze(-1), point.unsqueeze(1), target)
+            role = role.masked_fill(sel, DEFEND)
             busy = busy | sel
         # Free robots: nearest resource not claimed by a lower-index robot.
         d_res = torch.cdist(pos, e.res_pos)  # [B, N, R]
@@ -181,51 +226,149 @@ class HeuristicPolicy(ReferencePolicy):
             claimed = claimed | (
                 torch.nn.functional.one_hot(j, claimed.shape[1]).bool() & free.unsqueeze(-1)
             )
-        return target, (target - pos).norm(dim=-1)
+        return target, (target - pos).norm(dim=-1), role
 
     def act(self) -> torch.Tensor:
         return steer(lookahead(self.env)[0], self.targets()[0])
 
 
 class BlendPolicy(HeuristicPolicy):
-    """The heuristic for robots whose task target is within ``radius``; the follower otherwise."""
+    """The heuristic for a robot whose task target is within its role's radius; the follower
+    otherwise. ``radius``: one number (every role), a ``{role: radius}`` mapping or
+    :class:`RoleRadii` (roles left out follow), or a tensor ``[num_envs, 3]`` of radii per env in
+    :data:`ROLES` order (a grid of blends in one batch)."""
 
     name = "blend"
 
-    def __init__(self, env, radius: float):
+    def __init__(self, env, radius):
         super().__init__(env)
-        if not (isinstance(radius, (int, float)) and not isinstance(radius, bool) and radius >= 0):
-            raise ValueError(f"blend radius must be a number >= 0 (metres), got {radius!r}")
-        self.radius = float(radius)
+        B = self.env.num_envs
+        if isinstance(radius, torch.Tensor):
+            radii = radius.to(self.env.device, torch.float32)
+            if radii.shape not in ((len(ROLES),), (B, len(ROLES))) or not (radii >= 0).all():
+                raise ValueError(
+                    f"blend radii tensor must be [{len(ROLES)}] or [num_envs={B}, {len(ROLES)}] "
+                    f"of numbers >= 0 (metres), got shape {tuple(radii.shape)}"
+                )
+            self.radius = None
+        else:
+            self.radius = role_radii(radius)
+            radii = torch.tensor(self.radius, device=self.env.device)
+        self.radii = radii.expand(B, len(ROLES))  # [B, 3]
 
     def act(self) -> torch.Tensor:
         new_pos, r_inst = lookahead(self.env)
-        target, dist = self.targets()
+        target, dist, role = self.plan()
         task = steer(new_pos, target)
         follow = r_inst.argmax(-1)
-        return torch.where(dist <= self.radius, task, follow)
+        return torch.where(dist <= self.radii.gather(1, role), task, follow)
 
     def __repr__(self) -> str:
-        return f"BlendPolicy(radius={self.radius})"
+        return f"BlendPolicy(radius={self.radius if self.radius is not None else 'per env'})"
+
+
+def _radius(value, field: str) -> float:
+    """``value`` as a radius (a number >= 0, ``inf`` allowed), or a one-line error naming
+    ``field``."""
+    try:
+        number = float(value) if isinstance(value, str) else value
+        ok = not isinstance(number, bool) and number >= 0  # NaN fails the comparison
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise ValueError(f"{field} must be a number >= 0 (metres), got {value!r}")
+    return float(number)
+
+
+def role_radii(radius) -> RoleRadii:
+    """One radius for every role, or ``{role: radius}`` (roles left out: 0, they follow)."""
+    if isinstance(radius, RoleRadii):
+        radius = radius._asdict()
+    if not isinstance(radius, Mapping):
+        return RoleRadii(*[_radius(radius, "blend radius")] * len(ROLES))
+    unknown = [role for role in radius if role not in ROLES]
+    if unknown:
+        raise ValueError(f"blend role {unknown[0]!r} is unknown; roles are {', '.join(ROLES)}")
+    return RoleRadii(**{r: _radius(v, f"blend radius {r!r}") for r, v in radius.items()})
+
+
+_CALL = re.compile(r"blend\s*\((.*)\)", re.S)
+
+
+def parse_reference(name: str) -> tuple[str, RoleRadii | None]:
+    """``(kind, radii)`` of a reference name: ``kind`` is one of :data:`REFERENCE_POLICIES` but
+    ``best_scripted`` (a blend), ``radii`` the blend's (None for the bare ``blend``, whose radius
+    the caller gives, and for the others). See the module docstring for the syntax."""
+    if name == "best_scripted":
+        return "blend", BEST_SCRIPTED
+    if name in REFERENCE_POLICIES:
+        return name, None
+    call = _CALL.fullmatch(name.strip()) if isinstance(name, str) else None
+    if call is None:
+        raise ValueError(
+            f"unknown reference policy {name!r}; choose from {REFERENCE_POLICIES} or "
+            "blend(defend=R, collect=R, deliver=R)"
+        )
+    args = [a.strip() for a in call.group(1).split(",")]
+    if args == [""]:
+        raise ValueError(f"reference {name!r} gives no radius: blend(R) or blend(role=R, ...)")
+    if len(args) == 1 and "=" not in args[0]:  # blend(R): every role
+        return "blend", role_radii(_radius(args[0], f"reference {name!r}: radius"))
+    radii = {}
+    for arg in args:
+        role, eq, value = (part.strip() for part in arg.partition("="))
+        if not eq:
+            raise ValueError(f"reference {name!r}: {arg!r} is not role=radius")
+        if role not in ROLES:
+            raise ValueError(
+                f"reference {name!r}: unknown role {role!r}; roles are {', '.join(ROLES)}"
+            )
+        if role in radii:
+            raise ValueError(f"reference {name!r}: role {role!r} is given twice")
+        radii[role] = _radius(value, f"reference {name!r}: radius {role!r}")
+    return "blend", RoleRadii(**radii)
+
+
+def _radii_text(radii: RoleRadii) -> str:
+    if len(set(radii)) == 1:
+        return f"r={radii[0]:g} m"
+    return ", ".join(f"{role}={r:g}" for role, r in radii._asdict().items()) + " m"
 
 
 def reference_label(name: str, radius: float = BEST_BLEND_RADIUS) -> str:
-    """The row label of a reference policy in tables and figures."""
-    return f"blend (r={radius:g} m)" if name == "blend" else name
+    """The row label of a reference policy in tables and figures (``radius``: the bare blend's)."""
+    kind, radii = parse_reference(name)
+    if kind != "blend":
+        return name
+    text = _radii_text(radii if radii is not None else role_radii(radius))
+    return f"{BEST_SCRIPTED_LABEL} ({text})" if name == "best_scripted" else f"blend ({text})"
+
+
+def reference_key(label: str) -> str | None:
+    """The results.json key of a reference's row label (:func:`reference_label`): its name, or
+    for a role blend its canonical name; None for a label no reference writes."""
+    if label in REFERENCE_POLICIES:
+        return label
+    if label.startswith(BEST_SCRIPTED_LABEL + " ("):
+        return "best_scripted"
+    if label.startswith("blend (r="):
+        return "blend"
+    if label.startswith("blend (") and label.endswith(" m)"):
+        return f"blend({label[len('blend (') : -len(' m)')]})"
+    return None
 
 
 def make_reference_policy(
     name: str, env, *, radius: float | None = None, seed: int = 0
 ) -> ReferencePolicy:
-    """A reference policy by name (``random``, ``follower``, ``heuristic``, ``blend``)."""
-    if name == "random":
+    """A reference policy by name (:func:`parse_reference`); ``radius`` is the bare ``blend``'s."""
+    kind, radii = parse_reference(name)
+    if kind == "random":
         return RandomPolicy(env, seed=seed)
-    if name == "follower":
+    if kind == "follower":
         return FollowerPolicy(env)
-    if name == "heuristic":
+    if kind == "heuristic":
         return HeuristicPolicy(env)
-    if name == "blend":
-        if radius is None:
-            raise ValueError("the blend reference policy needs radius=... (metres)")
-        return BlendPolicy(env, radius)
-    raise ValueError(f"unknown reference policy {name!r}; choose from {REFERENCE_POLICIES}")
+    if radii is None and radius is None:
+        raise ValueError("the blend reference policy needs radius=... (metres)")
+    return BlendPolicy(env, radii if radii is not None else radius)

@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from icco_torchrl import methods
-from icco_torchrl.envs.reference_policies import REFERENCE_POLICIES
+from icco_torchrl.envs.reference_policies import BEST_SCRIPTED_LABEL, reference_key
 from icco_torchrl.envs.resource_collection import EVENTS
 from icco_torchrl.envs.waypoints import QUADRANT_SIGNS
 from icco_torchrl.training.logger import read_column  # noqa: F401  (re-exported: the CSV streams' reader)
@@ -33,6 +33,10 @@ ADDITIVE = ("reward", "task_reward", "inst_reward", *EVENTS)
 AVERAGED = ("waypoint_dist", "in_quadrant", "broadcast_rate")
 METRICS = ADDITIVE + AVERAGED
 EPISODE = "episode"  # the segment name of a whole-episode row
+# Every report states a team's reward as a share of the best scripted team's on the same episodes
+# (reference_policies.BEST_SCRIPTED): this column in tables, this key in results.json.
+SHARE = "share of best scripted"
+SHARE_KEY = "share_of_best_scripted"
 TASK_REWARDS = ("pick_reward", "collect_reward", "defense_reward", "invasion_penalty")
 
 
@@ -125,6 +129,21 @@ def summarize(rows: Iterable[Mapping], by: Sequence[str] = ("method", "segment")
     return out
 
 
+def best_scripted_shares(summary: Sequence[Mapping], segment: str = EPISODE) -> dict[str, float]:
+    """Each method's mean ``segment`` reward over the best scripted team's (its row's label starts
+    with ``"best scripted"``), by label; empty without that row, NaN where its reward is <= 0."""
+    rows = [row for row in summary if row["segment"] == segment]
+    best = next((r for r in rows if str(r["method"]).startswith(BEST_SCRIPTED_LABEL)), None)
+    if best is None:
+        return {}
+    scale = best["reward"] if best["reward"] > 0 else math.nan
+    return {row["method"]: row["reward"] / scale for row in rows}
+
+
+def _share(value: float | None) -> str:
+    return "–" if value is None or not math.isfinite(value) else f"{100 * value:.0f} %"
+
+
 def _cell(summary: Mapping, metric: str, digits: int) -> str:
     mean, std = summary[metric], summary[f"{metric}_std"]
     return "–" if not math.isfinite(mean) else f"{mean:.{digits}f} ± {std:.{digits}f}"
@@ -139,7 +158,8 @@ def markdown_table(
 ) -> str:
     """A Markdown table of ``segment`` rows, one per method (mean ± std over trials); methods
     in ``missing`` get a row saying so, so a comparison never silently loses one. Metrics
-    without a value in any row (``in_quadrant`` without quadrants) are left out."""
+    without a value in any row (``in_quadrant`` without quadrants) are left out. With a best
+    scripted row, a column gives each team reward as a share of its (:data:`SHARE`)."""
     digits = {"waypoint_dist": 2, "in_quadrant": 2, "broadcast_rate": 3}
     rows = [row for row in summary if row["segment"] == segment]
     metrics = (
@@ -147,15 +167,16 @@ def markdown_table(
         if rows
         else list(metrics)
     )
-    head = ["method", "trials"] + metrics
+    shares = best_scripted_shares(summary, segment)
+    head = ["method", "trials"] + metrics + ([SHARE] if shares else [])
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for row in rows:
         cells = [str(row["method"]), f"{row['n']} ({row['seeds']} seed{'s' * (row['seeds'] != 1)})"]
-        lines.append(
-            "| " + " | ".join(cells + [_cell(row, m, digits.get(m, 1)) for m in metrics]) + " |"
-        )
+        cells += [_cell(row, m, digits.get(m, 1)) for m in metrics]
+        cells += [_share(shares[row["method"]])] if shares else []
+        lines.append("| " + " | ".join(cells) + " |")
     for method in missing:
-        lines.append("| " + " | ".join([method, "missing"] + ["–"] * len(metrics)) + " |")
+        lines.append("| " + " | ".join([method, "missing"] + ["–"] * (len(head) - 2)) + " |")
     return "\n".join(lines)
 
 
@@ -215,10 +236,10 @@ RESULT_METRICS = (
 
 def result_name(label: str) -> str | None:
     """The results.json key of a table label: a method's (:func:`icco_torchrl.methods.result_name`)
-    or a reference policy's (``blend (r=...)`` -> ``blend``); None if unknown."""
-    if label in REFERENCE_POLICIES:
-        return label
-    return "blend" if label.startswith("blend") else methods.result_name(label)
+    or a reference policy's (:func:`~icco_torchrl.envs.reference_policies.reference_key`:
+    ``blend (r=...)`` -> ``blend``, ``best scripted (...)`` -> ``best_scripted``); None if
+    unknown."""
+    return reference_key(label) or methods.result_name(label)
 
 
 def results_json(
@@ -234,21 +255,27 @@ def results_json(
     """The machine-readable report: ``{"protocol", "steps", "trials", "methods": {name: {"seeds",
     "frames", metric: {"mean", "std"}}}}`` from :func:`summarize` rows of ``segment``. ``frames``
     maps a table label to the training frames of its checkpoints (reference policies: 0);
-    ``in_quadrant`` is left out where the protocol has no quadrants."""
+    ``in_quadrant`` is left out where the protocol has no quadrants. With a best scripted row,
+    every entry has ``share_of_best_scripted`` (:func:`best_scripted_shares`)."""
     methods = {}
+    shares = best_scripted_shares(summary, segment)
     for row in summary:
         name = result_name(row["method"])
         if row["segment"] != segment or name is None:
             continue
+        reference = reference_key(row["method"]) is not None
         entry = {
-            "seeds": row["seeds"] if name not in REFERENCE_POLICIES else 0,
+            "seeds": 0 if reference else row["seeds"],
             "frames": int((frames or {}).get(row["method"], 0)),
         }
-        if name == "blend":
+        if reference and name != row["method"]:  # blends: the label says their radii
             entry["label"] = row["method"]
         for metric in RESULT_METRICS:
             if math.isfinite(row[metric]):
                 entry[metric] = {"mean": row[metric], "std": row[f"{metric}_std"]}
+        if shares:
+            share = shares[row["method"]]
+            entry[SHARE_KEY] = share if math.isfinite(share) else None
         methods[name] = entry
     return {"protocol": protocol, "steps": steps, "trials": trials, **extra, "methods": methods}
 

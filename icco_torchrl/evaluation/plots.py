@@ -21,6 +21,7 @@ import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.patches import Circle, Rectangle
 
+from icco_torchrl.envs.reference_policies import BEST_SCRIPTED_LABEL
 from icco_torchrl.envs.render import robot_color
 from icco_torchrl.envs.waypoints import QUADRANT_SIGNS
 from icco_torchrl.evaluation.metrics import EPISODE, Curve
@@ -39,7 +40,7 @@ METHOD_COLORS = (
     "#17becf",
     "#bcbd22",
     "#d62728",
-)  # tab10, red last; distinct for up to 10 rows (5 methods + 4 references + 1)
+)  # tab10, red last; distinct for up to 10 rows (5 methods + 5 references)
 
 
 def save(fig: Figure, stem: str | Path) -> list[Path]:
@@ -158,8 +159,9 @@ def plot_trajectories(
     """A grid of panels, one row per segment and one column per method (``runs`` by label)."""
     if not runs:
         raise ValueError("plot_trajectories needs at least one run")
-    height = 2.9 * len(segments) + 0.5
-    fig = Figure(figsize=(2.8 * len(runs), height))
+    # Constrained layout keeps every row's titles clear of the panels above and the legend below
+    # (tight_layout let the second row's titles overlap the first row's equal-aspect panels).
+    fig = Figure(figsize=(2.8 * len(runs), 2.9 * len(segments) + 0.5), layout="constrained")
     axes = fig.subplots(len(segments), len(runs), squeeze=False)
     for col, (label, run) in enumerate(runs.items()):
         for row, segment in enumerate(segments):
@@ -171,9 +173,13 @@ def plot_trajectories(
         2 if len(labels) > 6 else 1
     )  # robots, home, start/end and the events: two lines when many
     fig.legend(
-        handles, labels, loc="lower center", ncol=-(-len(labels) // rows), fontsize=7, frameon=False
+        handles,
+        labels,
+        loc="outside lower center",
+        ncol=-(-len(labels) // rows),
+        fontsize=7,
+        frameon=False,
     )
-    fig.tight_layout(rect=(0, 0.4 * rows / height, 1, 1))
     return save(fig, stem)
 
 
@@ -246,12 +252,15 @@ def plot_learning_curve(
 ) -> Path | None:
     """``learning_curve.png`` of a training run: its greedy evaluations (``eval.csv``: team reward
     and task reward, ± std over episodes) against frames, with the ``references`` (the reference
-    policies' metrics by label) as horizontal lines. None when the run has no evaluation yet."""
+    policies' metrics by label) as horizontal lines; with a best scripted reference the title
+    gives the last evaluation's team reward as a share of its. None when the run has no
+    evaluation yet."""
     run_dir = Path(run_dir)
     evaluation = read_column(run_dir, "eval", "reward")
     if evaluation is None:
         return None
     refs = references or {}
+    best = next((m for k, m in refs.items() if k.startswith(BEST_SCRIPTED_LABEL)), None)
     fig = Figure(figsize=(11, 4))
     axes = fig.subplots(1, 2)
     for ax, key, title in (
@@ -262,6 +271,10 @@ def plot_learning_curve(
         if column is None:
             continue
         (x, y), (_, s) = column, read_column(run_dir, "eval", f"{key}_std")
+        if key == "reward" and best is not None and best["reward"] > 0:
+            title += (
+                f"\nlast: {100 * y[-1] / best['reward']:.0f} % of the {BEST_SCRIPTED_LABEL} team's"
+            )
         (line,) = ax.plot(x, y, marker="o", color="C0", label="trained policy, greedy")
         ax.fill_between(
             x, y - s, y + s, color=line.get_color(), alpha=0.2, label="± std over episodes"

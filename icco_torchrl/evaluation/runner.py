@@ -34,6 +34,8 @@ from icco_torchrl.envs import ResourceCollectionEnv
 from icco_torchrl.envs.reference_policies import make_reference_policy, reference_label
 from icco_torchrl.evaluation.metrics import (
     EPISODE,
+    SHARE,
+    best_scripted_shares,
     markdown_table,
     method_label,
     segment_table,
@@ -55,6 +57,16 @@ GIF_MAX_FRAMES = 300  # longer episodes are recorded every few steps
 GIF_SIZE = 320
 
 
+def _demo_hint() -> str:
+    """How to evaluate the demo policy of a source checkout (``icco live`` uses it by default);
+    empty where there is none (an installed wheel)."""
+    demo = Path(__file__).resolve().parents[2] / "assets" / "demo_icco.pt"
+    if not demo.is_file():
+        return ""
+    shown = os.path.relpath(demo) if demo.is_relative_to(Path.cwd()) else demo
+    return f", or evaluate the demo policy: icco eval checkpoint={shown} (assets/README.md)"
+
+
 def find_checkpoints(cfg: DictConfig, root: str | Path = ".") -> list[Path]:
     """``checkpoint`` and ``eval.checkpoints`` (paths or globs), in order, without repeats.
 
@@ -68,6 +80,7 @@ def find_checkpoints(cfg: DictConfig, root: str | Path = ".") -> list[Path]:
             raise ValueError(
                 f"no checkpoint given (checkpoint=PATH) and none found under "
                 f"{Path(root).resolve() / 'runs'}/*/*/checkpoint.pt: run `make train` first"
+                + _demo_hint()
             )
         return [found[-1]]
     paths: list[Path] = []
@@ -86,6 +99,29 @@ def default_out_dir(paths: Sequence[Path], name: str) -> Path:
     return Path(os.path.commonpath([str(p.resolve().parent) for p in paths])) / name
 
 
+# What an env.params difference between training and evaluation changes (the note of
+# ``icco eval``). Layout differences (what the networks read) never get this far: they are refused.
+# The protocol sets the episode length and writes the waypoints: the instruction generator's
+# parameters are unused in evaluation.
+UNUSED_IN_EVAL = (
+    "max_steps",
+    "validate",
+    "waypoint_interval",
+    "waypoint_mode",
+    "waypoint_path_prob",
+    "waypoint_sigma",
+)
+# The policy never sees its reward: these reweigh the reward columns, nothing else.
+REWARD_WEIGHTS = (
+    "pick_reward",
+    "collect_reward",
+    "defense_reward",
+    "invasion_penalty",
+    "inst_reward_scale",
+    "inst_dist_coef",
+)
+
+
 def _differences(eval_params: dict, trained_params: dict) -> list[str]:
     keys = sorted(set(eval_params) | set(trained_params))
     return [
@@ -93,6 +129,27 @@ def _differences(eval_params: dict, trained_params: dict) -> list[str]:
         for k in keys
         if eval_params.get(k) != trained_params.get(k)
     ]
+
+
+def difference_effect(keys) -> str:
+    """What env.params differing in ``keys`` do to the scores of a policy trained in another env,
+    one clause per kind of difference."""
+    kinds = [
+        (
+            "changed by {} (the task differs: the references face it too, and the policy may "
+            "act outside its training)",
+            [k for k in keys if k not in UNUSED_IN_EVAL + REWARD_WEIGHTS],
+        ),
+        (
+            "reward columns only, by {} (counts and behaviour unchanged)",
+            [k for k in keys if k in REWARD_WEIGHTS],
+        ),
+        (
+            "unchanged by {} (the protocol sets the episode length and writes the waypoints)",
+            [k for k in keys if k in UNUSED_IN_EVAL],
+        ),
+    ]
+    return "; ".join(text.format(", ".join(ks)) for text, ks in kinds if ks)
 
 
 def slug(text: str) -> str:
@@ -192,6 +249,8 @@ def evaluate_checkpoints(
             print(
                 f"note: {path} is evaluated in another env than it was trained in: "
                 + "; ".join(diffs)
+                + ". Scores: "
+                + difference_effect([d.split(":")[0] for d in diffs])
             )
         out.checkpoints.append(
             dict(
@@ -284,7 +343,13 @@ def write_report(
         + (f", teams of {result.team_size} robots" if result.team_size else "")
         + "; segments: "
         + ", ".join(f"{s} ({steps[s]} steps)" for s in segments)
-        + ".\nMean ± std over trials (seeds pooled). Rewards are team totals (sum over robots).\n"
+        + ".\nMean ± std over trials (seeds pooled). Rewards are team totals (sum over robots); "
+        + "the columns are defined in docs/metrics.md.\n"
+        + (
+            f"'{SHARE}': the mean team reward over the best scripted team's on the same episodes.\n"
+            if best_scripted_shares(summary)
+            else ""
+        )
     )
     markdown = (
         f"{header}\n## Whole episode\n\n{markdown_table(summary)}\n\n"

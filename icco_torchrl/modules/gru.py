@@ -1,7 +1,8 @@
 """A one-layer GRU with ``nn.GRU``'s parameters that ``torch.compile`` can trace.
 
-Dynamo refuses to trace ``nn.GRU`` in torch 2.13 ("Attempted to wrap RNN, GRU, or LSTM"):
-touching one sends the whole function to eager (``../shared/notes/fast-update.md``). This module
+Dynamo refuses to trace ``nn.GRU`` in torch 2.13 ("Attempted to wrap RNN, GRU, or LSTM", raised
+in ``torch/_dynamo/variables/builder.py`` unless ``torch._dynamo.config.allow_rnn``): touching one
+sends the whole function to eager (``tests/test_fast_update.py`` compiles this one). This module
 holds the same four parameters under the same names, shapes and initialisation as a one-layer
 ``nn.GRU(batch_first=True)``, so checkpoints and seeded initial weights are unchanged. In eager
 mode a sequence runs through the same ATen kernel as ``nn.GRU`` (``torch.gru``); under

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import torch
 from omegaconf import DictConfig, OmegaConf
+from tensordict import TensorDictBase
 from torch import nn
 from torchrl.data import LazyTensorStorage, RandomSampler, TensorDictReplayBuffer
 from torchrl.envs import TransformedEnv
@@ -22,7 +23,12 @@ from icco_torchrl.envs.shaping import PotentialShaping
 from icco_torchrl.modules import make_agent, make_coordinator, make_mixer, make_posterior
 from icco_torchrl.modules.policy import make_policy, make_primer
 from icco_torchrl.objectives import ICCOLoss, make_target_updater
-from icco_torchrl.training.config import compose_config, resolve_device, set_env_params
+from icco_torchrl.training.config import (
+    ConfigError,
+    compose_config,
+    resolve_device,
+    set_env_params,
+)
 from icco_torchrl.training.segments import SegmentCutter
 from icco_torchrl.training.update import Update
 
@@ -195,6 +201,7 @@ class Run:
     updater: object | None = None
     update: Update | None = None
     buffer: TensorDictReplayBuffer | None = None
+    teacher: TeacherReplay | None = None
     checkpoint: dict | None = None
 
     def __getitem__(self, name: str):
@@ -236,13 +243,18 @@ def build(
     )
     layout = env.base_env.layout
     mods = make_modules(cfg, layout, device, n_actions=action_count(env))
-    guide = None
-    if for_training and t.get("explore_guide"):  # exploration from a scripted policy
+    guide = teacher = None
+    if for_training and (t.get("explore_guide") or t.get("teacher")):  # scripted policies
         from icco_torchrl.envs.reference_policies import make_reference_policy
 
-        guide = make_reference_policy(
-            t.explore_guide, env, radius=cfg.eval.blend_radius, seed=cfg.seed
-        )
+        def scripted(name, field):
+            try:
+                return make_reference_policy(name, env, radius=cfg.eval.blend_radius, seed=cfg.seed)
+            except (TypeError, ValueError) as err:
+                raise ConfigError(f"config field 'train.{field}': {err}") from None
+
+        guide = scripted(t.explore_guide, "explore_guide") if t.get("explore_guide") else None
+        teacher = scripted(t.teacher, "teacher") if t.get("teacher") else None
     policy = make_policy(
         mods["agent"],
         env.full_action_spec_unbatched,
@@ -250,6 +262,8 @@ def build(
         eps_init=t.eps_init,
         eps_end=t.eps_end,
         guide=guide,
+        teacher=teacher,
+        teacher_rows=t.teacher_envs if teacher is not None else 0,
     )
     loss = make_loss(cfg, mods)
     run = Run(
@@ -268,12 +282,52 @@ def build(
         run.updater = make_target_updater(
             loss, t.target_update, interval=t.target_update_interval, tau=t.tau
         )
+        taught = teacher_items(cfg)
         run.buffer = TensorDictReplayBuffer(
             storage=LazyTensorStorage(t.buffer_segments, device=device),
             sampler=RandomSampler(),
-            batch_size=t.batch_segments,
+            batch_size=t.batch_segments - taught,
         )
+        if teacher is not None:
+            run.teacher = TeacherReplay(
+                rows=t.teacher_envs,
+                cutter=SegmentCutter(length=t.sequence_length),
+                buffer=TensorDictReplayBuffer(
+                    storage=LazyTensorStorage(t.buffer_segments, device=device),
+                    sampler=RandomSampler(),
+                    batch_size=taught,
+                ),
+            )
     return run
+
+
+def teacher_items(cfg: DictConfig) -> int:
+    """Items of every replayed batch drawn from the teacher's buffer (``train.teacher_share``)."""
+    t = cfg.train
+    return round(t.batch_segments * t.teacher_share) if t.get("teacher") else 0
+
+
+@dataclass
+class TeacherReplay:
+    """``train.teacher``'s data: the first ``rows`` envs of every collector batch are the
+    teacher's; they are cut by their own ``cutter`` (it keeps a tail per env) into ``buffer``,
+    which serves a fixed share of every batch. Not checkpointed: a resumed run refills it before
+    learning again."""
+
+    rows: int
+    cutter: SegmentCutter
+    buffer: TensorDictReplayBuffer
+
+    def sample(self, learner: TensorDictReplayBuffer) -> TensorDictBase:
+        """One replayed batch: ``learner``'s items, then the teacher's fixed share."""
+        return torch.cat([learner.sample(), self.buffer.sample()])
+
+    def split(self, batch: TensorDictBase) -> TensorDictBase:
+        """Store the teacher's rows of ``batch [B, L]``; return the learner's rows."""
+        items = self.cutter(batch[: self.rows])
+        if items.shape[0]:
+            self.buffer.extend(items)
+        return batch[self.rows :]
 
 
 def build_components(

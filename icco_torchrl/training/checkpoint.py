@@ -10,12 +10,13 @@ in, what a resume may change, and the upgrades of older files.
 - **Replay dumps.** The filled part of the replay buffer as raw arrays (no pickle, no memory
   mapping while writing, so a full disk is an error, not a SIGBUS) with a checksummed manifest,
   so a damaged dump is refused instead of resuming on garbage.
-- **The run folder.** ``icco train`` holds a lock on it (:class:`RunFolderLock`): a second writer
-  is refused in one line. :func:`save_run` writes the dump, then the checkpoint naming the dump's
-  id, and only then drops the previous dump, so a stop between the two writes leaves a dump that
-  matches the checkpoint; :func:`restore_replay` picks it (and says so) or refuses a foreign one.
-  The checkpoint also records whether the final evaluation and the learning curve were written
-  (:func:`outputs_of`), so a resume writes what a stopped run left out.
+- **The run folder.** ``icco train`` holds a lock on it (:class:`RunFolderLock`, a file opened
+  without following links): a second writer is refused in one line. :func:`save_run` writes the
+  dump, then the checkpoint naming the dump's id, and only then drops the previous dump, so a
+  stop between the two writes leaves a dump that matches the checkpoint; :func:`restore_replay`
+  picks it (and says so) or refuses a foreign one. The checkpoint also records whether the final
+  evaluation and the learning curve were written (:func:`outputs_of`), so a resume writes what a
+  stopped run left out.
 - **Resume rules.** :func:`check_resumable`: what a resumed run cannot change, and whether the
   networks and env layout fit (:func:`check_compatible`, :func:`load_weights`).
 - **Upgrades.** Fields added or removed since older checkpoints were written
@@ -34,6 +35,7 @@ import os
 import pickle
 import re
 import shutil
+import stat
 import tempfile
 import uuid
 import warnings
@@ -54,7 +56,8 @@ class CheckpointError(RuntimeError):
 
 
 class RunFolderBusy(CheckpointError):
-    """Another ``icco train`` holds the run folder's lock."""
+    """Another ``icco train`` holds the run folder's lock, or its lock file is not one this project
+    may open (a link): the folder is left as it is."""
 
 
 # 2: agent embeds the previous action with nn.Embedding, attention keys have no bias.
@@ -307,7 +310,13 @@ def load_checkpoint(
         raise _read_error(path, err) from None
     if not isinstance(payload, dict) or "format_version" not in payload:
         raise CheckpointError(f"{path} is not an icco-torchrl checkpoint")
-    if payload["format_version"] != FORMAT_VERSION:
+    version = payload["format_version"]
+    if type(version) is not int:  # "2" or 2.0: not a number this project ever wrote
+        raise CheckpointError(
+            f"{path} is not an icco-torchrl checkpoint: its format_version is {version!r}, a "
+            f"{type(version).__name__}, where icco-torchrl writes an integer ({FORMAT_VERSION})"
+        )
+    if version != FORMAT_VERSION:
         raise CheckpointError(
             f"{path} has checkpoint format {payload['format_version']}; this version of "
             f"icco-torchrl reads format {FORMAT_VERSION} (the networks changed): retrain, or "
@@ -467,7 +476,11 @@ class RunFolderLock:
     """An exclusive lock on a run folder (``flock`` on :data:`LOCK_FILE`), held while ``icco train``
     writes it: a second writer (two resumes of one checkpoint, two runs given one
     ``hydra.run.dir``) is refused in one line instead of both writing the same files. The lock
-    goes with the process, however it ends; the file stays (deleting it would race)."""
+    goes with the process, however it ends; the file stays (deleting it would race).
+
+    The lock file is opened without following links: in a run folder received from elsewhere a
+    ``.train.lock`` that is a symbolic link (or no plain file) is refused in one line, and whatever
+    it points to is left untouched."""
 
     def __init__(self, run_dir: str | Path):
         self.run_dir = Path(run_dir)
@@ -475,11 +488,17 @@ class RunFolderLock:
 
     def __enter__(self) -> RunFolderLock:
         path = self.run_dir / LOCK_FILE
+        flags = os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC
         try:
             self.run_dir.mkdir(parents=True, exist_ok=True)
-            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+            fd = os.open(path, flags, 0o644)
         except OSError as err:
+            if err.errno == errno.ELOOP:  # O_NOFOLLOW met a link
+                raise self._not_a_lock_file("a symbolic link") from None
             raise _cannot_write("the run folder", self.run_dir, err) from None
+        if not stat.S_ISREG(os.fstat(fd).st_mode):  # a FIFO or a device: not ours to write
+            os.close(fd)
+            raise self._not_a_lock_file("no plain file")
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError:
@@ -493,6 +512,12 @@ class RunFolderLock:
         os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
         self._fd = fd
         return self
+
+    def _not_a_lock_file(self, what: str) -> RunFolderBusy:
+        return RunFolderBusy(
+            f"run folder {self.run_dir}: its {LOCK_FILE} is {what}, not a lock file; refusing to "
+            f"open it: delete {self.run_dir / LOCK_FILE} and run again"
+        )
 
     def __exit__(self, *exc) -> None:
         if self._fd is not None:

@@ -25,7 +25,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from icco_torchrl.envs.reference_policies import REFERENCE_POLICIES
+from icco_torchrl.envs.reference_policies import REFERENCE_POLICIES, parse_reference
 from icco_torchrl.envs.resource_collection import SPAWN_MODES, ResourceCollectionEnv
 from icco_torchrl.envs.shaping import POTENTIALS, missing_for
 from icco_torchrl.paths import CONF_DIR
@@ -230,6 +230,17 @@ class TrainConfig:
     cudagraphs: bool = False
     # Exploratory actions from this reference policy instead of uniform draws (experiments/recipe).
     explore_guide: Optional[str] = _field(None, choices=(None, *REFERENCE_POLICIES))
+    # Learning from a scripted teacher (RLPD-style; a named option, never the paper's method: its
+    # runs are reported under their own label). This reference policy (e.g. best_scripted) drives
+    # the first `teacher_envs` training envs while the learner's networks run in shadow on them
+    # (their recurrent state and z are recorded, their actions replaced); those envs' items fill
+    # a second replay buffer that serves `teacher_share` of every batch. The teacher's env steps
+    # count in total_frames; evaluations never call the teacher. null: off.
+    teacher: Optional[str] = None
+    # Training envs driven by the teacher (of env.num_envs).
+    teacher_envs: int = _field(8, gt=0)
+    # Share of every replayed batch drawn from the teacher's items, in [0, 1).
+    teacher_share: float = _field(0.25, ge=0)
     # env.params overrides for the training env only (e.g. train.env_params.collect_reward=3.5):
     # the evaluations during training, `icco eval` and every restore use env.params, so they never
     # change what is scored. May change at resume (a curriculum); replayed data keeps old rewards.
@@ -339,8 +350,10 @@ class LiveConfig:
 
     # Address the page and the bridge listen on (anything but loopback lets other machines steer).
     host: str = "127.0.0.1"
-    # A secret the page's every request must carry (open http://HOST:PORT/?token=...); set one
-    # for any host but loopback. null: none (the page still answers only its own origin).
+    # A secret every channel that steers must carry: the page's requests (open
+    # http://HOST:PORT/?token=...) and the bridge's UDP states and instructions ("token" field;
+    # docs/live.md). Set one for any host but loopback. null: none (the page still answers only
+    # its own origin).
     token: Optional[str] = None
     # UDP port of the bridge (0 = any free port).
     port: int = _field(8765, ge=0, le=65535)
@@ -513,12 +526,12 @@ def validate(cfg: DictConfig | dict) -> DictConfig:
             f"config field 'llm.n_waypoints' ({merged.llm.n_waypoints}) must equal "
             f"'env.params.n_waypoints' ({merged.env.params.n_waypoints})"
         )
-    unknown = [name for name in merged.eval.references if name not in REFERENCE_POLICIES]
-    if unknown:
-        raise ConfigError(
-            f"config field 'eval.references' has unknown policies {unknown}; "
-            f"choose from {list(REFERENCE_POLICIES)}"
-        )
+    for name in merged.eval.references:
+        try:
+            parse_reference(name)
+        except ValueError as err:
+            raise ConfigError(f"config field 'eval.references': {err}") from None
+    _check_teacher(merged)
     _check_env_params(merged.env.params)
     shaping = set_env_params(t.env_params)
     if shaping:
@@ -535,6 +548,34 @@ def validate(cfg: DictConfig | dict) -> DictConfig:
             f"device is {merged.device!r} ({device.type})"
         )
     return merged
+
+
+def _check_teacher(cfg) -> None:
+    """The scripted-teacher fields (``train.teacher*``), each error naming its field."""
+    t = cfg.train
+    if not 0 <= t.teacher_share < 1:
+        raise ConfigError(
+            f"config field 'train.teacher_share' must be in [0, 1), got {t.teacher_share}"
+        )
+    if t.teacher is None:
+        return
+    try:
+        parse_reference(t.teacher)
+    except ValueError as err:
+        raise ConfigError(f"config field 'train.teacher': {err}") from None
+    if t.teacher.split("(")[0].strip() == "random":
+        raise ConfigError("config field 'train.teacher': a random policy teaches nothing")
+    if t.teacher_envs >= cfg.env.num_envs:
+        raise ConfigError(
+            f"config field 'train.teacher_envs' ({t.teacher_envs}) must leave the learner some of "
+            f"'env.num_envs' ({cfg.env.num_envs})"
+        )
+    share = round(t.batch_segments * t.teacher_share)
+    if not 0 < share < t.batch_segments:
+        raise ConfigError(
+            f"config field 'train.teacher_share' ({t.teacher_share}) gives {share} of "
+            f"'train.batch_segments' ({t.batch_segments}) items: at least one from each buffer"
+        )
 
 
 def _check_team_sizes(team_sizes, n_agents: int) -> None:

@@ -6,13 +6,35 @@ import signal
 from contextlib import contextmanager
 
 
+class UpdateAbandoned(KeyboardInterrupt):
+    """A stop cut short a block marked :func:`abandonable` (the compile of an update)."""
+
+
+_abandonable = 0  # how many abandonable blocks the main thread is in
+
+
+@contextmanager
+def abandonable():
+    """A block that a :class:`GracefulInterrupt` stop may cut short, raising
+    :class:`UpdateAbandoned` in it at once: one that changes nothing a checkpoint holds, such as
+    the forward and backward of an update before its optimiser step, where ``train.compile``
+    compiles for a minute or more (Docker waits 10 s after SIGTERM, Slurm 30 s)."""
+    global _abandonable
+    _abandonable += 1
+    try:
+        yield
+    finally:
+        _abandonable -= 1
+
+
 class GracefulInterrupt:
     """The first Ctrl-C (SIGINT) or SIGTERM (what Slurm, ``timeout``, docker and submitit send
     before a kill) asks the loop to stop after the current batch and save a checkpoint; a second
     one raises at once.
 
     Stopping between batches, not inside the collector or an update, keeps every object in a
-    state that can be checkpointed.
+    state that can be checkpointed; only an :func:`abandonable` block (an update's compile) is
+    cut short by the first one.
     """
 
     SIGNALS = (signal.SIGINT, signal.SIGTERM)
@@ -30,6 +52,8 @@ class GracefulInterrupt:
         if self.requested:
             raise KeyboardInterrupt
         self.requested, self.signal_name = True, signal.Signals(signum).name
+        if _abandonable:
+            raise UpdateAbandoned
 
     def restore(self) -> None:
         for sig, previous in self._previous.items():

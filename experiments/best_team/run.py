@@ -1,0 +1,106 @@
+"""Best-team screens: which learning lever closes the gap to the best scripted team.
+
+    python experiments/best_team/run.py                       # every screen, resumable
+    python experiments/best_team/run.py --only icco icco_teacher --seeds 0
+    python experiments/best_team/run.py --train-only          # stop after training
+    python experiments/best_team/run.py --report-only         # rewrite results.json, README
+
+A screen is one method at :data:`BUDGET` plus the lever's overrides, two seeds (a screen, not a
+result). Training runs go to ``--out/<screen>/<method>_seed<k>``, two side by side, one thread
+each, seed by seed across screens (so a sitting cut short leaves paired seeds); a run cut short
+continues from its checkpoint when the script runs again. Each screen is then evaluated by the
+four-quadrant experiment (``experiments/four_quadrants/run.py``: ``icco eval
+eval.protocol=quadrants``, 20 trials per seed, seeds pooled, the scripted references on the same
+episodes) into ``screens/<screen>/``. A lever that uses a scripted policy in training is reported
+under its own label (``LABELS``), never as the paper's method.
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+from pathlib import Path
+
+from icco_torchrl.training.build import compose_config
+
+HERE = Path(__file__).resolve().parent
+EXPERIMENTS = HERE.parent
+sys.path.insert(0, str(EXPERIMENTS))
+from jobs import train_runs  # noqa: E402  (experiments/jobs.py, the one job runner)
+
+# At least 2M frames (the issue's screen budget), the 5M reproduction's recipe otherwise.
+BUDGET = ["experiment=repro_5m", "train.total_frames=2000000"]
+SEEDS = (0, 1)
+# The defend-first team (the interceptor acts within 1.75 m, every other robot follows). The 2M
+# ICCO screen's runs were trained as `train.teacher=best_scripted` while best_scripted was this
+# team, before the frontier search moved it (experiments/calibration/README.md).
+TEACHER = ["train.teacher='blend(defend=1.75)'", "train.teacher_envs=8", "train.teacher_share=0.25"]
+SCREENS = {  # name: (lever, method, overrides)
+    "icco": ("control", "icco", []),
+    "icco_teacher": ("defend-first team's data, 25 % of every batch", "icco", TEACHER),
+    "qmix_full": ("control", "qmix_full", []),
+    "qmix_full_teacher": (
+        "defend-first team's data, 25 % of every batch",
+        "qmix_full",
+        TEACHER,
+    ),
+}
+LABELS = {"icco_teacher": "ICCO + teacher data", "qmix_full_teacher": "QMIX (FULL) + teacher data"}
+
+
+def train(out: Path, names, seeds, jobs: int) -> None:
+    runs = {}
+    for seed in seeds:
+        for name in names:
+            lever, method, overrides = SCREENS[name]
+            cfg = compose_config([f"method={method}", *BUDGET, *overrides])
+            runs[out / name / f"{method}_seed{seed}"] = (
+                [f"method={method}", f"seed={seed}", *BUDGET, *overrides],
+                cfg.train.total_frames,
+            )
+    train_runs(runs, jobs)
+
+
+def evaluate(out: Path, name: str, seeds) -> None:
+    lever, method, overrides = SCREENS[name]
+    folder = HERE / "screens" / name
+    folder.mkdir(parents=True, exist_ok=True)
+    command = [
+        sys.executable,
+        str(EXPERIMENTS / "four_quadrants" / "run.py"),
+        "--methods",
+        method,
+        "--seeds",
+        *map(str, seeds),
+        "--sweep",
+        str(out / name),
+        "--readme",
+        str(folder / "README.md"),
+        "--budget",
+        *BUDGET,
+        *overrides,
+    ]
+    print("$ " + " ".join(command), flush=True)
+    subprocess.run(command, check=True)
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--out", type=Path, default=Path("multirun/best_team"))
+    parser.add_argument("--only", nargs="+", choices=list(SCREENS))
+    parser.add_argument("--seeds", nargs="+", type=int, default=list(SEEDS))
+    parser.add_argument("--jobs", type=int, default=2, help="training runs side by side")
+    parser.add_argument("--train-only", action="store_true")
+    args = parser.parse_args(argv)
+    out, names = args.out.resolve(), args.only or list(SCREENS)
+    train(out, names, args.seeds, args.jobs)
+    if not args.train_only:
+        for name in names:
+            evaluate(out, name, args.seeds)
+
+
+if __name__ == "__main__":
+    main()
