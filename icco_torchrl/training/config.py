@@ -560,10 +560,10 @@ def _check_teacher(cfg) -> None:
     if t.teacher is None:
         return
     try:
-        parse_reference(t.teacher)
+        kind, _ = parse_reference(t.teacher)
     except ValueError as err:
         raise ConfigError(f"config field 'train.teacher': {err}") from None
-    if t.teacher.split("(")[0].strip() == "random":
+    if kind == "random":
         raise ConfigError("config field 'train.teacher': a random policy teaches nothing")
     if t.teacher_envs >= cfg.env.num_envs:
         raise ConfigError(
