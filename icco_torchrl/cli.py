@@ -89,8 +89,8 @@ def _run_hydra(name: str, overrides: list[str], task) -> None:
     from omegaconf.errors import OmegaConfBaseException
 
     from icco_torchrl.paths import CONF_DIR
-    from icco_torchrl.training.checkpoint import CheckpointError, RunFolderBusy
     from icco_torchrl.training.config import ConfigError, compose_error, validate
+    from icco_torchrl.training.run_folder import CheckpointError, RunFolderBusy
 
     @hydra.main(config_path=str(CONF_DIR), config_name="config", version_base=None)
     def main(raw: DictConfig) -> float | None:
@@ -133,7 +133,7 @@ def _remove_if_only_hydra(folder: str) -> None:
     from pathlib import Path
 
     path = Path(folder)
-    from icco_torchrl.training.checkpoint import LOCK_FILE, CheckpointError, RunFolderLock
+    from icco_torchrl.training.run_folder import LOCK_FILE, CheckpointError, RunFolderLock
 
     if path.is_dir() and {p.name for p in path.iterdir()} <= {".hydra", "cli.log", LOCK_FILE}:
         try:

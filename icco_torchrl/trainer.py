@@ -27,18 +27,10 @@ from icco_torchrl.evaluation.plots import plot_learning_curve
 from icco_torchrl.evaluation.rollout import evaluate
 from icco_torchrl.modules.policy import exploration_module
 from icco_torchrl.training.build import VALIDATION_SEED_OFFSET, Run, build
-from icco_torchrl.training.checkpoint import (  # noqa: F401 (check_resume*: their old home)
-    CHECKPOINT,
-    REFERENCES_FILE,
-    REPLAY_DIR,
-    RunFolderLock,
+from icco_torchrl.training.checkpoint import (
     check_resumable,
-    check_resume_overrides,
-    fresh_outputs,
-    last_evaluation,
     load_checkpoint,
     load_weights,
-    outputs_of,
     restore_replay,
     save_run,
 )
@@ -50,6 +42,14 @@ from icco_torchrl.training.interrupt import (
 )
 from icco_torchrl.training.logger import RunLogger
 from icco_torchrl.training.rng import rng_state, set_rng_state
+from icco_torchrl.training.run_folder import (
+    CHECKPOINT,
+    REFERENCES_FILE,
+    RunFolderLock,
+    fresh_outputs,
+    last_evaluation,
+    outputs_of,
+)
 from icco_torchrl.training.update import metrics_row
 
 EPISODE_COLUMNS = ["episode_reward"] + [
@@ -219,21 +219,52 @@ class TrainingRun:
         )
 
     def _restore(self, ckpt: dict, path: str | Path) -> None:
-        """Weights, optimiser, target updater, counters, exploration rate, RNG streams and the
-        replay buffer of a checked checkpoint."""
-        run = self.run
-        load_weights(run.loss, ckpt["loss"], path, self.cfg.method.name)
-        run.optim.load_state_dict(ckpt["optimizer"])
-        run.updater.load_state_dict(ckpt["updater"])
-        self.progress = Progress(ckpt["frames"], ckpt["updates"], ckpt["batches"])
-        # The schedule continues.
-        self.explore.eps.fill_(epsilon(self.progress.frames, self.cfg.train))
-        set_rng_state(ckpt["rng"], run.env)
-        said = restore_replay(run.buffer, self.run_dir, ckpt, path)
+        """The state of a checked checkpoint (:meth:`load_state_dict`) and the replay buffer
+        dumped beside it."""
+        self.load_state_dict(ckpt, origin=path)
+        said = restore_replay(self.run.buffer, self.run_dir, ckpt, path)
         if said:
             self.logger.print(said)
-        self.replay_id = ckpt.get("replay_id")
-        self.replay_segments = len(run.buffer)
+        self.replay_segments = len(self.run.buffer)
+
+    # ------------------------------------------------------------------ state
+    def state_dict(self) -> dict:
+        """Everything a resume needs, as the checkpoint holds it: the config and env layout the
+        state fits, the counters, the weights (targets included), the optimiser, the target
+        updater, the RNG streams, the final outputs written, and the replay dump it names. The
+        replay buffer itself is dumped beside the checkpoint (``save_run``), and the exploration
+        rate follows from the frames. The tensors are the run's own, not copies."""
+        run, p = self.run, self.progress
+        return {
+            "cfg": OmegaConf.to_container(self.cfg, resolve=True),
+            "layout": run.layout.__dict__,
+            "frames": p.frames,
+            "updates": p.updates,
+            "batches": p.batches,
+            "loss": run.loss.state_dict(),
+            "optimizer": run.optim.state_dict(),
+            "updater": run.updater.state_dict(),
+            "rng": rng_state(run.env),
+            "outputs": dict(self.outputs),
+            "replay_id": self.replay_id,
+            "replay_segments": self.replay_segments,
+        }
+
+    def load_state_dict(self, state: dict, *, origin: str | Path = "the state dict") -> None:
+        """Restore a :meth:`state_dict` (or a checkpoint's, which holds the same fields; its
+        ``cfg`` and ``layout`` are checked by ``check_resumable``, not restored). Networks that do
+        not match are one line naming ``origin``. The replay buffer is not touched."""
+        run = self.run
+        load_weights(run.loss, state["loss"], origin, self.cfg.method.name)
+        run.optim.load_state_dict(state["optimizer"])
+        run.updater.load_state_dict(state["updater"])
+        self.progress = Progress(state["frames"], state["updates"], state["batches"])
+        # The schedule continues.
+        self.explore.eps.fill_(epsilon(self.progress.frames, self.cfg.train))
+        set_rng_state(state["rng"], run.env)
+        self.outputs = outputs_of(state, self.run_dir)
+        self.replay_id = state.get("replay_id")
+        self.replay_segments = state.get("replay_segments", 0)
 
     # ------------------------------------------------------------------ loop
     def loop(self, remaining: int) -> bool:
@@ -445,25 +476,14 @@ class TrainingRun:
     def save(self, dump: bool = True) -> Path:
         """The checkpoint (with ``train.checkpoint_buffer`` and ``dump``, the replay dump it names,
         first; without ``dump`` it names the dump on disk)."""
-        run, t, p = self.run, self.cfg.train, self.progress
-        payload = {
-            "cfg": OmegaConf.to_container(self.cfg, resolve=True),
-            "layout": run.layout.__dict__,
-            "frames": p.frames,
-            "updates": p.updates,
-            "batches": p.batches,
-            "loss": run.loss.state_dict(),
-            "optimizer": run.optim.state_dict(),
-            "updater": run.updater.state_dict(),
-            "rng": rng_state(run.env),
-            "outputs": dict(self.outputs),
-        }
+        run, t = self.run, self.cfg.train
+        state = self.state_dict()
         if t.checkpoint_buffer and dump:
-            path, self.replay_id = save_run(self.run_dir, payload, run.buffer)
+            path, self.replay_id = save_run(self.run_dir, state, run.buffer)
             self.replay_segments = len(run.buffer)
         else:
-            payload["replay_segments"] = self.replay_segments if t.checkpoint_buffer else 0
-            path, _ = save_run(self.run_dir, payload, replay_id=self.replay_id)
+            state["replay_segments"] = self.replay_segments if t.checkpoint_buffer else 0
+            path, _ = save_run(self.run_dir, state, replay_id=self.replay_id)
         return path
 
 

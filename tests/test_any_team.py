@@ -26,13 +26,13 @@ from icco_torchrl.modules.relative import robot_mask
 from icco_torchrl.objectives import total_loss
 from icco_torchrl.training.build import build, compose_config, make_loss, make_modules
 from icco_torchrl.training.checkpoint import (
-    CheckpointError,
     load_checkpoint,
     load_weights,
     policy_weights,
     save_checkpoint,
 )
 from icco_torchrl.training.config import check_command_line, validate
+from icco_torchrl.training.run_folder import CheckpointError
 from icco_torchrl.training.segments import SegmentCutter
 
 torch.set_num_threads(1)

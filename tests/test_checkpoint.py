@@ -7,6 +7,7 @@ import errno
 import json
 import os
 import pickle
+import tempfile
 
 import numpy as np
 import pytest
@@ -14,20 +15,22 @@ import torch
 from tensordict import TensorDict
 from torchrl.data import LazyTensorStorage, RandomSampler, TensorDictReplayBuffer
 
-from icco_torchrl.training import checkpoint
+from icco_torchrl.training import replay_dump, run_folder
 from icco_torchrl.training.checkpoint import (
     FORMAT_VERSION,
     METHOD_FIELDS_ADDED,
+    load_checkpoint,
+    restore_replay,
+    save_checkpoint,
+    save_run,
+)
+from icco_torchrl.training.replay_dump import load_replay, save_replay
+from icco_torchrl.training.run_folder import (
+    LOCK_FILE,
     CheckpointError,
     RunFolderBusy,
     RunFolderLock,
-    load_checkpoint,
-    load_replay,
     outputs_of,
-    restore_replay,
-    save_checkpoint,
-    save_replay,
-    save_run,
 )
 
 pytestmark = pytest.mark.fault  # the fault suite: crafted, damaged and stale files
@@ -375,8 +378,8 @@ def test_every_unreadable_checkpoint_is_one_plain_line_naming_it(tmp_path, make,
 
 # ---------------------------------------------------------------- full disks, read-only folders
 def _enospc_after(calls: int):
-    """A ``_write_all`` that writes ``calls`` times, then finds the disk full (half written)."""
-    real, count = checkpoint._write_all, [0]
+    """A ``write_all`` that writes ``calls`` times, then finds the disk full (half written)."""
+    real, count = run_folder.write_all, [0]
 
     def write_all(fd, data):
         count[0] += 1
@@ -396,7 +399,7 @@ def test_a_full_disk_in_the_checkpoint_write_is_one_line_and_keeps_the_old_one(
     tmp_path, monkeypatch
 ):
     path = save_checkpoint(tmp_path / "checkpoint.pt", {"frames": 1})
-    monkeypatch.setattr(checkpoint, "_write_all", _enospc_after(0))
+    monkeypatch.setattr(run_folder, "write_all", _enospc_after(0))
     with pytest.raises(CheckpointError) as info:
         save_checkpoint(path, {"frames": 2, "loss": {"w": torch.zeros(10_000)}})
     message = str(info.value)
@@ -410,7 +413,7 @@ def test_a_read_only_folder_is_one_line_naming_it(tmp_path, monkeypatch, where):
     def read_only(*args, dir=None, **kwargs):
         raise OSError(errno.EROFS, "Read-only file system", str(dir))
 
-    monkeypatch.setattr(checkpoint.tempfile, where, read_only)
+    monkeypatch.setattr(tempfile, where, read_only)
     buffer = make_buffer(8)
     buffer.extend(segments(3))
     with pytest.raises(CheckpointError) as info:
@@ -431,9 +434,9 @@ def test_a_full_disk_in_the_replay_dump_is_one_line_and_leaves_no_temp(tmp_path,
     buffer = make_buffer(64)
     buffer.extend(segments(40))
     if how == "checked first":  # too little room for the dump: nothing is written
-        monkeypatch.setattr(checkpoint, "_free_bytes", lambda folder: 1000)
+        monkeypatch.setattr(replay_dump, "_free_bytes", lambda folder: 1000)
     else:  # the disk fills up under the dump (plain writes: ENOSPC, never a SIGBUS)
-        monkeypatch.setattr(checkpoint, "_write_all", _enospc_after(1))
+        monkeypatch.setattr(replay_dump, "write_all", _enospc_after(1))
     with pytest.raises(CheckpointError) as info:
         save_replay(buffer, path, dump_id="b")
     message = str(info.value)
@@ -465,7 +468,7 @@ def test_a_lock_file_that_is_a_link_is_refused_and_its_target_left_untouched(tmp
         victim.write_text("keep me\n")
     run = tmp_path / "run"
     run.mkdir()
-    (run / checkpoint.LOCK_FILE).symlink_to(victim)
+    (run / LOCK_FILE).symlink_to(victim)
     with pytest.raises(RunFolderBusy) as info:
         with RunFolderLock(run):
             pass
@@ -475,10 +478,10 @@ def test_a_lock_file_that_is_a_link_is_refused_and_its_target_left_untouched(tmp
         assert victim.read_text() == "keep me\n"
     else:
         assert not victim.exists()
-    assert (run / checkpoint.LOCK_FILE).is_symlink()
+    assert (run / LOCK_FILE).is_symlink()
     fifo = tmp_path / "fifo"
     fifo.mkdir()
-    os.mkfifo(fifo / checkpoint.LOCK_FILE)
+    os.mkfifo(fifo / LOCK_FILE)
     with pytest.raises(RunFolderBusy, match="is no plain file"):
         with RunFolderLock(fifo):
             pass

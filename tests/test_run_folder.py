@@ -8,7 +8,7 @@ import os
 import pytest
 from conftest import run_cli
 
-from icco_torchrl.training.checkpoint import LOCK_FILE, RunFolderLock
+from icco_torchrl.training.run_folder import LOCK_FILE, RunFolderLock
 
 pytestmark = pytest.mark.fault
 

@@ -18,7 +18,8 @@ from conftest import run_cli
 from icco_torchrl import methods
 from icco_torchrl.envs.reference_policies import reference_label
 from icco_torchrl.training.build import compose_config
-from icco_torchrl.training.checkpoint import FORMAT_VERSION, CheckpointError, load_checkpoint
+from icco_torchrl.training.checkpoint import FORMAT_VERSION, load_checkpoint
+from icco_torchrl.training.run_folder import CheckpointError
 
 SMOKE = ("experiment=smoke", "logger.progress=false")
 

@@ -19,8 +19,8 @@ from dataclasses import dataclass
 from importlib import import_module
 from pathlib import Path
 
-from icco_torchrl.training.checkpoint import CheckpointError
 from icco_torchrl.training.config import ConfigError
+from icco_torchrl.training.run_folder import CheckpointError
 
 # Command name -> the module of this package that defines it (as NAME.upper(): TRAIN, EVAL...).
 MODULES = {

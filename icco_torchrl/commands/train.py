@@ -36,7 +36,8 @@ def prepare_train(command: str, args: list[str]) -> tuple[list[str], dict]:
     resume = next((a.split("=", 1)[1] for a in args if a.startswith("resume=")), None)
     if not resume or resume == "null" or any(a.startswith(("-m", "--multirun")) for a in args):
         return args, options
-    from icco_torchrl.training.checkpoint import CheckpointError, load_checkpoint
+    from icco_torchrl.training.checkpoint import load_checkpoint
+    from icco_torchrl.training.run_folder import CheckpointError
 
     try:
         saved = saved_run_overrides(load_checkpoint(resume)["cfg"], args)

@@ -51,7 +51,8 @@ from icco_torchrl.evaluation.protocols import (
     schedule_env,
 )
 from icco_torchrl.training.build import EPISODE_SEED_STRIDE, EVAL_SEED_OFFSET
-from icco_torchrl.training.checkpoint import CheckpointError, load_checkpoint
+from icco_torchrl.training.checkpoint import load_checkpoint
+from icco_torchrl.training.run_folder import CheckpointError
 
 GIF_MAX_FRAMES = 300  # longer episodes are recorded every few steps
 GIF_SIZE = 320

@@ -1,45 +1,32 @@
-"""Everything about checkpoints, in one place: writing and reading them, the run folder they live
-in, what a resume may change, and the upgrades of older files.
+"""A checkpoint: its file format, the upgrades of older files, the rules of a resume, and the pair
+of a run's checkpoint and its replay dump. The run folder's files and lock are
+:mod:`.run_folder`'s; the replay dump's format is :mod:`.replay_dump`'s.
 
-- **Files.** A checkpoint holds only tensors and plain Python data and is read with
+- **Format.** A checkpoint holds only tensors and plain Python data and is read with
   ``torch.load(weights_only=True)``: a crafted file cannot run code. It is written atomically
-  (temp file + rename). Any file that is not a readable checkpoint (empty, text, a crafted or
-  foreign pickle, a dict without the fields a checkpoint has) is one :class:`CheckpointError`
-  line naming the path; so is a write that fails (a full disk, a read-only folder), which leaves
-  no temp file.
-- **Replay dumps.** The filled part of the replay buffer as raw arrays (no pickle, no memory
-  mapping while writing, so a full disk is an error, not a SIGBUS) with a checksummed manifest,
-  so a damaged dump is refused instead of resuming on garbage.
-- **The run folder.** ``icco train`` holds a lock on it (:class:`RunFolderLock`, a file opened
-  without following links): a second writer is refused in one line. :func:`save_run` writes the
-  dump, then the checkpoint naming the dump's id, and only then drops the previous dump, so a
-  stop between the two writes leaves a dump that matches the checkpoint; :func:`restore_replay`
-  picks it (and says so) or refuses a foreign one. The checkpoint also records whether the final
-  evaluation and the learning curve were written (:func:`outputs_of`), so a resume writes what a
-  stopped run left out.
-- **Resume rules.** :func:`check_resumable`: what a resumed run cannot change, and whether the
-  networks and env layout fit (:func:`check_compatible`, :func:`load_weights`).
+  (:func:`~icco_torchrl.training.run_folder.write_atomically`). Any file that is not a readable
+  checkpoint (empty, text, a crafted or foreign pickle, a dict without the fields a checkpoint has)
+  is one :class:`~icco_torchrl.training.run_folder.CheckpointError` line naming the path; so is a
+  write that fails (a full disk, a read-only folder), which leaves no temp file. What a training
+  run puts in it is ``TrainingRun.state_dict()`` (:mod:`icco_torchrl.trainer`).
 - **Upgrades.** Fields added or removed since older checkpoints were written
   (:data:`METHOD_FIELDS_ADDED` ...), filled in by :func:`load_checkpoint`.
+- **Resume rules.** :func:`check_resumable`: what a resumed run cannot change, and whether the
+  networks and env layout fit (:func:`check_compatible`, :func:`load_weights`).
+- **Checkpoint and dump.** :func:`save_run` writes the dump, then the checkpoint naming the dump's
+  id, and only then drops the previous dump, so a stop between the two writes leaves a dump that
+  matches the checkpoint; :func:`restore_replay` picks it (and says so) or refuses a foreign one.
 """
 
 from __future__ import annotations
 
-import csv
-import errno
-import fcntl
 import io
-import json
-import math
 import os
 import pickle
 import re
 import shutil
-import stat
-import tempfile
 import uuid
 import warnings
-import zlib
 from pathlib import Path
 from typing import Any
 
@@ -48,24 +35,24 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from icco_torchrl.training.config import set_env_params, validate
-
-
-class CheckpointError(RuntimeError):
-    """A checkpoint is missing, unreadable, or does not match the requested config; or a run folder
-    cannot be written."""
-
-
-class RunFolderBusy(CheckpointError):
-    """Another ``icco train`` holds the run folder's lock, or its lock file is not one this project
-    may open (a link): the folder is left as it is."""
-
+from icco_torchrl.training.replay_dump import (
+    dump_id_of,
+    load_replay,
+    previous_dump,
+    save_replay,
+)
+from icco_torchrl.training.run_folder import (
+    CHECKPOINT,
+    REPLAY_DIR,
+    CheckpointError,
+    one_line,
+    remove_stale_temps,
+    write_atomically,
+)
 
 # 2: agent embeds the previous action with nn.Embedding, attention keys have no bias.
 FORMAT_VERSION = 2
-CHECKPOINT = "checkpoint.pt"  # a run's checkpoint, in its run folder
-REPLAY_DIR = "replay"  # the replay buffer dump beside it (train.checkpoint_buffer)
-LOCK_FILE = ".train.lock"  # held by the icco train writing the folder
-REFERENCES_FILE = "references.json"  # the reference policies' evaluation, beside eval.csv
+
 
 # What an exported policy keeps (:func:`export_policy`); with ``loss``, what every checkpoint has.
 POLICY_KEYS = ("format_version", "cfg", "layout", "frames", "updates")
@@ -84,6 +71,7 @@ METHOD_FIELDS_ADDED = {
     "mixer": "qmix",
     "posterior_input": "flat",
     "broadcast_threshold": 0.0,
+    "reward_channels": "team",
 }
 # Options measured and dropped from the library, with the only value it still builds: a checkpoint
 # trained with another value is refused in one line naming the commit that can load it.
@@ -118,51 +106,7 @@ def _upgrade(payload: dict, path: Path) -> dict:
     return payload
 
 
-# ---------------------------------------------------------------- writing files
-def _temp_pattern(name: str) -> re.Pattern:
-    """Names of the temp files/folders made by
-    ``tempfile.mk*temp(prefix=f".{name}.", suffix=".tmp")``."""
-    return re.compile(rf"\.{re.escape(name)}\.[a-z0-9_]{{8}}\.tmp")
-
-
-def _remove_stale_temps(path: Path) -> None:
-    """Delete temp files/folders of ``path`` left by a process killed while writing it."""
-    pattern = _temp_pattern(path.name)
-    if not path.parent.is_dir():
-        return
-    for entry in path.parent.iterdir():
-        if pattern.fullmatch(entry.name):
-            if entry.is_dir() and not entry.is_symlink():
-                shutil.rmtree(entry, ignore_errors=True)
-            else:
-                entry.unlink(missing_ok=True)
-
-
-def _write_all(fd: int, data) -> None:
-    """Write every byte of ``data`` to ``fd`` (plain ``write`` calls: a full disk raises ENOSPC)."""
-    view = memoryview(data).cast("B")
-    while view:
-        view = view[os.write(fd, view[: 1 << 24]) :]
-
-
-def _free_bytes(folder: Path) -> int:
-    """Free space in ``folder`` for this user."""
-    return shutil.disk_usage(folder).free
-
-
-def _cannot_write(what: str, path: Path, err: OSError) -> CheckpointError:
-    """One line for a failed write: a full disk, a read-only folder, no permission."""
-    reason = err.strerror or str(err) or type(err).__name__
-    hint = {
-        errno.ENOSPC: "free some space and run again",
-        errno.EDQUOT: "free some space and run again",
-        errno.EROFS: "write the run to a writable folder",
-        errno.EACCES: "write the run to a folder you may write",
-        errno.EPERM: "write the run to a folder you may write",
-    }.get(err.errno, "check the folder and run again")
-    return CheckpointError(f"cannot write {what} {path}: {reason}; {hint}")
-
-
+# ---------------------------------------------------------------- the file format
 def _to_plain(obj):
     """``obj`` with numpy arrays and scalars as tensors and Python scalars (weights-only)."""
     if isinstance(obj, dict):
@@ -199,39 +143,12 @@ def save_checkpoint(path: str | Path, payload: dict[str, Any]) -> Path:
     The file is serialised in memory first and written with plain writes, so a full disk or a
     read-only folder is one :class:`CheckpointError` line naming ``path``, and no temp file is
     left behind."""
-    path = Path(path)
     buffer = io.BytesIO()
     torch.save(_to_plain({"format_version": FORMAT_VERSION, **payload}), buffer)
-    tmp = None
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        _remove_stale_temps(path)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-        try:
-            _write_all(fd, buffer.getbuffer())
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-        os.replace(tmp, path)
-    except OSError as err:
-        raise _cannot_write("checkpoint", path, err) from None
-    finally:
-        if tmp is not None and os.path.exists(tmp):
-            os.unlink(tmp)
-    return path
+    return write_atomically(Path(path), buffer.getbuffer(), "checkpoint")
 
 
 # ---------------------------------------------------------------- reading files
-def _one_line(err: Exception) -> str:
-    """The informative line of an exception message (torch's weights-only errors span a page)."""
-    text = str(err)
-    marker = re.search(r"WeightsUnpickler error:?\s*(\S[^\n]*)", text)
-    if marker:
-        return marker.group(1).strip()
-    lines = [line.strip() for line in text.splitlines() if line.strip()]
-    return (lines or [type(err).__name__])[0][:200]
-
-
 def _legacy_numpy_globals() -> list:
     """What checkpoints written before the weights-only format need: numpy's ndarray rebuild.
 
@@ -273,7 +190,7 @@ def _read_error(path: Path, err: Exception) -> CheckpointError:
         head = handle.read(4)
     if head.startswith(b"PK\x03\x04") and not _refused_by_the_unpickler(err):
         return CheckpointError(
-            f"checkpoint {path} is truncated or damaged ({type(err).__name__}: {_one_line(err)}): "
+            f"checkpoint {path} is truncated or damaged ({type(err).__name__}: {one_line(err)}): "
             "use an earlier copy, or train again"
         )
     if head.startswith(b"PK") or head[:1] == b"\x80":  # a zip archive of torch.save, or a pickle
@@ -281,7 +198,7 @@ def _read_error(path: Path, err: Exception) -> CheckpointError:
         what = (
             f"refers to {unsafe.group(1)}, which a checkpoint never holds"
             if unsafe
-            else (f"holds something a checkpoint never holds ({_one_line(err)})")
+            else (f"holds something a checkpoint never holds ({one_line(err)})")
         )
         return CheckpointError(
             f"checkpoint {path} {what}: refusing to load it (a crafted or foreign file)"
@@ -471,95 +388,7 @@ def check_resume_overrides(saved: dict, cfg: dict, path) -> None:
         )
 
 
-# ---------------------------------------------------------------- the run folder
-class RunFolderLock:
-    """An exclusive lock on a run folder (``flock`` on :data:`LOCK_FILE`), held while ``icco train``
-    writes it: a second writer (two resumes of one checkpoint, two runs given one
-    ``hydra.run.dir``) is refused in one line instead of both writing the same files. The lock
-    goes with the process, however it ends; the file stays (deleting it would race).
-
-    The lock file is opened without following links: in a run folder received from elsewhere a
-    ``.train.lock`` that is a symbolic link (or no plain file) is refused in one line, and whatever
-    it points to is left untouched."""
-
-    def __init__(self, run_dir: str | Path):
-        self.run_dir = Path(run_dir)
-        self._fd: int | None = None
-
-    def __enter__(self) -> RunFolderLock:
-        path = self.run_dir / LOCK_FILE
-        flags = os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC
-        try:
-            self.run_dir.mkdir(parents=True, exist_ok=True)
-            fd = os.open(path, flags, 0o644)
-        except OSError as err:
-            if err.errno == errno.ELOOP:  # O_NOFOLLOW met a link
-                raise self._not_a_lock_file("a symbolic link") from None
-            raise _cannot_write("the run folder", self.run_dir, err) from None
-        if not stat.S_ISREG(os.fstat(fd).st_mode):  # a FIFO or a device: not ours to write
-            os.close(fd)
-            raise self._not_a_lock_file("no plain file")
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            holder = os.pread(fd, 64, 0).decode(errors="replace").strip() or "?"
-            os.close(fd)
-            raise RunFolderBusy(
-                f"run folder {self.run_dir} is in use by another icco train (pid {holder}): "
-                "wait for it to end, or stop it first"
-            ) from None
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
-        self._fd = fd
-        return self
-
-    def _not_a_lock_file(self, what: str) -> RunFolderBusy:
-        return RunFolderBusy(
-            f"run folder {self.run_dir}: its {LOCK_FILE} is {what}, not a lock file; refusing to "
-            f"open it: delete {self.run_dir / LOCK_FILE} and run again"
-        )
-
-    def __exit__(self, *exc) -> None:
-        if self._fd is not None:
-            os.close(self._fd)  # releases the lock
-            self._fd = None
-
-
-def fresh_outputs() -> dict:
-    """What a run has written after its last frame: nothing yet."""
-    return {"final_evaluation": False, "final_metrics": {}, "learning_curve": False}
-
-
-def outputs_of(ckpt: dict, run_dir: str | Path) -> dict:
-    """Whether the final evaluation (and its metrics) and the learning curve of the checkpoint's
-    last frame were written. Checkpoints written before this was recorded count as complete when
-    their learning curve exists."""
-    if isinstance(ckpt.get("outputs"), dict):
-        return {**fresh_outputs(), **ckpt["outputs"]}
-    done = (Path(run_dir) / "learning_curve.png").is_file()
-    return {**fresh_outputs(), "final_evaluation": done, "learning_curve": done}
-
-
-def last_evaluation(run_dir: str | Path, frames: int) -> dict | None:
-    """The metrics of ``eval.csv``'s last row when it is at ``frames`` (a stopped run's evaluation
-    of its last frame), else None."""
-    path = Path(run_dir) / "eval.csv"
-    if not path.is_file():
-        return None
-    with path.open(newline="") as handle:
-        rows = list(csv.DictReader(handle))
-    if not rows or not rows[-1].get("frames") or float(rows[-1]["frames"]) != frames:
-        return None
-    out = {}
-    for key, value in rows[-1].items():
-        try:
-            out[key] = float(value)
-        except (TypeError, ValueError):
-            out[key] = math.nan
-    out.pop("frames", None)
-    return out
-
-
+# ---------------------------------------------------------------- a run's checkpoint and its dump
 def save_run(
     run_dir: str | Path, payload: dict, buffer=None, *, replay_id: str | None = None
 ) -> tuple[Path, str | None]:
@@ -583,7 +412,7 @@ def save_run(
     payload.setdefault("replay_segments", 0)
     path = save_checkpoint(run_dir / CHECKPOINT, payload)
     if buffer is not None:
-        shutil.rmtree(_previous(dump), ignore_errors=True)  # no checkpoint names it any more
+        shutil.rmtree(previous_dump(dump), ignore_errors=True)  # no checkpoint names it any more
     return path, replay_id
 
 
@@ -597,14 +426,14 @@ def restore_replay(buffer, run_dir: str | Path, ckpt: dict, path: str | Path) ->
     if not ckpt.get("replay_segments"):
         return None
     dump = Path(run_dir) / REPLAY_DIR
-    _remove_stale_temps(dump)
+    remove_stale_temps(dump)
     expected = ckpt.get("replay_id")
     if expected is None:  # written before dumps had ids
         return _restored(buffer, dump, load_replay(buffer, dump), run_dir)
-    previous = _previous(dump)
-    if _dump_id(dump) == expected:
+    previous = previous_dump(dump)
+    if dump_id_of(dump) == expected:
         return _restored(buffer, dump, load_replay(buffer, dump), run_dir)
-    if _dump_id(previous) == expected:
+    if dump_id_of(previous) == expected:
         newer = dump.is_dir()
         shutil.rmtree(dump, ignore_errors=True)
         os.replace(previous, dump)
@@ -619,7 +448,7 @@ def restore_replay(buffer, run_dir: str | Path, ckpt: dict, path: str | Path) ->
     if dump.is_dir() or previous.is_dir():
         found = dump if dump.is_dir() else previous
         raise CheckpointError(
-            f"replay buffer dump {found} (id {_dump_id(found)}) is not the one {path} was saved "
+            f"replay buffer dump {found} (id {dump_id_of(found)}) is not the one {path} was saved "
             f"with (id {expected}): delete {found} to resume with an empty buffer"
         )
     return _restored(buffer, dump, None, run_dir)
@@ -629,259 +458,3 @@ def _restored(buffer, dump: Path, loaded: Path | None, run_dir) -> str:
     if loaded is None:
         return f"no replay buffer dump in {run_dir}: resuming with an empty buffer (warm-up again)"
     return f"replay buffer restored: {len(buffer)} segments"
-
-
-def _previous(dump: Path) -> Path:
-    """Where :func:`save_replay` keeps the previous dump while the new one is swapped in."""
-    return dump.with_name(f".{dump.name}.old")
-
-
-def _dump_id(dump: Path) -> str | None:
-    """The id in a dump's manifest (None without one)."""
-    try:
-        manifest = json.loads((dump / MANIFEST).read_text())
-    except (OSError, ValueError):
-        return None
-    return manifest.get("id") if isinstance(manifest, dict) else None
-
-
-# ---------------------------------------------------------------- replay buffer dumps
-# A dump is ``storage/`` (the filled segments: one raw C-order file per key, no pickle) and
-# ``manifest.json`` (its id, segment count, writer position, every key's dtype and shape, and the
-# size and CRC-32 of every file), written last: a dump without a valid manifest is never loaded.
-# Format 1 (a memory-mapped TensorDict under ``storage/``) is still read.
-REPLAY_FORMAT = 2
-MANIFEST = "manifest.json"
-STORAGE_DIR = "storage"
-_DTYPES = {
-    str(d): d
-    for d in (
-        torch.float16,
-        torch.bfloat16,
-        torch.float32,
-        torch.float64,
-        torch.uint8,
-        torch.int8,
-        torch.int16,
-        torch.int32,
-        torch.int64,
-        torch.bool,
-    )
-}
-
-
-def _file_digest(file: Path) -> dict:
-    crc = 0
-    with open(file, "rb") as handle:
-        while chunk := handle.read(1 << 22):
-            crc = zlib.crc32(chunk, crc)
-    return {"bytes": file.stat().st_size, "crc32": crc}
-
-
-def _leaves(data) -> list[tuple[str, torch.Tensor]]:
-    """``(name, tensor)`` of every leaf of a TensorDict, nested keys joined by ``/``."""
-    out = []
-    for key, value in data.items(include_nested=True, leaves_only=True):
-        out.append(("/".join(key) if isinstance(key, tuple) else key, value))
-    return sorted(out)
-
-
-def _dump_buffer(buffer, folder: Path, dump_id: str | None) -> None:
-    """Write the filled part of ``buffer``'s storage and its writer position into ``folder``:
-    plain writes of every key's bytes (a full disk raises ENOSPC there, never a SIGBUS of a memory
-    map), after checking that the folder's disk has room for them."""
-    storage, writer = buffer.storage, buffer.writer
-    if storage.ndim != 1:
-        raise ValueError(f"save_replay supports storages with ndim=1, got ndim={storage.ndim}")
-    n = len(storage)
-    data = storage._storage[:n] if n else None
-    leaves = _leaves(data) if n else []
-    needed = sum(t.numel() * t.element_size() for _, t in leaves)
-    free = _free_bytes(folder)
-    if needed + (1 << 20) > free:
-        raise OSError(
-            errno.ENOSPC,
-            f"No space left on device (the dump needs {needed / 1e6:.1f} MB, "
-            f"{free / 1e6:.1f} MB are free)",
-        )
-    tensors, files = {}, {}
-    for name, tensor in leaves:  # only the filled slots: a dump is sized by what it holds
-        rel = f"{STORAGE_DIR}/{name}.memmap"
-        file = folder / rel
-        file.parent.mkdir(parents=True, exist_ok=True)
-        raw = tensor.detach().cpu().contiguous().reshape(-1).view(torch.uint8).numpy()
-        fd = os.open(file, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
-        try:
-            _write_all(fd, raw)
-        finally:
-            os.close(fd)
-        tensors[name] = {"dtype": str(tensor.dtype), "shape": list(tensor.shape)}
-        files[rel] = {"bytes": raw.nbytes, "crc32": zlib.crc32(raw)}
-    manifest = {
-        "format": REPLAY_FORMAT,
-        "id": dump_id,
-        "segments": n,
-        "batch_size": list(data.batch_size) if n else [0],
-        "capacity": storage.max_size,
-        "cursor": int(writer._cursor),
-        "write_count": int(writer._write_count),
-        "tensors": tensors,
-        "files": files,
-    }
-    fd = os.open(folder / MANIFEST, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
-    try:
-        _write_all(fd, json.dumps(manifest, indent=1).encode())
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-def save_replay(
-    buffer, path: str | Path, *, dump_id: str | None = None, keep_previous: bool = False
-) -> Path:
-    """Dump a TorchRL replay buffer (its filled segments and writer position) into the directory
-    ``path``, tagged with ``dump_id``.
-
-    Written to a temporary directory first and swapped in, so an interrupted write leaves the
-    previous dump (or ``.<name>.old`` during the swap) intact; temp directories of a writer that
-    was killed are removed first. With ``keep_previous`` the previous dump stays as
-    ``.<name>.old`` (:func:`save_run` drops it once the checkpoint names the new one). A full disk
-    or a read-only folder is one :class:`CheckpointError` line naming ``path``, and leaves no temp
-    folder."""
-    path = Path(path)
-    old = _previous(path)
-    tmp = None
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        _remove_stale_temps(path)
-        tmp = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp"))
-        _dump_buffer(buffer, tmp, dump_id)
-        shutil.rmtree(old, ignore_errors=True)
-        if path.exists():
-            os.replace(path, old)
-        os.replace(tmp, path)
-        if not keep_previous:
-            shutil.rmtree(old, ignore_errors=True)
-    except OSError as err:
-        raise _cannot_write("the replay buffer dump", path, err) from None
-    finally:
-        if tmp is not None:
-            shutil.rmtree(tmp, ignore_errors=True)
-    return path
-
-
-def _damaged(path: Path, what: str) -> CheckpointError:
-    return CheckpointError(
-        f"replay buffer dump {path} is damaged: {what}; delete {path} to resume with an "
-        "empty buffer (the checkpoint itself is intact)"
-    )
-
-
-def _read_manifest(path: Path) -> dict:
-    """The manifest of the dump ``path``, after checking every file it lists (size, then CRC-32)."""
-    try:
-        manifest = json.loads((path / MANIFEST).read_text())
-    except FileNotFoundError:
-        raise _damaged(
-            path,
-            f"{MANIFEST} is missing (an interrupted dump, or one written by an older icco-torchrl)",
-        ) from None
-    except (OSError, ValueError) as err:
-        raise _damaged(path, f"{MANIFEST} is unreadable ({type(err).__name__})") from None
-    keys = {"format", "segments", "capacity", "cursor", "write_count", "files"}
-    if (
-        not isinstance(manifest, dict)
-        or manifest.get("format") not in (1, REPLAY_FORMAT)
-        or not keys <= set(manifest)
-        or not isinstance(manifest["files"], dict)
-        or (manifest["format"] == 2 and not isinstance(manifest.get("tensors"), dict))
-    ):
-        raise _damaged(path, f"{MANIFEST} is not a replay manifest of format 1 or {REPLAY_FORMAT}")
-    root = path.resolve()
-    for name, expected in manifest["files"].items():
-        file = (path / name).resolve()
-        if root not in file.parents:
-            raise _damaged(path, f"{MANIFEST} lists {name}, outside the dump")
-        if not isinstance(expected, dict) or set(expected) != {"bytes", "crc32"}:
-            raise _damaged(path, f"{MANIFEST} has a malformed entry for {name}")
-        if not file.is_file():
-            raise _damaged(path, f"{name} is missing")
-        size = file.stat().st_size
-        if size != expected["bytes"]:
-            raise _damaged(path, f"{name} has {size} bytes, expected {expected['bytes']}")
-        if _file_digest(file)["crc32"] != expected["crc32"]:
-            raise _damaged(path, f"{name} does not match its checksum")
-    return manifest
-
-
-def _read_dump(path: Path, manifest: dict):
-    """The dumped segments of a format-2 dump as a TensorDict (its files were checked)."""
-    from tensordict import TensorDict
-
-    n = manifest["segments"]
-    out = {}
-    for name, meta in manifest["tensors"].items():
-        rel = f"{STORAGE_DIR}/{name}.memmap"
-        if rel not in manifest["files"] or meta.get("dtype") not in _DTYPES:
-            raise _damaged(path, f"{MANIFEST} has a malformed entry for {name}")
-        raw = torch.frombuffer(bytearray((path / rel).read_bytes()), dtype=torch.uint8)
-        tensor = raw.view(_DTYPES[meta["dtype"]]).reshape(meta["shape"])
-        out[tuple(name.split("/"))] = tensor
-    batch = manifest.get("batch_size") or [n]
-    if batch[0] != n:
-        raise _damaged(path, f"{STORAGE_DIR} holds {batch[0]} segments, the manifest {n}")
-    return TensorDict(out, batch_size=batch)
-
-
-def _restore_buffer(buffer, path: Path, manifest: dict) -> None:
-    """Write the dumped segments back into the slots they came from and restore the writer."""
-    from tensordict import TensorDict
-
-    n, cursor, count = manifest["segments"], manifest["cursor"], manifest["write_count"]
-    if not n:
-        return
-    if manifest["format"] == 1:
-        data = TensorDict.load_memmap(path / STORAGE_DIR, allow_pickle=False)
-    else:
-        data = _read_dump(path, manifest)
-    if data.batch_size[0] != n:
-        raise _damaged(path, f"{STORAGE_DIR} holds {data.batch_size[0]} segments, the manifest {n}")
-    if isinstance(
-        buffer.storage.device, torch.device
-    ):  # indexed writes need data on the storage's device
-        data = data.to(buffer.storage.device)
-    capacity = buffer.storage.max_size
-    if manifest["capacity"] != capacity:  # train.buffer_segments changed: keep the newest, in order
-        if n == manifest["capacity"]:  # a full ring buffer: the oldest segment is at the cursor
-            data = torch.cat([data[cursor:], data[:cursor]])
-        data = data[-capacity:]
-        n = data.batch_size[0]
-        cursor = n % capacity
-    buffer.storage.set(torch.arange(n), data)  # copies into the storage's own (lazily made) tensors
-    buffer.writer._cursor, buffer.writer._write_count = cursor, count
-
-
-def load_replay(buffer, path: str | Path) -> Path | None:
-    """Fill ``buffer`` from a :func:`save_replay` dump; returns the dump read, or None when there
-    is none to read.
-
-    Every file is checked against the dump's manifest first: a truncated, missing or altered
-    file is a one-line :class:`CheckpointError`, never a silently partial buffer.
-    """
-    path = Path(path)
-    _remove_stale_temps(path)
-    if not path.is_dir():
-        path = _previous(path)  # a swap was interrupted
-    if not path.is_dir():
-        return None
-    manifest = _read_manifest(path)
-    try:
-        _restore_buffer(buffer, path, manifest)
-    except CheckpointError:
-        raise
-    except Exception as err:  # a foreign dump: one clear line, not a torch traceback
-        raise CheckpointError(
-            f"replay buffer dump {path} is unreadable ({type(err).__name__}: {_one_line(err)}); "
-            "delete it to resume with an empty buffer"
-        ) from None
-    return path

@@ -14,7 +14,6 @@ from omegaconf import OmegaConf
 from icco_torchrl.training.build import EVAL_SEED_OFFSET, Run, build
 from icco_torchrl.training.checkpoint import (  # noqa: F401 (export_policy: its old home)
     POLICY_KEYS,
-    CheckpointError,
     check_compatible,
     export_policy,
     load_checkpoint,
@@ -22,6 +21,7 @@ from icco_torchrl.training.checkpoint import (  # noqa: F401 (export_policy: its
     policy_weights,
 )
 from icco_torchrl.training.config import resolve_device, validate
+from icco_torchrl.training.run_folder import CheckpointError
 
 # The networks that act (the policy): at another team size only their weights are loaded.
 ACTING = (

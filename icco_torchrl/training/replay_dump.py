@@ -1,0 +1,289 @@
+"""Replay buffer dumps: the filled part of a TorchRL replay buffer as raw arrays (no pickle, no
+memory mapping while writing, so a full disk is an error, not a SIGBUS) with a checksummed
+manifest, so a damaged dump is refused instead of resuming on garbage.
+
+A dump is swapped in whole (:func:`save_replay`): an interrupted write leaves the previous dump
+(or :func:`previous_dump` during the swap). Which dump a checkpoint names, and which one a
+resume takes, is :mod:`.checkpoint`'s (``save_run``, ``restore_replay``).
+"""
+
+from __future__ import annotations
+
+import errno
+import json
+import os
+import shutil
+import tempfile
+import zlib
+from pathlib import Path
+
+import torch
+
+from icco_torchrl.training.run_folder import (
+    CheckpointError,
+    cannot_write,
+    one_line,
+    remove_stale_temps,
+    write_all,
+)
+
+# ---------------------------------------------------------------- replay buffer dumps
+# A dump is ``storage/`` (the filled segments: one raw C-order file per key, no pickle) and
+# ``manifest.json`` (its id, segment count, writer position, every key's dtype and shape, and the
+# size and CRC-32 of every file), written last: a dump without a valid manifest is never loaded.
+# Format 1 (a memory-mapped TensorDict under ``storage/``) is still read.
+REPLAY_FORMAT = 2
+MANIFEST = "manifest.json"
+STORAGE_DIR = "storage"
+_DTYPES = {
+    str(d): d
+    for d in (
+        torch.float16,
+        torch.bfloat16,
+        torch.float32,
+        torch.float64,
+        torch.uint8,
+        torch.int8,
+        torch.int16,
+        torch.int32,
+        torch.int64,
+        torch.bool,
+    )
+}
+
+
+def _file_digest(file: Path) -> dict:
+    crc = 0
+    with open(file, "rb") as handle:
+        while chunk := handle.read(1 << 22):
+            crc = zlib.crc32(chunk, crc)
+    return {"bytes": file.stat().st_size, "crc32": crc}
+
+
+def _leaves(data) -> list[tuple[str, torch.Tensor]]:
+    """``(name, tensor)`` of every leaf of a TensorDict, nested keys joined by ``/``."""
+    out = []
+    for key, value in data.items(include_nested=True, leaves_only=True):
+        out.append(("/".join(key) if isinstance(key, tuple) else key, value))
+    return sorted(out)
+
+
+def _free_bytes(folder: Path) -> int:
+    """Free space in ``folder`` for this user."""
+    return shutil.disk_usage(folder).free
+
+
+def _dump_buffer(buffer, folder: Path, dump_id: str | None) -> None:
+    """Write the filled part of ``buffer``'s storage and its writer position into ``folder``:
+    plain writes of every key's bytes (a full disk raises ENOSPC there, never a SIGBUS of a memory
+    map), after checking that the folder's disk has room for them."""
+    storage, writer = buffer.storage, buffer.writer
+    if storage.ndim != 1:
+        raise ValueError(f"save_replay supports storages with ndim=1, got ndim={storage.ndim}")
+    n = len(storage)
+    data = storage._storage[:n] if n else None
+    leaves = _leaves(data) if n else []
+    needed = sum(t.numel() * t.element_size() for _, t in leaves)
+    free = _free_bytes(folder)
+    if needed + (1 << 20) > free:
+        raise OSError(
+            errno.ENOSPC,
+            f"No space left on device (the dump needs {needed / 1e6:.1f} MB, "
+            f"{free / 1e6:.1f} MB are free)",
+        )
+    tensors, files = {}, {}
+    for name, tensor in leaves:  # only the filled slots: a dump is sized by what it holds
+        rel = f"{STORAGE_DIR}/{name}.memmap"
+        file = folder / rel
+        file.parent.mkdir(parents=True, exist_ok=True)
+        raw = tensor.detach().cpu().contiguous().reshape(-1).view(torch.uint8).numpy()
+        fd = os.open(file, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+        try:
+            write_all(fd, raw)
+        finally:
+            os.close(fd)
+        tensors[name] = {"dtype": str(tensor.dtype), "shape": list(tensor.shape)}
+        files[rel] = {"bytes": raw.nbytes, "crc32": zlib.crc32(raw)}
+    manifest = {
+        "format": REPLAY_FORMAT,
+        "id": dump_id,
+        "segments": n,
+        "batch_size": list(data.batch_size) if n else [0],
+        "capacity": storage.max_size,
+        "cursor": int(writer._cursor),
+        "write_count": int(writer._write_count),
+        "tensors": tensors,
+        "files": files,
+    }
+    fd = os.open(folder / MANIFEST, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+    try:
+        write_all(fd, json.dumps(manifest, indent=1).encode())
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def save_replay(
+    buffer, path: str | Path, *, dump_id: str | None = None, keep_previous: bool = False
+) -> Path:
+    """Dump a TorchRL replay buffer (its filled segments and writer position) into the directory
+    ``path``, tagged with ``dump_id``.
+
+    Written to a temporary directory first and swapped in, so an interrupted write leaves the
+    previous dump (or ``.<name>.old`` during the swap) intact; temp directories of a writer that
+    was killed are removed first. With ``keep_previous`` the previous dump stays as
+    ``.<name>.old`` (:func:`~icco_torchrl.training.checkpoint.save_run` drops it once the
+    checkpoint names the new one). A full disk or a read-only folder is one
+    :class:`CheckpointError` line naming ``path``, and leaves no temp folder."""
+    path = Path(path)
+    old = previous_dump(path)
+    tmp = None
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        remove_stale_temps(path)
+        tmp = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp"))
+        _dump_buffer(buffer, tmp, dump_id)
+        shutil.rmtree(old, ignore_errors=True)
+        if path.exists():
+            os.replace(path, old)
+        os.replace(tmp, path)
+        if not keep_previous:
+            shutil.rmtree(old, ignore_errors=True)
+    except OSError as err:
+        raise cannot_write("the replay buffer dump", path, err) from None
+    finally:
+        if tmp is not None:
+            shutil.rmtree(tmp, ignore_errors=True)
+    return path
+
+
+def _damaged(path: Path, what: str) -> CheckpointError:
+    return CheckpointError(
+        f"replay buffer dump {path} is damaged: {what}; delete {path} to resume with an "
+        "empty buffer (the checkpoint itself is intact)"
+    )
+
+
+def _read_manifest(path: Path) -> dict:
+    """The manifest of the dump ``path``, after checking every file it lists (size, then CRC-32)."""
+    try:
+        manifest = json.loads((path / MANIFEST).read_text())
+    except FileNotFoundError:
+        raise _damaged(
+            path,
+            f"{MANIFEST} is missing (an interrupted dump, or one written by an older icco-torchrl)",
+        ) from None
+    except (OSError, ValueError) as err:
+        raise _damaged(path, f"{MANIFEST} is unreadable ({type(err).__name__})") from None
+    keys = {"format", "segments", "capacity", "cursor", "write_count", "files"}
+    if (
+        not isinstance(manifest, dict)
+        or manifest.get("format") not in (1, REPLAY_FORMAT)
+        or not keys <= set(manifest)
+        or not isinstance(manifest["files"], dict)
+        or (manifest["format"] == 2 and not isinstance(manifest.get("tensors"), dict))
+    ):
+        raise _damaged(path, f"{MANIFEST} is not a replay manifest of format 1 or {REPLAY_FORMAT}")
+    root = path.resolve()
+    for name, expected in manifest["files"].items():
+        file = (path / name).resolve()
+        if root not in file.parents:
+            raise _damaged(path, f"{MANIFEST} lists {name}, outside the dump")
+        if not isinstance(expected, dict) or set(expected) != {"bytes", "crc32"}:
+            raise _damaged(path, f"{MANIFEST} has a malformed entry for {name}")
+        if not file.is_file():
+            raise _damaged(path, f"{name} is missing")
+        size = file.stat().st_size
+        if size != expected["bytes"]:
+            raise _damaged(path, f"{name} has {size} bytes, expected {expected['bytes']}")
+        if _file_digest(file)["crc32"] != expected["crc32"]:
+            raise _damaged(path, f"{name} does not match its checksum")
+    return manifest
+
+
+def _read_dump(path: Path, manifest: dict):
+    """The dumped segments of a format-2 dump as a TensorDict (its files were checked)."""
+    from tensordict import TensorDict
+
+    n = manifest["segments"]
+    out = {}
+    for name, meta in manifest["tensors"].items():
+        rel = f"{STORAGE_DIR}/{name}.memmap"
+        if rel not in manifest["files"] or meta.get("dtype") not in _DTYPES:
+            raise _damaged(path, f"{MANIFEST} has a malformed entry for {name}")
+        raw = torch.frombuffer(bytearray((path / rel).read_bytes()), dtype=torch.uint8)
+        tensor = raw.view(_DTYPES[meta["dtype"]]).reshape(meta["shape"])
+        out[tuple(name.split("/"))] = tensor
+    batch = manifest.get("batch_size") or [n]
+    if batch[0] != n:
+        raise _damaged(path, f"{STORAGE_DIR} holds {batch[0]} segments, the manifest {n}")
+    return TensorDict(out, batch_size=batch)
+
+
+def _restore_buffer(buffer, path: Path, manifest: dict) -> None:
+    """Write the dumped segments back into the slots they came from and restore the writer."""
+    from tensordict import TensorDict
+
+    n, cursor, count = manifest["segments"], manifest["cursor"], manifest["write_count"]
+    if not n:
+        return
+    if manifest["format"] == 1:
+        data = TensorDict.load_memmap(path / STORAGE_DIR, allow_pickle=False)
+    else:
+        data = _read_dump(path, manifest)
+    if data.batch_size[0] != n:
+        raise _damaged(path, f"{STORAGE_DIR} holds {data.batch_size[0]} segments, the manifest {n}")
+    if isinstance(
+        buffer.storage.device, torch.device
+    ):  # indexed writes need data on the storage's device
+        data = data.to(buffer.storage.device)
+    capacity = buffer.storage.max_size
+    if manifest["capacity"] != capacity:  # train.buffer_segments changed: keep the newest, in order
+        if n == manifest["capacity"]:  # a full ring buffer: the oldest segment is at the cursor
+            data = torch.cat([data[cursor:], data[:cursor]])
+        data = data[-capacity:]
+        n = data.batch_size[0]
+        cursor = n % capacity
+    buffer.storage.set(torch.arange(n), data)  # copies into the storage's own (lazily made) tensors
+    buffer.writer._cursor, buffer.writer._write_count = cursor, count
+
+
+def load_replay(buffer, path: str | Path) -> Path | None:
+    """Fill ``buffer`` from a :func:`save_replay` dump; returns the dump read, or None when there
+    is none to read.
+
+    Every file is checked against the dump's manifest first: a truncated, missing or altered
+    file is a one-line :class:`CheckpointError`, never a silently partial buffer.
+    """
+    path = Path(path)
+    remove_stale_temps(path)
+    if not path.is_dir():
+        path = previous_dump(path)  # a swap was interrupted
+    if not path.is_dir():
+        return None
+    manifest = _read_manifest(path)
+    try:
+        _restore_buffer(buffer, path, manifest)
+    except CheckpointError:
+        raise
+    except Exception as err:  # a foreign dump: one clear line, not a torch traceback
+        raise CheckpointError(
+            f"replay buffer dump {path} is unreadable ({type(err).__name__}: {one_line(err)}); "
+            "delete it to resume with an empty buffer"
+        ) from None
+    return path
+
+
+# ---------------------------------------------------------------- which dump is on disk
+def previous_dump(dump: Path) -> Path:
+    """Where :func:`save_replay` keeps the previous dump while the new one is swapped in."""
+    return dump.with_name(f".{dump.name}.old")
+
+
+def dump_id_of(dump: Path) -> str | None:
+    """The id in a dump's manifest (None without one)."""
+    try:
+        manifest = json.loads((dump / MANIFEST).read_text())
+    except (OSError, ValueError):
+        return None
+    return manifest.get("id") if isinstance(manifest, dict) else None
