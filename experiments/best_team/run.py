@@ -39,6 +39,11 @@ TEACHER = ["train.teacher='blend(defend=1.75)'", "train.teacher_envs=8", "train.
 SCREENS = {  # name: (lever, method, overrides)
     "icco": ("control", "icco", []),
     "icco_teacher": ("defend-first team's data, 25 % of every batch", "icco", TEACHER),
+    "icco_channels": (
+        "per-robot reward channels: each robot's own terms in a value of its own",
+        "icco",
+        ["method.reward_channels=per_robot"],
+    ),
     "qmix_full": ("control", "qmix_full", []),
     "qmix_full_teacher": (
         "defend-first team's data, 25 % of every batch",
@@ -46,7 +51,11 @@ SCREENS = {  # name: (lever, method, overrides)
         TEACHER,
     ),
 }
-LABELS = {"icco_teacher": "ICCO + teacher data", "qmix_full_teacher": "QMIX (FULL) + teacher data"}
+LABELS = {
+    "icco_teacher": "ICCO + teacher data",
+    "qmix_full_teacher": "QMIX (FULL) + teacher data",
+    "icco_channels": "ICCO, per-robot reward channels",
+}
 
 
 def train(out: Path, names, seeds, jobs: int) -> None:

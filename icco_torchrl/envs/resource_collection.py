@@ -10,6 +10,9 @@ Keys (``B = num_envs``, ``N = n_agents``, ``K = n_waypoints``)::
     ("agents", "waypoints")    [B, N, K, 2]      instruction vectors (input and output)
     ("agents", "action")       [B, N]            0 no-op, 1 -x, 2 +x, 3 -y, 4 +y
     ("agents", "reward")       [B, N, 1]         each robot's own reward   (in "next")
+    ("agents", "own_reward")   [B, N, 1]         with ``own_reward``: its instruction, pick and
+                                                 delivery terms (the rest, defense and invasion,
+                                                 is the team's)
     ("agents", "present")      [B, N, 1]  bool   which robots are in the team (see team_sizes)
     "state"                    [B, state_dim]    global state incl. everyone's waypoints
     "step_count"               [B, 1]            steps since reset (drives z and waypoint refresh)
@@ -168,6 +171,9 @@ class ResourceCollectionEnv(EnvBase):
         invader_min_radius: with ``spawn="uniform"``, invaders spawn at least this far from
             home (1.5 m: about 8 invader steps).
         validate: check actions and supplied waypoints at every step (costs a device sync).
+        own_reward: also emit ``("agents", "own_reward")``, each robot's own reward terms
+            (instruction, pick, delivery) apart from the team's (defense, invasion), for a
+            learner with per-robot reward channels (``method.reward_channels``).
         team_sizes: team sizes to draw from at each reset, uniformly over the list (a size
             listed twice is drawn twice as often), each in ``1..n_agents``; robots ``0..k-1``
             are present. None (default): every env holds all ``n_agents`` robots and no random
@@ -220,6 +226,7 @@ class ResourceCollectionEnv(EnvBase):
         resource_min_radius: float = 1.5,
         invader_min_radius: float = 1.5,
         validate: bool = True,
+        own_reward: bool = False,
         team_sizes: tuple[int, ...] | list[int] | None = None,
     ):
         for name, value in dict(
@@ -295,6 +302,7 @@ class ResourceCollectionEnv(EnvBase):
         self.invader_speed, self.invader_respawn_max = invader_speed, invader_respawn_max
         self.resource_min_radius, self.validate = resource_min_radius, validate
         self.spawn, self.invader_min_radius = spawn, float(invader_min_radius)
+        self.own_reward = bool(own_reward)
 
         N, R, I, K = n_agents, n_resources, n_invaders, n_waypoints
         self.layout = ObsLayout(
@@ -346,6 +354,7 @@ class ResourceCollectionEnv(EnvBase):
                 observation=Unbounded((B, N, L.obs_dim), device=dev),
                 waypoints=Bounded(-self.half, self.half, (B, N, K, 2), device=dev),
                 present=Categorical(2, (B, N, 1), dtype=torch.bool, device=dev),
+                **({"own_reward": Unbounded((B, N, 1), device=dev)} if self.own_reward else {}),
                 shape=(B, N),
                 device=dev,
             ),
@@ -626,6 +635,7 @@ class ResourceCollectionEnv(EnvBase):
         zeros = torch.zeros(B, dtype=torch.int64, device=dev)
         false = torch.zeros(B, 1, dtype=torch.bool, device=dev)
         return self._output(
+            own_reward=torch.zeros(N, B, device=dev),
             events={**{k: zeros for k in _EVENTS}, "inst_reward": torch.zeros(B, device=dev)},
             done=false,
             terminated=false,
@@ -717,6 +727,7 @@ class ResourceCollectionEnv(EnvBase):
         truncated = (self.t >= self.max_steps).unsqueeze(-1)
         return self._output(
             agent_reward=d.agent_reward,
+            own_reward=d.own_reward,
             reward=d.agent_reward.sum(0).unsqueeze(-1),
             events=dict(zip(_EVENTS, d.counts), inst_reward=d.r_inst.sum(0)),
             done=truncated,
@@ -771,7 +782,11 @@ class ResourceCollectionEnv(EnvBase):
 
     # ------------------------------------------------------------------ observations
     def _output(
-        self, agent_reward: torch.Tensor | None = None, events: dict | None = None, **root
+        self,
+        agent_reward: torch.Tensor | None = None,
+        own_reward: torch.Tensor | None = None,
+        events: dict | None = None,
+        **root,
     ) -> TensorDictBase:
         """The TensorDict ``_reset``/``_step`` return: observation, state and ``root`` entries."""
         obs, state = self._observe()
@@ -780,6 +795,8 @@ class ResourceCollectionEnv(EnvBase):
         agents = {"observation": obs, "waypoints": wp, "present": self._present_bf.clone()}
         if agent_reward is not None:
             agents["reward"] = batch_first(agent_reward).unsqueeze(-1)
+        if self.own_reward:
+            agents["own_reward"] = batch_first(own_reward).unsqueeze(-1)
         return self._td(
             {
                 "agents": self._td(agents, self._agents_batch),

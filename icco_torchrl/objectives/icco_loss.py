@@ -110,6 +110,8 @@ class ICCOLoss(LossModule):
         shape. ``prev_action`` and ``rnn_hidden`` are read for recurrent agents, ``z``,
         ``z_noise`` and ``step_count`` with a coordinator, ``z_sent`` (which robots received a z,
         ``[S, T, N, 1]``) with an adaptive broadcast (a coordinator ``threshold > 0``).
+        ``own_reward`` (each robot's own reward terms, ``[S, T, N, 1]`` under ``"next"``) is read
+        for an agent with two value channels (per-robot reward channels).
         ``action_value`` is what the agent writes, ``local_value``/``global_value`` what the mixer
         reads/writes.
         """
@@ -125,6 +127,7 @@ class ICCOLoss(LossModule):
         step_count: NestedKey = "step_count"
         is_init: NestedKey = "is_init"
         reward: NestedKey = "reward"
+        own_reward: NestedKey = ("agents", "own_reward")
         done: NestedKey = "done"
         terminated: NestedKey = "terminated"
         mask: NestedKey = "mask"
@@ -184,6 +187,13 @@ class ICCOLoss(LossModule):
             raise ValueError(
                 "burn_in needs an agent with step(...) and sequence(..., return_hidden=True), "
                 "as RecurrentQNet has"
+            )
+        # Per-robot reward channels: the agent writes [own; team] values per action.
+        self.channels = int(getattr(net, "channels", 1))
+        if self.channels > 1 and not self._stepping_agent:
+            raise ValueError(
+                "an agent with value channels (per-robot reward channels) needs step(...) and "
+                "sequence(..., split=True), as RecurrentQNet has"
             )
         self.has_coordinator = coordinator is not None
         if hasattr(net, "z_dim") and self.has_coordinator != bool(net.z_dim):
@@ -260,6 +270,8 @@ class ICCOLoss(LossModule):
             keys += [k.z, k.z_noise] + ([k.z_sent] if self.threshold > 0 else [])
         keys += [k.step_count, k.mask]
         keys += [next_key(key) for key in (k.observation, k.state, k.reward, k.done)]
+        if self.channels > 1:
+            keys.append(next_key(k.own_reward))
         keys += [next_key(k.terminated), next_key(k.step_count)]
         local = unravel_key(k.local_value)
         for key in self.mixer.in_keys:
@@ -275,6 +287,8 @@ class ICCOLoss(LossModule):
         """The entries :meth:`forward` returns (``loss_*`` are summed by :func:`total_loss`; the
         others are detached summaries)."""
         keys = ("loss_td", "q_taken", "q_tot", "td_error")
+        if self.channels > 1:
+            keys += ("loss_td_robot",)
         if self.use_ce:
             keys += ("loss_ce", "ce_neg_entropy", "entropy")
             if self.posterior is not None:
@@ -327,31 +341,43 @@ class ICCOLoss(LossModule):
             with torch.no_grad():
                 z_tgt = self._z_sequence(x, self.target_coordinator_params, fresh)[0]
 
-        q_online, q_boot = self._q_online(x, z_on)  # [S, L, N, A], [S, N, A]
-        action = x["action"].long().unsqueeze(-1)
-        chosen = q_online.gather(-1, action).squeeze(-1)  # [S, L, N]
-        q_tot = self._mix(self.mixer_params, chosen, x["mix"])
+        split = self.channels > 1  # per-robot reward channels: [own; team] per action
+        q_online, q_boot = self._q_online(x, z_on)  # [S, L, N, (C,) A], [S, N, (C,) A]
+        chosen = _taken(q_online, x["action"].long().unsqueeze(-1))  # [S, L, N, (C)]
+        q_tot = self._mix(self.mixer_params, chosen[..., -1] if split else chosen, x["mix"])
         with torch.no_grad():
             q_target = self._q_sequence(self.target_agent_params, x, z_tgt)[:, 1:]
             if self.double_q:
                 greedy_source = torch.cat([q_online[:, 1:], q_boot.unsqueeze(1)], 1)
             else:
                 greedy_source = q_target
-            next_value = q_target.gather(-1, greedy_source.argmax(-1, keepdim=True)).squeeze(-1)
-            q_tot_next = self._mix(self.target_mixer_params, next_value, x["mix_next"])
-            target = self._targets(x, q_tot_next)
+            if split:  # a robot acts on the sum of its channels
+                greedy_source = greedy_source.sum(-2)
+            next_value = _taken(q_target, greedy_source.argmax(-1, keepdim=True))
+            team_next = next_value[..., -1] if split else next_value
+            q_tot_next = self._mix(self.target_mixer_params, team_next, x["mix_next"])
+            reward = x["reward"]
+            if split:  # the team's terms: what the robots' own terms leave of the team reward
+                reward = reward - x["own_reward"].sum(-1, keepdim=True)
+                own_target = self._targets(x, x["own_reward"], next_value[..., 0])  # [S, L, N]
+            target = self._targets(x, reward, q_tot_next)
 
         weight = self._loss_weight(x["mask"]).to(q_tot.dtype)  # [S, L]
         n_valid = weight.sum().clamp_min(1.0)
         td_error = (q_tot - target).squeeze(-1)  # [S, L]
         # per-robot summaries average the present robots (absent ones: all-zero state tokens)
-        robot_weight = weight.unsqueeze(-1) * present_robots(self, x["state"], chosen.shape[-1])
+        robot_weight = weight.unsqueeze(-1) * present_robots(self, x["state"], chosen.shape[2])
+        n_robots = robot_weight.sum().clamp_min(1.0)
+        taken = chosen.detach().sum(-1) if split else chosen.detach()
         out = {
             "loss_td": (weight * td_error.pow(2)).sum() / n_valid,
-            "q_taken": (robot_weight * chosen.detach()).sum() / robot_weight.sum().clamp_min(1.0),
+            "q_taken": (robot_weight * taken).sum() / n_robots,
             "q_tot": (weight * q_tot.detach().squeeze(-1)).sum() / n_valid,
             "td_error": (weight * td_error.detach().abs()).sum() / n_valid,
         }
+        if split:  # each robot's own value, on its own terms, over the present robot-steps
+            own_error = chosen[..., 0] - own_target
+            out["loss_td_robot"] = (robot_weight * own_error.pow(2)).sum() / n_robots
         if self.use_ce:
             out.update(self._consistency(x, z_on, loc_w, scale_w))
         return out
@@ -362,14 +388,15 @@ class ICCOLoss(LossModule):
             return mask
         return mask & (torch.arange(mask.shape[1], device=mask.device) >= self.burn_in)
 
-    def _targets(self, x: dict, q_tot_next: torch.Tensor) -> torch.Tensor:
-        """Lambda-return targets ``[S, L, 1]`` from the target ``Q_tot`` of each next state."""
+    def _targets(self, x: dict, reward: torch.Tensor, next_value: torch.Tensor) -> torch.Tensor:
+        """Lambda-return targets of ``reward`` from the target values of each next state: the
+        team's ``[S, L, 1]`` (``Q_tot``), or per robot ``[S, L, N]``."""
         mask = x["mask"]
         # The return of step t continues into step t+1 only within one episode (mask[t+1]).
         cont = torch.cat([mask[:, 1:], torch.zeros_like(mask[:, :1])], 1).unsqueeze(-1)
-        alive = (~x["terminated"]).to(q_tot_next.dtype)
+        alive = (~x["terminated"]).to(next_value.dtype)
         return lambda_returns(
-            x["reward"], alive, q_tot_next, cont, gamma=self.gamma, lmbda=self.td_lambda
+            reward, alive, next_value, cont, gamma=self.gamma, lmbda=self.td_lambda
         )
 
     def _check_finite(self, out: dict) -> None:
@@ -438,8 +465,14 @@ class ICCOLoss(LossModule):
         with params.to_module(self.agent, preserve_module_state=False):
             if not self._sequence_agent:
                 return self._call_agent(x, z_seq, slice(None))
+            split = {"split": True} if self.channels > 1 else {}
             return self.agent.module.sequence(
-                x["obs_seq"], x["prev_seq"], x["hidden"][:, 0], z=z_seq, state=self._agent_state(x)
+                x["obs_seq"],
+                x["prev_seq"],
+                x["hidden"][:, 0],
+                z=z_seq,
+                state=self._agent_state(x),
+                **split,
             )
 
     def _q_online(self, x: dict, z_seq) -> tuple[torch.Tensor, torch.Tensor | None]:
@@ -456,6 +489,7 @@ class ICCOLoss(LossModule):
                 q = net.sequence(obs, prev, h0, z=z_seq, state=self._agent_state(x))
                 return q[:, :L], (q[:, L].detach() if self.double_q else None)
             pieces, hidden = [], h0
+            split = {"split": True} if self.channels > 1 else {}
             for start, end, grad in ((0, B, False), (B, L, True)):  # burn-in, learned steps
                 if start == end:
                     continue
@@ -468,13 +502,16 @@ class ICCOLoss(LossModule):
                         z=_at(z_seq, steps),
                         state=self._agent_state(x, steps),
                         return_hidden=True,
+                        **split,
                     )
                 pieces.append(q)
             q_boot = None
             if self.double_q:  # one more step from the last hidden state, without autograd
                 with torch.no_grad():
                     state = self._agent_state(x, L)
-                    q_boot, _ = net.step(obs[:, L], prev[:, L], hidden, _at(z_seq, L), state)
+                    q_boot, _ = net.step(
+                        obs[:, L], prev[:, L], hidden, _at(z_seq, L), state, **split
+                    )
         return torch.cat(pieces, 1) if len(pieces) > 1 else pieces[0], q_boot
 
     def _call_agent(self, x: dict, z_seq, steps: slice) -> torch.Tensor:
@@ -611,6 +648,14 @@ def _is_plain(module, out_key) -> bool:
         and module._forward_pre_hooks == {}
         and [unravel_key(key) for key in module.out_keys] == [unravel_key(out_key)]
     )
+
+
+def _taken(q: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+    """The values of the actions ``index [..., N, 1]`` in ``q [..., N, A]`` -> ``[..., N]``, or in
+    every channel of ``q [..., N, C, A]`` -> ``[..., N, C]``."""
+    if q.dim() > index.dim():
+        index = index.unsqueeze(-2).expand(*q.shape[:-1], 1)
+    return q.gather(-1, index).squeeze(-1)
 
 
 def _at(value: torch.Tensor | None, steps) -> torch.Tensor | None:

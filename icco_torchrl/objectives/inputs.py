@@ -117,6 +117,10 @@ def read_sequences(loss, td: TensorDictBase) -> dict:
         reward=team_value(td, next_key(k.reward), N, "reward", loss.reward_reduction),
         terminated=team_value(td, next_key(k.terminated), N, "flag", loss.reward_reduction),
     )
+    x["own_reward"] = None
+    if loss.channels > 1:  # per-robot reward channels: each robot's own terms [S, L, N]
+        own = get_checked(td, next_key(k.own_reward), "[S, T, N, 1]", trailing=(N, 1))
+        x["own_reward"] = own.squeeze(-1)
     step_count = get_checked(
         td, k.step_count, "[S, T, 1]", trailing=(1,), optional=not loss.has_coordinator
     )

@@ -94,6 +94,10 @@ class MethodConfig:
     # Agents also read the nearest own waypoint and the path direction r_inst scores
     # (modules/waypoint_features.py).
     waypoint_features: bool = True
+    # Which rewards the Q-values learn: the team reward through the mixer | per robot, each
+    # robot's own terms (instruction, pick, delivery) in a value of its own beside the team's
+    # (defense, invasion) mixed as before; the robot acts on their sum (objectives/icco_loss.py).
+    reward_channels: str = _field("team", choices=("team", "per_robot"))
 
 
 # The fields added or removed since older checkpoints were written, and their upgrade, live with
