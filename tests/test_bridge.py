@@ -13,9 +13,10 @@ from conftest import bridge_with_fleet
 from icco_torchrl.envs import ResourceCollectionEnv
 from icco_torchrl.envs.reference_policies import make_reference_policy
 from icco_torchrl.live import LiveLoop
-from icco_torchrl.live.bridge import MAX_MESSAGE, Bridge, ProtocolError, parse_message
+from icco_torchrl.live.bridge import Bridge
 from icco_torchrl.live.dwa import RobotLimits, dwa_command
 from icco_torchrl.live.fleet import SimulatedFleet
+from icco_torchrl.live.wire import MAX_MESSAGE, ProtocolError, parse_message
 from icco_torchrl.modules.policy import make_policy
 from icco_torchrl.training.build import build_components, compose_config, make_env
 

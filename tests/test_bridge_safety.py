@@ -26,9 +26,11 @@ from conftest import ROOT
 from icco_torchrl.envs import ResourceCollectionEnv
 from icco_torchrl.envs.reference_policies import make_reference_policy
 from icco_torchrl.live import LiveLoop
-from icco_torchrl.live.bridge import LOG_EVERY, MAX_MESSAGE, MAX_ROBOT_ID, Bridge
+from icco_torchrl.live.bridge import Bridge
 from icco_torchrl.live.dwa import RobotLimits
+from icco_torchrl.live.guard import LOG_EVERY
 from icco_torchrl.live.loop import MAX_INSTRUCTION
+from icco_torchrl.live.wire import MAX_MESSAGE, MAX_ROBOT_ID
 
 LIMITS = RobotLimits()
 N = 3  # robots in the heuristic team

@@ -13,7 +13,15 @@ import torch
 
 from icco_torchrl.instructions import LLMPlanner
 from icco_torchrl.live import LiveLoop
-from icco_torchrl.live.loop import MAX_INSTRUCTION, MAX_REASON, planner_reading, short_reason
+from icco_torchrl.live.loop import MAX_INSTRUCTION
+from icco_torchrl.live.reading import (
+    MAX_REASON,
+    TAP_HINT,
+    planner_reading,
+    short_reason,
+    understood_phrases,
+    unused_words,
+)
 from icco_torchrl.modules.policy import make_policy
 from icco_torchrl.training.build import build_components, compose_config, make_env
 from icco_torchrl.training.config import ConfigError, validate
@@ -72,16 +80,44 @@ def test_ticks_step_the_team_and_report_it():
     assert isinstance(s.to_dict()["positions"], list)  # JSON-ready
 
 
-def test_the_plan_in_use_outlasts_the_episode_and_reset_forgets_it():
+def test_the_plan_in_use_outlasts_the_episode_and_a_reset_keeps_it():
     loop = team(planner=SlowPlanner(delay=0.0))
+    assert loop.snapshot().plan is None  # no instruction yet
     loop.instruct("Go right")
     assert loop.wait_for_plan(5).state == "used"
     states = [loop.tick() for _ in range(45)]
     assert states[39].episode == 1 and states[40].episode == 2
     assert all(np.allclose(x.waypoints, 1.5) for x in states[1:])  # a new episode keeps it
+    assert all(x.plan == "Go right" for x in states)
     assert loop.status.state == "used"
-    state = loop.reset()
-    assert state.episode == 3 and not np.allclose(loop.tick().waypoints, 1.5)
+    state = loop.reset()  # a reset is a new episode too: the instruction stays
+    assert state.episode == 3 and state.plan == "Go right" and np.allclose(state.waypoints, 1.5)
+    assert np.allclose(loop.tick().waypoints, 1.5) and loop.status.instruction == "Go right"
+    assert state.totals["reward"] == 0.0 and loop.status.state == "used"
+
+
+def test_each_state_says_how_far_each_robot_is_from_its_plan():
+    loop = team(planner=SlowPlanner(delay=0.0))
+    loop.instruct("Go right")
+    loop.wait_for_plan(5)
+    for s in (loop.tick(), loop.snapshot()):  # every waypoint at (1.5, 1.5): the distance to it
+        want = np.linalg.norm(s.positions - 1.5, axis=1)
+        assert np.allclose(s.plan_distance, want, atol=2e-3) and (want > 0.01).any()
+    assert isinstance(s.to_dict()["plan_distance"], list)
+
+
+def test_the_mean_over_finished_episodes_leaves_out_one_cut_short():
+    loop = team()  # episodes of 40 steps
+    first = [loop.tick() for _ in range(40)]
+    assert first[-1].finished == 0 and first[-1].finished_mean == {}
+    second = [loop.tick() for _ in range(40)]
+    after = loop.tick()
+    assert second[0].finished == 1 and after.finished == 2
+    want = {k: (first[-1].totals[k] + second[-1].totals[k]) / 2 for k in first[-1].totals}
+    assert after.finished_mean == pytest.approx(want)
+    loop.tick()
+    state = loop.reset()  # the episode under way was cut short: not a finished one
+    assert state.finished == 2 and state.finished_mean == pytest.approx(want)
 
 
 def test_a_checkpoint_plays_episodes_as_long_as_it_was_trained_on():
@@ -114,6 +150,10 @@ def test_an_unknown_instruction_is_reported_and_the_last_plan_kept():
     loop.instruct("make me a sandwich")
     status = loop.wait_for_plan(30)
     assert status.state == "fell back" and status.error
+    # The offline planner's list of what it understands comes with it, in full.
+    assert status.understood == understood_phrases("anything else", 3.25)
+    assert "spread out" in status.understood and "quadrant 1-4" in status.understood
+    assert status.unused is None and status.hint is None
     assert np.allclose(loop.tick().waypoints, planned)
     with pytest.raises(ValueError, match="non-empty"):
         loop.instruct("   ")
@@ -125,6 +165,35 @@ def test_an_unknown_instruction_is_reported_and_the_last_plan_kept():
     loop.instruct("flank the intruder")
     assert loop.wait_for_plan(30).reading == "defend home"
     assert [s.state for s in seen] == ["thinking", "used"] and seen[-1] is loop.status
+    # Words a keyword match did not use are named: "right" did not make it into the reading.
+    loop.instruct("Go right avoiding the invader")
+    status = loop.wait_for_plan(30)
+    assert status.reading == "defend home" and status.unused == ["right", "avoiding"]
+    loop.instruct("Go right")
+    assert loop.wait_for_plan(30).unused == [] and loop.status.understood is None
+
+
+def test_words_are_unused_only_when_the_reading_holds_without_them():
+    assert unused_words("flank the intruder", 3.25) == ["flank"]
+    assert unused_words("gather at the top, quickly!", 3.25) == ["quickly"]
+    assert unused_words("collect the resources", 3.25) == []  # either word alone would do
+    assert unused_words("make me a sandwich", 3.25) == []  # not understood at all
+    assert understood_phrases("Go right", 3.25) is None
+    assert understood_phrases("don't go left", 3.25) is None  # refused for its negation
+
+
+def test_a_reason_naming_the_task_aligned_prompt_says_how_to_turn_it_on():
+    loop = team(planner=LLMPlanner(fallback_on_error=True))  # the paper's plain prompt
+    loop.instruct("collect the resources")
+    status = loop.wait_for_plan(30)
+    assert status.state == "fell back" and "task-aligned prompt" in status.error
+    assert status.hint == TAP_HINT and "llm.prompt=tap" in status.hint
+    loop = team(planner=LLMPlanner(fallback_on_error=True, prompt="tap"))
+    loop.instruct("collect the resources")
+    assert loop.wait_for_plan(30).state == "used" and loop.status.hint is None
+    other = team(planner=SlowPlanner(delay=0.0))  # not the rule planner: no word lists
+    other.instruct("Go right")
+    assert other.wait_for_plan(5).unused is None
 
 
 def test_a_fall_back_reason_is_short():

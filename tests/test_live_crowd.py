@@ -21,9 +21,9 @@ from test_live_web import Tab, _get, _upgrade, served, smoke_team  # noqa: F401
 from icco_torchrl.envs import ResourceCollectionEnv
 from icco_torchrl.envs.reference_policies import make_reference_policy
 from icco_torchrl.live import LiveLoop
-from icco_torchrl.live.bridge import LOG_EVERY, Bridge
+from icco_torchrl.live.bridge import Bridge
 from icco_torchrl.live.cli import _warn_if_exposed
-from icco_torchrl.live.guard import GUESS_BURST, GUESS_RATE, redact_run_folder
+from icco_torchrl.live.guard import GUESS_BURST, GUESS_RATE, LOG_EVERY, redact_run_folder
 from icco_torchrl.live.web import CHANGE_BURST, CHANGE_RATE, SPARE_CONNECTIONS
 
 TOKEN = "udp-s3cret"

@@ -128,13 +128,15 @@ def test_two_tabs_watch_one_loop_and_either_can_instruct(served):
                 assert a.planner[-1]["reading"].startswith("line at the right side")
                 ticks = [t["tick"] for t in a.ticks]
                 assert ticks == sorted(ticks) and len(set(ticks)) == len(ticks)  # newest, in order
-                # The instruction is sent once per change of the planner's state, never per tick.
+                # The planner's status is sent once per change of its state, never per tick;
+                # ticks name the instruction whose plan is in use.
                 n = len(a.ticks)
                 await a.until(lambda: len(a.ticks) > n + 5)
-                with_text = [f for f in a.frames if "Go right" in f]
-                states = [json.loads(f)["state"] for f in with_text]  # thinking (may be
-                assert states[-1] == "used" and len(states) <= 2  # superseded before it is sent)
-                assert all("planner" not in t for t in a.ticks)
+                status = [json.loads(f) for f in a.frames if '"type": "planner"' in f]
+                states = [m["state"] for m in status if m["instruction"] == "Go right"]
+                assert states[-1] == "used" and len(states) <= 2  # thinking (may be superseded
+                assert all("planner" not in t for t in a.ticks)  # before it is sent)
+                assert all(t["plan"] == "Go right" for t in a.ticks[n:])
             assert a.errors == [] and b.errors == []
 
     asyncio.run(scenario())
@@ -172,11 +174,13 @@ def test_bad_requests_get_one_line_errors_and_the_team_keeps_its_plan(served):
                 await a.send(type="instruct", text="make me a sandwich")  # not understood
                 await a.until(lambda: a.planner[-1]["state"] == "fell back")
                 assert a.planner[-1]["error"] and a.planner[-1]["reading"] is None
+                assert "spread out" in a.planner[-1]["understood"]  # what it does understand
                 assert np.allclose(a.ticks[-1]["waypoints"], planned)
                 # The planner's reading of an instruction it maps to something else.
                 await a.send(type="instruct", text="flank the intruder")
                 await a.until(lambda: a.planner[-1]["state"] == "used")
                 assert a.planner[-1]["reading"] == "defend home" and not a.ws.closed
+                assert a.planner[-1]["unused"] == ["flank"] and a.planner[-1]["understood"] is None
 
     asyncio.run(scenario())
 
@@ -190,6 +194,10 @@ def test_pause_step_speed_reset_and_a_vanished_tab_never_stop_the_loop(served):
             gone = await session.ws_connect(url + "/ws")  # a tab that will vanish without closing
             async with Tab(session, url + "/ws") as a:
                 await a.until(lambda: len(a.ticks) > 5)
+                await a.send(type="instruct", text="Go right")
+                await a.until(lambda: a.planner and a.planner[-1]["state"] == "used")
+                await a.applied()
+                assert a.ticks[-1]["plan"] == "Go right"
                 await a.send(type="pause")
                 await a.until(lambda: a.ticks[-1]["paused"])
                 await asyncio.sleep(0.2)
@@ -202,6 +210,9 @@ def test_pause_step_speed_reset_and_a_vanished_tab_never_stop_the_loop(served):
                 await a.until(
                     lambda: a.ticks[-1]["totals"]["reward"] == 0.0 and a.ticks[-1]["step"] == 0
                 )
+                # A reset keeps the instruction: its plan goes on driving the team.
+                assert a.ticks[-1]["plan"] == "Go right" and a.planner[-1]["state"] == "used"
+                assert (np.asarray(a.ticks[-1]["waypoints"])[:, -1, 0] > 1).all()
                 await a.send(type="speed", value=2.0)
                 await a.send(type="resume")
                 gone._response.connection.transport.abort()  # the other tab drops off the network
@@ -569,6 +580,12 @@ def test_a_tab_opened_late_sees_this_episodes_totals_and_the_actual_tick_rate(se
                 assert first["episode"] >= 2 and first["step"] <= first["episode_steps"] == 30
                 starts = [t for t in tab.ticks if t["step"] == 1]
                 assert starts  # an episode began while the tab watched: its totals restarted
+                # Beside them, the mean of the episodes that ran to their end.
+                assert first["finished"] >= 1 and set(first["finished_mean"]) == set(
+                    first["totals"]
+                )
+                assert tab.ticks[-1]["finished"] > first["finished"]
+                assert len(first["plan_distance"]) == 3 and first["plan"] is None
                 for t in starts:
                     assert t["totals"] == pytest.approx(t["events"], abs=1e-5)
                 rates = [t["tick_rate"] for t in tab.ticks[-10:]]
@@ -724,6 +741,7 @@ def test_the_page_in_a_real_browser_go_right_moves_waypoints_and_robots(served, 
         async with aiohttp.ClientSession() as session, _page(session, browser, url) as tools:
             assert await tools.js("document.title") == "icco live"
             assert "demo_icco.pt" in await tools.js(_text("policy"))
+            assert (await tools.js(_text("plan"))).startswith("none yet")  # no instruction yet
             # The legend names every robot and each thing on the field, in the drawn colours.
             legend = await tools.js(_text("legend"))
             for name in ("robot 0", "robot 1", "robot 2", "resource", "home", "invader"):
@@ -755,6 +773,13 @@ def test_the_page_in_a_real_browser_go_right_moves_waypoints_and_robots(served, 
             await _type_and_send(tools, "flank the intruder")
             await tools.until("icco.planner && icco.planner.state === 'used'")
             assert await tools.js(_text("reading")) == "read as: defend home"
+            assert await tools.js(_text("unused")) == "not used by the planner: flank"
+            # A sentence matched by one keyword says which words it left out.
+            await _type_and_send(tools, "Go right avoiding the invader")
+            await tools.until("icco.planner.instruction === 'Go right avoiding the invader'")
+            await tools.until("icco.planner.state === 'used'")
+            assert await tools.js(_text("reading")) == "read as: defend home"
+            assert await tools.js(_text("unused")) == "not used by the planner: right, avoiding"
             assert await tools.js("icco.ws === icco.wsBefore && icco.connected")
             assert await tools.js(_text("message")) == ""  # the success cleared the error
             # A server-side error is shown, then cleared by the next request that succeeds.
@@ -770,9 +795,20 @@ def test_the_page_in_a_real_browser_go_right_moves_waypoints_and_robots(served, 
             await tools.until("document.getElementById('message').textContent === ''")
             assert "Go right" in await tools.js(_text("planner"))
             assert (await tools.js(_text("reading"))).startswith("read as: line at the right")
+            assert await tools.js(_text("unused")) == ""
             await tools.until("icco.state.waypoints.every(path => path[path.length - 1][0] > 1)")
             after = await tools.js("icco.state.waypoints.flat().reduce((s, w) => s + w[0], 0) / 12")
             assert after > before + 0.3  # the waypoints moved right
+            # The plan in use, and each robot's distance to its nearest waypoint, in the page.
+            await tools.until("icco.state.plan === 'Go right'")
+            assert "\u201cGo right\u201d" in await tools.js(_text("plan"))
+            shown = await tools.js(
+                "(() => { const s = icco.state; return [...document.querySelectorAll("
+                "'#team-list li')].map(li => [li.querySelector('.dist').textContent, "
+                "s.plan_distance[+li.dataset.robot].toFixed(2) + ' m']); })()"
+            )
+            assert len(shown) == 3 and all(a == b for a, b in shown), shown
+            assert "nearest waypoint" in await tools.js(_text("team-controls"))
             start = await tools.js("icco.state.tick")
             # Within 60 ticks every robot is in the right half of the field.
             await tools.until("icco.state.positions.every(p => p[0] > 0)", timeout=10)
@@ -815,6 +851,11 @@ def test_the_page_in_a_real_browser_go_right_moves_waypoints_and_robots(served, 
             await _type_and_send(tools, "make me a sandwich")
             await tools.until("icco.planner.state === 'fell back'")
             assert len((await tools.js(_text("planner"))).split()) <= 20
+            # An unknown instruction: the page lists what the offline planner understands.
+            assert await tools.js("!document.getElementById('understood').hidden")
+            understood = await tools.js(_text("understood"))
+            assert understood.startswith("The offline planner understands: directions")
+            assert "spread out" in understood and "quadrant 1-4" in understood
             await tools.js("showMessage('refused: ' + 'a long message '.repeat(30), 'error')")
             box = await tools.js(
                 "(() => { const c = document.getElementById('field').getBoundingClientRect(), "
@@ -824,6 +865,13 @@ def test_the_page_in_a_real_browser_go_right_moves_waypoints_and_robots(served, 
             )
             assert abs(box["w"] - box["h"]) < 1 and box["w"] >= 400, box
             assert box["right"] <= box["iw"] and box["bottom"] <= box["ih"], box
+            # A reason that names the task-aligned prompt says how to turn it on.
+            await _type_and_send(tools, "collect the resources")
+            await tools.until("icco.planner.instruction === 'collect the resources'")
+            await tools.until("icco.planner.state === 'fell back'")
+            assert "task-aligned prompt" in await tools.js(_text("planner"))
+            assert "llm.prompt=tap" in await tools.js(_text("hint"))
+            assert await tools.js("document.getElementById('understood').hidden")
             await tools.call("Emulation.clearDeviceMetricsOverride")
             # The run ends: the page says so, why, turns its controls off and stops retrying.
             await asyncio.to_thread(server.close, reason="live.seconds=30 ran out")
@@ -853,6 +901,10 @@ def test_the_page_in_a_real_browser_adds_a_robot_and_removes_the_one_clicked(ser
             await tools.until(f"{team}.length === 4 && icco.state.present.every(Boolean)")
             assert "robot 3" in await tools.js(_text("legend"))
             assert await tools.js("document.getElementById('add-robot').disabled")  # full
+            hint = "document.getElementById('add-hint')"
+            assert await tools.js(f"!{hint}.hidden") and "live.max_robots" in await tools.js(
+                _text("add-hint")
+            )
             # A click on robot 1 on the field selects it; the button takes it out of the team.
             await tools.js("icco.send({type: 'pause'})")
             await tools.until("icco.state.paused")
@@ -872,13 +924,73 @@ def test_the_page_in_a_real_browser_adds_a_robot_and_removes_the_one_clicked(ser
             await tools.until(f"{team}.join() === '0,2,3' && !icco.state.present[1]")
             assert "robot 1" not in await tools.js(_text("legend"))
             assert await tools.js("icco.selected") is None and loop.team == [0, 2, 3]
+            # The labels follow the team: nothing is selected, so no robot is named.
+            assert await tools.js(_text("remove-robot")) == "Remove selected"
+            assert await tools.js("document.getElementById('remove-robot').disabled")
+            assert await tools.js(f"{hint}.hidden")  # room again: no hint
             # The server's answer to a bad change is shown; the page stays connected.
             await tools.js("icco.send({type: 'remove_robot', robot: 1})")
             await tools.until("document.getElementById('message').className === 'error'")
             assert "robot 1 is not in the team" in await tools.js(_text("message"))
+            # Robot 1 back: the buttons still name nobody, and the full team's hint is back.
+            await tools.js("document.getElementById('add-robot').click()")
+            await tools.until(f"{team}.join() === '0,1,2,3'")
+            assert await tools.js(_text("remove-robot")) == "Remove selected"
+            assert await tools.js("document.getElementById('remove-robot').disabled")
+            assert await tools.js(f"!{hint}.hidden")
             await tools.js("icco.send({type: 'resume'})")
             ticks = loop.ticks
             await tools.until(f"icco.connected && icco.state.tick > {ticks + 5}")
+
+    asyncio.run(scenario())
+
+
+def test_the_page_in_a_real_browser_shows_its_totals_at_800_by_600_and_a_reset_keeps_the_plan(
+    served, browser
+):
+    """The totals above the fold of a small window, beside their mean over finished episodes;
+    a reset starts an episode and keeps the instruction."""
+    cfg = compose_config(["method=icco", "experiment=smoke"])
+    parts = build_components(cfg)
+    env = make_env(cfg, num_envs=1, seed=3, max_steps=20, waypoint_mode="external")
+    policy = make_policy(parts["agent"], env.full_action_spec_unbatched, parts["coordinator"])
+    server, url = served(LiveLoop(env, policy, LLMPlanner()), rate_hz=50.0)
+    metrics = dict(width=800, height=600, deviceScaleFactor=1, mobile=False)
+
+    async def scenario():
+        async with aiohttp.ClientSession() as http, _page(http, browser, url) as tools:
+            await tools.call("Emulation.setDeviceMetricsOverride", **metrics)
+            await _type_and_send(tools, "make me a sandwich")  # a long list on show too
+            await tools.until("!document.getElementById('understood').hidden")
+            box = await tools.js(
+                "(() => { const b = document.getElementById('team-panel')"
+                ".getBoundingClientRect(); return {top: b.top, bottom: b.bottom, "
+                "right: b.right, iw: innerWidth, ih: innerHeight}; })()"
+            )
+            assert box["ih"] == 600 and 0 <= box["top"] and box["bottom"] <= box["ih"], box
+            assert box["right"] <= box["iw"], box
+            # Episodes of 20 steps at 50 Hz: finished ones come, and their mean is shown.
+            await tools.until("icco.state.finished >= 2")
+            shown = await tools.js(
+                "(() => { const s = icco.state, t = (id) => document.getElementById(id)"
+                ".textContent; return {head: t('mean-head'), n: s.finished, reward: "
+                "t('mean-reward'), want: s.finished_mean.reward.toFixed(1), note: "
+                "t('mean-note')}; })()"
+            )
+            assert shown["head"] == f"mean of {shown['n']} finished", shown
+            assert shown["reward"] == shown["want"] and "ran to their end" in shown["note"]
+            # A reset keeps the instruction: the plan in use still drives the team.
+            await _type_and_send(tools, "Go right")
+            await tools.until("icco.planner.instruction === 'Go right'")
+            await tools.until("icco.state.plan === 'Go right'")
+            await tools.js("icco.send({type: 'pause'})")  # no episode ends on its own meanwhile
+            await tools.until("icco.state.paused")
+            episode = await tools.js("icco.state.episode")
+            await tools.js("document.getElementById('reset').click()")
+            await tools.until(f"icco.state.episode === {episode + 1} && icco.state.step === 0")
+            assert "Go right" in await tools.js(_text("plan"))
+            assert await tools.js("icco.planner.state") == "used"
+            assert await tools.js("icco.state.waypoints.every(p => p[p.length - 1][0] > 1)")
 
     asyncio.run(scenario())
 

@@ -1,21 +1,13 @@
 """Robot bridge: the live loop driven by external positions, commanding robots over JSON-over-UDP.
 
-Protocol (UTF-8 JSON, one object per datagram of at most ``MAX_MESSAGE`` bytes; distances in
-metres, angles in radians, field frame centred on home, +x right, +y up):
+The messages (``state`` and ``instruct`` in, ``command`` out) and how each datagram is checked
+are :mod:`icco_torchrl.live.wire`'s. This module serves them:
 
-* in, ``{"type": "state", "time": t, "robots": [{"id": i, "pose": [x, y, theta]}, ...],
-  "resources": [[x, y], ...], "invader": [[x, y]] }`` as a motion-capture system streams it.
-  ``robots`` may list any subset (robots reported separately); ``resources`` and ``invader``
-  are optional (kept from the last message; ``"invader": []`` means none on the field).
-* in, ``{"type": "instruct", "text": "Go right"}``: a language instruction for the team (at most
-  ``MAX_INSTRUCTION`` characters).
-* in, on either: ``"token": "..."``. With a ``token`` (``live.token``) every datagram must carry
-  it; one without it or with a wrong one is refused (kind ``token``), and wrong ones are limited
+* in, on either message: with a ``token`` (``live.token``) every datagram must carry it; one
+  without it or with a wrong one is refused (kind ``token``), and wrong ones are limited
   (:class:`~icco_torchrl.live.guard.TokenCheck`: beyond, refused unchecked).
-* out, to the robots' own addresses: ``{"type": "command", "time": t, "robots": [{"id": i,
-  "target": [x, y], "v": v, "w": w, "stopped": bool, "reason": null | "stale" | "team full" |
-  "control error" | "bridge stopped"}, ...]}`` at the control rate: the policy's next point for
-  each robot and a unicycle velocity command toward it from the Dynamic Window Approach
+* out, to the robots' own addresses: a ``command`` at the control rate: the policy's next point
+  for each robot and a unicycle velocity command toward it from the Dynamic Window Approach
   (``dwa.py``) within the robot's limits. A robot's addresses are the senders of its pose (the
   ``ROBOT_ADDRESSES`` most recent); each command goes to those of every robot it lists, so
   robots reported from several addresses all hear it. A state that gives no robot's pose makes
@@ -34,12 +26,9 @@ places nobody claimed leave the team.
 
 Safety contract (``docs/live.md``, "Bridge safety contract"):
 
-* No datagram stops the bridge. Each is checked before it is used: its byte length first (at
-  most ``MAX_MESSAGE``), then UTF-8 and JSON (no ``NaN`` or ``Infinity``, numbers of at most
-  ``MAX_DIGITS`` digits, nesting too deep for the parser refused), then strict types: an ``id``
-  is an int (``true`` is not), coordinates are finite numbers of magnitude at most ``MAX_COORD``,
-  an instruction is valid unicode within ``MAX_INSTRUCTION`` characters. A datagram that fails,
-  or that the loop cannot take, is refused: counted in ``stats["malformed"]`` (by kind in
+* No datagram stops the bridge. Each is checked before it is used
+  (:func:`~icco_torchrl.live.wire.parse_message`). A datagram that fails, or that the loop
+  cannot take, is refused: counted in ``stats["malformed"]`` (by kind in
   ``stats["refused_by"]``) and logged in one line of at most about 300 characters, at most one
   line per ``LOG_EVERY`` seconds (the next line says how many were refused in between).
 * A robot whose pose is older than ``timeout`` seconds (or never seen) gets ``v = w = 0`` with
@@ -59,9 +48,7 @@ Safety contract (``docs/live.md``, "Bridge safety contract"):
 
 from __future__ import annotations
 
-import json
 import logging
-import math
 import signal
 import socket
 import threading
@@ -70,174 +57,61 @@ from collections import OrderedDict, deque
 
 import numpy as np
 
+from icco_torchrl.live import wire
 from icco_torchrl.live.dwa import DEFAULT_LIMITS, RobotLimits, dwa_command
-from icco_torchrl.live.guard import LOG_EVERY as LOG_EVERY
-from icco_torchrl.live.guard import MAX_ECHO, Throttle, TokenCheck, held, one_line
-from icco_torchrl.live.loop import MAX_INSTRUCTION, LiveLoop
+from icco_torchrl.live.guard import Throttle, TokenCheck, held, one_line
+from icco_torchrl.live.loop import LiveLoop
 
 log = logging.getLogger("icco.bridge")
-MAX_DATAGRAM = 65_507  # the largest UDP payload over IPv4
-MAX_MESSAGE = 16_384  # bytes: a longer datagram is refused before it is decoded
-MAX_DIGITS = 40  # characters of one JSON number (longer ones are refused, not converted)
-MAX_COORD = 1e4  # metres (and radians): the largest coordinate a state may carry
 MAX_PEERS = 32  # other senders of states (no robot's pose) remembered for the exit stop
 ROBOT_ADDRESSES = 4  # senders of one robot's pose remembered (the most recent ones)
-MAX_TOKEN = 256  # characters of a datagram's "token"
 STOP_REPEATS = 3  # copies of the final stop command (UDP may drop one), 10 ms apart
 RATE_WINDOW = 2.0  # seconds over which the actual control rate is measured (or 3 periods)
 MAX_BATCH = 256  # datagrams read in one go between two control ticks
-MAX_ROBOT_ID = 2**31 - 1  # the largest robot id a state may carry
 MAX_KNOWN = 64  # robots outside the team (left, refused) remembered for stop commands
 STOP_SIGNALS = tuple(
     getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name)
 )
 
 
-class ProtocolError(ValueError):
-    """A datagram that does not follow the protocol (module docstring); ``kind`` names the check
-    it failed (``oversize``, ``encoding``, ``json``, ``nesting``, ``number``, ``type``,
-    ``instruct``)."""
-
-    def __init__(self, message: str, kind: str = "type"):
-        super().__init__(message)
-        self.kind = kind
-
-
-def _refuse_constant(name: str):
-    raise ProtocolError(
-        f"{name} is not a number the protocol takes (finite numbers only)", "number"
-    )
-
-
-def _parse_int(text: str) -> int:
-    if len(text) > MAX_DIGITS:
-        raise ProtocolError(f"a number of {len(text)} characters (at most {MAX_DIGITS})", "number")
-    return int(text)
-
-
-def _parse_float(text: str) -> float:
-    if len(text) > MAX_DIGITS:
-        raise ProtocolError(f"a number of {len(text)} characters (at most {MAX_DIGITS})", "number")
-    value = float(text)
-    if not math.isfinite(value):
-        raise ProtocolError(f"{text} is out of range (finite numbers only)", "number")
-    return value
-
-
-def _decode(data: bytes):
-    """The datagram's JSON value, checked for size, encoding, nesting and numbers."""
-    if not isinstance(data, (bytes, bytearray)):
-        raise ProtocolError(f"a datagram must be bytes, got {type(data).__name__}")
-    if len(data) > MAX_MESSAGE:
-        raise ProtocolError(f"{len(data)} bytes or more (at most {MAX_MESSAGE})", "oversize")
-    try:
-        text = bytes(data).decode("utf-8")
-    except UnicodeDecodeError as err:
-        raise ProtocolError(f"not UTF-8 JSON: {err}", "encoding") from None
-    try:
-        return json.loads(
-            text,
-            parse_int=_parse_int,
-            parse_float=_parse_float,
-            parse_constant=_refuse_constant,
-        )
-    except RecursionError:
-        raise ProtocolError("not UTF-8 JSON: nested too deeply", "nesting") from None
-    except json.JSONDecodeError as err:
-        raise ProtocolError(f"not UTF-8 JSON: {err}", "json") from None
-    except ValueError as err:  # ProtocolError from a number hook, or int() refusing a literal
-        if isinstance(err, ProtocolError):
-            raise
-        raise ProtocolError(f"not UTF-8 JSON: {err}", "number") from None
-
-
-def _coord(value) -> bool:
-    """A finite number (not a bool) within ``MAX_COORD``."""
-    return (
-        isinstance(value, (int, float))
-        and not isinstance(value, bool)
-        and math.isfinite(value)
-        and abs(value) <= MAX_COORD
-    )
-
-
-def _points(value, size: int) -> bool:
-    """A list of ``[x, y]`` (``size`` 2) or ``[x, y, theta]`` (``size`` 3) coordinates."""
-    return isinstance(value, list) and len(value) == size and all(_coord(v) for v in value)
-
-
-def parse_message(data: bytes) -> dict:
-    """The validated message, or :class:`ProtocolError` with one line saying what is wrong."""
-    msg = _decode(data)
-    if not isinstance(msg, dict) or msg.get("type") not in ("state", "instruct"):
-        raise ProtocolError("a message must be a JSON object with type 'state' or 'instruct'")
-    token = msg.get("token")
-    if token is not None and not (isinstance(token, str) and 0 < len(token) <= MAX_TOKEN):
-        raise ProtocolError(f"'token' must be a string of 1 to {MAX_TOKEN} characters", "token")
-    if msg["type"] == "instruct":
-        text = msg.get("text")
-        if not isinstance(text, str) or not text.strip():
-            raise ProtocolError("an instruct message needs a non-empty 'text'", "instruct")
-        if len(text.strip()) > MAX_INSTRUCTION:
-            raise ProtocolError(
-                f"instruction too long: {len(text.strip())} characters, at most {MAX_INSTRUCTION}",
-                "instruct",
-            )
-        try:
-            text.encode("utf-8")
-        except UnicodeEncodeError:
-            raise ProtocolError("the instruction is not valid unicode", "instruct") from None
-        return msg
-    robots = msg.get("robots", [])
-    if not isinstance(robots, list):
-        raise ProtocolError("'robots' must be a list")
-    for r in robots:
-        rid = r.get("id") if isinstance(r, dict) else None
-        if type(rid) is not int or not 0 <= rid <= MAX_ROBOT_ID:
-            raise ProtocolError(f"each robot needs an integer 'id' in [0, {MAX_ROBOT_ID}]")
-        if not _points(r.get("pose"), 3):
-            raise ProtocolError(
-                f"robot {rid}: 'pose' must be [x, y, theta] (finite numbers, at most "
-                f"{MAX_COORD:g} in size)"
-            )
-    for key in ("resources", "invader"):
-        if key in msg and not (isinstance(msg[key], list) and all(_points(p, 2) for p in msg[key])):
-            raise ProtocolError(f"'{key}' must be a list of [x, y] points (finite numbers)")
-    if "time" in msg and not (
-        isinstance(msg["time"], (int, float))
-        and not isinstance(msg["time"], bool)
-        and math.isfinite(msg["time"])
-    ):
-        raise ProtocolError("'time' must be a number (seconds)")
-    return msg
-
-
-def _one_line(text: str, limit: int = MAX_ECHO) -> str:
-    """``text`` on one line of at most ``limit`` characters, printable."""
-    return one_line(text, limit)
-
-
 def _peer(sender) -> str:
     try:
         host, port = sender[:2]
-        return _one_line(f"{host}:{int(port)}", 60)
+        return one_line(f"{host}:{int(port)}", 60)
     except (TypeError, ValueError):
-        return _one_line(repr(sender), 60)
-
-
-_Throttle = Throttle
-
-
-def _stop(rid: int, target, reason: str) -> dict:
-    """A command entry that stops robot ``rid`` (``v = w = 0``) for ``reason``."""
-    return {"id": rid, "target": target, "v": 0.0, "w": 0.0, "stopped": True, "reason": reason}
+        return one_line(repr(sender), 60)
 
 
 def _ids(ids) -> str:
     return ", ".join(str(i) for i in ids)
 
 
-_held = held
+def _bind(host: str, port: int) -> socket.socket:
+    """A UDP socket bound to ``host:port``, or ``OSError`` of one line naming them."""
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        sock.bind((host, port))
+    except OSError as err:
+        sock.close()
+        raise OSError(f"cannot listen on udp {host}:{port}: {err.strerror or err}") from None
+    return sock
+
+
+def _new_stats() -> dict:
+    """A bridge's counters, all zero."""
+    return {
+        "messages": 0,
+        "joined": 0,  # robots that joined the team (a return counts again)
+        "dropped": 0,  # robots that left it after timeout s without a pose
+        "refused_robots": 0,  # robots refused because the team was full
+        "malformed": 0,  # every refused datagram (by kind in "refused_by")
+        "refused_by": {},
+        "commands": 0,
+        "stale_stops": 0,
+        "control_errors": 0,
+        "stops_sent": 0,  # stop commands sent to all robots (control errors, the end)
+        "latency_ms": deque(maxlen=10_000),
+    }
 
 
 class Bridge:
@@ -260,19 +134,10 @@ class Bridge:
         if token is not None and not str(token).strip():
             raise ValueError("live.token must be a non-empty string, or null for none")
         self.token = None if token is None else TokenCheck(str(token))
-        self.loop, self.rate_hz, self.timeout, self.limits = (
-            loop,
-            float(rate_hz),
-            float(timeout),
-            limits,
-        )
+        self.loop, self.limits = loop, limits
+        self.rate_hz, self.timeout = float(rate_hz), float(timeout)
         self.n = loop.raw.n_agents
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        try:
-            self.sock.bind((host, port))
-        except OSError as err:
-            self.sock.close()
-            raise OSError(f"cannot listen on udp {host}:{port}: {err.strerror or err}") from None
+        self.sock = _bind(host, port)
         self.address = self.sock.getsockname()
         self.poses = np.zeros((self.n, 3))
         self.seen = np.full(self.n, -np.inf)  # monotonic time of each robot's latest pose
@@ -290,27 +155,15 @@ class Bridge:
         self.slot_of: dict[int, int] = {}
         self.outside: OrderedDict[int, dict] = OrderedDict()  # left ("stale") or "team full"
         self._first_state_at: float | None = None
-        self.stats = {
-            "messages": 0,
-            "joined": 0,  # robots that joined the team (a return counts again)
-            "dropped": 0,  # robots that left it after timeout s without a pose
-            "refused_robots": 0,  # robots refused because the team was full
-            "malformed": 0,  # every refused datagram (by kind in "refused_by")
-            "refused_by": {},
-            "commands": 0,
-            "stale_stops": 0,
-            "control_errors": 0,
-            "stops_sent": 0,  # stop commands sent to all robots (control errors, the end)
-            "latency_ms": deque(maxlen=10_000),
-        }
+        self.stats = _new_stats()
         self.halted: str | None = None  # why every robot was last sent a stop (None: commanding)
         self.stop_cause: str | None = None  # what ended serve() (a signal's name, an error)
         self._received_at = None
         self._last: dict[int, dict] = {}  # each robot's entry in the last command message
         self._command_times: deque = deque(maxlen=4096)  # monotonic times of recent commands
         self._first_command_at = self._last_command_at = None
-        self._refusals, self._failures, self._full = _Throttle(), _Throttle(), _Throttle()
-        self._joins, self._leaves, self._stale = _Throttle(), _Throttle(), _Throttle()
+        self._refusals, self._failures, self._full = Throttle(), Throttle(), Throttle()
+        self._joins, self._leaves, self._stale = Throttle(), Throttle(), Throttle()
         self._closed = False
         self.on_command = None  # called with each command message (e.g. the live page)
 
@@ -319,14 +172,14 @@ class Bridge:
         """One datagram: update the measured state, or pass an instruction to the live loop; a
         datagram that cannot be used is refused (counted and logged), never raised."""
         try:
-            msg = parse_message(data)
+            msg = wire.parse_message(data)
             if self.token is not None:
                 self._check_token(msg, sender)
             if msg["type"] == "instruct":
                 self.loop.instruct(msg["text"])
             else:
                 self._apply_state(msg, sender)
-        except ProtocolError as err:
+        except wire.ProtocolError as err:
             self._refuse(sender, len(data), err.kind, str(err))
             return
         except Exception as err:  # the loop refusing it (no planner), or a bug: never a crash
@@ -338,7 +191,7 @@ class Bridge:
         """With ``token``, a datagram must carry it (``"token"``); wrong ones are limited."""
         given = msg.get("token")
         if given is None:
-            raise ProtocolError(
+            raise wire.ProtocolError(
                 'no "token": live.token is set, so every state and instruct datagram must carry it',
                 "token",
             )
@@ -348,7 +201,7 @@ class Bridge:
             source = repr(sender)
         refusal = self.token.check(given, source)
         if refusal is not None:
-            raise ProtocolError(f"{refusal} (live.token)", "token")
+            raise wire.ProtocolError(f"{refusal} (live.token)", "token")
 
     def _apply_state(self, msg: dict, sender) -> None:
         now = time.monotonic()
@@ -430,14 +283,14 @@ class Bridge:
             known = self.outside.pop(rid, None)
             if known is None or known["reason"] != "team full":
                 self.stats["refused_robots"] += 1
-                due, held = self._full.due()
+                due, n = self._full.due()
                 if due:
                     log.warning(
                         "bridge: robot %d refused: the team is full (%d robots, live.max_robots); "
                         "it is sent stop commands%s",
                         rid,
                         self.n,
-                        _held(held),
+                        held(n),
                     )
             self._remember(rid, {"reason": "team full", "pose": pose, "seen": now, "slot": None})
             return None
@@ -452,8 +305,8 @@ class Bridge:
             log.info(
                 "bridge: robot %d joined the team (team: %s)%s",
                 rid,
-                _one_line(_ids(self.team()), 120),
-                _held(n),
+                one_line(_ids(self.team()), 120),
+                held(n),
             )
         return i
 
@@ -497,8 +350,8 @@ class Bridge:
                     "(team: %s)%s",
                     rid,
                     now - self.seen[i],
-                    _one_line(_ids(self.team()), 120) or "none",
-                    _held(n),
+                    one_line(_ids(self.team()), 120) or "none",
+                    held(n),
                 )
             self.command[i], self.stale_logged[i] = 0.0, False
 
@@ -521,15 +374,15 @@ class Bridge:
         self.stats["malformed"] += 1
         by = self.stats["refused_by"]
         by[kind] = by.get(kind, 0) + 1
-        due, held = self._refusals.due()
+        due, n = self._refusals.due()
         if due:
             log.warning(
                 "bridge: refused a datagram from %s (%d bytes, %s): %s%s",
                 _peer(sender),
                 size,
                 kind,
-                _one_line(reason),
-                _held(held),
+                one_line(reason),
+                held(n),
             )
 
     # ------------------------------------------------------------------ commands out
@@ -539,7 +392,6 @@ class Bridge:
             return None
         now = time.monotonic()
         self._leave(now)
-        fresh = now - self.seen <= self.timeout
         resources = (
             self.resources
             if self.resources is not None and len(self.resources) == self.loop.raw.n_resources
@@ -548,11 +400,27 @@ class Bridge:
         _, targets = self.loop.act_on(
             self.poses[:, :2], velocities=self.velocity, resources=resources, invader=self.invader
         )
+        robots, command = self._entries(now, targets)
+        message = wire.command_message(robots)
+        data = wire.encode(message)
+        for address in self.addresses():
+            try:
+                self.sock.sendto(data, address)
+            except OSError as err:  # one unreachable address must not keep the others waiting
+                self._failed(f"command to {_peer(address)}", err)
+        self.command, self._last, self.halted = command, {r["id"]: r for r in robots}, None
+        self._count_command()
+        self._tell(message)
+        return message
+
+    def _entries(self, now: float, targets: np.ndarray) -> tuple[list[dict], np.ndarray]:
+        """Each listed robot's command entry toward its target (a DWA command, or a stop for a
+        stale robot or one outside the team), and the ``(v, w)`` of each place."""
         robots, command = [], np.zeros_like(self.command)
         listed = self._listed()
-        team = [i for _, i in listed if i is not None]
+        fresh = now - self.seen <= self.timeout
         nearby = [  # robots to keep clear of: the team's fresh ones and refused ones standing by
-            *((i, self.poses[i, :2]) for i in team if fresh[i]),
+            *((i, self.poses[i, :2]) for _, i in listed if i is not None and fresh[i]),
             *(
                 (None, e["pose"][:2])
                 for e in self.outside.values()
@@ -563,50 +431,41 @@ class Bridge:
             if i is None:
                 entry = self.outside[rid]
                 target = entry.get("target") or entry["pose"][:2].tolist()
-                robots.append(_stop(rid, target, entry["reason"]))
-                continue
-            if not fresh[i]:
-                if not self.stale_logged[i]:
-                    due, n = self._stale.due()
-                    if due:
-                        log.warning(
-                            "bridge: robot %d sent no pose for %.2f s: stopping it%s",
-                            rid,
-                            now - self.seen[i],
-                            _held(n),
-                        )
-                    self.stale_logged[i] = True
-                    self.stats["stale_stops"] += 1
-                robots.append(_stop(rid, targets[i].tolist(), "stale"))
-                continue
-            others = np.asarray([p for j, p in nearby if j != i], float).reshape(-1, 2)
-            v, w = dwa_command(
-                self.poses[i],
-                self.command[i],
-                targets[i],
-                self.limits,
-                1.0 / self.rate_hz,
-                others=others,
+                robots.append(wire.stop(rid, target, entry["reason"]))
+            elif not fresh[i]:
+                self._stale_stop(rid, i, now)
+                robots.append(wire.stop(rid, targets[i].tolist(), "stale"))
+            else:
+                others = np.asarray([p for j, p in nearby if j != i], float).reshape(-1, 2)
+                v, w = dwa_command(
+                    self.poses[i],
+                    self.command[i],
+                    targets[i],
+                    self.limits,
+                    1.0 / self.rate_hz,
+                    others=others,
+                )
+                command[i] = (v, w)
+                robots.append(wire.drive(rid, targets[i].tolist(), v, w))
+        return robots, command
+
+    def _stale_stop(self, rid: int, i: int, now: float) -> None:
+        """Robot ``rid`` (place ``i``) sent no pose for ``timeout`` s: counted and logged once."""
+        if self.stale_logged[i]:
+            return
+        due, n = self._stale.due()
+        if due:
+            log.warning(
+                "bridge: robot %d sent no pose for %.2f s: stopping it%s",
+                rid,
+                now - self.seen[i],
+                held(n),
             )
-            command[i] = (v, w)
-            robots.append(
-                {
-                    "id": rid,
-                    "target": targets[i].tolist(),
-                    "v": v,
-                    "w": w,
-                    "stopped": False,
-                    "reason": None,
-                }
-            )
-        message = {"type": "command", "time": time.time(), "robots": robots}
-        data = json.dumps(message).encode()
-        for address in self.addresses():
-            try:
-                self.sock.sendto(data, address)
-            except OSError as err:  # one unreachable address must not keep the others waiting
-                self._failed(f"command to {_peer(address)}", err)
-        self.command, self._last, self.halted = command, {r["id"]: r for r in robots}, None
+        self.stale_logged[i] = True
+        self.stats["stale_stops"] += 1
+
+    def _count_command(self) -> None:
+        """A command went out: counted, timed (the rates) and, after a state, its latency."""
         self.stats["commands"] += 1
         stamp = time.monotonic()
         self._command_times.append(stamp)
@@ -616,8 +475,6 @@ class Bridge:
         if self._received_at is not None:
             self.stats["latency_ms"].append((time.perf_counter() - self._received_at) * 1e3)
             self._received_at = None
-        self._tell(message)
-        return message
 
     def halt(self, reason: str = "bridge stopped", repeats: int = STOP_REPEATS) -> dict:
         """Send every robot a stop command (``v = w = 0``, ``"stopped": true``, ``reason``) at its
@@ -628,9 +485,9 @@ class Bridge:
         for rid, i in self._listed():
             last = self.poses[i, :2].tolist() if i is not None else self.outside[rid]["pose"][:2]
             target = self._last.get(rid, {}).get("target") or list(map(float, last))
-            robots.append(_stop(rid, target, reason))
-        message = {"type": "command", "time": time.time(), "robots": robots}
-        data = json.dumps(message).encode()
+            robots.append(wire.stop(rid, target, reason))
+        message = wire.command_message(robots)
+        data = wire.encode(message)
         own = self.addresses() if not self._closed else []
         mine = set(own)
         others = [p for p in self.peers if p not in mine] if not self._closed else []
@@ -670,7 +527,7 @@ class Bridge:
         try:
             self.on_command(message)
         except Exception as err:  # a watcher (the page) must not stop the robots' commands
-            log.error("bridge: on_command failed: %s", _one_line(f"{type(err).__name__}: {err}"))
+            log.error("bridge: on_command failed: %s", one_line(f"{type(err).__name__}: {err}"))
 
     def actual_rate(self) -> float | None:
         """Commands per second over the last ``RATE_WINDOW`` seconds (or three periods, if
@@ -698,30 +555,7 @@ class Bridge:
         message counts, the nominal and the actual control rate, and ``halted`` (why every robot
         was stopped, or None)."""
         now = time.monotonic()
-        robots = []
-        for rid, i in self._listed():
-            if i is None:
-                entry = self.outside[rid]
-                pose, at, v, w = entry["pose"], entry["seen"], 0.0, 0.0
-            else:
-                pose, at, (v, w) = self.poses[i], self.seen[i], self.command[i]
-            seen = bool(np.isfinite(at))
-            default = {"stopped": True, "reason": "no command yet"}
-            last = self._last.get(rid, default) if i is not None else None
-            robots.append(
-                {
-                    "id": rid,
-                    "slot": i,
-                    "in_team": i is not None,
-                    "pose": np.round(pose, 3).tolist() if seen else None,
-                    "age_s": round(float(now - at), 3) if seen else None,
-                    "v": float(v),
-                    "w": float(w),
-                    "stopped": True if last is None else bool(last["stopped"]),
-                    "reason": (self.halted or self.outside[rid]["reason"]) if last is None
-                    else last["reason"],
-                }
-            )  # fmt: skip
+        robots = [self._robot_view(rid, i, now) for rid, i in self._listed()]
         s = self.stats
         latency = list(s["latency_ms"])[-50:]
         actual = 0.0 if self.halted else self.actual_rate()  # stopped: no command moves them
@@ -743,6 +577,29 @@ class Bridge:
             "refused_robots": s["refused_robots"],
             "latency_ms": float(np.median(latency)) if latency else None,
         }
+
+    def _robot_view(self, rid: int, i: int | None, now: float) -> dict:
+        """Robot ``rid`` (place ``i``, None outside the team) as :meth:`fleet` lists it."""
+        if i is None:
+            entry = self.outside[rid]
+            pose, at, v, w = entry["pose"], entry["seen"], 0.0, 0.0
+        else:
+            pose, at, (v, w) = self.poses[i], self.seen[i], self.command[i]
+        seen = bool(np.isfinite(at))
+        default = {"stopped": True, "reason": "no command yet"}
+        last = self._last.get(rid, default) if i is not None else None
+        return {
+            "id": rid,
+            "slot": i,
+            "in_team": i is not None,
+            "pose": np.round(pose, 3).tolist() if seen else None,
+            "age_s": round(float(now - at), 3) if seen else None,
+            "v": float(v),
+            "w": float(w),
+            "stopped": True if last is None else bool(last["stopped"]),
+            "reason": (self.halted or self.outside[rid]["reason"]) if last is None
+            else last["reason"],
+        }  # fmt: skip
 
     # ------------------------------------------------------------------ serving
     def serve(self, stop: threading.Event, max_seconds: float | None = None) -> None:
@@ -770,7 +627,7 @@ class Bridge:
             if self.stop_cause is None:
                 self.stop_cause = "stopped" if stop.is_set() else "max_seconds ran out"
         except BaseException as err:
-            self.stop_cause = _one_line(f"{type(err).__name__}: {err}")
+            self.stop_cause = one_line(f"{type(err).__name__}: {err}")
             raise
         finally:
             try:
@@ -785,7 +642,7 @@ class Bridge:
         self.sock.settimeout(timeout)
         for _ in range(MAX_BATCH):
             try:
-                data, sender = self.sock.recvfrom(MAX_MESSAGE + 1)
+                data, sender = self.sock.recvfrom(wire.MAX_MESSAGE + 1)
             except (TimeoutError, BlockingIOError):
                 return
             except OSError as err:  # e.g. an ICMP error reported on the socket: go on
@@ -796,13 +653,13 @@ class Bridge:
             self.sock.settimeout(0)
 
     def _failed(self, what: str, err: Exception) -> None:
-        due, held = self._failures.due()
+        due, n = self._failures.due()
         if due:
             log.error(
                 "bridge: %s failed: %s%s",
                 what,
-                _one_line(f"{type(err).__name__}: {err}"),
-                _held(held),
+                one_line(f"{type(err).__name__}: {err}"),
+                held(n),
             )
 
     def _trap_signals(self, stop: threading.Event) -> dict:

@@ -14,7 +14,10 @@ to the env's ``n_agents``): the others keep their recurrent state, a new robot s
 and the instruction in use is planned again for the new team (the planner plans for the present
 robots only).
 Episodes are as long as the policy's training episodes (145 steps): when one ends the next
-starts at once, with the totals set to zero and the plan in use kept. :meth:`LiveLoop.run`
+starts at once, with the totals set to zero and the plan in use kept (a reset starts one the
+same way, and the instruction stays). Each state carries the instruction of the plan in use,
+each robot's distance to its nearest waypoint (the distance of the env's instruction reward) and
+the mean totals of the episodes that ran to their end. :meth:`LiveLoop.run`
 ticks at a fixed rate (default real time: one env step per ``env.dt`` seconds). No web code
 here: a page or a bridge drives this object.
 """
@@ -22,7 +25,6 @@ here: a page or a bridge drives this object.
 from __future__ import annotations
 
 import inspect
-import re
 import threading
 import time
 from dataclasses import asdict, dataclass, field
@@ -34,13 +36,9 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 from icco_torchrl.envs import EVENTS  # the env owns the event names
 from icco_torchrl.envs.resource_collection import _ACTION_DIRS
 from icco_torchrl.envs.waypoints import base_env
-from icco_torchrl.instructions.llm import last_json_object
+from icco_torchrl.live.reading import explain, planner_reading, short_reason
 
 MAX_INSTRUCTION = 200  # characters: longer instructions are refused with a message
-MAX_READING = 300  # characters of the planner's reading kept for display
-MAX_REASON = 120  # characters of a fall-back's reason kept for display (its first clause)
-# The offline rule planner labels its strategy; the reading is what follows the label.
-_RULE_LABEL = re.compile(r"^Rule planner \(not an LLM\):\s*")
 
 
 def _takes_cancel(plan) -> bool:
@@ -84,7 +82,11 @@ def _np(tensor: torch.Tensor) -> np.ndarray:
 class PlannerStatus:
     """What the planner is doing: ``idle``, ``thinking``, ``used`` (a plan is driving the team) or
     ``fell back`` (the team keeps its previous waypoints; ``error`` says why). ``reading`` is how
-    the planner read the instruction (its reply's ``movement_strategy``, e.g. "defend home")."""
+    the planner read the instruction (its reply's ``movement_strategy``, e.g. "defend home").
+    With the offline rule planner, ``understood`` lists what it understands (when it fell back
+    on an instruction it does not know) and ``unused`` the words of a used instruction its
+    reading did not use; ``hint`` says how to act on ``error`` (:func:`~icco_torchrl.live.
+    reading.explain`)."""
 
     state: str = "idle"
     instruction: str | None = None
@@ -92,29 +94,9 @@ class PlannerStatus:
     latency_s: float | None = None
     requests: int = 0
     reading: str | None = None
-
-
-def short_reason(error: str | None, instruction: str | None = None) -> str | None:
-    """A fall-back's reason as a page shows it: its first clause, without the planner's prefix
-    or a repeat of the instruction, at most ``MAX_REASON`` characters (the planner's own
-    message can list everything it understands, or quote a whole reply)."""
-    if not error:
-        return error
-    text = " ".join(str(error).split()).removeprefix("planner declined: ").split("; ")[0]
-    if instruction:
-        text = text.replace(f": {instruction!r}", "").replace(f" {instruction!r}", "")
-    return text if len(text) <= MAX_REASON else text[: MAX_REASON - 3] + "..."
-
-
-def planner_reading(raw: str | None) -> str | None:
-    """The planner's reading of an instruction: the ``movement_strategy`` of its JSON reply
-    (without the offline rule planner's label), or None when the reply has none."""
-    reply = last_json_object(raw) if raw else None
-    strategy = reply.get("movement_strategy") if reply else None
-    if not isinstance(strategy, str) or not strategy.strip():
-        return None
-    reading = _RULE_LABEL.sub("", " ".join(strategy.split())).rstrip(".")
-    return reading if len(reading) <= MAX_READING else reading[: MAX_READING - 3] + "..."
+    understood: str | None = None
+    unused: list[str] | None = None
+    hint: str | None = None
 
 
 @dataclass
@@ -137,6 +119,10 @@ class TickState:
     latency_ms: float = 0.0  # policy + env step + bookkeeping of this tick
     episode: int = 1  # episodes started since the loop was made (a reset starts one)
     episode_steps: int = 0  # the episode's length (the env's max_steps)
+    plan: str | None = None  # the instruction whose plan drives the team (None: none yet)
+    plan_distance: np.ndarray | None = None  # [N] m: each robot to its nearest waypoint
+    finished: int = 0  # episodes that ran to their end (a reset's cut-short one is not)
+    finished_mean: dict = field(default_factory=dict)  # their totals' mean (empty: none yet)
 
     def to_dict(self) -> dict:
         out = asdict(self)
@@ -172,7 +158,8 @@ class LiveLoop:
         self.status = PlannerStatus()
         self.on_status = None
         self.totals = {k: 0.0 for k in (*EVENTS, "inst_reward", "reward")}
-        self.ticks, self.episode = 0, 1
+        self.ticks, self.episode, self.finished = 0, 1, 0
+        self._finished_sums = dict.fromkeys(self.totals, 0.0)  # over the finished episodes
         self._lock = threading.Lock()  # one tick or plan hand-over at a time
         self._idle = threading.Condition(self._lock)  # the planner thread ended
         self._pending: np.ndarray | None = None  # a plan that arrived, for the next tick
@@ -180,9 +167,10 @@ class LiveLoop:
         self._job: tuple | None = None  # the newest instruction, waiting for the planner thread
         self._cancel: threading.Event | None = None  # cancels the plan being computed
         self._worker: threading.Thread | None = None  # the planner thread, while it has work
-        self._generation = 0  # bumped by each instruction and reset: older plans are dropped
+        self._generation = 0  # bumped by each instruction: older plans are dropped
         self._cancellable = planner is not None and _takes_cancel(planner.plan)
-        self._plan_instruction: str | None = None  # the instruction of the plan in use
+        self._plan_instruction: str | None = None  # the instruction of the latest plan
+        self._plan_for: str | None = None  # the instruction of the plan in use
         self._team = np.ones(raw.n_agents, bool)
         if team is not None:
             members = [self._robot(r) for r in team]
@@ -280,8 +268,32 @@ class LiveLoop:
             self._plan(job, cancel)
 
     def _plan(self, job: tuple, cancel: threading.Event) -> None:
-        generation, instruction, team, positions, previous, resources, invader = job
+        """Plan one instruction (the planner thread) and hand the plan to the next tick."""
+        generation, instruction, team, _, previous, _, _ = job
         start = time.perf_counter()
+        answer = self._ask(job, cancel)
+        if answer is None:
+            return  # superseded while it was asked: the newer instruction's status stands
+        ok, error, waypoints, reading = answer
+        notes = explain(self.planner, instruction, self.raw.field_size / 2, ok, error)
+        with self._lock:
+            if generation != self._generation:
+                return  # superseded by a newer instruction
+            latency, requests = time.perf_counter() - start, self.status.requests
+            if ok:
+                full = previous.astype(np.float32)  # absent robots keep theirs (ignored)
+                full[team] = np.asarray(waypoints, dtype=np.float32).reshape(full[team].shape)
+                self._pending, self._plan_instruction = full, instruction
+                status = PlannerStatus("used", instruction, None, latency, requests, reading)
+            else:
+                reason = short_reason(error, instruction) or "no plan"
+                status = PlannerStatus("fell back", instruction, reason, latency, requests)
+            self._set_status(PlannerStatus(**{**asdict(status), **notes}))
+
+    def _ask(self, job: tuple, cancel: threading.Event) -> tuple | None:
+        """The planner's answer to ``job``: ``(ok, error, waypoints, reading)``; a planner that
+        raises falls back with its error's first line; None when ``cancel`` was set."""
+        _, instruction, team, positions, previous, resources, invader = job
         extra = {"cancel": cancel} if self._cancellable else {}
         try:
             result = self.planner.plan(  # the present robots only: a plan for the team that is in
@@ -292,27 +304,12 @@ class LiveLoop:
                 invader=invader,
                 **extra,
             )
-            ok, error, waypoints = result.ok, result.error, result.waypoints
-            reading = planner_reading(getattr(result, "raw", None)) if ok else None
         except Exception as err:  # an unreachable model must not stop the team: report, keep plan
             if cancel.is_set():
-                return  # superseded: the newer instruction's status stands
-            ok, error, waypoints = False, f"{type(err).__name__}: {err}".splitlines()[0], None
-        with self._lock:
-            if generation != self._generation:
-                return  # superseded by a newer instruction, or a reset
-            latency = time.perf_counter() - start
-            requests = self.status.requests
-            if ok:
-                full = previous.astype(np.float32)  # absent robots keep theirs (ignored)
-                full[team] = np.asarray(waypoints, dtype=np.float32).reshape(full[team].shape)
-                self._pending, self._plan_instruction = full, instruction
-                self._set_status(
-                    PlannerStatus("used", instruction, None, latency, requests, reading)
-                )
-            else:
-                reason = short_reason(error, instruction) or "no plan"
-                self._set_status(PlannerStatus("fell back", instruction, reason, latency, requests))
+                return None
+            return False, f"{type(err).__name__}: {err}".splitlines()[0], None, None
+        reading = planner_reading(getattr(result, "raw", None)) if result.ok else None
+        return result.ok, result.error, result.waypoints, reading
 
     def _set_status(self, status: PlannerStatus) -> None:
         """Replace the planner status (under the lock) and tell ``on_status``."""
@@ -332,8 +329,7 @@ class LiveLoop:
         start = time.perf_counter()
         with self._lock, torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
             if self._pending is not None:
-                self._write_plan(self._pending)
-                self._plan_in_use, self._pending = self._pending, None
+                self._write_plan(self._use_pending())
             td = self.env.step(self.policy(self.td))
             nxt = td.get("next")
             events = {k: float(nxt.get(("events", k))[0]) for k in (*EVENTS, "inst_reward")}
@@ -344,14 +340,28 @@ class LiveLoop:
             state = self._state(td.get(("agents", "z"), None), events)
             self.td = step_mdp(td)
             if bool(nxt.get("done").any()):  # the episode ended: the next tick starts another
-                self.td = self.env.reset()
-                self._keep_team()
-                self.episode += 1
-                self.totals = {k: 0.0 for k in self.totals}
-                if self._plan_in_use is not None:  # the instruction still stands
-                    self._write_plan(self._plan_in_use)
+                self.finished += 1
+                for k, v in self.totals.items():
+                    self._finished_sums[k] += v
+                self._new_episode()
         state.latency_ms = (time.perf_counter() - start) * 1e3
         return state
+
+    def _new_episode(self) -> None:
+        """Start the next episode (call under the lock): new resources, invader and positions,
+        the totals at zero; the team and the plan in use (the instruction) kept."""
+        self.td = self.env.reset()
+        self._keep_team()
+        self.episode += 1
+        self.totals = {k: 0.0 for k in self.totals}
+        if self._plan_in_use is not None:  # the instruction still stands
+            self._write_plan(self._plan_in_use)
+
+    def _use_pending(self) -> np.ndarray:
+        """The plan that arrived becomes the plan in use (call under the lock); returns it."""
+        self._plan_in_use, self._pending = self._pending, None
+        self._plan_for = self._plan_instruction
+        return self._plan_in_use
 
     def _write_plan(self, waypoints: np.ndarray) -> None:
         """Drive the team by ``waypoints`` [N, K, 2] from now on (call under the lock)."""
@@ -360,11 +370,14 @@ class LiveLoop:
     def _state(self, z, events: dict) -> TickState:
         """The team as it is now (call under the lock)."""
         raw = self.raw
+        positions, waypoints = _np(raw.pos[0]), _np(raw.waypoints[0])
+        distance = np.linalg.norm(waypoints - positions[:, None], axis=-1).min(axis=1)
+        n = self.finished
         return TickState(
             tick=self.ticks,
             step=int(raw.t[0]),
-            positions=_np(raw.pos[0]),
-            waypoints=_np(raw.waypoints[0]),
+            positions=positions,
+            waypoints=waypoints,
             resources=_np(raw.res_pos[0]),
             invader=_np(raw.inv_pos[0]),
             invader_active=_np(raw.inv_active[0]),
@@ -376,6 +389,10 @@ class LiveLoop:
             planner=asdict(self.status),
             episode=self.episode,
             episode_steps=int(raw.max_steps),
+            plan=self._plan_for,
+            plan_distance=np.round(distance, 3),
+            finished=n,
+            finished_mean={k: v / n for k, v in self._finished_sums.items()} if n else {},
         )
 
     def snapshot(self) -> TickState:
@@ -385,20 +402,11 @@ class LiveLoop:
             return self._state(self.td.get(("agents", "z"), None), {})
 
     def reset(self) -> TickState:
-        """A new episode (new resources, invader and robot positions), the running totals set to
-        zero, the plan in use forgotten and any plan still being computed cancelled; the
-        planner's request count is kept."""
+        """A new episode now, as when one ends (new resources, invader and robot positions, the
+        totals set to zero): the instruction stays, its plan in use (or on its way) drives the
+        team on. The episode cut short is not counted among the finished ones."""
         with self._lock, torch.no_grad():
-            self.td = self.env.reset()
-            self._keep_team()
-            self._generation += 1
-            self._job, self._pending, self._plan_in_use = None, None, None
-            self._plan_instruction = None
-            if self._cancel is not None:
-                self._cancel.set()
-            self.episode += 1
-            self.totals = {k: 0.0 for k in self.totals}
-            self._set_status(PlannerStatus(requests=self.status.requests))
+            self._new_episode()
             return self._state(None, {})
 
     # ------------------------------------------------------------------ team changes
@@ -503,57 +511,56 @@ class LiveLoop:
         (``max_speed * dt``) away in that direction, which a controller (DWA) then drives to.
         """
         raw = self.raw
-        dev = raw.device
-        lim = raw.half - raw.agent_radius
         with self._lock, torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
-            pos = torch.as_tensor(np.asarray(positions, np.float32), device=dev).reshape(
-                1, raw.n_agents, 2
-            )
-            raw.pos = pos.clamp(-lim, lim)
-            vel = (
-                torch.zeros_like(pos)
-                if velocities is None
-                else torch.as_tensor(np.asarray(velocities, np.float32), device=dev).reshape(
-                    1, raw.n_agents, 2
-                )
-            )
-            raw.vel = vel
-            if resources is not None:
-                res = torch.as_tensor(np.asarray(resources, np.float32), device=dev).reshape(
-                    1, raw.n_resources, 2
-                )
-                raw.res_pos = res.clamp(-raw.half, raw.half)
-            if invader is not None:
-                inv = np.asarray(invader, np.float32).reshape(-1, 2)[: raw.n_invaders]
-                full = np.zeros((raw.n_invaders, 2), np.float32)
-                full[: len(inv)] = inv
-                raw.inv_pos = torch.as_tensor(full, device=dev)[None]
-                raw.inv_active = (torch.arange(raw.n_invaders, device=dev) < len(inv))[None]
+            self._measure(positions, velocities, resources, invader)
             waypoints = raw.waypoints
             if self._pending is not None:
-                waypoints = torch.as_tensor(self._pending, device=dev)[None]
-                self._plan_in_use, self._pending = self._pending, None
-            raw.write_waypoints(
-                self.td, waypoints
-            )  # rebuilds the observation and the state from the above
+                waypoints = torch.as_tensor(self._use_pending(), device=raw.device)[None]
+            raw.write_waypoints(self.td, waypoints)  # rebuilds the observation and the state
             td = self.policy(self.td)
             action = td.get(("agents", "action"))[0]
-            nxt = td.get("next", None)
-            carried = td.exclude("next")
-            for key in (
-                ("agents", "rnn_hidden"),
-                ("agents", "prev_action"),
-            ):  # a trained policy's memory
-                if nxt is not None and key in nxt.keys(True):
-                    carried.set(key, nxt.get(key))
-            carried.set("step_count", td.get("step_count") + 1)
-            self.td = carried
+            self._carry_memory(td)
             raw._put(t=raw.t + 1)
             self.ticks += 1
             step = raw.max_speed * raw.dt
-            dirs = torch.tensor(_ACTION_DIRS, device=dev)[action.long()]
+            dirs = torch.tensor(_ACTION_DIRS, device=raw.device)[action.long()]
             targets = raw.pos[0] + step * dirs
         return _np(action), _np(targets)
+
+    def _measure(self, positions, velocities, resources, invader) -> None:
+        """Overwrite the env's state with measurements (:meth:`act_on`; call under the lock)."""
+        raw, dev = self.raw, self.raw.device
+        lim = raw.half - raw.agent_radius
+        shape = (1, raw.n_agents, 2)
+        pos = torch.as_tensor(np.asarray(positions, np.float32), device=dev).reshape(shape)
+        raw.pos = pos.clamp(-lim, lim)
+        raw.vel = (
+            torch.zeros_like(pos)
+            if velocities is None
+            else torch.as_tensor(np.asarray(velocities, np.float32), device=dev).reshape(shape)
+        )
+        if resources is not None:
+            res = torch.as_tensor(np.asarray(resources, np.float32), device=dev).reshape(
+                1, raw.n_resources, 2
+            )
+            raw.res_pos = res.clamp(-raw.half, raw.half)
+        if invader is not None:
+            inv = np.asarray(invader, np.float32).reshape(-1, 2)[: raw.n_invaders]
+            full = np.zeros((raw.n_invaders, 2), np.float32)
+            full[: len(inv)] = inv
+            raw.inv_pos = torch.as_tensor(full, device=dev)[None]
+            raw.inv_active = (torch.arange(raw.n_invaders, device=dev) < len(inv))[None]
+
+    def _carry_memory(self, td) -> None:
+        """Keep a trained policy's memory (recurrent state, previous action) and the step count
+        for the next :meth:`act_on` (call under the lock)."""
+        nxt = td.get("next", None)
+        carried = td.exclude("next")
+        for key in (("agents", "rnn_hidden"), ("agents", "prev_action")):
+            if nxt is not None and key in nxt.keys(True):
+                carried.set(key, nxt.get(key))
+        carried.set("step_count", td.get("step_count") + 1)
+        self.td = carried
 
     def run(
         self,

@@ -17,10 +17,15 @@ WebSocket protocol (JSON text frames):
   ``speed``, ``clients``, ``tick_rate`` (ticks per second measured over the last 2 s; null
   while paused), ``nominal_rate`` (``rate_hz * speed``) and, in bridge mode, ``fleet``
   (:meth:`~icco_torchrl.live.bridge.Bridge.fleet`); ``totals`` are this episode's (``episode``,
-  ``step`` of ``episode_steps``); a slow tab gets the latest tick only (older ones are dropped
-  for it, never queued), so it can neither fall behind nor slow the others;
+  ``step`` of ``episode_steps``), ``finished_mean`` the mean totals of the ``finished`` episodes
+  (those that ran to their end), ``plan`` the instruction whose plan drives the team and
+  ``plan_distance`` each robot's distance to its nearest waypoint (metres); a slow tab gets the
+  latest tick only (older ones are dropped for it, never queued), so it can neither fall behind
+  nor slow the others;
 * server -> page, on connect and each time it changes (never repeated in ticks):
-  ``{"type": "planner", ...}`` with :class:`~icco_torchrl.live.loop.PlannerStatus`'s fields;
+  ``{"type": "planner", ...}`` with :class:`~icco_torchrl.live.loop.PlannerStatus`'s fields
+  (with the offline planner, ``understood`` on an unknown instruction and ``unused`` words of a
+  used one; ``hint`` when the reason names a setting);
 * server -> page, to the sender only: ``{"type": "ok"}`` for each request applied, or
   ``{"type": "error", "message": ...}`` for a bad one (an instruction over ``max_instruction``
   characters, JSON nested too deeply, among them: the connection stays up); over
@@ -29,7 +34,8 @@ WebSocket protocol (JSON text frames):
 * server -> page, once when the run ends (``live.seconds`` ran out, Ctrl-C, the bridge stopped):
   ``{"type": "end", "reason", "ticks"}``, then the server closes the connection (code 1000);
 * page -> server: ``{"type": "instruct", "text": "Go right"}``, ``{"type": "pause"}``,
-  ``{"type": "resume"}``, ``{"type": "step"}`` (one tick while paused), ``{"type": "reset"}``,
+  ``{"type": "resume"}``, ``{"type": "step"}`` (one tick while paused), ``{"type": "reset"}`` (a
+  new episode; the instruction stays),
   ``{"type": "speed", "value": x}`` with x in ``SPEEDS``, ``{"type": "add_robot"}`` (the
   lowest robot not in the team; ``"robot": i`` names one) and ``{"type": "remove_robot",
   "robot": i}``: the team changes between two ticks (:meth:`~icco_torchrl.live.loop.LiveLoop.
@@ -698,6 +704,8 @@ class LiveServer:
         return msg if isinstance(msg, str) else self._apply(msg)
 
     def _apply(self, msg) -> str | None:
+        """Apply one parsed request (any thread but the event loop's for the loop's requests);
+        an error message for the sender, or None."""
         kind = msg.get("type")
         if kind == "instruct":
             text = msg.get("text")
@@ -721,19 +729,24 @@ class LiveServer:
                 "this page shows robots driven by the bridge: pause, step, reset and speed are "
                 "not available"
             )
-        if kind == "pause":
-            self.paused = True
-        elif kind == "resume":
-            self.paused = False
+        if kind == "reset":
+            self._show("reset")
+            return None
+        error = self._control(kind, msg)
+        if error is None:
+            self._show("snapshot")  # every tab sees the change at once, even while paused
+        return error
+
+    def _control(self, kind: str, msg: dict) -> str | None:
+        """Pause, resume, step, speed or a team change; an error message, or None."""
+        if kind in ("pause", "resume"):
+            self.paused = kind == "pause"
         elif kind == "step":
             if not self.paused:
                 return "step works while paused"
             if self._steps >= MAX_STEPS:
                 return f"{MAX_STEPS} steps are already waiting: this one was not added"
             self._steps += 1
-        elif kind == "reset":
-            self._show("reset")
-            return None
         elif kind in ("add_robot", "remove_robot"):
             robot = msg.get("robot")
             if kind == "remove_robot" and robot is None:
@@ -755,7 +768,6 @@ class LiveServer:
             if value not in SPEEDS:
                 return f"speed must be one of {list(SPEEDS)}, got {value!r}"
             self.speed = float(value)
-        self._show("snapshot")  # every tab sees the change at once, even while paused
         return None
 
     def _show(self, job: str) -> None:
