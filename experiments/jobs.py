@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import csv
 import json
+import os
 import shutil
 import subprocess
 import sys
@@ -62,6 +63,18 @@ def run_status(run: Path, total_frames: int) -> str:
     return "done" if frames >= total_frames else "partial"
 
 
+def child_environment() -> dict[str, str]:
+    """This process's environment for a training run, without the Inductor cache folder torch
+    wrote into it on import (``TORCHINDUCTOR_CACHE_DIR`` at torch's default): a run given that
+    would compile into a cold temporary folder instead of icco's persistent cache."""
+    from torch._inductor.runtime.cache_dir_utils import default_cache_dir
+
+    env = dict(os.environ)
+    if env.get("TORCHINDUCTOR_CACHE_DIR") == default_cache_dir():
+        del env["TORCHINDUCTOR_CACHE_DIR"]
+    return env
+
+
 def train_runs(runs: dict[Path, tuple[list[str], int]], jobs: int = 2) -> None:
     """Bring every run ``{folder: (overrides, total_frames)}`` to its budget, ``jobs`` at a time."""
     status = {run: run_status(run, total) for run, (_, total) in runs.items()}
@@ -98,7 +111,12 @@ def train_runs(runs: dict[Path, tuple[list[str], int]], jobs: int = 2) -> None:
             print(f"$ icco {' '.join(command[3:])}  > {run}.log", flush=True)
             with open(f"{run}.log", "a") as log:
                 running.append(
-                    (run, subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT))
+                    (
+                        run,
+                        subprocess.Popen(
+                            command, stdout=log, stderr=subprocess.STDOUT, env=child_environment()
+                        ),
+                    )
                 )
         time.sleep(2)
         for item in [r for r in running if r[1].poll() is not None]:
