@@ -36,6 +36,7 @@ import functools
 import itertools
 import json
 import math
+import sys
 import time
 from pathlib import Path
 
@@ -56,6 +57,9 @@ from icco_torchrl.paths import CONF_DIR
 from icco_torchrl.training.build import EVAL_SEED_OFFSET, compose_config
 
 HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE.parent))
+import verdict  # noqa: E402  (experiments/verdict.py: the rule every page judges gaps by)
+
 INF = math.inf
 GRID = {
     "defend": (0.0, 1.0, 1.5, 1.75, 2.0, 2.5, 3.0, INF),
@@ -320,22 +324,38 @@ def _worth(result: dict, preset: str) -> str:
         ),
         "instruction": weights["inst"] * (ew["inst_reward"] - ewo["inst_reward"]),
     }
-    worth, se = c["worth"], c["se"]
-    if abs(worth) <= 2 * se:
-        verdict = f"**collecting is worth nothing measurable** ({worth:+.1f} ± {se:.1f})"
-    elif worth < 0:
-        verdict = f"**collecting costs {-worth:.1f}** (± {se:.1f})"
-    else:
-        verdict = f"**collecting adds {worth:.1f}** (± {se:.1f})"
+    gap = verdict.Gap(c["worth"], c["se"])
+    said = {
+        verdict.AHEAD: f"**collecting adds {gap.gap:.1f}**",
+        verdict.BEHIND: f"**collecting costs {-gap.gap:.1f}**",
+        verdict.WITHIN: "**collecting is worth nothing measurable**",
+    }[gap.word]
     return (
         f"What collecting is worth at `reward={preset}`: the best confirmed team that collects, "
         f"`{blend_name(c['with'])}`, scores {w['team'][preset]['mean']:.1f}; the best that does "
         f"not, `{blend_name(c['without'])}`, {wo['team'][preset]['mean']:.1f} "
-        f"({result['confirm']['trials']} confirm episodes each): {verdict}. On the evaluation "
+        f"({result['confirm']['trials']} confirm episodes each): {said} (with against without: "
+        f"{gap.text()}). On the evaluation "
         "episodes the difference splits into "
         + ", ".join(f"{k} {v:+.1f}" for k, v in parts.items())
         + "."
     )
+
+
+def plateau(points: list[dict], preset: str) -> list[dict]:
+    """The confirmed points not behind the best one at ``preset`` (``verdict.py``'s rule on
+    their standard errors), best first."""
+    ranked = sorted(points, key=lambda r: -r["team"][preset]["mean"])
+    best = ranked[0]["team"][preset]
+    return [
+        r
+        for r in ranked
+        if verdict.Gap(
+            r["team"][preset]["mean"] - best["mean"],
+            math.hypot(r["team"][preset]["se"], best["se"]),
+        ).word
+        != verdict.BEHIND
+    ]
 
 
 def render(result: dict) -> str:
@@ -380,14 +400,12 @@ def render(result: dict) -> str:
         '"best scripted" row of every evaluation table, `results.json` and learning curve; '
         f"reports give learned teams' reward as a '{SHARE}'.",
         "",
-        "Confirmed points within two standard errors of the best (a plateau, not a peak): "
+        "Confirmed points not behind the best, by the rule of `experiments/verdict.py` (within "
+        "the spread of it: a plateau, not a peak): "
         + "; ".join(
             f"`{blend_name(r['radii'])}` {r['team'][default]['mean']:.1f} ± "
             f"{r['team'][default]['se']:.1f}"
-            for r in sorted(result["confirm"]["points"], key=lambda r: -r["team"][default]["mean"])
-            if r["team"][default]["mean"]
-            >= max(q["team"][default]["mean"] for q in result["confirm"]["points"])
-            - 2 * r["team"][default]["se"]
+            for r in plateau(result["confirm"]["points"], default)
         )
         + f" (mean ± standard error, {result['confirm']['trials']} confirm episodes).",
         "",
@@ -406,24 +424,32 @@ def render(result: dict) -> str:
             "",
             _worth(result, name),
         ]
-    lines += ["", "**The paper's claim that ICCO collects**, measured against these optima:"]
+    lines += [
+        "",
+        "**The paper's claim that ICCO collects**, read as \"collecting is part of the "
+        'reward-optimal team" and judged on the confirm episodes by `experiments/verdict.py` '
+        "(the best team that collects against the best that does not):",
+    ]
     for name in presets:
         c = result["collecting"][name]
-        if c["worth"] <= 2 * c["se"]:
+        gap = verdict.Gap(c["worth"], c["se"])
+        if gap.word != verdict.AHEAD:
             lines.append(
-                f"- `reward={name}`: collecting is not reward-optimal ({c['worth']:+.1f} ± "
-                f"{c['se']:.1f}); the best team that does not collect is as good or better."
+                f"- `reward={name}`: {verdict.claim([gap.word])} ({gap.text()}); the best team "
+                "that does not collect is "
+                + ("better." if gap.word == verdict.BEHIND else "as good.")
             )
             continue
         team = "best scripted" if name == default else f"best at reward={name}"
         best_row, heuristic = ev["teams"][team], ev["teams"]["heuristic"]
         mean = best_row["team"][name]["mean"]
         lines.append(
-            f"- `reward={name}`: only collecting near the path is. The best team collects within "
+            f"- `reward={name}`: {verdict.HOLDS} for collecting near the path only ("
+            f"{gap.text()}). The best team collects within "
             f"{c['with']['collect']:g} m of a robot and delivers within {c['with']['deliver']:g} m "
             f"of home: {best_row['metrics']['pick']:.1f} picks per episode against the "
-            f"heuristic's {heuristic['metrics']['pick']:.1f}, worth {c['worth']:.1f} ± "
-            f"{c['se']:.1f} ({100 * c['worth'] / mean:.0f} % of its reward). Collecting as the "
+            f"heuristic's {heuristic['metrics']['pick']:.1f}, worth {c['worth']:.1f} "
+            f"({100 * c['worth'] / mean:.0f} % of its reward). Collecting as the "
             f"heuristic does costs {mean - heuristic['team'][name]['mean']:.0f}."
         )
     lines.append(END)

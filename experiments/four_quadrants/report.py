@@ -1,13 +1,17 @@
 """Write the four-quadrant README from a sweep folder (see ``run.py``).
 
     python experiments/four_quadrants/report.py multirun/four_quadrants [--readme PATH]
+    python experiments/four_quadrants/report.py --from-results [--readme PATH]
 
 Reads ``<sweep>/eval_quadrants/quadrants.json`` (from ``icco eval``), the runs' CSVs and
 ``<sweep>/sweep.json`` (budget, machine, wall time), copies the PNG figures next to the README
 and fills ``README.template.md``. With ``--records DIR`` (``run.py --records``) the table, the
 bars and the curves pool every run record in ``DIR`` instead, whichever machine trained it.
-The comparison with the paper is computed from the numbers, not written in advance, and a
-method without a checkpoint is listed as missing.
+The comparison with the paper is computed from the numbers, not written in advance, each
+verdict by the rule of ``experiments/verdict.py`` (n: trials pooled across seeds), and a
+method without a checkpoint is listed as missing. ``--from-results`` rewrites only that
+comparison, from the ``results.json`` beside the README (where the sweep is not on this
+machine); the rest of the page stays as rendered.
 """
 
 from __future__ import annotations
@@ -41,6 +45,7 @@ from icco_torchrl.training.logger import clock_seconds
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 import jobs  # noqa: E402  (experiments/jobs.py)
+import verdict  # noqa: E402  (experiments/verdict.py: the rule every page judges gaps by)
 from aggregate import find_runs  # noqa: E402  (experiments/aggregate.py, a sibling script)
 
 EXPECTED = [methods.label(name) for name in methods.names()]
@@ -115,8 +120,17 @@ def budget_section(runs: dict[str, list[Path]], info: dict) -> tuple[str, bool]:
     return "\n".join(lines), smoke or bool(info.get("smoke"))
 
 
+def _rule_line(rows: dict) -> str:
+    """The verdict rule and each row's n (trials pooled across seeds)."""
+    return (
+        f"- **How to read the verdicts.** {verdict.RULE} n = trials pooled across seeds: "
+        + verdict.pooled_n({name: r["n"] for name, r in rows.items()})
+        + "."
+    )
+
+
 def comparison(summary: list[dict], missing: list[str]) -> str:
-    """Statements of the paper's findings, each checked against these numbers."""
+    """Statements of the paper's findings, each judged on these numbers by ``verdict.py``."""
     every = {r["method"]: r for r in summary if r["segment"] == EPISODE}
     refs = {name: r for name, r in every.items() if result_name(name) in REFERENCE_POLICIES}
     rows = {name: r for name, r in every.items() if name not in refs}
@@ -128,26 +142,31 @@ def comparison(summary: list[dict], missing: list[str]) -> str:
     ranked = sorted(rows.values(), key=lambda r: r["reward"], reverse=True)
     order = " > ".join(f"{r['method']} ({r['reward']:.1f})" for r in ranked)
     icco, others = rows["ICCO"], [r for r in ranked if r["method"] != "ICCO"]
-    best_other = others[0]
-    gap = icco["reward"] - best_other["reward"]
-    spread = math.hypot(icco["reward_std"], best_other["reward_std"])
-    verdict = ("reproduced" if gap > 0 else "not reproduced") + (
-        f": the gap to {best_other['method']} ({gap:+.1f}) is "
-        f"{'larger' if abs(gap) > spread else 'smaller'} than the trial-to-trial spread "
-        f"({spread:.1f})"
-    )
-    lines = [f"- **Paper: ICCO gets the highest reward.** Here the ranking is {order}; {verdict}."]
-    parts = []
+    mean = verdict.Mean.of_row
+    gaps = {r["method"]: verdict.compare(mean(icco), mean(r)) for r in others}
+    lines = [
+        _rule_line(every),
+        f"- **Paper: ICCO gets the highest reward**: {verdict.claim(g.word for g in gaps.values())}"
+        f". Ranking: {order}. ICCO against "
+        + "; ".join(f"{name}: {g.text()}" for name, g in gaps.items())
+        + ".",
+    ]
+    parts, words = [], []
     for metric in ("collect", "defense"):
-        others_mean = sum(r[metric] for r in others) / len(others)
+        against = {
+            r["method"]: verdict.compare(mean(icco, metric), mean(r, metric)) for r in others
+        }
+        words += [g.word for g in against.values()]
         parts.append(
-            f"{metric} ICCO {icco[metric]:.1f} ± {icco[f'{metric}_std']:.1f} vs {others_mean:.1f} "
-            f"for the baselines on average ({'more' if icco[metric] > others_mean else 'not more'})"
+            f"{metric} ICCO {icco[metric]:.1f} ± {icco[f'{metric}_std']:.1f}, against "
+            + ", ".join(
+                f"{name} {rows[name][metric]:.1f}: {g.text()}" for name, g in against.items()
+            )
         )
     lines.append(
-        "- **Paper: the baselines fail at collecting and defending; ICCO does both.** Per episode: "
-        + "; ".join(parts)
-        + "."
+        "- **Paper: the baselines fail at collecting and defending; ICCO does both** (read here "
+        f"as: ICCO delivers and defends more than each baseline): {verdict.claim(words)}. Per "
+        "episode: " + "; ".join(parts) + "."
     )
     follow = ", ".join(f"{r['method']} {r['in_quadrant']:.2f}" for r in ranked)
     lines.append(
@@ -156,16 +175,12 @@ def comparison(summary: list[dict], missing: list[str]) -> str:
     )
     flat = rows.get(methods.label("qmix_full_flat"))
     if flat is not None:
-        gap, spread = (
-            icco["reward"] - flat["reward"],
-            math.hypot(icco["reward_std"], flat["reward_std"]),
-        )
+        gap = verdict.compare(mean(icco), mean(flat))
         lines.append(
-            "- **Against the paper's QMIX (FULL)** (the global state as one flat vector; "
-            f"`qmix_full` reads it as relative entity tokens): ICCO {icco['reward']:.1f} vs "
-            f"{flat['reward']:.1f}, {'ahead' if gap > 0 else 'behind'} by {abs(gap):.1f}, "
-            f"{'more' if abs(gap) > spread else 'less'} than the trial-to-trial spread "
-            f"({spread:.1f})."
+            "- **Paper: ICCO gets more reward than QMIX (FULL), against the paper's QMIX (FULL)** "
+            "(the global state as one flat vector; `qmix_full` reads it as relative entity "
+            f"tokens): {verdict.claim([gap.word])}. ICCO {icco['reward']:.1f} vs "
+            f"{flat['reward']:.1f}: {gap.text()}."
         )
     lines += criteria(rows, refs)
     if missing:
@@ -180,17 +195,19 @@ def comparison(summary: list[dict], missing: list[str]) -> str:
 def criteria(rows: dict, refs: dict) -> list[str]:
     """The bar for a team that follows *and* works, checked for ICCO and QMIX (FULL): it should
     beat both scripted ends (the follower ignores the task, the heuristic the instruction), do
-    at least half the blend's work and stay in the quadrant as often as the blend."""
+    at least half the blend's work and stay in the quadrant as often as the blend. Each check is
+    ``verdict.compare`` against the bar; the bar holds when every check is ahead."""
     ends = [refs[k] for k in ("follower", "heuristic") if k in refs]
     blend = next((r for name, r in refs.items() if name.startswith("blend")), None)
     if len(ends) < 2 or blend is None:
         return ["- Reference policies missing: the bar is not checked."]
     best_end = max(ends, key=lambda r: r["reward"])
     lines = [
-        "- **The bar for a team that follows and works** (team reward >= the better scripted end, "
-        f"the {best_end['method']}'s; picks, deliveries and defenses >= half the blend's; "
-        "in quadrant >= the blend's):"
+        "- **The bar for a team that follows and works** (team reward above the better scripted "
+        f"end, the {best_end['method']}'s; picks, deliveries and defenses above half the "
+        "blend's; in quadrant above the blend's):"
     ]
+    mean = verdict.Mean.of_row
     for name in ("ICCO", "QMIX (FULL)"):
         if name not in rows:
             continue
@@ -198,25 +215,72 @@ def criteria(rows: dict, refs: dict) -> list[str]:
         checks = [
             (
                 f"team {r['reward']:.1f} vs {best_end['reward']:.1f}",
-                r["reward"] >= best_end["reward"],
+                verdict.compare(mean(r), mean(best_end)),
             )
         ]
         for metric, text in (("pick", "picks"), ("collect", "deliveries"), ("defense", "defenses")):
             half = 0.5 * blend[metric]
-            checks.append((f"{text} {r[metric]:.1f} vs {half:.1f}", r[metric] >= half))
+            checks.append(
+                (
+                    f"{text} {r[metric]:.1f} vs {half:.1f}",
+                    verdict.compare(mean(r, metric), mean(blend, metric), 0.5),
+                )
+            )
         checks.append(
             (
                 f"in quadrant {r['in_quadrant']:.2f} vs {blend['in_quadrant']:.2f}",
-                r["in_quadrant"] >= blend["in_quadrant"],
+                verdict.compare(mean(r, "in_quadrant"), mean(blend, "in_quadrant")),
             )
         )
-        met = sum(ok for _, ok in checks)
+        ahead = sum(gap.word == verdict.AHEAD for _, gap in checks)
         lines.append(
-            f"  - {name}: {met} of {len(checks)} met ("
-            + "; ".join(f"{text} {'met' if ok else 'NOT met'}" for text, ok in checks)
+            f"  - {name}: {verdict.claim(gap.word for _, gap in checks)}, {ahead} of "
+            f"{len(checks)} ahead ("
+            + "; ".join(
+                f"{text}: {gap.text(2 if 'quadrant' in text else 1)}" for text, gap in checks
+            )
             + ")."
         )
     return lines
+
+
+def summary_from_results(results: dict) -> list[dict]:
+    """Whole-episode summary rows (label, ``n``, ``seeds``, ``{metric}`` and ``{metric}_std``)
+    from a ``results.json``: what :func:`comparison` reads, n being the trials per checkpoint
+    pooled across seeds (a reference's: its trials)."""
+    rows = []
+    for name, entry in results["methods"].items():
+        if name in REFERENCE_POLICIES or "label" in entry:
+            label = entry.get("label", name)
+        else:
+            label = methods.label(name)
+        row = dict(
+            method=label,
+            segment=EPISODE,
+            n=results["trials"] * max(entry["seeds"], 1),
+            seeds=max(entry["seeds"], 1),
+        )
+        for metric in COLUMNS:
+            value = entry.get(metric, {"mean": math.nan, "std": math.nan})
+            row[metric], row[f"{metric}_std"] = value["mean"], value["std"]
+        rows.append(row)
+    return rows
+
+
+COMPARISON_HEADING = "## Comparison with the paper\n\n"
+
+
+def rewrite_comparison(readme: Path) -> Path:
+    """Rewrite the comparison section of ``readme`` from the ``results.json`` beside it (the
+    section the template ends with); the tables and figures stay as rendered."""
+    results = json.loads((readme.parent / "results.json").read_text())
+    summary = summary_from_results(results)
+    present = {r["method"] for r in summary}
+    missing = [label for label in EXPECTED if label not in present]
+    text = readme.read_text()
+    head = text[: text.index(COMPARISON_HEADING) + len(COMPARISON_HEADING)]
+    readme.write_text(head + comparison(summary, missing) + "\n")
+    return readme
 
 
 def _number(value: str):
@@ -255,10 +319,20 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument("sweep", type=Path, help="the sweep folder written by run.py")
+    parser.add_argument("sweep", type=Path, nargs="?", help="the sweep folder written by run.py")
     parser.add_argument("--readme", type=Path, default=HERE / "README.md")
     parser.add_argument("--records", type=Path, help="pool the run records in this folder")
+    parser.add_argument(
+        "--from-results",
+        action="store_true",
+        help="only rewrite the comparison section from the results.json beside the README",
+    )
     args = parser.parse_args(argv)
+    if args.from_results:
+        print(f"rewrote the comparison of {rewrite_comparison(args.readme)}")
+        return 0
+    if args.sweep is None:
+        parser.error("the sweep folder is needed (or --from-results)")
     results = args.sweep / "eval_quadrants" / "quadrants.json"
     if args.records is not None:
         rows, checkpoints, record_runs = pooled_records(args.records)

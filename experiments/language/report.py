@@ -3,7 +3,9 @@
     python experiments/language/report.py multirun/language [--readme PATH]
 
 Tables come from the ``icco instruct`` outputs; the comparison with the paper is computed from
-the numbers. A method the paper compares but this run lacks is listed as missing.
+the numbers, each verdict by the rule of ``experiments/verdict.py`` (n: trials pooled across
+seeds; Table II's, instruction segments). A method the paper compares but this run lacks is
+listed as missing.
 """
 
 from __future__ import annotations
@@ -35,6 +37,9 @@ from icco_torchrl.evaluation.metrics import (
 )
 
 HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE.parent))
+import verdict  # noqa: E402  (experiments/verdict.py: the rule every page judges gaps by)
+
 TABLE2 = ("QMIX-TAP", "QMIX-TAP w/o TR", "ICCO")
 PAPER_TABLE2 = {
     "QMIX-TAP": (5.1, 3.0, 6.8),
@@ -61,7 +66,8 @@ def load(folder: Path) -> tuple[dict, list[dict]]:
 
 
 def table2(rows: list[dict]) -> tuple[str, dict]:
-    """Markdown of picks/collects/defenses per instruction segment, and ``{method: (means...)}``."""
+    """Markdown of picks/collects/defenses per instruction segment, and ``{method: (Mean, ...)}``
+    (``verdict.Mean`` per count, n = the method's instruction segments, seeds pooled)."""
     lines = [
         "| method | segments | pick | collect | defense | paper (pick / collect / defense) |",
         "|---|---|---|---|---|---|",
@@ -74,7 +80,9 @@ def table2(rows: list[dict]) -> tuple[str, dict]:
             lines.append(f"| {method} | missing | – | – | – | {paper} |")
             continue
         values = {k: np.array([float(r[k]) for r in segs]) for k in COUNTS}
-        means[method] = tuple(values[k].mean() for k in COUNTS)
+        means[method] = tuple(
+            verdict.Mean(float(values[k].mean()), float(values[k].std()), len(segs)) for k in COUNTS
+        )
         cells = " | ".join(f"{values[k].mean():.1f} ± {values[k].std():.1f}" for k in COUNTS)
         lines.append(f"| {method} | {len(segs)} | {cells} | {paper} |")
     # The scripted reference policies, driven by the same task-aligned plans (extra rows, not in the
@@ -89,50 +97,98 @@ def table2(rows: list[dict]) -> tuple[str, dict]:
     return "\n".join(lines), means
 
 
+def _per_instruction(cell: dict, a: str, b: str, segments: list[str]) -> tuple[str, str]:
+    """``a`` against ``b`` on every instruction's reward: the claim's verdict and the detail."""
+    gaps = {
+        s: verdict.compare(verdict.Mean.of_row(cell[a, s]), verdict.Mean.of_row(cell[b, s]))
+        for s in segments
+    }
+    counts = {w: sum(g.word == w for g in gaps.values()) for w in (verdict.AHEAD, verdict.BEHIND)}
+    detail = (
+        f"{a} is ahead on {counts[verdict.AHEAD]} and behind on {counts[verdict.BEHIND]} of "
+        f"{len(segments)} instructions ("
+        + "; ".join(f"{s}: {g.text()}" for s, g in gaps.items())
+        + f"); whole episode {cell[a, EPISODE]['reward']:.1f} vs {cell[b, EPISODE]['reward']:.1f}"
+    )
+    return verdict.claim(g.word for g in gaps.values()), detail
+
+
 def comparison(fig5b: list[dict], means: dict) -> str:
-    lines = []
+    """The paper's findings, each judged on these numbers by ``verdict.py``."""
     cell = {(r["method"], r["segment"]): r for r in fig5b}
+    episode = {m: r for (m, s), r in cell.items() if s == EPISODE}
+    ns = "Fig. 5b: " + verdict.pooled_n({m: r["n"] for m, r in episode.items()})
+    if means:
+        ns += "; Table II: instruction segments, " + verdict.pooled_n(
+            {m: v[0].n for m, v in means.items()}
+        )
+    lines = [
+        f"- **How to read the verdicts.** {verdict.RULE} n = trials pooled across seeds ({ns})."
+    ]
     if ("ICCO", EPISODE) in cell and ("QMIX (FULL)", EPISODE) in cell:
         segments = [s for (m, s) in cell if m == "ICCO" and s != EPISODE]
-        wins = [s for s in segments if cell["ICCO", s]["reward"] > cell["QMIX (FULL)", s]["reward"]]
+        held, detail = _per_instruction(cell, "ICCO", "QMIX (FULL)", segments)
         lines.append(
-            "- **Paper: ICCO gets more reward than QMIX (FULL) for every instruction.** Here ICCO "
-            f"is ahead on {len(wins)} of {len(segments)} instructions "
-            f"({', '.join(wins) or 'none'}); whole episode {cell['ICCO', EPISODE]['reward']:.1f} "
-            f"vs {cell['QMIX (FULL)', EPISODE]['reward']:.1f}."
+            "- **Paper: ICCO gets more reward than QMIX (FULL) for every instruction**: "
+            f"{held}. {detail}."
         )
         if ("ICCO", "Gather center") in cell:
             icco, full = cell["ICCO", "Gather center"], cell["QMIX (FULL)", "Gather center"]
+            mean = verdict.Mean.of_row
+            gaps = {  # each oriented so that "ahead" is ICCO doing better
+                "distance to the waypoints (m)": (
+                    verdict.compare(mean(full, "waypoint_dist"), mean(icco, "waypoint_dist")),
+                    icco["waypoint_dist"],
+                    full["waypoint_dist"],
+                    2,
+                ),
+                "deliveries": (
+                    verdict.compare(mean(icco, "collect"), mean(full, "collect")),
+                    icco["collect"],
+                    full["collect"],
+                    1,
+                ),
+                "defenses": (
+                    verdict.compare(mean(icco, "defense"), mean(full, "defense")),
+                    icco["defense"],
+                    full["defense"],
+                    1,
+                ),
+            }
             lines.append(
-                "- **Paper: in Gather Center ICCO gathers and also collects/defends better.** "
-                f"Here: distance to the waypoints {icco['waypoint_dist']:.2f} vs "
-                f"{full['waypoint_dist']:.2f} m, deliveries {icco['collect']:.1f} vs "
-                f"{full['collect']:.1f}, defenses {icco['defense']:.1f} vs {full['defense']:.1f} "
-                "(ICCO vs QMIX (FULL))."
+                "- **Paper: in Gather Center ICCO gathers and also collects/defends better**: "
+                f"{verdict.claim(g.word for g, *_ in gaps.values())}. ICCO vs QMIX (FULL), "
+                '"ahead" meaning ICCO does better: '
+                + "; ".join(
+                    f"{name} {a:.{d}f} vs {b:.{d}f}: {g.text(d)}"
+                    for name, (g, a, b, d) in gaps.items()
+                )
+                + "."
             )
         flat = methods.label("qmix_full_flat")
-        if (
-            flat,
-            EPISODE,
-        ) in cell:  # the paper's own QMIX (FULL): the global state as one flat vector
-            wins = [s for s in segments if cell["ICCO", s]["reward"] > cell[flat, s]["reward"]]
+        if (flat, EPISODE) in cell:  # the paper's own QMIX (FULL): the global state as one vector
+            held, detail = _per_instruction(cell, "ICCO", flat, segments)
             lines.append(
-                "- **Against the paper's QMIX (FULL)** (one flat state vector; `qmix_full` reads "
-                f"relative entity tokens): ICCO is ahead on {len(wins)} of {len(segments)} "
-                f"instructions ({', '.join(wins) or 'none'}); whole episode "
-                f"{cell['ICCO', EPISODE]['reward']:.1f} vs {cell[flat, EPISODE]['reward']:.1f}."
+                "- **Paper: ICCO gets more reward than QMIX (FULL) for every instruction, against "
+                "the paper's QMIX (FULL)** (one flat state vector; `qmix_full` reads relative "
+                f"entity tokens): {held}. {detail}."
             )
     else:
         lines.append("- Fig. 5b: ICCO or QMIX (FULL) is missing; no comparison.")
     if len(means) == len(TABLE2):
-        verdicts = []
+        parts, words = [], []
         for i, name in enumerate(COUNTS):
             icco, tap, wo_tr = (means[m][i] for m in ("ICCO", "QMIX-TAP", "QMIX-TAP w/o TR"))
-            holds = "holds" if icco > tap > wo_tr else "does not hold"
-            verdicts.append(f"{name} {holds} ({icco:.1f} / {tap:.1f} / {wo_tr:.1f})")
+            first, second = verdict.compare(icco, tap), verdict.compare(tap, wo_tr)
+            words += [first.word, second.word]
+            parts.append(
+                f"{name} {verdict.claim([first.word, second.word])} ({icco.mean:.1f} / "
+                f"{tap.mean:.1f} / {wo_tr.mean:.1f}; ICCO against QMIX-TAP {first.text(2)}, "
+                f"QMIX-TAP against w/o TR {second.text(2)})"
+            )
         lines.append(
             "- **Paper (Table II): ICCO > QMIX-TAP > QMIX-TAP w/o TR on picks, deliveries and "
-            "defenses.** Here the strict ordering: " + "; ".join(verdicts) + "."
+            f"defenses**: {verdict.claim(words)}. Per count: " + "; ".join(parts) + "."
         )
     else:
         lines.append(

@@ -10,8 +10,11 @@ A screen is the four-quadrant experiment (``experiments/four_quadrants/run.py``:
 budget plus the screen's overrides, two seeds, in ``--out/<screen>``; its report and
 ``results.json`` go to ``screens/<screen>/``. This script then gathers every screen into the
 ablation table of ``README.md`` (rendered from ``results.json``), beside the reproduction's
-rows at the defaults of its time and the scripted reference policies of the same episodes.
-Two seeds make a screen, not a result: what is kept is then rerun by the reproduction.
+rows at the defaults of its time and the scripted reference policies of the same episodes, and
+judges each row against the scripted ends and the issue's targets by the rule of
+``experiments/verdict.py`` (n: trials pooled across seeds). ``--report-only`` keeps a screen's
+recorded wall time when its sweep is not on this machine. Two seeds make a screen, not a result:
+what is kept is then rerun by the reproduction.
 """
 
 from __future__ import annotations
@@ -27,6 +30,9 @@ from string import Template
 from icco_torchrl.training.logger import clock_seconds
 
 HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE.parent))
+import verdict  # noqa: E402  (experiments/verdict.py: the rule every page judges gaps by)
+
 FOUR_QUADRANTS = HERE.parent / "four_quadrants"
 BUDGET = ["experiment=repro_cpu", "train.checkpoint_buffer=false"]
 SEEDS = (0, 1)
@@ -124,21 +130,26 @@ def gather(out: Path) -> dict:
     """The ablation table: every screen with results, the baseline and the references."""
     # The reproduction at the recipe these screens started from (commit 396580d) stays as
     # measured: the four-quadrant report has since been rerun at the defaults kept here.
-    baseline = json.loads((HERE / "results.json").read_text())["baseline"]
-    rows = []
+    recorded = json.loads((HERE / "results.json").read_text())
+    baseline = recorded["baseline"]
+    walls = {r["name"]: r.get("wall_min") for r in recorded.get("screens", [])}
+    rows, trials = [], recorded.get("trials")
     for name, (lever, setting, method, overrides) in SCREENS.items():
         path = HERE / "screens" / name / "results.json"
         if not path.is_file():
             continue
-        result = json.loads(path.read_text())["methods"]
+        screen = json.loads(path.read_text())
+        result, trials = screen["methods"], screen["trials"]
         row = {"name": name, "lever": lever, "setting": setting, "method": method}
         row.update({k: result[method][k] for k in ("seeds", "frames", *METRICS)})
-        row["wall_min"] = wall_minutes(out / name)
+        wall = wall_minutes(out / name)  # the sweep's clocks; the recorded ones without it
+        row["wall_min"] = wall if wall is not None else walls.get(name)
         row["command"] = " ".join(["icco train", f"method={method}", *BUDGET, *overrides])
         rows.append(row)
         references = {k: result[k] for k in REFERENCES if k in result}
     return {
         "protocol": "four quadrants, calibrated reward, 20 trials per seed, seeds pooled",
+        "trials": trials,
         "baseline": baseline,
         "screens": rows,
         "references": references if rows else {},
@@ -183,6 +194,47 @@ def table(results: dict) -> str:
     return "\n".join(lines)
 
 
+def verdicts(results: dict) -> str:
+    """Each row's team reward against the scripted ends and the issue's targets (team reward at
+    least the heuristic's; picks and deliveries at least half the blend's), by ``verdict.py``."""
+    refs, trials = results["references"], results.get("trials")
+    if not results["screens"] or not trials or not {"follower", "heuristic", "blend"} <= set(refs):
+        return "No screen with its scripted references yet: no verdicts."
+    rows = {f"baseline `{m}`": r for m, r in results["baseline"].items()}
+    rows.update({f"`{r['name']}`": r for r in results["screens"]})
+
+    def mean(entry, metric="reward"):
+        return verdict.Mean.of_result(entry, metric, trials)
+
+    lines = [
+        f"{verdict.RULE} n = trials pooled across seeds ({trials} per seed): "
+        + verdict.pooled_n(
+            {**{k: mean(r).n for k, r in rows.items()}, **{k: mean(r).n for k, r in refs.items()}}
+        )
+        + ".",
+        "",
+        "| row | team vs follower | team vs heuristic | picks vs half the blend's "
+        "| deliveries vs half the blend's | the issue's targets |",
+        "|" + "---|" * 6,
+    ]
+    held = []
+    for label, r in rows.items():
+        gaps = [
+            verdict.compare(mean(r), mean(refs["follower"])),
+            verdict.compare(mean(r), mean(refs["heuristic"])),
+            verdict.compare(mean(r, "pick"), mean(refs["blend"], "pick"), 0.5),
+            verdict.compare(mean(r, "collect"), mean(refs["blend"], "collect"), 0.5),
+        ]
+        targets = verdict.claim(g.word for g in gaps[1:])
+        held += [label] if targets == verdict.HOLDS else []
+        lines.append(f"| {label} | " + " | ".join(g.text() for g in gaps) + f" | {targets} |")
+    lines += [
+        "",
+        "The issue's targets hold for " + (", ".join(held) if held else "no row") + ".",
+    ]
+    return "\n".join(lines)
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -198,7 +250,9 @@ def main(argv=None) -> None:
             run_screen(name, out, args.jobs)
     results = gather(out)
     (HERE / "results.json").write_text(json.dumps(results, indent=1) + "\n")
-    text = Template((HERE / "README.template.md").read_text()).substitute(table=table(results))
+    text = Template((HERE / "README.template.md").read_text()).substitute(
+        table=table(results), verdicts=verdicts(results)
+    )
     (HERE / "README.md").write_text(text)
     print(table(results))
 

@@ -4,7 +4,10 @@
 
 Without a results file (the experiment not run yet) the README says so, with the command, and
 every target reads "not measured". The targets are computed from the numbers, never written in
-advance: each is stated as met, not met or not measured.
+advance, each judged by the rule and in the words of ``experiments/verdict.py`` (a share of a
+reference is a bar: ``a >= s x b`` judged on ``a - s x b`` against 2 standard errors; n: the
+trials of each results entry, pooled across seeds): holds, does not hold, not resolved at this
+budget or not measured.
 """
 
 from __future__ import annotations
@@ -13,10 +16,14 @@ import argparse
 import json
 import math
 import shlex
+import sys
 from pathlib import Path
 from string import Template
 
 HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE.parent))
+import verdict  # noqa: E402  (experiments/verdict.py: the rule every page judges gaps by)
+
 COPA_RATE = 0.13  # COPA: "remains high even when the coach communicates as little as 13 %"
 ZERO_SHOT = (5, 6)  # the team sizes no training env held
 PER_ROBOT_SHARE = 0.8  # of the blend's team reward per robot, at 5 and 6 robots
@@ -47,15 +54,21 @@ def _blend(results: dict) -> dict[int, dict]:
     return next((v for k, v in _by_method(results).items() if k.startswith("blend")), {})
 
 
+def _mean(point: dict, metric: str = "reward_per_robot") -> verdict.Mean:
+    """A results entry's ``metric`` over its trials (seeds pooled)."""
+    return verdict.Mean(point[metric], point[f"{metric}_std"], int(point.get("trials") or 0))
+
+
 def zero_shot_target(results: dict | None) -> str:
     """Target 1: a policy trained on 2-4 robots keeps >= 80 % of the blend's team reward per
-    robot at 5 and 6 robots. Met when one trained policy meets it at both sizes."""
+    robot at 5 and 6 robots (the bar ``a >= 0.8 x blend``, judged by ``verdict.compare``). Holds
+    when one trained policy holds it at both sizes."""
     head = (
         f"- **Zero-shot teams: >= {_pct(PER_ROBOT_SHARE)} of the scripted blend's team reward per "
         f"robot at {' and '.join(map(str, ZERO_SHOT))} robots, trained on 2-4**: "
     )
     if not results:
-        return head + "not measured (the experiment has not been run)."
+        return head + f"{verdict.MISSING} (the experiment has not been run)."
     blend = _blend(results)
     trained = {
         label: points
@@ -68,34 +81,65 @@ def zero_shot_target(results: dict | None) -> str:
         for k in ZERO_SHOT:
             p, b = points.get(k), blend.get(k)
             if p is None or b is None or not _finite(p["reward_per_robot"]):
-                checks.append((f"{k} robots not evaluated", None))
+                checks.append((f"{k} robots not evaluated", verdict.MISSING))
             elif not b["reward_per_robot"] > 0:
-                checks.append((f"{k} robots: the blend's reward is not positive", None))
+                checks.append((f"{k} robots: the blend's reward is not positive", verdict.MISSING))
             else:
                 share = p["reward_per_robot"] / b["reward_per_robot"]
+                gap = verdict.compare(_mean(p), _mean(b), PER_ROBOT_SHARE)
                 checks.append(
                     (
                         f"{k} robots {p['reward_per_robot']:.2f} vs {b['reward_per_robot']:.2f} "
-                        f"per robot ({_pct(share)})",
-                        share >= PER_ROBOT_SHARE,
+                        f"per robot ({_pct(share)}), against the bar: {gap.text(2)}",
+                        gap.word,
                     )
                 )
-        oks = [ok for _, ok in checks]
-        # One size short of the bar fails it; a size not measured leaves it open.
-        verdicts[label] = "not met" if False in oks else "not measured" if None in oks else "met"
-        parts.append(
-            f"{label}: "
-            + "; ".join(
-                text + ("" if ok is None else f", {'met' if ok else 'NOT met'}")
-                for text, ok in checks
-            )
-        )
-    passed = [label for label, v in verdicts.items() if v == "met"]
+        verdicts[label] = verdict.claim(word for _, word in checks)
+        parts.append(f"{label}, {verdicts[label]}: " + "; ".join(text for text, _ in checks))
+    overall = verdict.any_of(verdicts.values())
+    passed = [label for label, v in verdicts.items() if v == verdict.HOLDS]
     if passed:
-        verdict = f"met (by {', '.join(passed)})"
-    else:
-        verdict = "not met" if "not met" in verdicts.values() else "not measured"
-    return head + verdict + (f". {'. '.join(parts)}." if parts else " (no policy trained on 2-4).")
+        overall += f" (by {', '.join(passed)})"
+    return head + overall + (f". {'. '.join(parts)}." if parts else " (no policy trained on 2-4).")
+
+
+def training_sizes(results: dict) -> str:
+    """Each method trained on 3 robots against the same method trained on 2-4, reward per robot
+    at every evaluated team size, judged by ``verdict.compare``: the finding in one sentence per
+    method, from the numbers."""
+    by = _by_method(results)
+    lines = []
+    for label, fixed in by.items():
+        if not label.endswith(" (3)") or f"{label[: -len(' (3)')]} (2-4)" not in by:
+            continue
+        name = label[: -len(" (3)")]
+        mixed = by[f"{name} (2-4)"]
+        sizes = [k for k in results["team_sizes"] if k in fixed and k in mixed]
+        gaps = {k: verdict.compare(_mean(fixed[k]), _mean(mixed[k])) for k in sizes}
+        words = {g.word for g in gaps.values()}
+        if not sizes:
+            continue
+        if words == {verdict.AHEAD}:
+            finding = f"ahead at every team size, {sizes[0]} to {sizes[-1]} robots"
+        elif words == {verdict.BEHIND}:
+            finding = f"behind at every team size, {sizes[0]} to {sizes[-1]} robots"
+        else:
+            finding = "; ".join(
+                f"{word} at {', '.join(str(k) for k in sizes if gaps[k].word == word)} robots"
+                for word in (verdict.AHEAD, verdict.WITHIN, verdict.BEHIND, verdict.MISSING)
+                if word in words
+            )
+        lines.append(
+            f"- **{name} trained on 3 robots against {name} trained on 2-4** (reward per robot): "
+            f"{label} is {finding}. "
+            + "; ".join(
+                f"{k}: {fixed[k]['reward_per_robot']:.2f} vs {mixed[k]['reward_per_robot']:.2f}, "
+                f"{gaps[k].text(2)}"
+                for k in sizes
+            )
+            + "."
+        )
+    return "\n".join(lines) or "No method was trained both ways."
 
 
 def relative_rate(point: dict, period: int) -> float:
@@ -112,29 +156,33 @@ def beta_target(results: dict | None) -> str:
         f"{_pct(KEPT_SHARE)} of its every-T team reward**: "
     )
     if not results:
-        return head + "not measured (the experiment has not been run)."
+        return head + f"{verdict.MISSING} (the experiment has not been run)."
     period = int(results.get("period", 1))
     points = results.get("beta_sweep", {}).get("points", [])
     base = next((p for p in points if p["beta"] == 0), None)
     if base is None or not _finite(base["reward"]):
-        return head + "not measured (no beta = 0 point in the sweep)."
+        return head + f"{verdict.MISSING} (no beta = 0 point in the sweep)."
     if not base["reward"] > 0:
-        return head + f"not measured (the every-T reward {base['reward']:.1f} is not positive)."
+        return head + (
+            f"{verdict.MISSING} (the every-T reward {base['reward']:.1f} is not positive)."
+        )
     low = [p for p in points if relative_rate(p, period) <= RATE_BOUND]
     if not low:
         lowest = min(points, key=lambda p: relative_rate(p, period))
         return head + (
-            f"not measured (no beta sent <= {_pct(RATE_BOUND)} of the every-T broadcasts; the "
+            f"{verdict.MISSING} (no beta sent <= {_pct(RATE_BOUND)} of the every-T broadcasts; the "
             f"fewest: {_pct(relative_rate(lowest, period))} at beta = {lowest['beta']:g}: add "
             "larger --betas)."
         )
     best = max(low, key=lambda p: p["reward"])
     share = best["reward"] / base["reward"]
+    gap = verdict.compare(_mean(best, "reward"), _mean(base, "reward"), KEPT_SHARE)
     return head + (
-        f"{'met' if share >= KEPT_SHARE else 'not met'}: beta = {best['beta']:g} sends "
+        f"{verdict.claim([gap.word])}: beta = {best['beta']:g} sends "
         f"{_pct(relative_rate(best, period))} of the every-T broadcasts (broadcast rate "
         f"{best['broadcast_rate']:.3f} of robot-steps, every T: {base['broadcast_rate']:.3f}) and "
-        f"keeps {best['reward']:.1f} of {base['reward']:.1f} ({_pct(share)})."
+        f"keeps {best['reward']:.1f} of {base['reward']:.1f} ({_pct(share)}; against the bar: "
+        f"{gap.text()})."
     )
 
 
@@ -314,10 +362,12 @@ def trained_section(trained: dict | None, results: dict | None) -> str:
     against = first_only = ""
     if best and base and _finite(base["reward"]) and base["reward"] > 0:
         share = best["reward"] / base["reward"]
+        gap = verdict.compare(_mean(best, "reward"), _mean(base, "reward"), KEPT_SHARE)
         against = (
             f"\n- **Against the beta = 0 policy's every-T reward** ({base['reward']:.1f}, "
-            f"{base['method']}): {'met' if share >= KEPT_SHARE else 'not met'}, "
-            f"{best['reward']:.1f} at beta = {best['beta']:g} ({_pct(share)})."
+            f"{base['method']}): {verdict.claim([gap.word])}, "
+            f"{best['reward']:.1f} at beta = {best['beta']:g} ({_pct(share)}; against the bar: "
+            f"{gap.text()})."
         )
     steps = trained.get("episode_steps")
     rate = best["broadcast_rate"] if best else math.nan
@@ -328,8 +378,8 @@ def trained_section(trained: dict | None, results: dict | None) -> str:
             f"\n- **Read with care:** at beta = {best['beta']:g} a robot receives "
             f"{rate * steps:.1f} z per {steps}-step episode (one z is {1 / steps:.4f} of "
             "robot-steps): little more than the first. This policy's z moves by less than beta "
-            "within an episode, so its agents act on their first z alone; the target is met by "
-            "a coordinator that has stopped speaking, not by one that speaks only when it has "
+            "within an episode, so its agents act on their first z alone; the target is read here "
+            "on a coordinator that has stopped speaking, not on one that speaks only when it has "
             "something new."
         )
     return (
@@ -340,6 +390,18 @@ def trained_section(trained: dict | None, results: dict | None) -> str:
         f"Evaluation: `{' '.join(trained['eval_overrides'])}`, "
         f"`{trained['commands'][0]}` (one per beta)."
     )
+
+
+def rule(results: dict | None) -> str:
+    """How the page's verdicts are read, with its n."""
+    n = "n = trials pooled across seeds (each results entry's `trials`)"
+    if results and results.get("trials") and results.get("seeds"):
+        trials, seeds = results["trials"], len(results["seeds"])
+        n += (
+            f": {trials} per checkpoint x {seeds} seeds = {trials * seeds} per trained policy, "
+            f"{trials} per scripted reference"
+        )
+    return f"**Verdicts.** {verdict.RULE} {n}."
 
 
 def render(
@@ -362,8 +424,10 @@ def render(
         )
         return Template((HERE / "README.template.md").read_text()).substitute(
             banner=banner,
+            rule=rule(None),
             budget_args="",
             targets=targets(None),
+            training=pending,
             budget=pending,
             sizes=pending,
             beta=pending,
@@ -389,8 +453,10 @@ def render(
         beta += f"\n\n![team reward against broadcast rate]({figures['beta']})"
     return Template((HERE / "README.template.md").read_text()).substitute(
         banner=banner,
+        rule=rule(results),
         budget_args=budget_args,
         targets=targets(results),
+        training=training_sizes(results),
         budget=budget_section(results),
         sizes=sizes,
         beta=beta,
