@@ -255,6 +255,30 @@ def test_a_torchrl_network_plugs_in_as_the_agent():
         assert out["q_taken"].item() == pytest.approx(expected.item(), abs=1e-5)
 
 
+def test_a_torchrl_agent_reads_the_state_with_its_trailing_dims():
+    """An agent that reads the state through its keys gets it as the batch holds it (``[.., N,
+    F]``, not flattened): its Q-values are the MLP's on the segment's states."""
+    torch.manual_seed(0)
+    mlp = MultiAgentMLP(
+        n_agent_inputs=F,
+        n_agent_outputs=A,
+        n_agents=N,
+        centralised=False,
+        share_params=True,
+        depth=1,
+        num_cells=16,
+    )
+    agent = TensorDictModule(mlp, in_keys=["state"], out_keys=[("agents", "action_value")])
+    td = segments(state_shape=(N, F)).exclude(("agents", "rnn_hidden"), ("agents", "prev_action"))
+    loss = ICCOLoss(agent, sum_mixer(), ce_coef=0.0, entropy_coef=0.0)
+    assert loss.reads_state and not loss.recurrent and not loss.reads_prev_action
+    assert loss.read_batch(td).state_shape == (N, F)
+    out = loss(td)
+    with torch.no_grad():
+        expected = mlp(td["state"]).gather(-1, td["agents", "action"].unsqueeze(-1)).mean()
+    assert out["q_taken"].item() == pytest.approx(expected.item(), abs=1e-5)
+
+
 def test_generic_path_equals_the_sequence_path():
     """The same RecurrentQNet called through its keys (as any TorchRL network): the same loss."""
     agent = flat_agent()

@@ -10,7 +10,6 @@ per-robot tensor (action, prev_action, rnn_hidden, z, z_noise, ...).
 
 from __future__ import annotations
 
-import dataclasses
 from pathlib import Path
 
 import pytest
@@ -22,7 +21,6 @@ from icco_torchrl.envs import ResourceCollectionEnv
 from icco_torchrl.envs.layout import ObsLayout
 from icco_torchrl.modules.mixer import TokenMixer, make_mixer
 from icco_torchrl.modules.posterior import Posterior
-from icco_torchrl.modules.relative import robot_mask
 from icco_torchrl.objectives import total_loss
 from icco_torchrl.training.build import build, compose_config, make_loss, make_modules
 from icco_torchrl.training.checkpoint import (
@@ -39,17 +37,6 @@ torch.set_num_threads(1)
 N_ACTIONS = 5
 ANY_TEAM = ["method.mixer=attention", "method.posterior_input=tokens"]
 DEMO = Path(__file__).resolve().parents[1] / "assets" / "demo_icco.pt"
-
-
-def padded_layout(layout, n_agents: int):
-    """The layout of the same env holding ``n_agents`` robots (the env's ObsLayout rule)."""
-    extra = n_agents - layout.n_agents
-    return dataclasses.replace(
-        layout,
-        n_agents=n_agents,
-        n_entities=layout.n_entities + extra,
-        state_tokens=layout.state_tokens + extra,
-    )
 
 
 def pad_state(state, layout, extra: int):
@@ -111,7 +98,7 @@ def team(request):
     with torch.no_grad():
         rollout = run.env.rollout(24, run.policy, break_when_any_done=False)
     items = SegmentCutter(length=8)(rollout)
-    layout6 = padded_layout(run.layout, 6)
+    layout6 = run.layout.with_agents(6)
     torch.manual_seed(1)  # other initial weights: the load below must overwrite every one
     mods6, loss6 = networks(cfg, layout6)
     load_weights(loss6, run.loss.state_dict(), "3-robot weights", cfg.method.name)
@@ -135,9 +122,9 @@ def test_padding_follows_the_layout(team):
     padded, layout6 = team["padded"], team["layout6"]
     assert padded["state"].shape[-1] == layout6.state_dim
     assert padded["agents", "observation"].shape[-2:] == (6, layout6.obs_dim)
-    present = robot_mask(padded["state"], layout6)
+    present = layout6.robot_mask(padded["state"])
     assert present[..., :3].all() and not present[..., 3:].any()
-    assert robot_mask(team["items"]["state"], team["run"].layout).all()
+    assert team["run"].layout.robot_mask(team["items"]["state"]).all()
 
 
 def test_present_robots_get_the_same_z_and_q_values(team):
@@ -218,7 +205,7 @@ def test_the_token_mixer_is_monotone_in_present_robots_and_blind_to_absent_ones(
     tok = state.view(32, layout6.state_tokens, layout6.state_token_dim)
     tok[:, 4] = tok[:, 0] + 0.5
     tok[:, 1] = 0.0
-    present = robot_mask(state, layout6)
+    present = layout6.robot_mask(state)
     assert present[:, [0, 2, 4]].all() and not present[:, [1, 3, 5]].any()
     torch.manual_seed(0)
     mixer = TokenMixer(layout6, embed_dim=8, hidden=16)
@@ -264,7 +251,7 @@ def test_a_checkpoint_with_the_any_team_options_loads_at_other_team_sizes(team, 
     path = save_checkpoint(tmp_path / "checkpoint.pt", {"loss": run.loss.state_dict()})
     weights = load_checkpoint(path, require=())["loss"]
     for n in (1, 2, 6):
-        _, loss = networks(cfg, padded_layout(run.layout, n) if n > 3 else shrunk(run.layout, n))
+        _, loss = networks(cfg, run.layout.with_agents(n))
         load_weights(loss, weights, path, cfg.method.name)
         for name, value in weights.items():
             assert torch.equal(loss.state_dict()[name], value), (n, name)
@@ -275,16 +262,6 @@ def test_a_checkpoint_with_the_any_team_options_loads_at_other_team_sizes(team, 
     with pytest.raises(CheckpointError, match="other shapes") as err:
         load_weights(loss6, loss3.state_dict(), path, "qmix")
     assert "\n" not in str(err.value)
-
-
-def shrunk(layout, n_agents: int):
-    fewer = layout.n_agents - n_agents
-    return dataclasses.replace(
-        layout,
-        n_agents=n_agents,
-        n_entities=layout.n_entities - fewer,
-        state_tokens=layout.state_tokens - fewer,
-    )
 
 
 @pytest.mark.parametrize(
@@ -329,13 +306,13 @@ def test_the_envs_absent_robots_are_what_the_networks_mask():
     q = torch.randn(4, 6, 1)
     for _ in range(3):
         state, present = td["state"], env.present
-        assert torch.equal(robot_mask(state, env.layout), present)
+        assert torch.equal(env.layout.robot_mask(state), present)
         with torch.no_grad():
             loc6, _ = mods6["coordinator"].module.distribution(state)
             q_tot6 = mods6["mixer"].module(q, state)
         for b in range(4):
             idx = present[b].nonzero().squeeze(-1)
-            layout = shrunk(env.layout, len(idx))
+            layout = env.layout.with_agents(len(idx))
             tok = state[b].view(env.layout.state_tokens, -1)
             compact = torch.cat([tok[idx], tok[env.n_agents :]]).flatten()
             mods = make_modules(cfg, layout, "cpu", n_actions=N_ACTIONS)
@@ -348,3 +325,33 @@ def test_the_envs_absent_robots_are_what_the_networks_mask():
             close(q_tot6[b], q_tot)
         action = torch.randint(0, N_ACTIONS, (4, 6))
         td = env.step(td.set(("agents", "action"), action))["next"]
+
+
+def test_the_layout_names_the_state_columns_the_env_writes_and_its_rule_for_any_team():
+    """ObsLayout's columns read back what the env wrote (positions, velocities, type, flag,
+    waypoints), its presence rule is the env's ``present``, and ``with_agents`` is the layout
+    of the env built for another team size (what a checkpoint is resized with)."""
+    from icco_torchrl.training.restore import resized_layout
+
+    env = ResourceCollectionEnv(num_envs=3, n_agents=4, team_sizes=[2, 3, 4], seed=2)
+    td = env.reset()
+    L = env.layout
+    assert L == ObsLayout.for_env(4, env.n_resources, env.n_invaders, env.n_waypoints)
+    tok, present = L.tokens(td["state"]), env.present
+    robots, N, R = tok[:, : env.n_agents], env.n_agents, env.n_resources
+    assert torch.equal(L.robot_mask(td["state"]), present) and not present.all()
+    here = present.unsqueeze(-1)
+    torch.testing.assert_close(robots[..., L.POSITION], env.pos * here)
+    torch.testing.assert_close(robots[..., L.VELOCITY], env.vel * here)
+    assert torch.equal(robots[..., L.FLAG].bool(), env.carry & present)
+    torch.testing.assert_close(robots[..., L.waypoints], env.waypoints.flatten(-2) * here)
+    torch.testing.assert_close(tok[:, N : N + R, L.POSITION], env.res_pos)
+    assert (tok[:, N : N + R, L.RESOURCE] == 1).all() and (tok[:, N + R :, L.INVADER] == 1).all()
+    assert torch.equal(
+        L.typed(td["state"]), torch.cat([present, torch.ones(3, R + env.n_invaders)], 1) > 0
+    )
+    for n in (1, 2, 6):
+        other = ResourceCollectionEnv(num_envs=1, n_agents=n).layout
+        assert L.with_agents(n) == other
+        assert resized_layout(vars(L), n) == vars(other)
+    assert ObsLayout.from_dict({**vars(L), "unknown": 0}) == L

@@ -9,7 +9,7 @@ import torch
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from icco_torchrl.evaluation.rollout import episode_metrics, greedy_rollout
-from icco_torchrl.objectives.inputs import assemble, read_sequences
+from icco_torchrl.objectives.inputs import assemble
 from icco_torchrl.training.build import build_components, compose_config
 from icco_torchrl.training.config import ConfigError, validate
 from icco_torchrl.training.segments import SegmentCutter
@@ -67,13 +67,13 @@ def test_the_loss_replays_the_z_the_agents_held():
     ro = _rollout(parts, steps=48)
     items = SegmentCutter(length=16)(ro)
     loss = parts["loss"]
-    x = assemble(read_sequences(loss, items), reads_state=True)
+    x = assemble(loss.read_batch(items), reads_state=True)
     assert ("agents", "z_sent") in loss.in_keys
-    assert not x["z_sent"][x["step_count"] % 4 == 0].all()  # some broadcasts were not sent
+    assert not x.z_sent[x.step_count % 4 == 0].all()  # some broadcasts were not sent
     with torch.no_grad():
-        z, _, _ = loss._z_sequence(x, loss.coordinator_params, torch.randn_like(x["z"][:, 0]))
-    valid = x["mask"]
-    torch.testing.assert_close(z[:, :16][valid], x["z"][valid])
+        z, _, _ = loss._z_sequence(x, loss.coordinator_params, torch.randn_like(x.z[:, 0]))
+    valid = x.mask
+    torch.testing.assert_close(z[:, :16][valid], x.z[valid])
 
 
 def test_a_negative_beta_fails_naming_the_field():

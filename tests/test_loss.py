@@ -13,7 +13,7 @@ from torch import nn
 
 from icco_torchrl.modules.coordinator import Coordinator, gaussian_entropy
 from icco_torchrl.objectives import ICCOLoss, NonFiniteLossError, make_target_updater, total_loss
-from icco_torchrl.objectives.inputs import assemble, read_sequences
+from icco_torchrl.objectives.inputs import assemble
 from icco_torchrl.training.build import build_components, compose_config
 from icco_torchrl.training.segments import SegmentCutter
 
@@ -469,26 +469,26 @@ def test_target_updater_rejects_bad_arguments():
 
 def _z_on_every_state(loss, x, fresh):
     """z for the L+1 inputs written out step by step: a draw at each broadcast, held otherwise."""
-    T, L = loss.period, x["step_count"].shape[1]
+    T, L = loss.period, x.step_count.shape[1]
     with loss.coordinator_params.to_module(loss.coordinator, preserve_module_state=False):
-        loc, scale = loss.coordinator.module.distribution(x["state_seq"])
-    noise = torch.cat([x["z_noise"], fresh.unsqueeze(1)], 1)
+        loc, scale = loss.coordinator.module.distribution(x.state_seq)
+    noise = torch.cat([x.z_noise, fresh.unsqueeze(1)], 1)
     z = [
         torch.where(
-            (x["step_count"][:, 0] % T == 0)[:, None, None],
+            (x.step_count[:, 0] % T == 0)[:, None, None],
             loc[:, 0] + scale[:, 0] * noise[:, 0],
-            x["z"][:, 0],
+            x.z[:, 0],
         )
     ]
     for j in range(1, L + 1):
-        new = (x["next_step_count"][:, j - 1] % T == 0)[:, None, None]
+        new = (x.next_step_count[:, j - 1] % T == 0)[:, None, None]
         z.append(torch.where(new, loc[:, j] + scale[:, j] * noise[:, j], z[-1]))
     return torch.stack(z, 1)
 
 
 def _inputs(loss, seg):
     """The loss's assembled inputs of ``seg`` (what its tensor part reads)."""
-    return assemble(read_sequences(loss, seg), reads_state=True)
+    return assemble(loss.read_batch(seg), reads_state=True)
 
 
 @pytest.mark.parametrize("cut_key,length", [("step_count", 4), ("step_count", 16), ("cut_at", 4)])
@@ -502,9 +502,9 @@ def test_z_on_the_broadcast_inputs_equals_every_input(icco, cut_key, length):
     ro = ro.clone()
     ro["cut_at"] = ro["step_count"] * 2
     x = _inputs(loss, SegmentCutter(length=length, step_key=cut_key)(ro))
-    fresh = torch.randn_like(x["z_noise"][:, 0])
+    fresh = torch.randn_like(x.z_noise[:, 0])
     z, _, _ = loss._z_sequence(x, loss.coordinator_params, fresh)
-    read = torch.cat([torch.ones_like(x["mask"][:, :1]), x["mask"]], 1)  # input j: step j - 1
+    read = torch.cat([torch.ones_like(x.mask[:, :1]), x.mask], 1)  # input j: step j - 1
     torch.testing.assert_close(z[read], _z_on_every_state(loss, x, fresh)[read])
 
 
@@ -523,7 +523,7 @@ def test_online_pass_in_pieces_equals_one_sequence(method, burn_in):
     x = _inputs(loss, seg)
     z = None
     if loss.has_coordinator:
-        z, _, _ = loss._z_sequence(x, loss.coordinator_params, torch.randn_like(x["z_noise"][:, 0]))
+        z, _, _ = loss._z_sequence(x, loss.coordinator_params, torch.randn_like(x.z_noise[:, 0]))
     with torch.no_grad():
         full = loss._q_sequence(loss.agent_params, x, z)  # [S, L+1, N, A]
         q, q_boot = loss._q_online(x, z)
@@ -553,7 +553,7 @@ def test_replay_reproduces_collection_action_values(method, length):
     with torch.no_grad():
         z_seq = None
         if loss.has_coordinator:
-            fresh = torch.randn_like(x["z_noise"][:, 0])
+            fresh = torch.randn_like(x.z_noise[:, 0])
             z_seq, _, _ = loss._z_sequence(x, loss.coordinator_params, fresh)
             torch.testing.assert_close(
                 z_seq[:, :-1][valid], seg["agents", "z"][valid], atol=1e-5, rtol=0

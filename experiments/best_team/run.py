@@ -3,7 +3,6 @@
     python experiments/best_team/run.py                       # every screen, resumable
     python experiments/best_team/run.py --only icco icco_teacher --seeds 0
     python experiments/best_team/run.py --train-only          # stop after training
-    python experiments/best_team/run.py --report-only         # rewrite results.json, README
 
 A screen is one method at :data:`BUDGET` plus the lever's overrides, two seeds (a screen, not a
 result). Training runs go to ``--out/<screen>/<method>_seed<k>``, two side by side, one thread

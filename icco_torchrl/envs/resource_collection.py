@@ -26,15 +26,15 @@ waypoints relative to the robot (K*2)], then ``n_entities`` tokens of ``entity_d
 [dx, dy, dvx, dvy, one-hot type (agent, resource, invader, home), flag, visible]; tokens
 outside ``vision_radius`` are all zeros. The global state is ``N + R + I`` tokens of
 ``state_token_dim`` features [x, y, vx, vy, one-hot type (agent, resource, invader), flag,
-defended, absolute waypoints (K*2, agents only)].
+defended, absolute waypoints (K*2, agents only)], each column named by :class:`ObsLayout`.
 
 Team sizes. ``n_agents`` is the most robots an env holds; ``present`` ``[B, N]`` says which are
 in its team. With ``team_sizes`` each env draws its team size k at reset, uniformly from that
 list, and robots ``0..k-1`` are present; :meth:`remove_robot` and :meth:`add_robot` change a team
 mid-episode. An absent robot is masked out of everything: its own observation row is all zeros,
 it is invisible to the others (its entity token is zero, visible flag 0, as for a robot out of
-range), its **state token is all zeros, robot type flag (columns 4:7) included**, so a network
-reads the robot mask from the state as ``token[4] == 1`` (a contract); its action and waypoints
+range), its **state token is all zeros, its type flags included**, so a network reads the
+robot mask from the state with :meth:`ObsLayout.robot_mask` (a contract); its action and waypoints
 are ignored (it does not move), it picks, delivers and defends nothing, its reward is 0 and the
 event counters and the team reward leave it out (the invasion penalty is shared by the present
 robots). Its ``pos`` is where it was left and means nothing.
@@ -63,7 +63,7 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from icco_torchrl.envs._kernels import Params, any_, batch_first, batch_last, dynamics, pair_sq_dist
-from icco_torchrl.envs.layout import ObsLayout  # noqa: F401  (re-exported: the layout this env writes)
+from icco_torchrl.envs.layout import ObsLayout  # (re-exported: the layout this env writes)
 
 N_ACTIONS = 5
 # Unit force per action: no-op, -x, +x, -y, +y (COPA's order).
@@ -180,8 +180,8 @@ class ResourceCollectionEnv(EnvBase):
             number is drawn for it, so the env is the fixed-team env, bit for bit.
 
     Absent robots (``present`` False; contract, see the module docstring): zero observation row,
-    invisible in the others' observations, **all-zero state token, robot type flag (column 4)
-    included**, so networks read the robot mask from ``state token[4] == 1``; action and waypoints
+    invisible in the others' observations, **all-zero state token, type flags included**, so
+    networks read the robot mask with :meth:`ObsLayout.robot_mask`; action and waypoints
     ignored (it does not move); no pick, delivery, defense or instruction reward, reward 0, left
     out of the event counts and the team reward. :meth:`remove_robot` and :meth:`add_robot` change
     a team mid-episode.
@@ -305,15 +305,7 @@ class ResourceCollectionEnv(EnvBase):
         self.own_reward = bool(own_reward)
 
         N, R, I, K = n_agents, n_resources, n_invaders, n_waypoints
-        self.layout = ObsLayout(
-            n_agents=N,
-            n_waypoints=K,
-            own_dim=5 + 2 * K,
-            n_entities=(N - 1) + R + I + 1,
-            entity_dim=10,
-            state_tokens=N + R + I,
-            state_token_dim=9 + 2 * K,
-        )
+        self.layout = ObsLayout.for_env(N, R, I, K)
         dev = self.device
         self._action_dirs = torch.tensor(_ACTION_DIRS, device=dev)
         # Entity table seen by robots: robots, resources, invaders, home.
@@ -887,30 +879,25 @@ class ResourceCollectionEnv(EnvBase):
     def _state_layout(self) -> tuple[torch.Tensor, torch.Tensor]:
         """The state's constant template [state_dim] and, for each row of the table built by
         :meth:`_observe`, the state column it goes to [S]."""
-        N, R, I, K, L = (
-            self.n_agents,
-            self.n_resources,
-            self.n_invaders,
-            self.n_waypoints,
-            self.layout,
-        )
+        N, R, I, L = self.n_agents, self.n_resources, self.n_invaders, self.layout
         D = L.state_token_dim
         robot, res, inv = (lambda n: n * D), (lambda r: (N + r) * D), (lambda i: (N + R + i) * D)
-        # Token features: x, y, vx, vy, type (3), flag, defended, waypoints (2K).
-        cols = [robot(n) + c for n in range(N) for c in (0, 1)] + [
-            robot(n) + c for n in range(N) for c in (2, 3)
+        pos, vel, wp = (range(c.start, c.stop) for c in (L.POSITION, L.VELOCITY, L.waypoints))
+        # Token features (ObsLayout): position, velocity, type, flag, defended, waypoints (2K).
+        cols = [robot(n) + c for n in range(N) for c in pos] + [
+            robot(n) + c for n in range(N) for c in vel
         ]
-        cols += [robot(n) + 7 for n in range(N)] + [
-            robot(n) + 8 for n in range(N)
+        cols += [robot(n) + L.FLAG for n in range(N)] + [
+            robot(n) + L.DEFENDED for n in range(N)
         ]  # carry, defended
-        cols += [robot(n) + 9 + k for n in range(N) for k in range(2 * K)]  # waypoints
-        cols += [res(r) + c for r in range(R) for c in (0, 1)]
-        cols += [inv(i) + c for i in range(I) for c in (0, 1)] + [
-            inv(i) + c for i in range(I) for c in (2, 3)
+        cols += [robot(n) + c for n in range(N) for c in wp]  # waypoints
+        cols += [res(r) + c for r in range(R) for c in pos]
+        cols += [inv(i) + c for i in range(I) for c in pos] + [
+            inv(i) + c for i in range(I) for c in vel
         ]
-        cols += [inv(i) + 7 for i in range(I)]  # active
+        cols += [inv(i) + L.FLAG for i in range(I)]  # active
         template = torch.zeros(L.state_tokens, D)
-        template[:, 4:7] = self._entity_type[: L.state_tokens, :3].cpu()
+        template[:, L.TYPE] = self._entity_type[: L.state_tokens, :3].cpu()
         assert sorted(set(cols)) == sorted(cols) and not template.view(-1)[cols].any()
         return template.view(-1), torch.tensor(cols)
 

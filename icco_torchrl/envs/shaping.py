@@ -25,10 +25,9 @@ from torchrl.envs.transforms import Transform
 from icco_torchrl.envs.layout import ObsLayout
 
 POTENTIALS = ("collect", "defend")
-# State token columns (ResourceCollectionEnv._state_layout): position, then the robots' carry
-# flag and the invaders' active flag share column 7; column 4 is the robot type flag (0 for a robot
-# absent from the team).
-_X, _ROBOT, _FLAG = slice(0, 2), 4, 7
+# State token columns (ObsLayout): position, and the flag that is a robot's carry flag and an
+# invader's active flag.
+_X, _FLAG = ObsLayout.POSITION, ObsLayout.FLAG
 
 
 def missing_for(name: str, *, n_resources: int, n_invaders: int) -> str | None:
@@ -52,6 +51,7 @@ class StatePotential:
             lack = missing_for(name, n_resources=n_resources, n_invaders=n_invaders)
             if lack:
                 raise ValueError(f"shaping potential {name!r} needs {lack} in the env's state")
+        self.layout = layout
         self.N, self.R, self.D = layout.n_agents, n_resources, layout.state_token_dim
         self.potentials, self.weight = tuple(potentials), float(weight)
 
@@ -60,7 +60,7 @@ class StatePotential:
         robots, rest = tokens[..., : self.N, :], tokens[..., self.N :, :]
         resources, invaders = rest[..., : self.R, :], rest[..., self.R :, :]
         pos, carry = robots[..., _X], robots[..., _FLAG] > 0.5  # [..., N, 2], [..., N]
-        present = robots[..., _ROBOT] > 0.5  # an absent robot's token is all zeros: no Phi
+        present = self.layout.robot_mask(state)  # an absent robot's token is all zeros: no Phi
         phi = torch.zeros_like(pos[..., 0])
         if "collect" in self.potentials:
             res = resources[..., _X]  # [..., R, 2]

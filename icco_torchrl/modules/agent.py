@@ -117,6 +117,8 @@ class RecurrentQNet(nn.Module):
                 "layout"
             )
         self.waypoint_features = waypoint_features
+        # the robot's own waypoints in its observation (read by the waypoint features)
+        self._own_waypoints = layout.own_waypoints if layout is not None else None
         wf = PATH_FEATURES if waypoint_features else 0
         self.relative = full_state and state_encoder == "relative"
         if layout is None:  # a flat observation (any env): [obs; state] through an MLP
@@ -165,7 +167,7 @@ class RecurrentQNet(nn.Module):
 
     def _path(self, obs):
         # own features are [x, y, vx, vy, carry, K relative waypoints] (ObsLayout)
-        return path_features(obs[..., 5 : self._own_dim].unflatten(-1, (-1, 2)))
+        return path_features(obs[..., self._own_waypoints].unflatten(-1, (-1, 2)))
 
     def _features(self, obs, prev_action, state, z=None):
         x = self._encode(obs, state)

@@ -53,6 +53,7 @@ class StateTokenEncoder(nn.Module):
             )
         self.kind, self.hidden = kind, hidden
         self.n_agents = layout.n_agents if layout is not None else n_agents
+        self.layout = layout
         if kind == "attention":
             self.n_tokens, self.token_dim = layout.state_tokens, layout.state_token_dim
             self.net = EntityAttentionEncoder(
@@ -77,7 +78,7 @@ class StateTokenEncoder(nn.Module):
         )
         every = state.unsqueeze(-2).expand(*state.shape[:-1], self.n_agents, state.shape[-1])
         # a token of no type (an absent robot's, all zeros) is attended by no one
-        typed = state.unflatten(-1, (self.n_tokens, self.token_dim))[..., 4:7].ne(0).any(-1)
+        typed = self.layout.typed(state)  # [..., T]
         return self.net(torch.cat([robots, every], -1), typed.unsqueeze(-2))
 
 

@@ -6,7 +6,7 @@ hypernetworks read off the state *tokens*, so one set of weights mixes any team 
 ``n_agents`` (COPA's attention hypernetwork, in the form of a masked QMIX): robot i's first-layer
 weights come from its own token after one attention read of every present token, the biases and
 the second layer from the present robots' pooled features, and an absent robot (an all-zero
-state token, :func:`~icco_torchrl.modules.relative.robot_mask`) is left out: its Q is never
+state token, :meth:`~icco_torchrl.envs.layout.ObsLayout.robot_mask`) is left out: its Q is never
 read.
 
 COPA instead feeds coach encoder features to the hypernetworks (so the TD loss also trains the
@@ -25,7 +25,6 @@ from torchrl.modules import QMixer
 
 from icco_torchrl.modules.activations import ReLU
 from icco_torchrl.modules.encoders import EntityAttentionEncoder
-from icco_torchrl.modules.relative import robot_mask
 
 if TYPE_CHECKING:
     from icco_torchrl.envs.layout import ObsLayout
@@ -58,16 +57,16 @@ class TokenMixer(nn.Module):
 
     def forward(self, chosen_action_value: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
         L = self.layout
-        N, T, D = L.n_agents, L.state_tokens, L.state_token_dim
+        N = L.n_agents
         lead = chosen_action_value.shape[:-2]
         if chosen_action_value.shape[-2:] != (N, 1) or state.shape[-1] != L.state_dim:
             raise ValueError(
                 f"TokenMixer mixes q [..., {N}, 1] on a state [..., {L.state_dim}], got "
                 f"{list(chosen_action_value.shape)} and {list(state.shape)}"
             )
-        tokens = state.unflatten(-1, (T, D))  # [..., T, D]
-        present = robot_mask(state, L)  # [..., N]
-        typed = tokens[..., 4:7].ne(0).any(-1)  # [..., T]: absent robots' tokens are not read
+        tokens = L.tokens(state)  # [..., T, D]
+        present = L.robot_mask(state)  # [..., N]
+        typed = L.typed(state)  # [..., T]: absent robots' tokens are not read
         every = state.unsqueeze(-2).expand(*lead, N, state.shape[-1])
         h = self.encoder(torch.cat([tokens[..., :N, :], every], -1), typed.unsqueeze(-2))
         m = present.to(h.dtype).unsqueeze(-1)  # [..., N, 1]

@@ -12,9 +12,10 @@ state, a representation the networks learn from quickly (measured in
 ``experiments/four_quadrants/README.md``).
 
 Any team up to ``n_agents``: an absent robot's state token is all zeros, its type flags included,
-so :func:`robot_mask` reads who is present off the state itself, and an untyped token (an absent
-robot) is left out of every attention, as an inactive invader is. A team padded with absent
-robots gives its present robots the features of the same team unpadded.
+so :meth:`~icco_torchrl.envs.layout.ObsLayout.robot_mask` reads who is present off the state
+itself, and an untyped token (an absent robot) is left out of every attention, as an inactive
+invader is. A team padded with absent robots gives its present robots the features of the same
+team unpadded. Every column is read by its name in :class:`~icco_torchrl.envs.layout.ObsLayout`.
 
 Used by the coordinator (``method.state_encoder=relative``) and by QMIX (FULL)'s agents, so the
 full-information baseline reads the state through the same encoder as ICCO's coordinator.
@@ -41,45 +42,35 @@ def relative_dims(layout: ObsLayout) -> tuple[int, int, int]:
     return 6 + K2, layout.state_tokens + 1, 12 + K2
 
 
-def robot_mask(state: torch.Tensor, layout: ObsLayout) -> torch.Tensor:
-    """``[..., state_dim]`` -> ``[..., N]`` bool: robot i is present (its token's robot type flag,
-    column 4, is set; an absent robot's token is all zeros)."""
-    tokens = state.unflatten(-1, (layout.state_tokens, layout.state_token_dim))
-    return tokens[..., : layout.n_agents, 4] > 0
-
-
 def relative_tokens(state: torch.Tensor, layout: ObsLayout) -> torch.Tensor:
     """``[..., state_dim]`` -> per robot ``[..., N, own_dim + n_entities * entity_dim]``."""
-    N, T, D, K2 = (
-        layout.n_agents,
-        layout.state_tokens,
-        layout.state_token_dim,
-        2 * layout.n_waypoints,
-    )
-    tok = state.unflatten(-1, (T, D))  # [..., T, D]
+    N, T, D = layout.n_agents, layout.state_tokens, layout.state_token_dim
+    POS, VEL, TYPE, WP = layout.POSITION, layout.VELOCITY, layout.TYPE, layout.waypoints
+    FLAG_DEFENDED = slice(layout.FLAG, layout.DEFENDED + 1)  # adjacent columns: flag, defended
+    tok = layout.tokens(state)  # [..., T, D]
     me = tok[..., :N, :]  # [..., N, D]
-    my_pos = me[..., 0:2]
+    my_pos = me[..., POS]
     lead = tok.shape[:-2]
     # Entities: the T state tokens then home (the origin), each seen from every robot.
     home = torch.zeros(*lead, 1, D, dtype=state.dtype, device=state.device)
     ents = torch.cat([tok, home], -2)  # [..., T+1, D]
-    rel = ents[..., None, :, 0:2] - my_pos[..., :, None, :]  # [..., N, T+1, 2]
+    rel = ents[..., None, :, POS] - my_pos[..., :, None, :]  # [..., N, T+1, 2]
     dist = rel.norm(dim=-1, keepdim=True)
-    kind = torch.cat([ents[..., 4:7], torch.zeros_like(ents[..., :1])], -1)  # [..., T+1, 4]
+    kind = torch.cat([ents[..., TYPE], torch.zeros_like(ents[..., :1])], -1)  # [..., T+1, 4]
     kind[..., -1, 3] = 1.0  # home
     # present: inactive invaders (flag 0), absent robots (an untyped, all-zero token) and the
     # robot itself are left out of the attention
-    is_invader = ents[..., 6:7] > 0
+    is_invader = ents[..., layout.INVADER : layout.INVADER + 1] > 0
     typed = (kind != 0).any(-1, keepdim=True).to(kind.dtype)  # 0: no type (an absent robot)
-    present = torch.where(is_invader, ents[..., 7:8], typed)  # [..., T+1, 1]
-    present = present.unsqueeze(-3).expand(*lead, N, T + 1, 1).clone()
+    present = torch.where(is_invader, ents[..., layout.FLAG : layout.FLAG + 1], typed)
+    present = present.unsqueeze(-3).expand(*lead, N, T + 1, 1).clone()  # [..., N, T+1, 1]
     present[..., torch.arange(N), torch.arange(N), 0] = 0.0
-    wp = ents[..., 9 : 9 + K2].unflatten(-1, (-1, 2))  # [..., T+1, K, 2]
-    is_robot = (ents[..., 4:5] > 0).unsqueeze(-1)
+    wp = ents[..., WP].unflatten(-1, (-1, 2))  # [..., T+1, K, 2]
+    is_robot = (ents[..., layout.ROBOT : layout.ROBOT + 1] > 0).unsqueeze(-1)
     wp_rel = torch.where(
         is_robot.unsqueeze(-4), wp.unsqueeze(-4) - my_pos[..., :, None, None, :], 0.0
     )
-    shared = torch.cat([ents[..., 2:4], kind, ents[..., 7:9]], -1)  # vel, type, flag, defended
+    shared = torch.cat([ents[..., VEL], kind, ents[..., FLAG_DEFENDED]], -1)
     tokens = torch.cat(
         [
             rel,
@@ -90,9 +81,9 @@ def relative_tokens(state: torch.Tensor, layout: ObsLayout) -> torch.Tensor:
         ],
         -1,
     )  # present last (the mask)
-    own_wp = me[..., 9 : 9 + K2].unflatten(-1, (-1, 2)) - my_pos.unsqueeze(-2)
-    own = torch.cat([me[..., 0:4], me[..., 7:9], own_wp.flatten(-2)], -1)  # [..., N, own_dim]
-    return torch.cat([own, tokens.flatten(-2)], -1)
+    own_wp = me[..., WP].unflatten(-1, (-1, 2)) - my_pos.unsqueeze(-2)
+    own = torch.cat([me[..., POS], me[..., VEL], me[..., FLAG_DEFENDED], own_wp.flatten(-2)], -1)
+    return torch.cat([own, tokens.flatten(-2)], -1)  # own: [..., N, own_dim]
 
 
 class RelativeStateEncoder(nn.Module):

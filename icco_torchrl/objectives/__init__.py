@@ -3,10 +3,12 @@
 from torchrl.objectives import HardUpdate, SoftUpdate
 
 from icco_torchrl.objectives.icco_loss import ICCOLoss, NonFiniteLossError, total_loss
+from icco_torchrl.objectives.inputs import LossBatch
 from icco_torchrl.objectives.returns import lambda_returns
 
 __all__ = [
     "ICCOLoss",
+    "LossBatch",
     "NonFiniteLossError",
     "lambda_returns",
     "make_target_updater",

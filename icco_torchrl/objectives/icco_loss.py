@@ -26,6 +26,7 @@ period ``T`` (``L = T``: one broadcast per item).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import torch
 from tensordict import TensorDict, TensorDictBase, TensorDictParams
@@ -38,8 +39,17 @@ from torchrl.objectives.utils import ValueEstimators
 
 from icco_torchrl.modules.coordinator import gaussian_entropy
 from icco_torchrl.modules.tdmodule import TensorModule
-from icco_torchrl.objectives.inputs import assemble, next_key, present_robots, read_sequences
+from icco_torchrl.objectives.inputs import (
+    LossBatch,
+    assemble,
+    next_key,
+    present_robots,
+    read_batch,
+)
 from icco_torchrl.objectives.returns import lambda_returns
+
+if TYPE_CHECKING:
+    from icco_torchrl.envs.layout import ObsLayout
 
 REWARD_REDUCTIONS = ("mean", "sum")
 # Modules whose call is exactly module(*in_keys) -> out_keys: the mixer skips the tensordict.
@@ -262,9 +272,9 @@ class ICCOLoss(LossModule):
     def _derive_in_keys(self) -> list[NestedKey]:
         k = self.tensor_keys
         keys = [k.observation, k.state, k.action]
-        if self._sequence_agent or self._reads(k.prev_action):
+        if self.reads_prev_action:
             keys.append(k.prev_action)
-        if self._sequence_agent or self._reads(k.rnn_hidden):
+        if self.recurrent:
             keys.append(k.rnn_hidden)
         if self.has_coordinator:
             keys += [k.z, k.z_noise] + ([k.z_sent] if self.threshold > 0 else [])
@@ -300,21 +310,60 @@ class ICCOLoss(LossModule):
         """The entries :meth:`forward` writes (:attr:`metric_keys`)."""
         return list(self.metric_keys)
 
+    @property
+    def recurrent(self) -> bool:
+        """Whether the agent starts each sequence from the stored hidden state (``rnn_hidden``):
+        an agent of the sequence protocol, or a TensorDictModule that reads it."""
+        return self._sequence_agent or self._reads(self.tensor_keys.rnn_hidden)
+
+    @property
+    def reads_prev_action(self) -> bool:
+        """Whether the agent reads the previous actions (``prev_action``)."""
+        return self._sequence_agent or self._reads(self.tensor_keys.prev_action)
+
+    @property
+    def reads_state(self) -> bool:
+        """Whether the loss's tensor part reads the global state of the ``L + 1`` inputs: with a
+        coordinator, an agent that reads the state (QMIX (FULL)), or a TensorDictModule agent
+        with the state among its ``in_keys``."""
+        return (
+            self.has_coordinator
+            or getattr(self.agent.module, "full_state", False)
+            or (not self._sequence_agent and self._reads_own_state())
+        )
+
+    @property
+    def layout(self) -> ObsLayout | None:
+        """The env's :class:`~icco_torchrl.envs.layout.ObsLayout` as the coordinator, mixer or
+        posterior holds it (the first that does), or None: who is present is read off the state
+        with it (:meth:`~icco_torchrl.envs.layout.ObsLayout.robot_mask`); without one every robot
+        is (a fixed team, or an env without a layout)."""
+        for name in ("coordinator", "mixer", "posterior"):
+            layout = getattr(getattr(getattr(self, name, None), "module", None), "layout", None)
+            if layout is not None:
+                return layout
+        return None
+
+    def _reads_own_state(self) -> bool:
+        """Whether the (non-sequence) agent reads the state under its own key (not as its
+        observation)."""
+        k = self.tensor_keys
+        return self._reads(k.state) and unravel_key(k.state) != unravel_key(k.observation)
+
     def _reads(self, key: NestedKey) -> bool:
         """Whether the (non-sequence) agent's TensorDictModule reads ``key``."""
         return unravel_key(key) in [unravel_key(k) for k in self.agent.in_keys]
 
     # ------------------------------------------------------------------ forward
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        x = read_sequences(self, tensordict)
-        x["mix"], x["mix_next"] = self._mixer_inputs(tensordict)
+        batch = self.read_batch(tensordict)
         fresh = None
         if self.has_coordinator:
             # Fresh noise for a broadcast at the bootstrap step, shared by online and target;
             # drawn at the items' shape so the random stream is the one-broadcast learner's
             # (tests/data/loss_reference_t4.json pins it).
-            fresh = torch.randn_like(x["z_noise"])[:, -1]
-        out = self._losses(x, fresh)
+            fresh = torch.randn_like(batch.z_noise)[:, -1]
+        out = self._losses(batch, fresh)
         if self.check_finite:
             self._check_finite(out)
         return TensorDict(out, [])
@@ -326,27 +375,49 @@ class ICCOLoss(LossModule):
         self._losses = torch.compile(self.losses, **kwargs)
         return self
 
-    def _losses(self, x: dict, fresh: torch.Tensor | None) -> dict[str, torch.Tensor]:
-        return self.losses(x, fresh)
+    def read_batch(self, tensordict: TensorDictBase) -> LossBatch:
+        """The checked inputs of the loss from ``tensordict`` ``[S, L]`` (time last): every key
+        it reads (:attr:`in_keys`), checked once with an error naming the key and the shape it
+        needs, as a :class:`~icco_torchrl.objectives.inputs.LossBatch` of views of the batch (the
+        argument of :meth:`losses`; the raw tensordict stays out of it).
 
-    def losses(self, x: dict, fresh: torch.Tensor | None) -> dict[str, torch.Tensor]:
-        """The loss terms and summaries from the checked batch ``x`` (:func:`read_sequences`, plus
-        the mixer's other inputs) and the bootstrap noise ``fresh``: tensors in, tensors out,
-        fixed shapes, no host sync (what :meth:`compile` traces)."""
-        reads_state = self.has_coordinator or getattr(self.agent.module, "full_state", False)
-        x = assemble(x, reads_state)
+        Examples:
+            >>> import torch
+            >>> from icco_torchrl.training.build import build_components
+            >>> from icco_torchrl.training.segments import SegmentCutter
+            >>> run = build_components(method="icco", num_envs=2)
+            >>> with torch.no_grad():
+            ...     rollout = run.env.rollout(8, run.policy, break_when_any_done=False)
+            >>> batch = run.loss.read_batch(SegmentCutter(length=4)(rollout))
+            >>> batch.obs.shape[:3], batch.z.shape[:3], batch.step_count.shape  # S, L, N robots
+            (torch.Size([4, 4, 3]), torch.Size([4, 4, 3]), torch.Size([4, 4]))
+            >>> sorted(map(str, batch.mixer_inputs))
+            ['state']
+        """
+        return read_batch(self, tensordict)
+
+    def _losses(self, batch: LossBatch, fresh: torch.Tensor | None) -> dict[str, torch.Tensor]:
+        return self.losses(batch, fresh)
+
+    def losses(self, batch: LossBatch, fresh: torch.Tensor | None) -> dict[str, torch.Tensor]:
+        """The loss terms and summaries from the checked ``batch`` (:meth:`read_batch`) and the
+        bootstrap noise ``fresh``: tensors in, tensors out, fixed shapes, no host sync (what
+        :meth:`compile` traces)."""
+        batch = assemble(batch, self.reads_state)
         z_on = z_tgt = None
         if self.has_coordinator:
-            z_on, loc_w, scale_w = self._z_sequence(x, self.coordinator_params, fresh)
+            z_on, loc_w, scale_w = self._z_sequence(batch, self.coordinator_params, fresh)
             with torch.no_grad():
-                z_tgt = self._z_sequence(x, self.target_coordinator_params, fresh)[0]
+                z_tgt = self._z_sequence(batch, self.target_coordinator_params, fresh)[0]
 
         split = self.channels > 1  # per-robot reward channels: [own; team] per action
-        q_online, q_boot = self._q_online(x, z_on)  # [S, L, N, (C,) A], [S, N, (C,) A]
-        chosen = _taken(q_online, x["action"].long().unsqueeze(-1))  # [S, L, N, (C)]
-        q_tot = self._mix(self.mixer_params, chosen[..., -1] if split else chosen, x["mix"])
+        q_online, q_boot = self._q_online(batch, z_on)  # [S, L, N, (C,) A], [S, N, (C,) A]
+        chosen = _taken(q_online, batch.action.long().unsqueeze(-1))  # [S, L, N, (C)]
+        q_tot = self._mix(
+            self.mixer_params, chosen[..., -1] if split else chosen, batch.mixer_inputs
+        )
         with torch.no_grad():
-            q_target = self._q_sequence(self.target_agent_params, x, z_tgt)[:, 1:]
+            q_target = self._q_sequence(self.target_agent_params, batch, z_tgt)[:, 1:]
             if self.double_q:
                 greedy_source = torch.cat([q_online[:, 1:], q_boot.unsqueeze(1)], 1)
             else:
@@ -355,18 +426,20 @@ class ICCOLoss(LossModule):
                 greedy_source = greedy_source.sum(-2)
             next_value = _taken(q_target, greedy_source.argmax(-1, keepdim=True))
             team_next = next_value[..., -1] if split else next_value
-            q_tot_next = self._mix(self.target_mixer_params, team_next, x["mix_next"])
-            reward = x["reward"]
+            q_tot_next = self._mix(self.target_mixer_params, team_next, batch.next_mixer_inputs)
+            reward = batch.reward
             if split:  # the team's terms: what the robots' own terms leave of the team reward
-                reward = reward - x["own_reward"].sum(-1, keepdim=True)
-                own_target = self._targets(x, x["own_reward"], next_value[..., 0])  # [S, L, N]
-            target = self._targets(x, reward, q_tot_next)
+                reward = reward - batch.own_reward.sum(-1, keepdim=True)
+                own_target = self._targets(batch, batch.own_reward, next_value[..., 0])  # [S, L, N]
+            target = self._targets(batch, reward, q_tot_next)
 
-        weight = self._loss_weight(x["mask"]).to(q_tot.dtype)  # [S, L]
+        weight = self._loss_weight(batch.mask).to(q_tot.dtype)  # [S, L]
         n_valid = weight.sum().clamp_min(1.0)
         td_error = (q_tot - target).squeeze(-1)  # [S, L]
         # per-robot summaries average the present robots (absent ones: all-zero state tokens)
-        robot_weight = weight.unsqueeze(-1) * present_robots(self, x["state"], chosen.shape[2])
+        robot_weight = weight.unsqueeze(-1) * present_robots(
+            self.layout, batch.state, chosen.shape[2]
+        )
         n_robots = robot_weight.sum().clamp_min(1.0)
         taken = chosen.detach().sum(-1) if split else chosen.detach()
         out = {
@@ -379,7 +452,7 @@ class ICCOLoss(LossModule):
             own_error = chosen[..., 0] - own_target
             out["loss_td_robot"] = (robot_weight * own_error.pow(2)).sum() / n_robots
         if self.use_ce:
-            out.update(self._consistency(x, z_on, loc_w, scale_w))
+            out.update(self._consistency(batch, z_on, loc_w, scale_w))
         return out
 
     def _loss_weight(self, mask: torch.Tensor) -> torch.Tensor:
@@ -388,13 +461,15 @@ class ICCOLoss(LossModule):
             return mask
         return mask & (torch.arange(mask.shape[1], device=mask.device) >= self.burn_in)
 
-    def _targets(self, x: dict, reward: torch.Tensor, next_value: torch.Tensor) -> torch.Tensor:
+    def _targets(
+        self, batch: LossBatch, reward: torch.Tensor, next_value: torch.Tensor
+    ) -> torch.Tensor:
         """Lambda-return targets of ``reward`` from the target values of each next state: the
         team's ``[S, L, 1]`` (``Q_tot``), or per robot ``[S, L, N]``."""
-        mask = x["mask"]
+        mask = batch.mask
         # The return of step t continues into step t+1 only within one episode (mask[t+1]).
         cont = torch.cat([mask[:, 1:], torch.zeros_like(mask[:, :1])], 1).unsqueeze(-1)
-        alive = (~x["terminated"]).to(next_value.dtype)
+        alive = (~batch.terminated).to(next_value.dtype)
         return lambda_returns(
             reward, alive, next_value, cont, gamma=self.gamma, lmbda=self.td_lambda
         )
@@ -406,7 +481,7 @@ class ICCOLoss(LossModule):
             raise NonFiniteLossError(f"non-finite loss terms {bad}: {values}")
 
     # ------------------------------------------------------------------ z
-    def _z_sequence(self, x: dict, params: TensorDictParams, fresh: torch.Tensor):
+    def _z_sequence(self, batch: LossBatch, params: TensorDictParams, fresh: torch.Tensor):
         """z for the ``L + 1`` inputs of each sequence under ``params`` ``[S, L+1, N, Z]``, and the
         coordinator's ``(loc, scale)`` at the window starts ``0, T, 2T, ...`` ``[S, W, N, Z]``.
 
@@ -417,37 +492,37 @@ class ICCOLoss(LossModule):
         ``L // T + 1`` inputs of every row, a fixed shape; a broadcast off this grid can only
         follow an episode end inside the sequence, on inputs no term reads.
         """
-        step, T = x["step_count"], self.period
+        step, T = batch.step_count, self.period
         S, L = step.shape
         device = step.device
         P = L // T + 1  # broadcasts a sequence can hold
         phase = (-step[:, :1]) % T  # [S, 1]: input of the first broadcast
         at = (phase + T * torch.arange(P, device=device)).clamp_max(L)  # [S, P]
-        state = x["state_seq"].gather(1, at.unsqueeze(-1).expand(S, P, x["state_seq"].shape[-1]))
+        state = batch.state_seq.gather(1, at.unsqueeze(-1).expand(S, P, batch.state_seq.shape[-1]))
         with params.to_module(self.coordinator, preserve_module_state=False):
             loc, scale = self.coordinator.module.distribution(state)  # [S, P, N, Z]
-        noise = torch.cat([x["z_noise"], fresh.unsqueeze(1)], 1)
+        noise = torch.cat([batch.z_noise, fresh.unsqueeze(1)], 1)
         noise = noise.gather(1, at[..., None, None].expand(S, P, *noise.shape[2:]))
         draws = loc + scale * noise
         if self.threshold > 0:  # robot i holds its z until a broadcast moved it (COPA's beta)
-            draws = self._held_draws(x, draws, at)
+            draws = self._held_draws(batch, draws, at)
         # Slot 0: the stored z (held from before the sequence); slot p + 1: broadcast p.
-        draws = torch.cat([x["z"][:, :1], draws], 1)
+        draws = torch.cat([batch.z[:, :1], draws], 1)
         j = torch.arange(L + 1, device=device)
         slot = torch.where(j < phase, 0, 1 + torch.div(j - phase, T, rounding_mode="floor"))
         z_seq = draws.gather(1, slot[..., None, None].expand(S, L + 1, *draws.shape[2:]))
         W = max(L // T, 1)  # whole broadcast windows (one shorter window when L < T); scored
         return z_seq, loc[:, :W], scale[:, :W]  # only where the sequence starts at a broadcast
 
-    def _held_draws(self, x: dict, draws: torch.Tensor, at: torch.Tensor) -> torch.Tensor:
+    def _held_draws(self, batch: LossBatch, draws: torch.Tensor, at: torch.Tensor) -> torch.Tensor:
         """``draws [S, P, N, Z]`` at the broadcast inputs ``at [S, P]`` -> the z each robot holds
         after each of them: the draw where it was sent (the stored ``z_sent`` inside the sequence;
         at the bootstrap input, where the draw moved more than the threshold from the held z),
         else the z held before."""
         S, P = at.shape
-        L, N = x["z_sent"].shape[1:3]
-        stored = x["z_sent"].gather(1, at.clamp_max(L - 1)[..., None, None].expand(S, P, N, 1))
-        held, out = x["z"][:, 0], []
+        L, N = batch.z_sent.shape[1:3]
+        stored = batch.z_sent.gather(1, at.clamp_max(L - 1)[..., None, None].expand(S, P, N, 1))
+        held, out = batch.z[:, 0], []
         for p in range(P):  # P = L // T + 1 broadcasts, each depends on the last one
             moved = (draws[:, p] - held).norm(dim=-1, keepdim=True) > self.threshold
             sent = torch.where((at[:, p] < L)[:, None, None], stored[:, p], moved)
@@ -456,37 +531,39 @@ class ICCOLoss(LossModule):
         return torch.stack(out, 1)
 
     # ------------------------------------------------------------------ Q-values
-    def _agent_state(self, x: dict, steps: slice = slice(None)) -> torch.Tensor | None:
+    def _agent_state(self, batch: LossBatch, steps: slice = slice(None)) -> torch.Tensor | None:
         """The global state the agent reads (QMIX (FULL)), else None."""
-        return x["state_seq"][:, steps] if getattr(self.agent.module, "full_state", False) else None
+        return (
+            batch.state_seq[:, steps] if getattr(self.agent.module, "full_state", False) else None
+        )
 
-    def _q_sequence(self, params: TensorDictParams, x: dict, z_seq) -> torch.Tensor:
+    def _q_sequence(self, params: TensorDictParams, batch: LossBatch, z_seq) -> torch.Tensor:
         """Q over the ``L + 1`` inputs of each sequence, ``[S, L+1, N, A]``, in one GRU call."""
         with params.to_module(self.agent, preserve_module_state=False):
             if not self._sequence_agent:
-                return self._call_agent(x, z_seq, slice(None))
+                return self._call_agent(batch, z_seq, slice(None))
             split = {"split": True} if self.channels > 1 else {}
             return self.agent.module.sequence(
-                x["obs_seq"],
-                x["prev_seq"],
-                x["hidden"][:, 0],
+                batch.obs_seq,
+                batch.prev_seq,
+                batch.hidden[:, 0],
                 z=z_seq,
-                state=self._agent_state(x),
+                state=self._agent_state(batch),
                 **split,
             )
 
-    def _q_online(self, x: dict, z_seq) -> tuple[torch.Tensor, torch.Tensor | None]:
+    def _q_online(self, batch: LossBatch, z_seq) -> tuple[torch.Tensor, torch.Tensor | None]:
         """Online Q over steps 0..L-1 (with autograd past the burn-in) and, for double Q, at the
         bootstrap input L (without autograd: it only feeds the argmax). Same values as slicing
         one ``L + 1`` sequence."""
-        net, L, B = self.agent.module, x["obs"].shape[1], self.burn_in
+        net, L, B = self.agent.module, batch.obs.shape[1], self.burn_in
         with self.agent_params.to_module(self.agent, preserve_module_state=False):
             if not self._sequence_agent:  # through the agent's keys
-                q = self._call_agent(x, z_seq, slice(None) if self.double_q else slice(0, L))
+                q = self._call_agent(batch, z_seq, slice(None) if self.double_q else slice(0, L))
                 return q[:, :L], (q[:, L].detach() if self.double_q else None)
-            h0, obs, prev = x["hidden"][:, 0], x["obs_seq"], x["prev_seq"]
+            h0, obs, prev = batch.hidden[:, 0], batch.obs_seq, batch.prev_seq
             if not self._stepping_agent:  # the minimal protocol: one call, sliced
-                q = net.sequence(obs, prev, h0, z=z_seq, state=self._agent_state(x))
+                q = net.sequence(obs, prev, h0, z=z_seq, state=self._agent_state(batch))
                 return q[:, :L], (q[:, L].detach() if self.double_q else None)
             pieces, hidden = [], h0
             split = {"split": True} if self.channels > 1 else {}
@@ -500,7 +577,7 @@ class ICCOLoss(LossModule):
                         prev[:, steps],
                         hidden,
                         z=_at(z_seq, steps),
-                        state=self._agent_state(x, steps),
+                        state=self._agent_state(batch, steps),
                         return_hidden=True,
                         **split,
                     )
@@ -508,34 +585,33 @@ class ICCOLoss(LossModule):
             q_boot = None
             if self.double_q:  # one more step from the last hidden state, without autograd
                 with torch.no_grad():
-                    state = self._agent_state(x, L)
+                    state = self._agent_state(batch, L)
                     q_boot, _ = net.step(
                         obs[:, L], prev[:, L], hidden, _at(z_seq, L), state, **split
                     )
         return torch.cat(pieces, 1) if len(pieces) > 1 else pieces[0], q_boot
 
-    def _call_agent(self, x: dict, z_seq, steps: slice) -> torch.Tensor:
+    def _call_agent(self, batch: LossBatch, z_seq, steps: slice) -> torch.Tensor:
         """The agent's TensorDictModule on ``steps`` of the ``L + 1`` inputs under TorchRL's
         recurrent mode; returns ``action_value [S, steps, N, A]``."""
         k = self.tensor_keys
-        obs = x["obs_seq"][:, steps]
+        obs = batch.obs_seq[:, steps]
         S, L = obs.shape[:2]
         inputs = TensorDict({}, batch_size=[S, L], device=obs.device)
         inputs.set(k.observation, obs)
-        if x["prev_seq"] is not None:
-            inputs.set(k.prev_action, x["prev_seq"][:, steps])
-        if x["hidden"] is not None:  # the stored state at the start (recurrent agents read step 0)
-            h0 = x["hidden"][:, :1]
+        if batch.prev_seq is not None:
+            inputs.set(k.prev_action, batch.prev_seq[:, steps])
+        if batch.hidden is not None:  # the stored state at the start (recurrent agents read step 0)
+            h0 = batch.hidden[:, :1]
             inputs.set(k.rnn_hidden, h0.expand(S, L, *h0.shape[2:]))
-        if x["is_init"] is not None:  # the bootstrap input never starts an episode
-            is_init = torch.cat([x["is_init"], torch.zeros_like(x["is_init"][:, :1])], 1)
+        if batch.is_init is not None:  # the bootstrap input never starts an episode
+            is_init = torch.cat([batch.is_init, torch.zeros_like(batch.is_init[:, :1])], 1)
             inputs.set(k.is_init, is_init[:, steps].unsqueeze(-1))
         if z_seq is not None:
             inputs.set(k.z, z_seq[:, steps])
-        if self._reads(k.state) and unravel_key(k.state) != unravel_key(k.observation):
-            td = x["td"]  # the state as the env gives it (trailing dims kept)
-            state = torch.cat([td.get(k.state)[:, :1], td.get(next_key(k.state))], 1)
-            inputs.set(k.state, state[:, steps])
+        if self._reads_own_state():
+            state = batch.state_seq[:, steps]  # with the trailing dims the batch gives it
+            inputs.set(k.state, state.reshape(*state.shape[:2], *batch.state_shape))
         with set_recurrent_mode(True):
             q = self.agent(inputs).get(k.action_value, None)
         if q is None:
@@ -545,9 +621,10 @@ class ICCOLoss(LossModule):
             )
         return q
 
-    def _mixer_inputs(self, tensordict: TensorDictBase) -> tuple[dict, dict]:
+    def mixer_inputs(self, tensordict: TensorDictBase) -> tuple[dict, dict]:
         """Every input the mixer reads besides ``local_value``, from the batch and from its
-        ``"next"`` entry (``{key: tensor}`` each)."""
+        ``"next"`` entry (``{key: tensor}`` each); a key the mixer reads and the batch lacks, or
+        a ``local_value``/``global_value`` the mixer does not read/write, fails naming it."""
         k, mixer = self.tensor_keys, self.mixer
         local = unravel_key(k.local_value)
         in_keys = [unravel_key(key) for key in mixer.in_keys]
@@ -581,7 +658,7 @@ class ICCOLoss(LossModule):
 
     def _mix(self, params: TensorDictParams, q: torch.Tensor, inputs: dict) -> torch.Tensor:
         """The mixer through its keys: ``q [S, L, N]`` as ``local_value`` and ``inputs`` (from
-        :meth:`_mixer_inputs`); returns ``[S, L, 1]``."""
+        :meth:`mixer_inputs`); returns ``[S, L, 1]``."""
         k, mixer = self.tensor_keys, self.mixer
         local = unravel_key(k.local_value)
         inputs = {local: q.unsqueeze(-1).contiguous(), **inputs}
@@ -594,22 +671,22 @@ class ICCOLoss(LossModule):
             return mixer(td).get(k.global_value)
 
     # ------------------------------------------------------------------ consistency
-    def _consistency(self, x: dict, z_seq, loc_w, scale_w) -> dict[str, torch.Tensor]:
+    def _consistency(self, batch: LossBatch, z_seq, loc_w, scale_w) -> dict[str, torch.Tensor]:
         """L_CE over the broadcast windows ``[wT, (w+1)T)`` of every sequence: a window that starts
         at a broadcast step in the sequence's episode is scored on the steps its z is held."""
-        T, (S, L) = self.period, x["mask"].shape
+        T, (S, L) = self.period, batch.mask.shape
         W = loc_w.shape[1]
 
         def windows(value):  # [S, L, ...] -> [S * W, T, ...] (a trailing partial window dropped)
             return value[:, : W * T].reshape(S * W, min(T, L), *value.shape[2:])
 
-        step, mask = windows(x["step_count"]), windows(x["mask"])
+        step, mask = windows(batch.step_count), windows(batch.mask)
         starts = (step[:, 0] % T == 0) & mask[:, 0]  # [S * W]
         period_id = step // T
         held = mask & (period_id == period_id[:, :1]) & starts[:, None]
         z0 = z_seq[:, : W * T : T].flatten(0, 1)  # [S * W, N, Z]
         scale0 = scale_w.flatten(0, 1)
-        present = present_robots(self, windows(x["state"])[:, 0], z0.shape[1])  # [S * W, N]
+        present = present_robots(self.layout, windows(batch.state)[:, 0], z0.shape[1])  # [S * W, N]
         w = starts.to(z0.dtype)[:, None] * present  # scored windows x robots present at their start
         denom = w.sum().clamp_min(1.0)
         entropy = (w * gaussian_entropy(scale0)).sum() / denom
@@ -620,7 +697,7 @@ class ICCOLoss(LossModule):
             first = torch.arange(held.shape[1], device=held.device) == 0
             factor_mask = held | (~starts[:, None] & first)
             log_q = self.posterior.module(
-                z0, windows(x["state"]), windows(x["action"]), windows(x["obs"]), factor_mask
+                z0, windows(batch.state), windows(batch.action), windows(batch.obs), factor_mask
             )  # [S * W, N]
             mean_log_q = (w * log_q).sum() / denom
             out.update(log_q=mean_log_q.detach(), ce_nll=-self.ce_coef * mean_log_q)

@@ -1,17 +1,24 @@
 """What :class:`~icco_torchrl.objectives.ICCOLoss` reads from a batch of replayed sequences.
 
-Every key is checked once, with an error that names the key and the shape it needs, and the
-``L + 1`` inputs of each sequence (its ``L`` steps and the final next-step) are assembled for
-the online and target networks alike.
+Every key is checked once, with an error that names the key and the shape it needs, into a
+:class:`LossBatch` (:meth:`ICCOLoss.read_batch <icco_torchrl.objectives.ICCOLoss.read_batch>`),
+and the ``L + 1`` inputs of each sequence (its ``L`` steps and the final next-step) are
+assembled for the online and target networks alike (:func:`assemble`).
 """
 
 from __future__ import annotations
 
+import dataclasses
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
 import torch
 from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
+from torch import Tensor
 
-from icco_torchrl.modules.relative import robot_mask
+if TYPE_CHECKING:
+    from icco_torchrl.envs.layout import ObsLayout
 
 
 def next_key(key: NestedKey) -> tuple:
@@ -53,16 +60,13 @@ def team_value(td, key, N: int, kind: str, reduction: str, optional=False):
     return value
 
 
-def present_robots(loss, state: torch.Tensor, n_agents: int) -> torch.Tensor:
+def present_robots(layout: ObsLayout | None, state: torch.Tensor, n_agents: int) -> torch.Tensor:
     """``[..., N]``: 1.0 for the robots present in ``state [..., state_dim]``, 0.0 for absent ones
-    (an absent robot's state token is all zeros: :func:`~icco_torchrl.modules.relative.robot_mask`),
-    read with the layout of the loss's coordinator, mixer or posterior (the first that has one);
-    every robot is present when none has (a fixed team, or an env without a layout)."""
-    for name in ("coordinator", "mixer", "posterior"):
-        layout = getattr(getattr(getattr(loss, name, None), "module", None), "layout", None)
-        if layout is not None:
-            return robot_mask(state, layout).to(state.dtype)
-    return state.new_ones(*state.shape[:-1], n_agents)
+    (:meth:`~icco_torchrl.envs.layout.ObsLayout.robot_mask`: an absent robot's state token is all
+    zeros); every robot is present without a layout (a fixed team, or an env without one)."""
+    if layout is None:
+        return state.new_ones(*state.shape[:-1], n_agents)
+    return layout.robot_mask(state).to(state.dtype)
 
 
 def episode_mask(done: torch.Tensor, is_init: torch.Tensor | None) -> torch.Tensor:
@@ -77,95 +81,182 @@ def episode_mask(done: torch.Tensor, is_init: torch.Tensor | None) -> torch.Tens
     return valid
 
 
-def read_sequences(loss, td: TensorDictBase) -> dict:
-    """The checked inputs of ``loss`` from ``td [S, L]`` (time last), as a dict of tensors (views
-    of the batch: the few ops that build the sequences are :func:`assemble`'s)."""
+@dataclass(frozen=True)
+class LossBatch:
+    """A batch of replayed sequences ``[S, L]`` as :class:`~icco_torchrl.objectives.ICCOLoss`
+    reads it: checked tensors (views of the batch), the argument of the loss's tensor part
+    (:meth:`~icco_torchrl.objectives.ICCOLoss.losses`, what ``compile`` traces).
+
+    Built by :meth:`ICCOLoss.read_batch <icco_torchrl.objectives.ICCOLoss.read_batch>`; the
+    fields after ``next_mixer_inputs`` are None until :func:`assemble` sets them. ``N`` robots,
+    ``F`` observation width, ``D`` the flat state width. Optional fields are None where the
+    loss does not read them.
+
+    Attributes:
+        obs: observations ``[S, L, N, F]``.
+        next_obs: the next observations ``[S, L, N, F]`` (under ``"next"``).
+        action: the actions taken ``[S, L, N]``.
+        prev_action: the previous actions ``[S, L, N]``, for agents that read them.
+        hidden: the recurrent state stored at collection ``[S, L, N, H]``, for recurrent agents.
+        state: the global state ``[S, L, D]`` (flattened).
+        next_state: the next global state ``[S, L, D]``.
+        state_shape: the state's trailing shape as the batch holds it (``(D,)`` for a flat one),
+            for an agent that reads the state through its keys.
+        reward: the team reward ``[S, L, 1]`` (per-robot rewards reduced).
+        own_reward: each robot's own reward terms ``[S, L, N]``, with per-robot reward channels.
+        terminated: the team's termination ``[S, L, 1]``.
+        done: the team's done ``[S, L, 1]``, read when the batch has no ``mask``.
+        is_init: the steps that start an episode ``[S, L]`` (read, or ``step_count == 0``).
+        mask: the steps in the sequence's episode ``[S, L]`` (the cutter's ``mask``; else
+            derived by :func:`assemble`).
+        z: the z the agents held ``[S, L, N, Z]`` (with a coordinator).
+        z_noise: the noise of each broadcast's draw ``[S, L, N, Z]``.
+        z_sent: which robots received a z ``[S, L, N, 1]`` (an adaptive broadcast).
+        step_count: steps since reset ``[S, L]`` (with a coordinator).
+        next_step_count: the next step's count ``[S, L]``.
+        mixer_inputs: the mixer's inputs besides the agents' values, ``{key: [S, L, ...]}``.
+        next_mixer_inputs: the same under ``"next"``.
+        obs_seq: the ``L + 1`` observations of each sequence ``[S, L+1, N, F]`` (its steps and
+            the final next-step), shared by the online and target networks.
+        prev_seq: the ``L + 1`` previous actions ``[S, L+1, N]`` (None without ``prev_action``).
+        state_seq: the ``L + 1`` states ``[S, L+1, D]``, when the loss reads the state.
+    """
+
+    obs: Tensor
+    next_obs: Tensor
+    action: Tensor
+    prev_action: Tensor | None
+    hidden: Tensor | None
+    state: Tensor
+    next_state: Tensor
+    state_shape: tuple[int, ...]
+    reward: Tensor
+    own_reward: Tensor | None
+    terminated: Tensor
+    done: Tensor | None
+    is_init: Tensor | None
+    mask: Tensor | None
+    z: Tensor | None
+    z_noise: Tensor | None
+    z_sent: Tensor | None
+    step_count: Tensor | None
+    next_step_count: Tensor | None
+    mixer_inputs: dict[NestedKey, Tensor]
+    next_mixer_inputs: dict[NestedKey, Tensor]
+    obs_seq: Tensor | None = None
+    prev_seq: Tensor | None = None
+    state_seq: Tensor | None = None
+
+
+def read_batch(loss, td: TensorDictBase) -> LossBatch:
+    """The checked inputs of ``loss`` (an :class:`~icco_torchrl.objectives.ICCOLoss`) from
+    ``td [S, L]`` (time last), views of the batch (the few ops that build the sequences are
+    :func:`assemble`'s), from the loss's public description of what it reads (``tensor_keys``,
+    ``recurrent``, ``reads_prev_action``, ``has_coordinator``, ``channels``, ``threshold``,
+    ``reward_reduction``, ``mixer_inputs``)."""
     if td.batch_dims != 2:
         raise ValueError(
             f"ICCOLoss expects sequences with batch [S, T] (time last), got batch "
             f"{list(td.batch_size)}"
         )
-    k, net = loss.tensor_keys, loss.agent.module
+    k, net, reduction = loss.tensor_keys, loss.agent.module, loss.reward_reduction
     S, L = td.batch_size
     N = get_checked(td, k.action, "[S, T, N]", ndim=3).shape[-1]
     obs_width = get_checked(td, k.observation, "[S, T, N, obs_dim]", ndim=4).shape[-1]
     obs_shape = (N, obs_width)
-    recurrent = loss._sequence_agent or loss._reads(k.rnn_hidden)
     width = getattr(net, "hidden", None)
     hidden = get_checked(
         td,
         k.rnn_hidden,
         f"[S, T, N, {width or 'hidden'}]",
-        optional=not recurrent,
+        optional=not loss.recurrent,
         trailing=(N, width) if width else None,
     )
-    state_shape = "[S, T, state_dim] (trailing dims are flattened)"
-    state = get_checked(td, k.state, state_shape).reshape(S, L, -1)
-    next_state = get_checked(td, next_key(k.state), state_shape).reshape(S, L, -1)
-    reads_prev = loss._sequence_agent or loss._reads(k.prev_action)
-    x = dict(
-        td=td,
-        obs=get_checked(td, k.observation, "[S, T, N, obs_dim]", trailing=obs_shape),
-        next_obs=get_checked(td, next_key(k.observation), "[S, T, N, obs_dim]", trailing=obs_shape),
-        action=td.get(k.action),
-        prev_action=get_checked(
-            td, k.prev_action, "[S, T, N]", trailing=(N,), optional=not reads_prev
-        ),
-        hidden=hidden,
-        state=state,
-        next_state=next_state,
-        reward=team_value(td, next_key(k.reward), N, "reward", loss.reward_reduction),
-        terminated=team_value(td, next_key(k.terminated), N, "flag", loss.reward_reduction),
+    state_expected = "[S, T, state_dim] (trailing dims are flattened)"
+    raw_state = get_checked(td, k.state, state_expected)
+    state = raw_state.reshape(S, L, -1)
+    next_state = get_checked(td, next_key(k.state), state_expected).reshape(S, L, -1)
+    obs = get_checked(td, k.observation, "[S, T, N, obs_dim]", trailing=obs_shape)
+    next_obs = get_checked(td, next_key(k.observation), "[S, T, N, obs_dim]", trailing=obs_shape)
+    prev_action = get_checked(
+        td, k.prev_action, "[S, T, N]", trailing=(N,), optional=not loss.reads_prev_action
     )
-    x["own_reward"] = None
+    reward = team_value(td, next_key(k.reward), N, "reward", reduction)
+    terminated = team_value(td, next_key(k.terminated), N, "flag", reduction)
+    own_reward = None
     if loss.channels > 1:  # per-robot reward channels: each robot's own terms [S, L, N]
         own = get_checked(td, next_key(k.own_reward), "[S, T, N, 1]", trailing=(N, 1))
-        x["own_reward"] = own.squeeze(-1)
+        own_reward = own.squeeze(-1)
     step_count = get_checked(
         td, k.step_count, "[S, T, 1]", trailing=(1,), optional=not loss.has_coordinator
     )
-    is_init = team_value(td, k.is_init, N, "flag", loss.reward_reduction, optional=True)
+    is_init = team_value(td, k.is_init, N, "flag", reduction, optional=True)
     if is_init is None and step_count is not None:
         is_init = step_count == 0  # derived
-    x["is_init"] = None if is_init is None else is_init.reshape(S, L).bool()
     mask = td.get(k.mask, None)
-    x["done"] = None
+    done = None
     if mask is None:  # derived in assemble()
-        x["done"] = team_value(
-            td, next_key(k.done), N, "flag", loss.reward_reduction, optional=True
-        )
+        done = team_value(td, next_key(k.done), N, "flag", reduction, optional=True)
     elif tuple(mask.shape) not in ((S, L), (S, L, 1)):
         raise ValueError(
             f"ICCOLoss: key {k.mask!r} must have shape [S, T] or [S, T, 1], got {list(mask.shape)}"
         )
-    x["mask"] = None if mask is None else mask.reshape(S, L).bool()
+    z = z_noise = z_sent = next_step_count = None
     if loss.has_coordinator:
         z_shape = (N, net.z_dim)
-        x["z"] = get_checked(td, k.z, f"[S, T, N, {net.z_dim}]", trailing=z_shape)
-        x["z_noise"] = get_checked(td, k.z_noise, f"[S, T, N, {net.z_dim}]", trailing=z_shape)
-        x["z_sent"] = None
+        z = get_checked(td, k.z, f"[S, T, N, {net.z_dim}]", trailing=z_shape)
+        z_noise = get_checked(td, k.z_noise, f"[S, T, N, {net.z_dim}]", trailing=z_shape)
         if loss.threshold > 0:
-            sent = get_checked(td, k.z_sent, "[S, T, N, 1]", trailing=(N, 1))
-            x["z_sent"] = sent.bool()
-        x["step_count"] = step_count.squeeze(-1)
-        x["next_step_count"] = get_checked(
+            z_sent = get_checked(td, k.z_sent, "[S, T, N, 1]", trailing=(N, 1)).bool()
+        step_count = step_count.squeeze(-1)
+        next_step_count = get_checked(
             td, next_key(k.step_count), "[S, T, 1]", trailing=(1,)
         ).squeeze(-1)
-    return x
+    else:
+        step_count = None
+    mixer_inputs, next_mixer_inputs = loss.mixer_inputs(td)
+    return LossBatch(
+        obs=obs,
+        next_obs=next_obs,
+        action=td.get(k.action),
+        prev_action=prev_action,
+        hidden=hidden,
+        state=state,
+        next_state=next_state,
+        state_shape=tuple(raw_state.shape[2:]),
+        reward=reward,
+        own_reward=own_reward,
+        terminated=terminated,
+        done=done,
+        is_init=None if is_init is None else is_init.reshape(S, L).bool(),
+        mask=None if mask is None else mask.reshape(S, L).bool(),
+        z=z,
+        z_noise=z_noise,
+        z_sent=z_sent,
+        step_count=step_count,
+        next_step_count=next_step_count,
+        mixer_inputs=mixer_inputs,
+        next_mixer_inputs=next_mixer_inputs,
+    )
 
 
-def assemble(x: dict, reads_state: bool) -> dict:
-    """``x`` with the ``L + 1`` inputs of each sequence (its ``L`` steps and the final
+def assemble(batch: LossBatch, reads_state: bool) -> LossBatch:
+    """``batch`` with the ``L + 1`` inputs of each sequence (its ``L`` steps and the final
     next-step), shared by the online and the target networks, and the episode mask where the
     batch has none: the tensor part of reading a batch (what a compiled update traces)."""
-    x = dict(x)
-    if x["mask"] is None:  # steps after an episode end (done) or a new start (is_init)
-        ended = x["terminated"] if x["done"] is None else x["done"]
-        x["mask"] = episode_mask(ended, x["is_init"])
-    x["obs_seq"] = torch.cat([x["obs"][:, :1], x["next_obs"]], 1)  # [S, L+1, N, F]
-    if x["prev_action"] is not None:
-        x["prev_seq"] = torch.cat([x["prev_action"][:, :1], x["action"]], 1)
-    else:
-        x["prev_seq"] = None
-    x["state_seq"] = torch.cat([x["state"][:, :1], x["next_state"]], 1) if reads_state else None
-    return x
+    mask = batch.mask
+    if mask is None:  # steps after an episode end (done) or a new start (is_init)
+        ended = batch.terminated if batch.done is None else batch.done
+        mask = episode_mask(ended, batch.is_init)
+    prev_seq = state_seq = None
+    if batch.prev_action is not None:
+        prev_seq = torch.cat([batch.prev_action[:, :1], batch.action], 1)  # [S, L+1, N]
+    if reads_state:
+        state_seq = torch.cat([batch.state[:, :1], batch.next_state], 1)  # [S, L+1, D]
+    return dataclasses.replace(
+        batch,
+        mask=mask,
+        obs_seq=torch.cat([batch.obs[:, :1], batch.next_obs], 1),  # [S, L+1, N, F]
+        prev_seq=prev_seq,
+        state_seq=state_seq,
+    )

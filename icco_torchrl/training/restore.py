@@ -11,6 +11,7 @@ from pathlib import Path
 
 from omegaconf import OmegaConf
 
+from icco_torchrl.envs.layout import ObsLayout
 from icco_torchrl.training.build import EVAL_SEED_OFFSET, Run, build
 from icco_torchrl.training.checkpoint import (  # noqa: F401 (export_policy: its old home)
     POLICY_KEYS,
@@ -33,15 +34,9 @@ ACTING = (
 
 
 def resized_layout(layout: dict, n_agents: int) -> dict:
-    """A saved layout (``ObsLayout`` fields) for a team of ``n_agents``: every other robot is one
-    more entity of each robot's view and one more state token (the env's layout rule)."""
-    extra = n_agents - layout["n_agents"]
-    return {
-        **layout,
-        "n_agents": n_agents,
-        "n_entities": layout["n_entities"] + extra,
-        "state_tokens": layout["state_tokens"] + extra,
-    }
+    """A saved layout (``ObsLayout`` fields) for a team of ``n_agents``
+    (:meth:`~icco_torchrl.envs.layout.ObsLayout.with_agents`, the env's layout rule)."""
+    return {**layout, **vars(ObsLayout.from_dict(layout).with_agents(n_agents))}
 
 
 def acting_weights(ckpt: dict, run: Run, path: str | Path, trained: int) -> dict:
