@@ -10,6 +10,7 @@ update's shapes. Writes ``benchmarks/results/train_speed.json``.
 
     .venv/bin/python benchmarks/train_speed.py                  # 1 and 2 threads, ICCO
     .venv/bin/python benchmarks/train_speed.py --threads 1 --batches 20
+    .venv/bin/python benchmarks/train_speed.py --threads 1 --paths eager compiled process
     python benchmarks/train_speed.py --device cuda --experiment gpu --paths eager compiled \
         graphs --threads 8 --out train_speed_gpu.json            # benchmarks/gpu_check.sh
 """
@@ -30,11 +31,11 @@ from torch.profiler import ProfilerActivity, profile
 from torch.utils._python_dispatch import TorchDispatchMode
 from torch.utils._pytree import tree_map
 from torch.utils.flop_counter import flop_registry
-from torchrl.collectors import Collector
 
 from icco_torchrl.modules import activations
 from icco_torchrl.trainer import TrainingRun
 from icco_torchrl.training.build import build
+from icco_torchrl.training.collector_process import make_collector
 from icco_torchrl.training.config import compose_config
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -45,6 +46,10 @@ PATHS = {
     "compiled_mask": ["train.compile=true", "train.cudagraphs=false"],
     "compiled": ["train.compile=true", "train.cudagraphs=false"],
     "graphs": ["train.compile=true", "train.cudagraphs=true"],  # CUDA only
+    # The compiled update, the env and the acting policy in a collector process beside it
+    # (train.collector=process): it collects its next batch while the other paths take their turn,
+    # as it would during the learner's own updates. Two cores, the CPU only.
+    "process": ["train.compile=true", "train.cudagraphs=false", "train.collector=process"],
 }
 BASELINE = "compiled_mask"
 
@@ -98,14 +103,8 @@ class Stepper:
         self.training = TrainingRun(build(cfg, for_training=True), cfg, run_dir)
         self.run = self.training.run
         self.frames = cfg.env.num_envs * cfg.train.steps_per_batch
-        self.collector = Collector(
-            self.run.env,
-            self.run.policy,
-            frames_per_batch=self.frames,
-            total_frames=-1,
-            auto_register_policy_transforms=False,
-            track_traj_ids=False,
-        )
+        # The trainer's collector (train.collector), endless.
+        self.collector = make_collector(self.run, cfg, -1, frames=0, epsilon=None)
         self.batches = iter(self.collector)
         t = cfg.train
         start = time.perf_counter()

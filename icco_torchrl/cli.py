@@ -89,6 +89,7 @@ def _run_hydra(name: str, overrides: list[str], task) -> None:
     from omegaconf.errors import OmegaConfBaseException
 
     from icco_torchrl.paths import CONF_DIR
+    from icco_torchrl.training.collector_process import CollectorError
     from icco_torchrl.training.config import ConfigError, compose_error, validate
     from icco_torchrl.training.run_folder import CheckpointError, RunFolderBusy
 
@@ -98,6 +99,8 @@ def _run_hydra(name: str, overrides: list[str], task) -> None:
         try:
             return task(validate(raw), output_dir)
         except RunFolderBusy as err:  # the folder is another process's: leave it as it is
+            _fail(name, str(err))
+        except CollectorError as err:  # the run's checkpoint stays: resume= continues it
             _fail(name, str(err))
         except (ConfigError, CheckpointError) as err:  # user errors: one clear line
             _remove_if_only_hydra(output_dir)

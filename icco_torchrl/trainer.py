@@ -19,7 +19,6 @@ from pathlib import Path
 import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
-from torchrl.collectors import Collector
 
 from icco_torchrl.envs import EVENT_KEYS
 from icco_torchrl.envs.reference_policies import make_reference_policy, reference_label
@@ -34,6 +33,8 @@ from icco_torchrl.training.checkpoint import (
     restore_replay,
     save_run,
 )
+from icco_torchrl.training.collector_process import CollectorError, make_collector
+from icco_torchrl.training.config import check_collector
 from icco_torchrl.training.interrupt import (
     GracefulInterrupt,
     Interrupted,
@@ -112,6 +113,7 @@ def train(cfg: DictConfig, run_dir: str | Path, on_start: Callable[[], None] | N
     ``run_dir`` (with ``resume=``, to the checkpoint's folder). ``on_start`` runs once the folder
     is locked and the run started or its resume checked (the command's record of the run), so a
     refused run writes nothing."""
+    check_collector(cfg)  # what train.collector needs of this machine, before any work
     run_dir = Path(cfg.resume).resolve().parent if cfg.resume else Path(run_dir)
     # One writer per run folder; a signal before the loop stops at once (nothing to save yet).
     with RunFolderLock(run_dir), StopAtOnce() as stop:
@@ -133,6 +135,12 @@ def train(cfg: DictConfig, run_dir: str | Path, on_start: Callable[[], None] | N
             interrupted = training.loop(training.remaining)
         except Interrupted:  # a signal as the loop handed the signals back
             interrupted = True
+        except CollectorError as err:  # between batches: the learner's state is whole
+            training.logger.print(
+                f"{err}: saving a checkpoint at {training.progress.frames} frames"
+            )
+            training.finish(True, stop)
+            raise
         return training.finish(interrupted, stop)
 
 
@@ -169,6 +177,7 @@ class TrainingRun:
         self.outputs = fresh_outputs()  # final evaluation and curve of the last frame, written?
         self.replay_id: str | None = None  # the replay dump the last checkpoint names
         self.replay_segments = 0  # and the segments it holds
+        self.collector_torch = None  # train.collector=process: its torch stream, as of the batch
 
     # ------------------------------------------------------------------ start / resume
     def start(self) -> None:
@@ -244,11 +253,16 @@ class TrainingRun:
             "loss": run.loss.state_dict(),
             "optimizer": run.optim.state_dict(),
             "updater": run.updater.state_dict(),
-            "rng": rng_state(run.env),
+            "rng": {**rng_state(run.env), **self._collector_rng()},
             "outputs": dict(self.outputs),
             "replay_id": self.replay_id,
             "replay_segments": self.replay_segments,
         }
+
+    def _collector_rng(self) -> dict:
+        """The collector process's torch stream (``train.collector=process``), if there is one;
+        the env's generator, in ``rng_state``, is the collector's (taken over with each batch)."""
+        return {} if self.collector_torch is None else {"collector_torch": self.collector_torch}
 
     def load_state_dict(self, state: dict, *, origin: str | Path = "the state dict") -> None:
         """Restore a :meth:`state_dict` (or a checkpoint's, which holds the same fields; its
@@ -262,6 +276,7 @@ class TrainingRun:
         # The schedule continues.
         self.explore.eps.fill_(epsilon(self.progress.frames, self.cfg.train))
         set_rng_state(state["rng"], run.env)
+        self.collector_torch = state["rng"].get("collector_torch")
         self.outputs = outputs_of(state, self.run_dir)
         self.replay_id = state.get("replay_id")
         self.replay_segments = state.get("replay_segments", 0)
@@ -272,16 +287,14 @@ class TrainingRun:
         if remaining <= 0:
             return False
         run, t, p = self.run, self.cfg.train, self.progress
-        # No trajectory ids: segments are cut on step_count, and the ids cost a td update per step.
-        collector = Collector(
-            run.env,
-            run.policy,
-            frames_per_batch=self.cfg.env.num_envs * t.steps_per_batch,
-            total_frames=remaining,
-            device=run.env.device,
-            storing_device=run.env.device,
-            auto_register_policy_transforms=False,
-            track_traj_ids=False,
+        # train.collector: inline, or a process that starts with the loop (collector_process.py).
+        collector = make_collector(
+            run,
+            self.cfg,
+            remaining,
+            frames=p.frames,
+            epsilon=lambda frames: epsilon(frames, t),
+            streams=self.collector_torch,
         )
         taught = run.teacher.rows if run.teacher is not None else 0  # the teacher's env rows
         tracker = EpisodeTracker(self.cfg.env.num_envs - taught, run.env.device)
@@ -296,6 +309,7 @@ class TrainingRun:
             tick = time.perf_counter()
             for batch in collector:
                 self.timers["collect"] += time.perf_counter() - tick
+                self.collector_torch = getattr(collector, "torch_rng", None)
                 p.frames += batch.numel()
                 p.batches += 1
                 self.explore.eps.fill_(epsilon(p.frames, t))

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import inspect
+import os
 from dataclasses import dataclass, field
 from typing import Optional
 
@@ -188,6 +189,11 @@ class TrainConfig:
     batch_segments: int = _field(32, gt=0)
     # Gradient updates per collector batch (~8 replayed transitions per new one).
     updates_per_batch: int = _field(8, ge=1)
+    # The replay ratio this recipe states, checked: replayed transitions per collected one,
+    # updates_per_batch x batch_segments x sequence_length / (env.num_envs x steps_per_batch).
+    # A value that no whole number of updates gives, or that updates_per_batch does not give, is
+    # refused naming the field. null: not checked.
+    replay_ratio: Optional[float] = _field(None, gt=0)
     # No updates until the buffer holds this many sequences.
     warmup_segments: int = _field(128, ge=0)
     # Learning rate (COPA: RMSprop 3e-4; Adam 1e-3 learns the task ~2x faster here).
@@ -224,6 +230,12 @@ class TrainConfig:
     checkpoint_buffer: bool = True
     # torch CPU threads (1 is the stable choice on shared machines).
     threads: int = _field(1, gt=0)
+    # Where the env steps and the policy acts: inline (in the learner's process, collect then
+    # learn, in turn) | process (a second process collects beside the learner, so a run uses two
+    # cores; training/collector_process.py). The learner paces it: the same updates_per_batch per
+    # collected batch, the collector at most one batch ahead, acting with weights one batch of
+    # updates older than inline's (epsilon follows the same schedule). Needs 2 cores and the CPU.
+    collector: str = _field("inline", choices=("inline", "process"))
     # Compile the update (torch.compile of the loss, fused Adam; icco_torchrl/training/update.py):
     # the same loss and gradients in far fewer ops (benchmarks/README.md). The first run compiles
     # for minutes on a CPU, later ones load the cache (~/.cache/icco_torchrl/inductor).
@@ -536,6 +548,7 @@ def validate(cfg: DictConfig | dict) -> DictConfig:
         except ValueError as err:
             raise ConfigError(f"config field 'eval.references': {err}") from None
     _check_teacher(merged)
+    _check_replay_ratio(merged)
     _check_env_params(merged.env.params)
     shaping = set_env_params(t.env_params)
     if shaping:
@@ -579,6 +592,52 @@ def _check_teacher(cfg) -> None:
         raise ConfigError(
             f"config field 'train.teacher_share' ({t.teacher_share}) gives {share} of "
             f"'train.batch_segments' ({t.batch_segments}) items: at least one from each buffer"
+        )
+
+
+def _check_replay_ratio(cfg) -> None:
+    """``train.replay_ratio``, when set: a whole number of updates replays it, and it is
+    ``train.updates_per_batch``."""
+    t = cfg.train
+    if t.replay_ratio is None:
+        return
+    frames = cfg.env.num_envs * t.steps_per_batch
+    update = t.batch_segments * t.sequence_length  # transitions one update replays
+    budget = t.replay_ratio * frames  # transitions the ratio replays a batch
+    updates = round(budget / update)
+    if updates < 1 or abs(budget - updates * update) > 1e-6 * budget:
+        raise ConfigError(
+            f"config field 'train.replay_ratio' ({t.replay_ratio:g}) replays {budget:g} "
+            f"transitions a batch of {frames} (env.num_envs x train.steps_per_batch), not a whole "
+            f"number of updates of {update} (train.batch_segments x train.sequence_length)"
+        )
+    if updates != t.updates_per_batch:
+        raise ConfigError(
+            f"config field 'train.updates_per_batch' ({t.updates_per_batch}) gives a replay "
+            f"ratio of {t.updates_per_batch * update / frames:g}, not train.replay_ratio "
+            f"({t.replay_ratio:g}): set it to {updates}"
+        )
+
+
+def check_collector(cfg, cores: int | None = None) -> None:
+    """What ``train.collector=process`` needs of this machine, checked before a run starts (not
+    in :func:`validate`: a checkpoint trained so still restores anywhere): a core for the learner
+    and one for the collector process (``cores``: those this process may use), and the CPU."""
+    if cfg.train.collector != "process":
+        return
+    if cores is None:
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None
+        cores = cores or os.cpu_count() or 1
+    if cores < 2:
+        raise ConfigError(
+            f"config field 'train.collector': process needs a core for the learner and one for "
+            f"its collector process, and this run may use {cores}: use train.collector=inline"
+        )
+    device = resolve_device(cfg.device)
+    if device.type != "cpu":
+        raise ConfigError(
+            f"config field 'train.collector': process collects on the CPU, and device is "
+            f"{cfg.device!r} ({device.type}): use train.collector=inline"
         )
 
 
