@@ -116,45 +116,99 @@ def test_the_verdict_rule_judges_a_gap_against_two_standard_errors_of_the_means(
     )
 
 
-def test_four_quadrant_bar_checks_both_scripted_ends_and_half_the_blends_work():
+def test_four_quadrant_target_is_a_share_of_the_best_scripted_teams_reward():
     report = _load(ROOT / "experiments" / "four_quadrants" / "report.py")
 
-    def row(method, reward, pick=0.0, collect=0.0, defense=0.0, in_quadrant=0.0):
-        # std 1 over 100 trials (se 0.1), 0.01 in quadrant (se 0.001)
-        values = dict(reward=reward, pick=pick, collect=collect, defense=defense)
-        return dict(
-            method=method,
-            n=100,
-            in_quadrant=in_quadrant,
-            in_quadrant_std=0.01,
-            **values,
-            **{f"{k}_std": 1.0 for k in values},
-        )
+    def row(method, reward):  # std 10 over 100 trials: se 1
+        return dict(method=method, n=100, reward=reward, reward_std=10.0)
 
-    refs = {
-        "follower": row("follower", 280.0, 2.0, 1.0, 5.0, 0.7),
-        "heuristic": row("heuristic", 300.0, 40.0, 40.0, 30.0, 0.2),
-        "blend (r=1.75 m)": row("blend (r=1.75 m)", 370.0, 16.0, 14.0, 30.0, 0.5),
-    }
-    # Past the heuristic (the better end) by 1 (2 SE 0.28), exactly half the blend's picks,
-    # 0.1 short of half its deliveries (2 SE 0.22), past half its defenses, in quadrant less
-    # often than the blend.
-    rows = {"ICCO": row("ICCO", 301.0, 8.0, 6.9, 15.5, 0.49)}
-    lines = report.criteria(rows, refs)
-    assert "the heuristic's" in lines[0]
+    best = "best scripted (defend=inf, collect=1, deliver=2 m)"
+    refs = {"follower": row("follower", 280.0), best: row(best, 400.0)}
+    # 0.9 x 400 = 360: ICCO 363 is 3 past it, 2 SE sqrt(1 + 0.9^2) x 2 = 2.69: ahead; QMIX (FULL)
+    # 362 is 2 past it: within the spread.
+    rows = {"ICCO": row("ICCO", 363.0), "QMIX (FULL)": row("QMIX (FULL)", 362.0)}
+    lines = report.criteria(rows, refs, "../calibration/README.md")
+    assert "at least 90 % of the best scripted team's reward" in lines[0]
+    assert "[the calibration](../calibration/README.md)" in lines[0]
     assert lines[1] == (
-        "  - ICCO: does not hold, 2 of 5 ahead (team 301.0 vs 300.0: ahead (+1.0, 2 SE 0.3); "
-        "picks 8.0 vs 8.0: within the spread (+0.0, 2 SE 0.2); deliveries 6.9 vs 7.0: within "
-        "the spread (-0.1, 2 SE 0.2); defenses 15.5 vs 15.0: ahead (+0.5, 2 SE 0.2); in quadrant "
-        "0.49 vs 0.50: behind (-0.01, 2 SE 0.00))."
+        "  - ICCO: holds. 91 % of the best scripted team's reward (363.0 vs 400.0); against 90 %: "
+        "ahead (+3.0, 2 SE 2.7); against 100 % (moonshot): behind (-37.0, 2 SE 2.8)."
     )
-    rows["ICCO"]["in_quadrant"] = 0.51
-    assert report.criteria(rows, refs)[1].startswith(
-        "  - ICCO: not resolved at this budget, 3 of 5 ahead"
+    assert lines[2].startswith("  - QMIX (FULL): not resolved at this budget. 90 % of")
+    assert report.criteria(rows, {"follower": refs["follower"]})[0].endswith(
+        "not measured (no best scripted row on these episodes)."
     )
-    assert report.criteria(rows, {"follower": refs["follower"]}) == [
-        "- Reference policies missing: the bar is not checked."
-    ]
+
+
+def _share_tables():
+    """``(page, results, rows)`` for every experiment page with a 'share of best scripted'
+    column: the rows of that table as cells, under their header."""
+    from icco_torchrl.evaluation.metrics import SHARE
+
+    for page in sorted((ROOT / "experiments").rglob("README.md")):
+        if not (page.parent / "results.json").is_file():
+            continue
+        lines = page.read_text().splitlines()
+        for i, line in enumerate(lines):
+            if line.startswith("| method |") and f"| {SHARE} |" in line:
+                end = next((k for k, x in enumerate(lines[i:]) if not x.startswith("|")), None)
+                table = lines[i : i + end] if end is not None else lines[i:]
+                cells = [[c.strip() for c in x.strip().strip("|").split("|")] for x in table]
+                results = json.loads((page.parent / "results.json").read_text())
+                yield page, results, [cells[0], *cells[2:]]
+
+
+def test_pages_best_scripted_rows_and_shares_are_their_results():
+    """The best scripted row and every share a page shows are its results.json's."""
+    from icco_torchrl.evaluation.metrics import SHARE, SHARE_KEY, result_name
+
+    pages = set()
+    for page, results, rows in _share_tables():
+        head, share = rows[0], rows[0].index(SHARE)
+        seen = False
+        for row in rows[1:]:
+            if row[1] == "missing":
+                continue
+            entry = results["methods"][result_name(row[0])]
+            want = entry.get(SHARE_KEY)
+            assert row[share] == ("–" if want is None else f"{100 * want:.0f} %"), (page, row[0])
+            if result_name(row[0]) == "best_scripted":
+                seen = True
+                value = entry["reward"]
+                reward = row[head.index("reward")]
+                assert reward == f"{value['mean']:.1f} ± {value['std']:.1f}", page
+        assert seen, f"{page}: a share column without a best scripted row"
+        pages.add(page.relative_to(ROOT).as_posix())
+    for page in (
+        "experiments/four_quadrants/README.md",
+        "experiments/four_quadrants/5m/README.md",
+        "experiments/language/README.md",
+        "experiments/language/5m/README.md",
+    ):
+        assert page in pages, f"{page} shows no best scripted row and share"
+
+
+def test_references_added_to_a_page_must_reproduce_the_ones_it_has(tmp_path):
+    """A page's references come from the trials added to it only if those reproduce the rows it
+    already has: the same episodes (report.py --from-results --references)."""
+    import csv
+
+    report = _load(ROOT / "experiments" / "four_quadrants" / "report.py")
+    here = ROOT / "experiments" / "four_quadrants"
+    for name in ("README.md", "results.json"):
+        (tmp_path / name).write_text((here / name).read_text())
+    source = here / "5m" / "records" / "references_trials.csv"
+    rows = list(csv.DictReader(source.open()))
+    for row in rows:  # other episodes: the follower a little better on one trial
+        if row["method"] == "follower" and row["trial"] == "0" and row["segment"] == "episode":
+            row["reward"] = str(float(row["reward"]) + 1.0)
+    with (tmp_path / "trials.csv").open("w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    with pytest.raises(SystemExit, match="do not reproduce the page's follower"):
+        report.add_references(tmp_path / "README.md", tmp_path / "trials.csv")
+    assert (tmp_path / "results.json").read_text() == (here / "results.json").read_text()
 
 
 def test_four_quadrant_pages_state_the_comparison_their_results_give():
@@ -174,7 +228,9 @@ def test_four_quadrant_pages_state_the_comparison_their_results_give():
         summary = report.summary_from_results(results)
         missing = [m for m in report.EXPECTED if m not in {r["method"] for r in summary}]
         stated = page.read_text().split(report.COMPARISON_HEADING, 1)[1]
-        assert stated == report.comparison(summary, missing) + "\n", (
+        assert (
+            stated == report.comparison(summary, missing, report.calibration_link(page)) + "\n"
+        ), (
             f"stale: run python experiments/four_quadrants/report.py --from-results --readme "
             f"{page.relative_to(ROOT)}"
         )

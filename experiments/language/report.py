@@ -1,11 +1,24 @@
 """Write the language README from the folder ``run.py`` wrote (``fig5b/`` and ``table2_tap/``).
 
     python experiments/language/report.py multirun/language [--readme PATH]
+    python experiments/language/report.py --references experiments/language/references
 
 Tables come from the ``icco instruct`` outputs; the comparison with the paper is computed from
 the numbers, each verdict by the rule of ``experiments/verdict.py`` (n: trials pooled across
 seeds; Table II's, instruction segments). A method the paper compares but this run lacks is
-listed as missing.
+listed as missing. Every table row that has a best scripted row beside it gets its share of the
+best scripted team's reward on the same episodes.
+
+``--references DIR`` serves a page whose run folder is not on this machine: ``DIR`` holds the
+scripted references' trial rows on this protocol's episodes, ``fig5b_trials.csv`` (from
+``icco instruct "Go right; Move top; Gather center; Spread out" eval.trials=20 eval.steps=145``
+at seed 0 with the offline planner and any checkpoint of the team size, e.g.
+``checkpoint=assets/demo_icco.pt``: the references need one only for the size) and
+``table2_tap_trials.csv`` (the same with ``llm.prompt=tap``). The page and its ``results.json``
+get the references they lack (the best scripted team; Table II's only where the page has a
+task-aligned run) and every row its share; the other rows, the figures and the comparison stay
+as rendered. The references the page has must come out of ``DIR`` with the same numbers (the
+same episodes), or nothing is written.
 """
 
 from __future__ import annotations
@@ -28,6 +41,8 @@ from icco_torchrl.envs.reference_policies import REFERENCE_POLICIES
 from icco_torchrl.evaluation.metrics import (
     EPISODE,
     METRICS,
+    SHARE,
+    SHARE_KEY,
     markdown_table,
     result_name,
     results_json,
@@ -47,7 +62,11 @@ PAPER_TABLE2 = {
     "ICCO": (5.6, 3.7, 10.5),
 }
 COUNTS = ("pick", "collect", "defense")
+EPISODE_COLUMNS = ("reward", "pick", "collect", "defense", "invasion", "waypoint_dist")
 SMOKE_FRAMES = 100_000
+# Why the best scripted team is the yardstick (and why collecting is not reward-optimal).
+CALIBRATION = HERE.parent / "calibration" / "README.md"
+TOLERANCE = 1e-5  # a reference reproduced on another machine: float32 sums in another order
 RECIPE_NOTE = (  # the default page's history; other pages (5m/) have none
     "> **Recipe.** Today's defaults: 16-step replay items, lambda-returns (0.6), collect\n"
     "> shaping in the training env, chosen by the\n"
@@ -220,6 +239,36 @@ def _frames(*payloads: dict) -> dict[str, int]:
     return frames
 
 
+def per_instruction(rows: list[dict]) -> list[dict]:
+    """Trial rows as Table II pools them: every instruction segment one row of segment
+    ``"instruction"``."""
+    out = [
+        {
+            **{k: float(r[k]) for k in METRICS if r.get(k) not in (None, "")},
+            "method": r["method"],
+            "seed": r["seed"],
+            "segment": "instruction",
+        }
+        for r in rows
+        if r["segment"] != EPISODE
+    ]
+    for r in out:
+        r.setdefault("in_quadrant", math.nan)
+    return out
+
+
+def whole_episode(summary: list[dict], missing=(), calibration: str = "../calibration/README.md"):
+    """Fig. 5b's whole-episode table with the sentence that introduces it."""
+    return (
+        "Whole episode. The last rows are the scripted reference policies\n"
+        "(`icco_torchrl.envs.reference_policies`) on the same episodes; the best scripted team\n"
+        "defends at any distance, collects within 1 m and delivers within 2 m (the best scripted\n"
+        f"point at the calibrated reward, see [the calibration]({calibration})).\n"
+        f"`{SHARE}`: a team's mean reward over the best scripted team's on the same episodes.\n\n"
+        + markdown_table(summary, EPISODE_COLUMNS, missing=missing)
+    )
+
+
 def language_results(
     fig5b: dict, fig5b_rows: list[dict], tap: dict | None, tap_rows: list[dict], steps: int
 ) -> dict:
@@ -237,20 +286,8 @@ def language_results(
         model=fig5b["model"],
     )
     rows = [r for r in fig5b_rows if r["method"] == "ICCO"] + tap_rows
-    per_instruction = [
-        {
-            **{k: float(r[k]) for k in METRICS if r.get(k) not in (None, "")},
-            "method": r["method"],
-            "seed": r["seed"],
-            "segment": "instruction",
-        }
-        for r in rows
-        if r["segment"] != EPISODE
-    ]
-    for r in per_instruction:
-        r.setdefault("in_quadrant", math.nan)
     out["table2"] = results_json(
-        summarize(per_instruction),
+        summarize(per_instruction(rows)),
         protocol="language_tap",
         steps=steps,
         trials=fig5b["trials"] * n_segments,
@@ -275,13 +312,149 @@ def run_arguments(out: Path, llm: str | None, readme: Path | None) -> str:
     return " ".join(shlex.quote(w) for w in words)
 
 
+def calibration_link(readme: Path) -> str:
+    """The calibration page (why the best scripted team is the yardstick) relative to ``readme``."""
+    return Path(os.path.relpath(CALIBRATION, Path(readme).resolve().parent)).as_posix()
+
+
+def _read_trials(path: Path) -> list[dict]:
+    """A trials CSV back to rows: numbers as floats, labels as strings."""
+    rows = list(csv.DictReader(path.open()))
+    for row in rows:
+        for key, value in row.items():
+            if key not in ("method", "segment", "checkpoint"):
+                row[key] = float(value)
+    return rows
+
+
+def _table_at(text: str, header: str) -> tuple[int, int, list[list[str]]]:
+    """The Markdown table of ``text`` whose header line starts with ``header``: its start and end
+    offsets and its rows as cells (the header first, without the separator line)."""
+    start = text.index(header)
+    end = text.find("\n\n", start)
+    table = text[start : len(text) if end < 0 else end]
+    rows = _rows(table)
+    return start, start + len(table), [rows[0], *rows[2:]]
+
+
+def _rows(table: str) -> list[list[str]]:
+    return [[c.strip() for c in line.strip().strip("|").split("|")] for line in table.splitlines()]
+
+
+def _markdown(rows: list[list[str]]) -> str:
+    lines = ["| " + " | ".join(rows[0]) + " |", "|" + "---|" * len(rows[0])]
+    return "\n".join(lines + ["| " + " | ".join(r) + " |" for r in rows[1:]])
+
+
+def _reference(label: str) -> bool:
+    return result_name(label.removesuffix(" (reference)")) in REFERENCE_POLICIES
+
+
+def _merge(results: dict, summary: list[dict], segment: str, source: Path) -> None:
+    """Add the references of ``summary`` that ``results`` (a ``results_json``) lacks, after
+    checking that those it has come out the same (to :data:`TOLERANCE`), and give every entry
+    its share of the best scripted team's reward."""
+    added = results_json(
+        summary,
+        protocol=results["protocol"],
+        steps=results["steps"],
+        trials=results["trials"],
+        segment=segment,
+    )["methods"]
+    for name, entry in results["methods"].items():
+        if entry.get("seeds"):  # a learned method
+            continue
+        other = added.get(name)
+        bad = other is None or [
+            metric
+            for metric, value in entry.items()
+            if isinstance(value, dict)
+            and any(
+                abs(value[k] - other[metric][k]) > TOLERANCE * max(1.0, abs(value[k]))
+                for k in ("mean", "std")
+            )
+        ]
+        if bad:
+            raise SystemExit(
+                f"report.py: {source} does not reproduce the page's {name} ({bad or 'missing'}): "
+                "not the page's episodes, nothing written"
+            )
+    if "best_scripted" not in added:
+        raise SystemExit(f"report.py: {source} has no best scripted rows")
+    for name, entry in added.items():
+        results["methods"].setdefault(name, entry)
+    best = results["methods"]["best_scripted"]["reward"]["mean"]
+    for entry in results["methods"].values():
+        entry[SHARE_KEY] = entry["reward"]["mean"] / best if best > 0 else None
+
+
+def add_references(readme: Path, folder: Path) -> Path:
+    """Give ``readme`` and its ``results.json`` the references of ``folder`` they lack, and every
+    row its share of the best scripted team's reward (see the module doc)."""
+    path = readme.parent / "results.json"
+    results = json.loads(path.read_text())
+    fig5b = _read_trials(folder / "fig5b_trials.csv")
+    if len({r["trial"] for r in fig5b}) != results["trials"]:
+        raise SystemExit(f"report.py: {folder} has not the page's {results['trials']} trials")
+    summary = summarize(fig5b)
+    _merge(results, summary, EPISODE, folder / "fig5b_trials.csv")
+    tap_results = results.get("table2")
+    tap = []
+    if tap_results and any(not e.get("seeds") for e in tap_results["methods"].values()):
+        tap = _read_trials(folder / "table2_tap_trials.csv")
+        _merge(tap_results, summarize(per_instruction(tap)), "instruction", folder)
+    text = readme.read_text()
+
+    # Fig. 5b per instruction: the learned rows as rendered, the references from ``folder``.
+    start, end, table = _table_at(text, "| method | " + " | ".join(results["instructions"]))
+    refs = _rows(segment_table(summary, "reward"))
+    if refs[0] != table[0]:
+        raise SystemExit(f"report.py: {folder} has other instructions than the page ({refs[0]})")
+    learned = [r for r in table[1:] if not _reference(r[0])]
+    text = text[:start] + _markdown([table[0], *learned, *refs[2:]]) + text[end:]
+
+    # The whole episode: the same, and every row's share (results.json's).
+    start = text.index("Whole episode")
+    _, end, table = _table_at(text, "| method | trials |")
+    learned = [r for r in table[1:] if not _reference(r[0]) and r[1] != "missing"]
+    missing = [r[0] for r in table[1:] if r[1] == "missing"]
+    intro, new = whole_episode(summary, missing, calibration_link(readme)).split("\n\n", 1)
+    new = _rows(new)  # the references' rows, then the missing ones
+    share = new[0].index(SHARE)
+    for row in learned:  # cells as rendered, the share from results.json
+        entry = results["methods"][result_name(row[0])]
+        row[share:] = ["–" if entry[SHARE_KEY] is None else f"{100 * entry[SHARE_KEY]:.0f} %"]
+    text = text[:start] + intro + "\n\n" + _markdown([new[0], *learned, *new[2:]]) + text[end:]
+
+    # Table II: its references (task-aligned plans) where the page has any.
+    if tap:
+        start, end, table = _table_at(text, "| method | segments |")
+        refs = [r for r in _rows(table2(tap)[0]) if r[0].endswith(" (reference)")]
+        learned = [r for r in table[1:] if not r[0].endswith(" (reference)")]
+        text = text[:start] + _markdown([table[0], *learned, *refs]) + text[end:]
+    write_json(results, path)
+    readme.write_text(text)
+    return readme
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument("out", type=Path, help="the results folder written by run.py")
+    parser.add_argument("out", type=Path, nargs="?", help="the results folder written by run.py")
     parser.add_argument("--readme", type=Path, default=HERE / "README.md")
+    parser.add_argument(
+        "--references",
+        type=Path,
+        help="add the scripted references of this folder to the page (no run folder needed)",
+    )
     args = parser.parse_args(argv)
+    if args.references is not None:
+        page = add_references(args.readme, args.references)
+        print(f"added the references of {args.references} to {page}")
+        return 0
+    if args.out is None:
+        parser.error("the results folder is needed (or --references)")
     if not (args.out / "fig5b" / "instruct.json").is_file():
         print(
             f"report.py: {args.out / 'fig5b' / 'instruct.json'} not found: run "
@@ -346,12 +519,8 @@ def main(argv=None) -> int:
             ]
         ),
         fig5b_table=segment_table(fig5b["summary"], "reward")
-        + "\n\nWhole episode:\n\n"
-        + markdown_table(
-            fig5b["summary"],
-            ("reward", "pick", "collect", "defense", "invasion", "waypoint_dist"),
-            missing=fig5b_missing,
-        ),
+        + "\n\n"
+        + whole_episode(fig5b["summary"], fig5b_missing, calibration_link(args.readme)),
         table2=table,
         recipe_note="" if page else RECIPE_NOTE,
         planner_stats=planner_stats(payloads),
