@@ -43,6 +43,11 @@ SCREENS = {  # name: (lever, method, overrides)
         "icco",
         ["method.reward_channels=per_robot"],
     ),
+    "icco_channels_aux": (
+        "per-robot reward channels as an auxiliary: the whole Q mixed on the whole reward",
+        "icco",
+        ["method.reward_channels=per_robot_aux"],
+    ),
     "qmix_full": ("control", "qmix_full", []),
     "qmix_full_teacher": (
         "defend-first team's data, 25 % of every batch",
@@ -54,6 +59,7 @@ LABELS = {
     "icco_teacher": "ICCO + teacher data",
     "qmix_full_teacher": "QMIX (FULL) + teacher data",
     "icco_channels": "ICCO, per-robot reward channels",
+    "icco_channels_aux": "ICCO, per-robot reward channels (auxiliary)",
 }
 
 
