@@ -134,11 +134,11 @@ def test_flat_agent_needs_no_layout_and_takes_the_action_count():
         "next", "agents", "rnn_hidden"
     ].shape == (2, N, H)
     with pytest.raises(ValueError, match="layout.*obs_dim"):
-        RecurrentQNet(n_actions=A)
+        RecurrentQNet(n_actions=A, hidden=H)
     with pytest.raises(ValueError, match="mlp"):
-        RecurrentQNet(obs_dim=F, n_actions=A, encoder="attention")
+        RecurrentQNet(obs_dim=F, n_actions=A, hidden=H, encoder="attention")
     with pytest.raises(ValueError, match="n_actions"):
-        RecurrentQNet(obs_dim=F, n_actions=0)
+        RecurrentQNet(obs_dim=F, n_actions=0, hidden=H)
 
 
 def test_primer_takes_the_action_count():
@@ -297,7 +297,9 @@ def test_state_of_any_trailing_shape_is_flattened():
     key = ("agents", "observation")
     td = segments(with_z=True)
     torch.manual_seed(0)
-    coordinator = make_coordinator(n_agents=N, state_dim=N * F, z_dim=Z, hidden=H, state_key=key)
+    coordinator = make_coordinator(
+        n_agents=N, state_dim=N * F, z_dim=Z, hidden=H, period=T, state_key=key
+    )
     posterior = make_posterior(
         n_actions=A, n_agents=N, obs_dim=F, state_dim=N * F, z_dim=Z, hidden=H
     )
@@ -404,7 +406,7 @@ def test_make_value_estimator_td0_td1_tdlambda():
 
 def test_metric_keys_name_what_forward_returns():
     td = segments(with_z=True)
-    coordinator = make_coordinator(n_agents=N, state_dim=N * F, z_dim=Z, hidden=H)
+    coordinator = make_coordinator(n_agents=N, state_dim=N * F, z_dim=Z, hidden=H, period=T)
     posterior = make_posterior(
         n_actions=A, n_agents=N, obs_dim=F, state_dim=N * F, z_dim=Z, hidden=H
     )

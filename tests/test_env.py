@@ -572,6 +572,58 @@ def test_bad_parameters_raise_naming_the_parameter(name, value):
         ResourceCollectionEnv(**{name: value})
 
 
+@pytest.mark.parametrize(
+    "name,value,says",
+    [
+        ("damping", 1.0, "must be in [0, 1)"),
+        ("waypoint_sigma", -0.1, "must be >= 0"),
+        ("inst_reward_scale", -1.0, "must be >= 0"),
+        ("resource_min_radius", 4.0, "must be in (0, field_size/2)"),
+        ("invader_min_radius", -1.0, "must be in [0, field_size/2)"),
+        ("waypoint_path_prob", 1.5, "must be in [0, 1]"),
+        ("waypoint_mode", "scripted", "must be one of"),
+        ("spawn", "edge", "must be one of"),
+        ("pick_reward", "five", "must be a number"),
+        ("invader_respawn_max", 2.5, "must be a positive integer"),
+    ],
+)
+def test_each_bad_parameter_is_one_line_starting_with_its_name(name, value, says):
+    with pytest.raises(ValueError) as err:
+        ResourceCollectionEnv(**{name: value})
+    msg = str(err.value)
+    assert msg.startswith(f"{name} ") and says in msg and "\n" not in msg
+
+
+def test_the_parameters_are_one_frozen_table_that_makes_the_signature_and_the_schema():
+    import dataclasses
+    import inspect
+
+    from icco_torchrl.envs.params import ResourceCollectionParams
+    from icco_torchrl.training.config import EnvParams
+
+    table = {f.name: f for f in dataclasses.fields(ResourceCollectionParams)}
+    signature = inspect.signature(ResourceCollectionEnv.__init__).parameters
+    keywords = {k: p for k, p in signature.items() if p.kind is p.KEYWORD_ONLY}
+    assert list(keywords) == [*table, "team_sizes"]
+    assert all(keywords[k].default == f.default for k, f in table.items())
+    schema = {f.name: (f.type, f.default) for f in dataclasses.fields(EnvParams)}
+    assert schema == {k: (f.type, f.default) for k, f in table.items()}
+    env = ResourceCollectionEnv(num_envs=1, pick_reward=3, n_agents=2)
+    assert env.params == ResourceCollectionParams(pick_reward=3.0, n_agents=2)
+    assert env.pick_reward == 3.0 and type(env.pick_reward) is float and env.n_agents == 2
+    assert env.event_rewards["pick"] == 3.0 and env.half == env.field_size / 2
+    with pytest.raises(AttributeError):
+        env.dt = 0.2  # fixed at construction: the step's constants are derived once
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        env.params.dt = 0.2
+    with pytest.raises(TypeError, match="bogus"):
+        ResourceCollectionEnv(bogus=1)
+    # every field documented once, in the table, and shown in the env's docstring
+    assert all(
+        f.metadata["doc"] and f"{k} (" in ResourceCollectionEnv.__doc__ for k, f in table.items()
+    )
+
+
 @pytest.mark.parametrize("bad", [torch.zeros(2, 3, 5, 2), torch.zeros(2, 3, 4, 3)])
 def test_waypoints_of_the_wrong_shape_raise(bad):
     env = ResourceCollectionEnv(num_envs=2, seed=0)

@@ -121,7 +121,7 @@ def test_compiled_loss_gives_the_eager_losses_and_gradients(inductor_cache):
     eager_grads = _grads(run.loss)
     run.loss.zero_grad(set_to_none=True)
 
-    run.loss.compile(fullgraph=True, dynamic=False)
+    run.loss.compile_losses(fullgraph=True, dynamic=False)
     torch.manual_seed(5)
     compiled = run.loss(batch)
     total_loss(compiled).backward()

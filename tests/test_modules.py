@@ -586,7 +586,7 @@ def test_agent_reads_waypoint_features(full_state, state_encoder):
     moved[..., 5:7] = 0.0
     assert not torch.allclose(net.sequence(moved, prev, h0, z=z, state=s), seq)
     with pytest.raises(ValueError, match="needs a layout"):
-        RecurrentQNet(None, n_actions=5, obs_dim=8, waypoint_features=True)
+        RecurrentQNet(None, n_actions=5, hidden=16, obs_dim=8, waypoint_features=True)
 
 
 def test_z_reaches_the_q_head_of_its_own_step_only():

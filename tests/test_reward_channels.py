@@ -112,3 +112,36 @@ def test_training_with_per_robot_channels_through_the_cli(tmp_path):
     assert (tmp_path / "run" / "checkpoint.pt").exists()
     out = run_cli("eval", f"checkpoint={tmp_path / 'run' / 'checkpoint.pt'}", "eval.trials=2")
     assert "reward" in out.stdout
+
+
+def test_the_aux_variant_mixes_the_whole_q_on_the_whole_reward():
+    """``per_robot_aux``: the mixer scores each robot's whole Q (both channels) against the whole
+    team reward, so any change of the team reward moves the mixed term; the own channel still
+    learns each robot's own terms only."""
+    run = build_components(
+        compose_config(["method=icco", "method.reward_channels=per_robot_aux", "env.num_envs=4"])
+    )
+    loss = run.loss
+    assert loss.mix_sum and loss.channels == 2
+    torch.manual_seed(0)
+    with torch.no_grad():
+        rollout = run.env.rollout(32, run.policy, break_when_any_done=False)
+    items = SegmentCutter(length=16)(rollout).select(*loss.in_keys, strict=True)
+
+    def terms(batch):
+        torch.manual_seed(1)
+        with torch.no_grad():
+            out = loss(batch)
+        return out["loss_td"], out["loss_td_robot"]
+
+    base = terms(items)
+    team = items.clone()
+    team["next", "reward"] += 1.0
+    by_team = terms(team)
+    assert not torch.allclose(by_team[0], base[0])
+    torch.testing.assert_close(by_team[1], base[1], atol=0, rtol=0)
+    own = items.clone()
+    own["next", "agents", "own_reward"] += 1.0
+    by_own = terms(own)
+    torch.testing.assert_close(by_own[0], base[0], atol=0, rtol=0)
+    assert not torch.allclose(by_own[1], base[1])

@@ -504,8 +504,8 @@ def test_bad_team_changes_raise_one_line(call, says):
     "override, says",
     [
         ("train.team_sizes=[]", "must not be empty"),
-        ("train.team_sizes=[0,2]", "must be in 1..3"),
-        ("train.team_sizes=[2,4]", "must be in 1..3"),
+        ("train.team_sizes=[0,2]", "in 1..n_agents=3"),
+        ("train.team_sizes=[2,4]", "in 1..n_agents=3"),
     ],
 )
 def test_bad_train_team_sizes_fail_in_one_line_naming_the_field(override, says):

@@ -54,6 +54,8 @@ under a seed but its stream differs from versions that drew for every env at eve
 
 from __future__ import annotations
 
+import dataclasses
+import inspect
 import math
 import numbers
 
@@ -64,6 +66,11 @@ from torchrl.envs import EnvBase
 
 from icco_torchrl.envs._kernels import Params, any_, batch_first, batch_last, dynamics, pair_sq_dist
 from icco_torchrl.envs.layout import ObsLayout  # (re-exported: the layout this env writes)
+from icco_torchrl.envs.params import (
+    ResourceCollectionParams,
+    keyword_args_doc,
+    positive,
+)
 
 N_ACTIONS = 5
 # Unit force per action: no-op, -x, +x, -y, +y (COPA's order).
@@ -72,18 +79,11 @@ EVENTS = ("pick", "collect", "defense", "invasion")  # the counted events, under
 EVENT_KEYS = (*EVENTS, "inst_reward")  # every ("events", ...) entry of a step
 _EVENTS = EVENTS
 _FAR = 1e9  # where inactive invaders are "seen" from: beyond any vision radius
-SPAWN_MODES = ("uniform", "copa")
 
 
-def _positive(name: str, value, integer: bool = False) -> None:
-    ok = isinstance(value, int) if integer else isinstance(value, (int, float))
-    if not ok or isinstance(value, bool) or not value > 0 or not math.isfinite(value):
-        kind = "a positive integer" if integer else "a positive finite number"
-        raise ValueError(f"{name} must be {kind}, got {value!r}")
-
-
-def _check_team_sizes(team_sizes, n_agents: int) -> tuple[int, ...] | None:
-    """``team_sizes`` as a tuple (None stays None), or a one-line ValueError naming the problem."""
+def check_team_sizes(team_sizes, n_agents: int) -> tuple[int, ...] | None:
+    """``team_sizes`` as a tuple (None stays None), or a one-line ValueError naming the problem
+    (the one check of team sizes: ``train.team_sizes`` goes through it too)."""
     if team_sizes is None:
         return None
     if isinstance(team_sizes, (str, bytes)) or not hasattr(team_sizes, "__iter__"):
@@ -123,61 +123,14 @@ class ResourceCollectionEnv(EnvBase):
         num_envs: number of independent envs stepped together (the batch size).
         device: torch device of every tensor the env holds and emits.
         seed: seed of the env's own random generator (``set_seed`` re-seeds it).
-        n_agents: the most robots an env holds (paper: 3); all of them unless ``team_sizes``.
-        n_resources: resources on the field at all times; a picked one respawns at once (6).
-        n_invaders: invaders (1). Each walks straight to home and respawns after removal.
-        field_size: side of the square field in metres, centred on home at (0, 0) (6.5).
-        vision_radius: robots see entities within this distance, inclusive (0.65).
-        max_steps: episode length; ``truncated`` is set on the step that reaches it (145).
-        inst_reward_scale: weight of the instruction reward ``r_inst`` (1.3).
-        inst_dist_coef: weight of ``e_dist = -distance to nearest waypoint`` inside r_inst (0.1).
-            The paper's text would reward being far away; we read it as a penalty.
-        n_waypoints: waypoints K per robot (4).
-        waypoint_interval: steps between random-walk refreshes of the waypoints (4).
-        waypoint_sigma: std (m) of each random-walk increment; about one robot step (0.19).
-        waypoint_path_prob: with ``waypoint_mode="random_walk"``, the probability that a robot's
-            instruction for an episode is a *path*: a walk laid out independently of the robot,
-            which starts at a uniform point of the field and, at each refresh, continues from its
-            own last waypoint instead of restarting at the robot. The paper's walks (0, the default)
-            always start at the robot, so they never ask a robot to come back to an instruction it
-            left (to pick a resource, say), which every evaluation instruction does (a quadrant, "go
-            right").
-        waypoint_mode: ``"random_walk"`` (training default: the env regenerates waypoints) or
-            ``"external"`` (the env keeps whatever the caller wrote; see :meth:`write_waypoints`).
-        pick_reward / collect_reward / defense_reward / invasion_penalty: event rewards
-            (5, 1, 4, 4). The invasion penalty is shared equally by the robots so that the
-            team reward (their sum) gets exactly ``-invasion_penalty`` per invasion.
-        home_radius / resource_radius / agent_radius / invader_radius: contact radii in metres
-            (COPA's geometry scaled by ~3.8: 0.3, 0.19, 0.15, 0.11). Two bodies touch when the
-            distance between centres is below the sum of their radii.
-        dt / damping / accel / max_speed: point-mass dynamics ``v <- damping*v + dt*accel*u``,
-            speed capped at ``max_speed``, ``p <- p + dt*v`` (0.1, 0.75, 5.0, 1.9: ~0.19 m per
-            step at full speed).
-        invader_speed: metres per step toward home (0.19).
-        invader_respawn_max: an invader respawns U{1..this} steps after removal (10).
-        spawn: where things appear. ``"uniform"`` (default, the paper: "Agents, Invaders, and
-            Resources are sampled uniformly in the field's range for each episode"): at reset
-            robots, resources and the (active) invader are uniform in the field; a picked
-            resource respawns uniform in the field and an invader, U{1..invader_respawn_max}
-            steps after its removal, uniform in the field at least ``invader_min_radius`` from
-            home. Respawns use the initial distribution, so the state distribution does not
-            drift within an episode, and the invader's clearance leaves the team
-            ``invader_min_radius / invader_speed`` steps to react. ``"copa"`` (COPA's code):
-            invaders start inactive and appear on the field edge, resources on the annulus
-            between ``resource_min_radius`` and the edge. Resources never overlap each other
-            or home, in either mode.
-        resource_min_radius: with ``spawn="copa"``, resources spawn between this distance from
-            home and the field edge (1.5).
-        invader_min_radius: with ``spawn="uniform"``, invaders spawn at least this far from
-            home (1.5 m: about 8 invader steps).
-        validate: check actions and supplied waypoints at every step (costs a device sync).
-        own_reward: also emit ``("agents", "own_reward")``, each robot's own reward terms
-            (instruction, pick, delivery) apart from the team's (defense, invasion), for a
-            learner with per-robot reward channels (``method.reward_channels``).
         team_sizes: team sizes to draw from at each reset, uniformly over the list (a size
             listed twice is drawn twice as often), each in ``1..n_agents``; robots ``0..k-1``
             are present. None (default): every env holds all ``n_agents`` robots and no random
             number is drawn for it, so the env is the fixed-team env, bit for bit.
+        **params: the task's parameters, the fields of
+            :class:`~icco_torchrl.envs.params.ResourceCollectionParams` (the Keyword Args below,
+            generated from it): checked there, then read-only as ``env.params`` and as attributes
+            (``env.dt``...).
 
     Absent robots (``present`` False; contract, see the module docstring): zero observation row,
     invisible in the others' observations, **all-zero state token, type flags included**, so
@@ -195,116 +148,24 @@ class ResourceCollectionEnv(EnvBase):
         device: str | torch.device = "cpu",
         seed: int | None = None,
         *,
-        n_agents: int = 3,
-        n_resources: int = 6,
-        n_invaders: int = 1,
-        field_size: float = 6.5,
-        vision_radius: float = 0.65,
-        max_steps: int = 145,
-        inst_reward_scale: float = 1.3,
-        inst_dist_coef: float = 0.1,
-        n_waypoints: int = 4,
-        waypoint_interval: int = 4,
-        waypoint_sigma: float = 0.19,
-        waypoint_mode: str = "random_walk",
-        waypoint_path_prob: float = 0.0,
-        pick_reward: float = 5.0,
-        collect_reward: float = 1.0,
-        defense_reward: float = 4.0,
-        invasion_penalty: float = 4.0,
-        home_radius: float = 0.3,
-        resource_radius: float = 0.19,
-        agent_radius: float = 0.15,
-        invader_radius: float = 0.11,
-        dt: float = 0.1,
-        damping: float = 0.75,
-        accel: float = 5.0,
-        max_speed: float = 1.9,
-        invader_speed: float = 0.19,
-        invader_respawn_max: int = 10,
-        spawn: str = "uniform",
-        resource_min_radius: float = 1.5,
-        invader_min_radius: float = 1.5,
-        validate: bool = True,
-        own_reward: bool = False,
         team_sizes: tuple[int, ...] | list[int] | None = None,
+        **params,
     ):
-        for name, value in dict(
-            num_envs=num_envs,
-            n_agents=n_agents,
-            n_resources=n_resources,
-            n_invaders=n_invaders,
-            max_steps=max_steps,
-            n_waypoints=n_waypoints,
-            waypoint_interval=waypoint_interval,
-            invader_respawn_max=invader_respawn_max,
-        ).items():
-            _positive(name, value, integer=True)
-        for name, value in dict(
-            field_size=field_size,
-            vision_radius=vision_radius,
-            dt=dt,
-            accel=accel,
-            max_speed=max_speed,
-            home_radius=home_radius,
-            resource_radius=resource_radius,
-            agent_radius=agent_radius,
-            invader_radius=invader_radius,
-            invader_speed=invader_speed,
-        ).items():
-            _positive(name, value)
-        if n_waypoints < 2:
-            raise ValueError(f"n_waypoints must be >= 2 (e_cossim needs two), got {n_waypoints}")
-        if waypoint_sigma < 0 or not 0 <= damping < 1 or inst_reward_scale < 0:
-            raise ValueError("waypoint_sigma, inst_reward_scale must be >= 0 and damping in [0, 1)")
-        if not 0 < resource_min_radius < field_size / 2:
-            raise ValueError(
-                f"resource_min_radius must be in (0, field_size/2), got {resource_min_radius}"
-            )
-        if not 0 <= invader_min_radius < field_size / 2:
-            raise ValueError(
-                f"invader_min_radius must be in [0, field_size/2), got {invader_min_radius}"
-            )
-        if spawn not in SPAWN_MODES:
-            raise ValueError(f"spawn must be one of {SPAWN_MODES}, got {spawn!r}")
-        if not 0.0 <= waypoint_path_prob <= 1.0:
-            raise ValueError(f"waypoint_path_prob must be in [0, 1], got {waypoint_path_prob}")
-        if waypoint_mode not in ("random_walk", "external"):
-            raise ValueError(
-                f"waypoint_mode must be 'random_walk' or 'external', got {waypoint_mode!r}"
-            )
-        self.team_sizes = _check_team_sizes(team_sizes, n_agents)
+        positive("num_envs", num_envs, integer=True)
+        p = ResourceCollectionParams(**params)  # the checks, each error naming its field
+        self.team_sizes = check_team_sizes(team_sizes, p.n_agents)
         super().__init__(device=device, batch_size=torch.Size([num_envs]))
-        self.num_envs, self.n_agents, self.n_resources, self.n_invaders = (
-            num_envs,
-            n_agents,
-            n_resources,
-            n_invaders,
-        )
-        self.field_size, self.half = float(field_size), float(field_size) / 2
-        self.vision_radius, self.max_steps = float(vision_radius), max_steps
-        self.inst_reward_scale, self.inst_dist_coef = (
-            float(inst_reward_scale),
-            float(inst_dist_coef),
-        )
-        self.n_waypoints, self.waypoint_interval = n_waypoints, waypoint_interval
-        self.waypoint_sigma, self.waypoint_mode = float(waypoint_sigma), waypoint_mode
-        self.waypoint_path_prob = float(waypoint_path_prob)
+        self.params, self.num_envs = p, num_envs
+        self.half = p.field_size / 2
         self.event_rewards = dict(
-            pick=pick_reward,
-            collect=collect_reward,
-            defense=defense_reward,
-            invasion=-invasion_penalty,
+            pick=p.pick_reward,
+            collect=p.collect_reward,
+            defense=p.defense_reward,
+            invasion=-p.invasion_penalty,
         )
-        self.home_radius, self.resource_radius = home_radius, resource_radius
-        self.agent_radius, self.invader_radius = agent_radius, invader_radius
-        self.dt, self.damping, self.accel, self.max_speed = dt, damping, accel, max_speed
-        self.invader_speed, self.invader_respawn_max = invader_speed, invader_respawn_max
-        self.resource_min_radius, self.validate = resource_min_radius, validate
-        self.spawn, self.invader_min_radius = spawn, float(invader_min_radius)
-        self.own_reward = bool(own_reward)
+        self._kernel_params = p.kernel_params()  # the step's constants, derived once
 
-        N, R, I, K = n_agents, n_resources, n_invaders, n_waypoints
+        N, R, I, K = p.n_agents, p.n_resources, p.n_invaders, p.n_waypoints
         self.layout = ObsLayout.for_env(N, R, I, K)
         dev = self.device
         self._action_dirs = torch.tensor(_ACTION_DIRS, device=dev)
@@ -319,7 +180,7 @@ class ResourceCollectionEnv(EnvBase):
         self._own_cols = (
             (torch.arange(N)[:, None] * L.obs_dim + torch.arange(L.own_dim)).view(-1).to(dev)
         )
-        self._agents_batch = torch.Size([num_envs, n_agents])
+        self._agents_batch = torch.Size([num_envs, N])
         if self.team_sizes is not None:
             self._team_size_table = torch.tensor(self.team_sizes, device=dev)
         self._rng = torch.Generator(device=dev)
@@ -728,27 +589,9 @@ class ResourceCollectionEnv(EnvBase):
         )
 
     def _params(self) -> Params:
-        """The constants of :func:`dynamics`, read from the attributes at every step."""
-        r2 = lambda a, b: (a + b) ** 2  # noqa: E731  (contacts compare squared distances)
-        w = self.event_rewards
-        return Params(
-            damping=self.damping,
-            max_speed=self.max_speed,
-            dt=self.dt,
-            wall=self.half - self.agent_radius,
-            invader_speed=self.invader_speed,
-            touch_invader2=r2(self.agent_radius, self.invader_radius),
-            touch_resource2=r2(self.agent_radius, self.resource_radius),
-            invader_home2=r2(self.home_radius, self.invader_radius),
-            robot_home2=r2(self.home_radius, self.agent_radius),
-            inst_scale=self.inst_reward_scale,
-            inst_dist_coef=self.inst_dist_coef,
-            pick=w["pick"],
-            collect=w["collect"],
-            defense=w["defense"],
-            invasion_share=w["invasion"] / self.n_agents,
-            invasion=w["invasion"],
-        )
+        """The constants of :func:`dynamics` (:meth:`ResourceCollectionParams.kernel_params`,
+        derived once from :attr:`params`)."""
+        return self._kernel_params
 
     def _refresh_waypoints(self, ids: torch.Tensor) -> None:
         """New random-walk waypoints for the envs ``ids``: from the robots' positions, or for a
@@ -1050,3 +893,30 @@ class ResourceCollectionEnv(EnvBase):
         tensordict.set(("agents", "waypoints"), wp)
         tensordict.set(("agents", "present"), self._present_bf.clone())
         tensordict.set("state", state)
+
+
+# ---------------------------------------------------------------- the parameters, from the table
+def _read_only(name: str, doc: str) -> property:
+    return property(lambda self: getattr(self.params, name), doc=doc)
+
+
+def _signature() -> inspect.Signature:
+    """``__init__``'s signature with the table's fields as keyword-only arguments (what
+    ``inspect.signature`` and ``help`` show)."""
+    fixed = inspect.signature(ResourceCollectionEnv.__init__).parameters.values()
+    fields = [
+        inspect.Parameter(
+            f.name, inspect.Parameter.KEYWORD_ONLY, default=f.default, annotation=f.type
+        )
+        for f in dataclasses.fields(ResourceCollectionParams)
+    ]
+    head = [a for a in fixed if a.kind is not a.VAR_KEYWORD and a.name != "team_sizes"]
+    (team_sizes,) = [a for a in fixed if a.name == "team_sizes"]
+    return inspect.Signature([*head, *fields, team_sizes])
+
+
+for _f in dataclasses.fields(ResourceCollectionParams):
+    setattr(ResourceCollectionEnv, _f.name, _read_only(_f.name, _f.metadata["doc"]))
+ResourceCollectionEnv.__init__.__signature__ = _signature()
+if ResourceCollectionEnv.__doc__:  # (None under python -OO)
+    ResourceCollectionEnv.__doc__ += "\n    Keyword Args:\n" + keyword_args_doc() + "\n"

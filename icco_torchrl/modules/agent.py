@@ -6,9 +6,12 @@ GRU -> Q head on ``[GRU output; z]`` (COPA's player). The same GRU
 (:class:`~icco_torchrl.modules.gru.GRU`: ``nn.GRU``'s parameters in a form ``torch.compile``
 traces) runs one step at collection time and a whole segment in one call at training time.
 
-Sizes come from the caller (the env's specs): ``n_actions`` always, and either an
+Sizes come from the caller: ``n_actions`` (the env's specs) and ``hidden`` always, required
+keyword arguments declared once by the caller (the project's values:
+:class:`~icco_torchrl.training.config.MethodConfig`), and either an
 :class:`~icco_torchrl.envs.layout.ObsLayout` (a structured observation read by entity attention)
-or ``obs_dim`` (any flat per-agent observation, read by an MLP).
+or ``obs_dim`` (any flat per-agent observation, read by an MLP). :func:`make_agent` forwards its
+keyword arguments to :class:`RecurrentQNet`, so they are listed once, there.
 """
 
 from __future__ import annotations
@@ -59,11 +62,12 @@ class RecurrentQNet(nn.Module):
             for a flat observation of ``obs_dim`` features.
 
     Keyword Args:
-        n_actions: size of the discrete action space (the env's action spec ``.space.n``).
+        n_actions: size of the discrete action space (the env's action spec ``.space.n``;
+            required).
+        hidden: width of the encoder, the GRU and the Q head (required).
         obs_dim: per-agent observation width when ``layout`` is None.
         state_dim: global state width, for ``full_state`` without a layout.
-        hidden: width of the encoder, the GRU and the Q head.
-        z_dim: width of the coordinator's z the Q head reads (0: no coordinator).
+        z_dim: width of the coordinator's z the Q head reads (0, the default: no coordinator).
         full_state: the agent also reads the global state (QMIX (FULL)).
         encoder: ``"attention"`` (needs a layout; the default with one) or ``"mlp"`` (the
             default without).
@@ -83,9 +87,9 @@ class RecurrentQNet(nn.Module):
         layout: ObsLayout | None = None,
         *,
         n_actions: int,
+        hidden: int,
         obs_dim: int | None = None,
         state_dim: int | None = None,
-        hidden: int = 64,
         z_dim: int = 0,
         full_state: bool = False,
         encoder: str | None = None,
@@ -249,23 +253,15 @@ class RecurrentQNet(nn.Module):
 def make_agent(
     layout: ObsLayout | None = None,
     *,
-    n_actions: int,
-    obs_dim: int | None = None,
-    state_dim: int | None = None,
-    hidden: int = 64,
-    z_dim: int = 0,
-    full_state: bool = False,
-    encoder: str | None = None,
-    state_encoder: str = "flat",
-    waypoint_features: bool = False,
-    channels: int = 1,
     obs_key=("agents", "observation"),
     state_key="state",
     action_key=("agents", "action"),
     step_count_key="step_count",
     is_init_key="is_init",
+    **kwargs,
 ) -> TensorDictModule:
-    """The agent as a TensorDictModule (see :class:`RecurrentQNet` for the sizes).
+    """The agent as a TensorDictModule: ``kwargs`` are :class:`RecurrentQNet`'s (``n_actions`` and
+    ``hidden`` required), the rest its keys.
 
     in:  ``obs_key``, ``(group, "prev_action")``, ``(group, "rnn_hidden")``, ``is_init_key``
          (TorchRL's ``InitTracker``) or, where absent, ``step_count_key``; [``(group, "z")``],
@@ -276,19 +272,7 @@ def make_agent(
     TorchRL's ``set_recurrent_mode(True)`` (what :class:`~icco_torchrl.objectives.ICCOLoss` uses).
     """
     group = action_key[:-1] if isinstance(action_key, tuple) else ()
-    net = RecurrentQNet(
-        layout,
-        n_actions=n_actions,
-        obs_dim=obs_dim,
-        state_dim=state_dim,
-        hidden=hidden,
-        z_dim=z_dim,
-        full_state=full_state,
-        encoder=encoder,
-        state_encoder=state_encoder,
-        waypoint_features=waypoint_features,
-        channels=channels,
-    )
+    net = RecurrentQNet(layout, **kwargs)
     in_keys = {
         "obs": obs_key,
         "prev_action": (*group, "prev_action"),
@@ -296,9 +280,9 @@ def make_agent(
         "step_count": step_count_key,
         "is_init": is_init_key,
     }  # forward argument -> tensordict key
-    if z_dim:
+    if net.z_dim:
         in_keys["z"] = (*group, "z")
-    if full_state:
+    if net.full_state:
         in_keys["state"] = state_key
     return TensorModule(
         net, in_keys=in_keys, out_keys=[(*group, "action_value"), ("next", *group, "rnn_hidden")]

@@ -5,6 +5,11 @@ robot token attend over all tokens, and emits a diagonal Gaussian per robot (log
 clamped to [-10, 0] as in COPA). During rollouts z is redrawn every ``period`` steps (when
 ``step_count % period == 0``) and held in between; the noise is kept in the TensorDict so the
 loss can rebuild the very z the agents acted on, with gradient (reparameterisation).
+
+Its sizes (``z_dim``, ``hidden``) and ``period`` are required keyword arguments, declared once by
+the caller (the project's values: :class:`~icco_torchrl.training.config.MethodConfig`);
+:func:`make_coordinator` forwards its keyword arguments to :class:`Coordinator`, so they are
+listed once, there (see :mod:`icco_torchrl.modules`).
 """
 
 from __future__ import annotations
@@ -86,8 +91,21 @@ class Coordinator(nn.Module):
     """Gaussian TACI per robot; ``forward`` is the rollout step (sample/hold), ``distribution`` the
     net.
 
-    Sizes: a ``layout`` (the resource-collection state, any encoder), or ``n_agents`` and
-    ``state_dim`` for any flat global state (``encoder="mlp"``, ``state_encoder="flat"``).
+    Args:
+        layout: the resource-collection state (any encoder), or None for a flat global state of
+            ``state_dim`` features (``encoder="mlp"``, ``state_encoder="flat"``).
+
+    Keyword Args:
+        z_dim: width of z per robot (required).
+        hidden: width of the state encoder (required).
+        period: z is redrawn every ``period`` steps and held in between (required, >= 1).
+        encoder: ``"attention"`` (needs a layout; the default with one) or ``"mlp"`` (the default
+            without).
+        state_encoder: ``"flat"`` (absolute state tokens) or ``"relative"`` (entities seen from
+            each robot; needs a layout).
+        init_logvar: initial bias of z's log-variance (0: std ~1).
+        n_agents, state_dim: the team size and state width without a layout.
+        threshold: adaptive broadcast (COPA's beta); 0 sends every ``period`` steps.
 
     Any team up to ``n_agents`` with ``state_encoder="relative"`` or ``encoder="attention"``:
     absent robots (all-zero state tokens) are left out of every robot's attention, so a present
@@ -99,9 +117,9 @@ class Coordinator(nn.Module):
         self,
         layout: ObsLayout | None = None,
         *,
-        z_dim: int = 32,
-        hidden: int = 64,
-        period: int = 4,
+        z_dim: int,
+        hidden: int,
+        period: int,
         encoder: str | None = None,
         state_encoder: str = "flat",
         init_logvar: float = 0.0,
@@ -185,40 +203,21 @@ def gaussian_entropy(scale: torch.Tensor) -> torch.Tensor:
 def make_coordinator(
     layout: ObsLayout | None = None,
     *,
-    z_dim: int = 32,
-    hidden: int = 64,
-    period: int = 4,
-    encoder: str | None = None,
-    state_encoder: str = "flat",
-    init_logvar: float = 0.0,
-    n_agents: int | None = None,
-    state_dim: int | None = None,
-    threshold: float = 0.0,
     state_key="state",
     group="agents",
     step_count_key="step_count",
+    **kwargs,
 ) -> TensorDictModule:
-    """The coordinator as a TensorDictModule for rollouts (see :class:`Coordinator` for the sizes).
+    """The coordinator as a TensorDictModule for rollouts: ``kwargs`` are :class:`Coordinator`'s
+    (``z_dim``, ``hidden`` and ``period`` required), the rest its keys.
 
     in:  ``state_key`` (any trailing shape, flattened), ``step_count_key`` (TorchRL's
          ``StepCounter``), ``(group, "z")`` and ``(group, "z_noise")`` (held values)
     out: ``(group, "z")``, ``(group, "z_noise")``, ``(group, "z_sent")`` (the robots that
          received a new z this step; the distribution itself: ``module.distribution(state)``)
     """
-    net = Coordinator(
-        layout,
-        z_dim=z_dim,
-        hidden=hidden,
-        period=period,
-        encoder=encoder,
-        state_encoder=state_encoder,
-        init_logvar=init_logvar,
-        n_agents=n_agents,
-        state_dim=state_dim,
-        threshold=threshold,
-    )
     return TensorModule(
-        net,
+        Coordinator(layout, **kwargs),
         in_keys={
             "state": state_key,
             "step_count": step_count_key,

@@ -56,7 +56,10 @@ class EntityAttentionEncoder(nn.Module):
         if self.masked or visible is not None:
             if visible is None:
                 visible = tokens[..., -1] > 0
-            weights = torch.softmax(logits.masked_fill(~visible, -1e9), -1) * visible
+            # The mask as a float: a compiled update then saves no bool tensor for the backward
+            # (Inductor writes bools slowly); hidden tokens get -1e9, as masked_fill gave them.
+            seen = visible.to(logits.dtype)
+            weights = torch.softmax(logits + (seen - 1.0) * 1e9, -1) * seen
         else:
             weights = torch.softmax(logits, -1)
         pooled = (weights.unsqueeze(-2) @ tokens).squeeze(-2)  # [..., entity_dim]

@@ -12,6 +12,10 @@ read.
 COPA instead feeds coach encoder features to the hypernetworks (so the TD loss also trains the
 coach encoder); here the coordinator is trained by the TD loss through z and by the CE term,
 which is what the ICCO paper describes. Swap in any ``torchrl.modules.Mixer`` if you need more.
+
+Sizes are declared once: :class:`TokenMixer` takes ``embed_dim`` and ``hidden`` as required
+keyword arguments; :func:`make_mixer` holds the mixing width's default (``embed_dim=32``, QMIX's)
+and takes ``hidden`` (``method.hidden``) for ``kind="attention"``.
 """
 
 from __future__ import annotations
@@ -43,7 +47,7 @@ class TokenMixer(nn.Module):
     ``n_agents``.
     """
 
-    def __init__(self, layout: ObsLayout, embed_dim: int = 32, hidden: int = 64):
+    def __init__(self, layout: ObsLayout, *, embed_dim: int, hidden: int):
         super().__init__()
         if embed_dim < 1 or hidden < 1:
             raise ValueError(f"embed_dim and hidden must be >= 1, got {embed_dim}, {hidden}")
@@ -85,7 +89,7 @@ def make_mixer(
     embed_dim: int = 32,
     kind: str = "qmix",
     layout: ObsLayout | None = None,
-    hidden: int = 64,
+    hidden: int | None = None,
     device="cpu",
     local_value_key=("agents", "chosen_action_value"),
     state_key="state",
@@ -94,14 +98,17 @@ def make_mixer(
     """in: ``local_value_key [.., N, 1]``, ``state_key``; out: ``global_value_key [.., 1]``.
 
     ``kind``: ``"qmix"`` (TorchRL's ``QMixer`` on the flat state, one team size) or
-    ``"attention"`` (:class:`TokenMixer`, any team up to ``n_agents``; needs the ``layout``).
+    ``"attention"`` (:class:`TokenMixer`, any team up to ``n_agents``; needs the ``layout`` and
+    its width ``hidden``). ``embed_dim``: the mixing width of either.
     """
     if kind not in MIXERS:
         raise ValueError(f"mixer must be one of {MIXERS}, got {kind!r}")
     if kind == "attention":
         if layout is None or (layout.state_dim, layout.n_agents) != (state_dim, n_agents):
             raise ValueError("mixer='attention' reads state tokens: it needs the env's layout")
-        net = TokenMixer(layout, embed_dim, hidden).to(device)
+        if hidden is None:
+            raise ValueError("mixer='attention' needs its width: hidden")
+        net = TokenMixer(layout, embed_dim=embed_dim, hidden=hidden).to(device)
     else:
         net = QMixer(
             state_shape=(state_dim,), mixing_embed_dim=embed_dim, n_agents=n_agents, device=device

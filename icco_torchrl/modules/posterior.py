@@ -77,9 +77,11 @@ class Posterior(nn.Module):
     """Factors: global ``(state, joint action, robot id)`` at the broadcast step, local ``(o, a)``
     after.
 
-    Sizes: ``n_actions`` (the env's action count) and a ``layout``, or ``n_agents``, ``obs_dim`` and
-    ``state_dim`` (flat observation and state of any env). ``inputs="tokens"`` (any team, see the
-    module doc) needs the layout.
+    Sizes: ``n_actions`` (the env's action count), ``z_dim`` and ``hidden``, required keyword
+    arguments declared once by the caller (the project's values:
+    :class:`~icco_torchrl.training.config.MethodConfig`), and a ``layout``, or ``n_agents``,
+    ``obs_dim`` and ``state_dim`` (flat observation and state of any env). ``inputs="tokens"`` (any
+    team, see the module doc) needs the layout.
     """
 
     def __init__(
@@ -87,8 +89,8 @@ class Posterior(nn.Module):
         layout: ObsLayout | None = None,
         *,
         n_actions: int,
-        z_dim: int = 32,
-        hidden: int = 64,
+        z_dim: int,
+        hidden: int,
         combine: str = "product",
         n_agents: int | None = None,
         obs_dim: int | None = None,
@@ -176,33 +178,12 @@ class Posterior(nn.Module):
         return combine_log_prob(z, loc, scale, mask, self.combine)
 
 
-def make_posterior(
-    layout: ObsLayout | None = None,
-    *,
-    n_actions: int,
-    z_dim: int = 32,
-    hidden: int = 64,
-    combine: str = "product",
-    n_agents: int | None = None,
-    obs_dim: int | None = None,
-    state_dim: int | None = None,
-    inputs: str = "flat",
-) -> Posterior:
-    """The posterior for :class:`~icco_torchrl.objectives.ICCOLoss` (see :class:`Posterior` for the
-    sizes).
+def make_posterior(layout: ObsLayout | None = None, **kwargs) -> Posterior:
+    """The posterior for :class:`~icco_torchrl.objectives.ICCOLoss`: ``kwargs`` are
+    :class:`Posterior`'s (``n_actions``, ``z_dim`` and ``hidden`` required).
 
     A plain module, not a TensorDictModule: it scores whole segments (z of the broadcast step,
     the segment's states, actions, observations and hold mask), which the loss reads through its
     own keys (``set_keys``) and passes to it; it writes nothing into a tensordict.
     """
-    return Posterior(
-        layout,
-        n_actions=n_actions,
-        z_dim=z_dim,
-        hidden=hidden,
-        combine=combine,
-        n_agents=n_agents,
-        obs_dim=obs_dim,
-        state_dim=state_dim,
-        inputs=inputs,
-    )
+    return Posterior(layout, **kwargs)

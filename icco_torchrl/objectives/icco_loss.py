@@ -91,6 +91,11 @@ class ICCOLoss(LossModule):
         reward_reduction: how per-agent rewards ``[S, L, N, 1]`` (TorchRL multi-agent envs such as
             VMAS) become the team reward: ``"mean"`` (TorchRL's QMIX example) or ``"sum"``.
         check_finite: raise :class:`NonFiniteLossError` on a NaN/inf loss (one host sync a call).
+        mixed_channels: with an agent of two value channels [own; team]: ``"team"`` mixes the
+            team channel on the team's terms (the reward less the robots' own terms), ``"sum"``
+            mixes each robot's whole Q on the whole reward (as with one channel) and the own
+            channel is an auxiliary value of the robot's own terms. Either way the own channel
+            learns each robot's own terms, per robot.
 
     Examples:
         >>> import torch
@@ -174,6 +179,7 @@ class ICCOLoss(LossModule):
         entropy_coef: float = 1e-4,
         reward_reduction: str = "mean",
         check_finite: bool = True,
+        mixed_channels: str = "team",
     ):
         super().__init__()
         self._set_discount(gamma, td_lambda)
@@ -205,6 +211,9 @@ class ICCOLoss(LossModule):
                 "an agent with value channels (per-robot reward channels) needs step(...) and "
                 "sequence(..., split=True), as RecurrentQNet has"
             )
+        if mixed_channels not in ("team", "sum"):
+            raise ValueError(f"mixed_channels must be 'team' or 'sum', got {mixed_channels!r}")
+        self.mix_sum = self.channels > 1 and mixed_channels == "sum"
         self.has_coordinator = coordinator is not None
         if hasattr(net, "z_dim") and self.has_coordinator != bool(net.z_dim):
             raise ValueError("the agent takes z (z_dim > 0) exactly when a coordinator is given")
@@ -368,10 +377,13 @@ class ICCOLoss(LossModule):
             self._check_finite(out)
         return TensorDict(out, [])
 
-    def compile(self, **kwargs) -> ICCOLoss:
+    def compile_losses(self, **kwargs) -> ICCOLoss:
         """Compile the loss's tensor part (:meth:`losses`: every network, the targets and both
         terms, with the backward AOTAutograd derives from it) with ``torch.compile(**kwargs)``;
-        reading and checking the batch stays eager. Returns ``self``."""
+        reading and checking the batch stays eager. Returns ``self``.
+
+        Not ``nn.Module.compile``, which this class leaves as it is (it would compile the whole
+        ``forward``, the batch checks included, in place)."""
         self._losses = torch.compile(self.losses, **kwargs)
         return self
 
@@ -413,9 +425,8 @@ class ICCOLoss(LossModule):
         split = self.channels > 1  # per-robot reward channels: [own; team] per action
         q_online, q_boot = self._q_online(batch, z_on)  # [S, L, N, (C,) A], [S, N, (C,) A]
         chosen = _taken(q_online, batch.action.long().unsqueeze(-1))  # [S, L, N, (C)]
-        q_tot = self._mix(
-            self.mixer_params, chosen[..., -1] if split else chosen, batch.mixer_inputs
-        )
+        mixed = (chosen.sum(-1) if self.mix_sum else chosen[..., -1]) if split else chosen
+        q_tot = self._mix(self.mixer_params, mixed, batch.mixer_inputs)
         with torch.no_grad():
             q_target = self._q_sequence(self.target_agent_params, batch, z_tgt)[:, 1:]
             if self.double_q:
@@ -425,11 +436,14 @@ class ICCOLoss(LossModule):
             if split:  # a robot acts on the sum of its channels
                 greedy_source = greedy_source.sum(-2)
             next_value = _taken(q_target, greedy_source.argmax(-1, keepdim=True))
-            team_next = next_value[..., -1] if split else next_value
+            team_next = next_value
+            if split:
+                team_next = next_value.sum(-1) if self.mix_sum else next_value[..., -1]
             q_tot_next = self._mix(self.target_mixer_params, team_next, batch.next_mixer_inputs)
             reward = batch.reward
             if split:  # the team's terms: what the robots' own terms leave of the team reward
-                reward = reward - batch.own_reward.sum(-1, keepdim=True)
+                if not self.mix_sum:
+                    reward = reward - batch.own_reward.sum(-1, keepdim=True)
                 own_target = self._targets(batch, batch.own_reward, next_value[..., 0])  # [S, L, N]
             target = self._targets(batch, reward, q_tot_next)
 

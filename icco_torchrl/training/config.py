@@ -10,14 +10,14 @@ env's own parameter checks. Every failure is a :class:`ConfigError` naming the f
 work starts; :func:`check_command_line` gives the ``icco`` command the same one line for errors
 Hydra would report while composing.
 
-The env parameters (``env.params``) are :class:`ResourceCollectionEnv`'s keyword arguments,
-generated from its signature: their defaults and their documentation are the env's own.
+The env parameters (``env.params``) are generated from the env's one table of parameters,
+:class:`~icco_torchrl.envs.params.ResourceCollectionParams`: their names, types, defaults, docs
+and checks are the env's own.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import inspect
 import os
 from dataclasses import dataclass, field
 from typing import Optional
@@ -26,9 +26,13 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
+from icco_torchrl.envs.params import SPAWN_MODES, ResourceCollectionParams
 from icco_torchrl.envs.reference_policies import REFERENCE_POLICIES, parse_reference
-from icco_torchrl.envs.resource_collection import SPAWN_MODES, ResourceCollectionEnv
+from icco_torchrl.envs.resource_collection import check_team_sizes
 from icco_torchrl.envs.shaping import POTENTIALS, missing_for
+from icco_torchrl.modules.mixer import MIXERS
+from icco_torchrl.modules.posterior import POSTERIOR_INPUTS
+from icco_torchrl.modules.relative import STATE_ENCODERS
 from icco_torchrl.paths import CONF_DIR
 
 
@@ -73,14 +77,14 @@ class MethodConfig:
     posterior: str = _field("product", choices=("product", "sum"))
     # What the posterior reads: the flat state, joint action and observation (one team size) |
     # robot and entity tokens (any team up to env.params.n_agents; modules/posterior.py).
-    posterior_input: str = _field("flat", choices=("flat", "tokens"))
+    posterior_input: str = _field("flat", choices=POSTERIOR_INPUTS)
     # The mixer: TorchRL's QMixer on the flat state (one team size) | a masked QMIX whose
     # per-robot weights come from the state tokens (any team; modules/mixer.py).
-    mixer: str = _field("qmix", choices=("qmix", "attention"))
+    mixer: str = _field("qmix", choices=MIXERS)
     # Local observation encoder: entity tokens | flat MLP.
     encoder: str = _field("attention", choices=("attention", "mlp"))
     # Global-state encoder (coordinator, QMIX (FULL)): entities seen from each robot | absolute.
-    state_encoder: str = _field("relative", choices=("relative", "flat"))
+    state_encoder: str = _field("relative", choices=STATE_ENCODERS)
     # Initial log-variance bias of z, in COPA's clamp [-10, 0] (0 measured slower).
     z_init_logvar: float = _field(-5.0, ge=-10, le=0)
     # Width of encoders, GRU and heads.
@@ -97,8 +101,10 @@ class MethodConfig:
     waypoint_features: bool = True
     # Which rewards the Q-values learn: the team reward through the mixer | per robot, each
     # robot's own terms (instruction, pick, delivery) in a value of its own beside the team's
-    # (defense, invasion) mixed as before; the robot acts on their sum (objectives/icco_loss.py).
-    reward_channels: str = _field("team", choices=("team", "per_robot"))
+    # (defense, invasion) mixed as before; the robot acts on their sum | per_robot_aux: the same two
+    # values, their sum mixed on the whole reward as with one channel, the own one also learning
+    # the robot's own terms (objectives/icco_loss.py, mixed_channels).
+    reward_channels: str = _field("team", choices=("team", "per_robot", "per_robot_aux"))
 
 
 # The fields added or removed since older checkpoints were written, and their upgrade, live with
@@ -106,19 +112,15 @@ class MethodConfig:
 
 
 def _env_params_schema(name: str = "EnvParams", unset: bool = False) -> type:
-    """``ResourceCollectionEnv``'s keyword arguments (defaults, types) as a dataclass:
-    ``env.params``; with ``unset`` every field is optional and None (``train.env_params``: None = as
-    env.params)."""
-    kinds = {"int": int, "float": float, "str": str, "bool": bool}
-    fields = []
-    for arg, p in inspect.signature(ResourceCollectionEnv.__init__).parameters.items():
-        if p.kind is p.KEYWORD_ONLY and arg != "team_sizes":  # a list: train.team_sizes
-            kind = kinds[str(p.annotation)]
-            fields.append(
-                (arg, Optional[kind], dataclasses.field(default=None))
-                if unset
-                else (arg, kind, dataclasses.field(default=p.default))
-            )
+    """The env's parameter table (:class:`ResourceCollectionParams`: names, types, defaults) as a
+    Hydra schema: ``env.params``; with ``unset`` every field is optional and None
+    (``train.env_params``: None = as env.params)."""
+    fields = [
+        (f.name, Optional[f.type], dataclasses.field(default=None))
+        if unset
+        else (f.name, f.type, dataclasses.field(default=f.default))
+        for f in dataclasses.fields(ResourceCollectionParams)
+    ]
     schema = dataclasses.make_dataclass(name, fields)
     schema.__module__ = __name__  # pickled configs (submitit, Ray) refer to it here
     return schema
@@ -126,7 +128,8 @@ def _env_params_schema(name: str = "EnvParams", unset: bool = False) -> type:
 
 EnvParams = _env_params_schema()
 EnvParams.__doc__ = (
-    "``env.params``: ResourceCollectionEnv's keyword arguments (see its docstring for each)."
+    "``env.params``: ResourceCollectionEnv's parameters (each documented in its table, "
+    "icco_torchrl.envs.params.ResourceCollectionParams)."
 )
 TrainEnvParams = _env_params_schema("TrainEnvParams", unset=True)
 TrainEnvParams.__doc__ = (
@@ -642,23 +645,16 @@ def check_collector(cfg, cores: int | None = None) -> None:
 
 
 def _check_team_sizes(team_sizes, n_agents: int) -> None:
-    """``train.team_sizes``: None, or a non-empty list of sizes in 1..the training n_agents."""
-    if team_sizes is None:
-        return
-    sizes = list(team_sizes)
-    if not sizes:
-        raise ConfigError(
-            "config field 'train.team_sizes' must not be empty (null: all n_agents robots)"
-        )
-    if not all(1 <= k <= n_agents for k in sizes):
-        raise ConfigError(
-            f"config field 'train.team_sizes' entries must be in 1..{n_agents} (the training env's "
-            f"n_agents), got {sizes}"
-        )
+    """``train.team_sizes``: the env's own check (None, or a non-empty list of sizes in 1..the
+    training n_agents), its error naming the field."""
+    try:
+        check_team_sizes(None if team_sizes is None else list(team_sizes), n_agents)
+    except ValueError as err:
+        raise ConfigError(f"config field 'train.team_sizes': {err}") from None
 
 
 def _check_env_params(params, prefix: str = "env.params", only=None) -> None:
-    """Env parameters through the env's own checks (on a one-env instance), named by field as
+    """Env parameters through the env's own checks (its parameter table), named by field as
     ``prefix.key``; ``only`` limits the names an error may blame (``train.env_params``' own keys,
     checked merged over ``env.params``)."""
     params = (
@@ -679,7 +675,7 @@ def _check_env_params(params, prefix: str = "env.params", only=None) -> None:
             f"config field '{prefix}.spawn' must be one of {SPAWN_MODES}, got {params['spawn']!r}"
         )
     try:
-        ResourceCollectionEnv(num_envs=1, **params)
+        ResourceCollectionParams(**params)
     except (ValueError, TypeError) as err:
         name = next((k for k in blame if str(err).startswith(k)), None)
         raise ConfigError(f"config field '{prefix}{'.' + name if name else ''}': {err}") from None

@@ -124,7 +124,7 @@ class Update:
             _eager_note(f"its Inductor cache cannot be used ({problem})")
             return
         with compile_cache.scoped(folder):
-            self.loss.compile(fullgraph=True, dynamic=False, mode=mode or None)
+            self.loss.compile_losses(fullgraph=True, dynamic=False, mode=mode or None)
         self.compiled, self.cache_dir, self._compiling = True, folder, True
 
     def _capture(self, warmup: int) -> None:
