@@ -163,3 +163,31 @@ def pooled_n(ns: Mapping[str, int]) -> str:
     return ", ".join(
         f"{n} ({', '.join(labels)})" for n, labels in sorted(groups.items(), reverse=True)
     )
+
+
+def unreproduced_references(results: dict, added: dict, tolerance: float) -> list[tuple]:
+    """``(name, metrics)`` for each scripted reference of ``results`` (a page's ``results.json``)
+    that ``added`` (the same policies evaluated again) lacks (``metrics`` empty) or gives other
+    means or stds, beyond ``tolerance`` relative (at least absolute): a page takes new reference
+    rows only from the episodes its own rows came from."""
+    out = []
+    for name, entry in results["methods"].items():
+        if entry.get("seeds"):  # a learned method
+            continue
+        other = added.get(name)
+        bad = (
+            []
+            if other is None
+            else [
+                metric
+                for metric, value in entry.items()
+                if isinstance(value, dict)
+                and any(
+                    abs(value[k] - other[metric][k]) > tolerance * max(1.0, abs(value[k]))
+                    for k in ("mean", "std")
+                )
+            ]
+        )
+        if other is None or bad:
+            out.append((name, bad))
+    return out

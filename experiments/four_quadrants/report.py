@@ -330,24 +330,11 @@ def _is_reference(label: str) -> bool:
 def check_references(results: dict, added: dict) -> None:
     """Every reference ``results`` has must be in ``added`` (``results_json`` entries) with the
     same numbers, to :data:`TOLERANCE`: the same episodes; a one-line error otherwise."""
-    for name, entry in results["methods"].items():
-        if entry.get("seeds"):  # a learned method
-            continue
-        other = added.get(name)
-        bad = other is None or [
-            metric
-            for metric, value in entry.items()
-            if isinstance(value, dict)
-            and any(
-                abs(value[k] - other[metric][k]) > TOLERANCE * max(1.0, abs(value[k]))
-                for k in ("mean", "std")
-            )
-        ]
-        if bad:
-            raise SystemExit(
-                f"report.py: the references' trials do not reproduce the page's {name} "
-                f"({bad or 'missing'}): not the page's episodes, nothing written"
-            )
+    for name, bad in verdict.unreproduced_references(results, added, TOLERANCE):
+        raise SystemExit(
+            f"report.py: the references' trials do not reproduce the page's {name} "
+            f"({bad or 'missing'}): not the page's episodes, nothing written"
+        )
 
 
 def add_references(readme: Path, trials: Path) -> Path:

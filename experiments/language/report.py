@@ -361,24 +361,11 @@ def _merge(results: dict, summary: list[dict], segment: str, source: Path) -> No
         trials=results["trials"],
         segment=segment,
     )["methods"]
-    for name, entry in results["methods"].items():
-        if entry.get("seeds"):  # a learned method
-            continue
-        other = added.get(name)
-        bad = other is None or [
-            metric
-            for metric, value in entry.items()
-            if isinstance(value, dict)
-            and any(
-                abs(value[k] - other[metric][k]) > TOLERANCE * max(1.0, abs(value[k]))
-                for k in ("mean", "std")
-            )
-        ]
-        if bad:
-            raise SystemExit(
-                f"report.py: {source} does not reproduce the page's {name} ({bad or 'missing'}): "
-                "not the page's episodes, nothing written"
-            )
+    for name, bad in verdict.unreproduced_references(results, added, TOLERANCE):
+        raise SystemExit(
+            f"report.py: {source} does not reproduce the page's {name} ({bad or 'missing'}): "
+            "not the page's episodes, nothing written"
+        )
     if "best_scripted" not in added:
         raise SystemExit(f"report.py: {source} has no best scripted rows")
     for name, entry in added.items():
