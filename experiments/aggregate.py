@@ -92,3 +92,23 @@ def main(argv=None) -> int:
 
 if __name__ == "__main__":
     raise SystemExit(main())
+
+
+# Markdown tables of the rendered pages, read back and rewritten by the report scripts.
+def table_rows(table: str) -> list[list[str]]:
+    return [[c.strip() for c in line.strip().strip("|").split("|")] for line in table.splitlines()]
+
+
+def table_at(text: str, header: str) -> tuple[int, int, list[list[str]]]:
+    """The Markdown table of ``text`` whose header line starts with ``header``: its start and end
+    offsets and its rows as cells (the header first, without the separator line)."""
+    start = text.index(header)
+    end = text.find("\n\n", start)
+    table = text[start : len(text) if end < 0 else end]
+    rows = table_rows(table)
+    return start, start + len(table), [rows[0], *rows[2:]]
+
+
+def markdown_rows(rows: list[list[str]]) -> str:
+    lines = ["| " + " | ".join(rows[0]) + " |", "|" + "---|" * len(rows[0])]
+    return "\n".join(lines + ["| " + " | ".join(r) + " |" for r in rows[1:]])

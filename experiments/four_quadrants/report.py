@@ -58,7 +58,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 import jobs  # noqa: E402  (experiments/jobs.py)
 import verdict  # noqa: E402  (experiments/verdict.py: the rule every page judges gaps by)
-from aggregate import find_runs  # noqa: E402  (experiments/aggregate.py, a sibling script)
+from aggregate import find_runs, markdown_rows, table_at, table_rows  # noqa: E402  (experiments/aggregate.py, a sibling script)
 
 EXPECTED = [methods.label(name) for name in methods.names()]
 COLUMNS = (
@@ -304,25 +304,6 @@ def _share_cell(entry: dict) -> str:
     return "–" if share is None else f"{100 * share:.0f} %"
 
 
-def _table_at(text: str, header: str) -> tuple[int, int, list[list[str]]]:
-    """The Markdown table of ``text`` whose header line starts with ``header``: its start and end
-    offsets and its rows as cells (the header first, without the separator line)."""
-    start = text.index(header)
-    end = text.find("\n\n", start)
-    table = text[start : len(text) if end < 0 else end]
-    rows = _rows(table)
-    return start, start + len(table), [rows[0], *rows[2:]]
-
-
-def _markdown(rows: list[list[str]]) -> str:
-    lines = ["| " + " | ".join(rows[0]) + " |", "|" + "---|" * len(rows[0])]
-    return "\n".join(lines + ["| " + " | ".join(r) + " |" for r in rows[1:]])
-
-
-def _rows(table: str) -> list[list[str]]:
-    return [[c.strip() for c in line.strip().strip("|").split("|")] for line in table.splitlines()]
-
-
 def _is_reference(label: str) -> bool:
     return result_name(label) in REFERENCE_POLICIES
 
@@ -361,25 +342,25 @@ def add_references(readme: Path, trials: Path) -> Path:
     text = readme.read_text()
 
     # The whole-episode table: the learned rows as rendered, the references from ``trials``.
-    start, end, table = _table_at(text, "| method | trials |")
+    start, end, table = table_at(text, "| method | trials |")
     head = [c for c in table[0] if c != SHARE]
     width = len(head)
-    refs = _rows(markdown_table(summary, head[2:]))[2:]
+    refs = table_rows(markdown_table(summary, head[2:]))[2:]
     learned = [r[:width] for r in table[1:] if not _is_reference(r[0]) and r[1] != "missing"]
     missing = [r[:width] for r in table[1:] if r[1] == "missing"]
     new = [
         [*r, _share_cell(results["methods"][result_name(r[0])]) if r[1] != "missing" else "–"]
         for r in learned + [r[:width] for r in refs] + missing
     ]
-    text = text[:start] + _markdown([[*head, SHARE], *new]) + text[end:]
+    text = text[:start] + markdown_rows([[*head, SHARE], *new]) + text[end:]
 
     # The reward per quadrant: the same.
-    start, end, table = _table_at(text, "| method | quadrant 1 |")
-    refs = _rows(segment_table(summary, "reward"))
+    start, end, table = table_at(text, "| method | quadrant 1 |")
+    refs = table_rows(segment_table(summary, "reward"))
     if refs[0] != table[0]:
         raise SystemExit(f"report.py: {trials} has other segments than the page ({refs[0]})")
     learned = [r for r in table[1:] if not _is_reference(r[0])]
-    text = text[:start] + _markdown([table[0], *learned, *refs[2:]]) + text[end:]
+    text = text[:start] + markdown_rows([table[0], *learned, *refs[2:]]) + text[end:]
 
     # The results' introduction, as the template words it now.
     template = (HERE / "README.template.md").read_text()

@@ -54,6 +54,7 @@ from icco_torchrl.evaluation.metrics import (
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 import verdict  # noqa: E402  (experiments/verdict.py: the rule every page judges gaps by)
+from aggregate import markdown_rows, table_at, table_rows  # noqa: E402
 
 TABLE2 = ("QMIX-TAP", "QMIX-TAP w/o TR", "ICCO")
 PAPER_TABLE2 = {
@@ -327,25 +328,6 @@ def _read_trials(path: Path) -> list[dict]:
     return rows
 
 
-def _table_at(text: str, header: str) -> tuple[int, int, list[list[str]]]:
-    """The Markdown table of ``text`` whose header line starts with ``header``: its start and end
-    offsets and its rows as cells (the header first, without the separator line)."""
-    start = text.index(header)
-    end = text.find("\n\n", start)
-    table = text[start : len(text) if end < 0 else end]
-    rows = _rows(table)
-    return start, start + len(table), [rows[0], *rows[2:]]
-
-
-def _rows(table: str) -> list[list[str]]:
-    return [[c.strip() for c in line.strip().strip("|").split("|")] for line in table.splitlines()]
-
-
-def _markdown(rows: list[list[str]]) -> str:
-    lines = ["| " + " | ".join(rows[0]) + " |", "|" + "---|" * len(rows[0])]
-    return "\n".join(lines + ["| " + " | ".join(r) + " |" for r in rows[1:]])
-
-
 def _reference(label: str) -> bool:
     return result_name(label.removesuffix(" (reference)")) in REFERENCE_POLICIES
 
@@ -393,32 +375,32 @@ def add_references(readme: Path, folder: Path) -> Path:
     text = readme.read_text()
 
     # Fig. 5b per instruction: the learned rows as rendered, the references from ``folder``.
-    start, end, table = _table_at(text, "| method | " + " | ".join(results["instructions"]))
-    refs = _rows(segment_table(summary, "reward"))
+    start, end, table = table_at(text, "| method | " + " | ".join(results["instructions"]))
+    refs = table_rows(segment_table(summary, "reward"))
     if refs[0] != table[0]:
         raise SystemExit(f"report.py: {folder} has other instructions than the page ({refs[0]})")
     learned = [r for r in table[1:] if not _reference(r[0])]
-    text = text[:start] + _markdown([table[0], *learned, *refs[2:]]) + text[end:]
+    text = text[:start] + markdown_rows([table[0], *learned, *refs[2:]]) + text[end:]
 
     # The whole episode: the same, and every row's share (results.json's).
     start = text.index("Whole episode")
-    _, end, table = _table_at(text, "| method | trials |")
+    _, end, table = table_at(text, "| method | trials |")
     learned = [r for r in table[1:] if not _reference(r[0]) and r[1] != "missing"]
     missing = [r[0] for r in table[1:] if r[1] == "missing"]
     intro, new = whole_episode(summary, missing, calibration_link(readme)).split("\n\n", 1)
-    new = _rows(new)  # the references' rows, then the missing ones
+    new = table_rows(new)  # the references' rows, then the missing ones
     share = new[0].index(SHARE)
     for row in learned:  # cells as rendered, the share from results.json
         entry = results["methods"][result_name(row[0])]
         row[share:] = ["–" if entry[SHARE_KEY] is None else f"{100 * entry[SHARE_KEY]:.0f} %"]
-    text = text[:start] + intro + "\n\n" + _markdown([new[0], *learned, *new[2:]]) + text[end:]
+    text = text[:start] + intro + "\n\n" + markdown_rows([new[0], *learned, *new[2:]]) + text[end:]
 
     # Table II: its references (task-aligned plans) where the page has any.
     if tap:
-        start, end, table = _table_at(text, "| method | segments |")
-        refs = [r for r in _rows(table2(tap)[0]) if r[0].endswith(" (reference)")]
+        start, end, table = table_at(text, "| method | segments |")
+        refs = [r for r in table_rows(table2(tap)[0]) if r[0].endswith(" (reference)")]
         learned = [r for r in table[1:] if not r[0].endswith(" (reference)")]
-        text = text[:start] + _markdown([table[0], *learned, *refs]) + text[end:]
+        text = text[:start] + markdown_rows([table[0], *learned, *refs]) + text[end:]
     write_json(results, path)
     readme.write_text(text)
     return readme
