@@ -11,7 +11,6 @@ import os
 from collections.abc import Sequence
 
 import numpy as np
-import torch
 from PIL import Image, ImageDraw
 
 from icco_torchrl.envs.resource_collection import ResourceCollectionEnv
@@ -46,6 +45,12 @@ def to_pixel(env: ResourceCollectionEnv, xy, size: int = 480) -> tuple[float, fl
     return size * MARGIN + (x + env.half) * scale, size * MARGIN + (env.half - y) * scale
 
 
+def _state(env: ResourceCollectionEnv, index: int) -> list[list]:
+    """Env ``index``'s pos, carry, res_pos, inv_pos, inv_active, waypoints, present, as lists."""
+    keys = ("pos", "carry", "res_pos", "inv_pos", "inv_active", "waypoints", "present")
+    return [getattr(env, key)[index].detach().cpu().tolist() for key in keys]
+
+
 def render_frame(env: ResourceCollectionEnv, index: int = 0, size: int = 480) -> np.ndarray:
     """Draw env ``index`` of ``env`` as an ``[size, size, 3]`` uint8 RGB array.
 
@@ -53,22 +58,7 @@ def render_frame(env: ResourceCollectionEnv, index: int = 0, size: int = 480) ->
     absent from it are not drawn) in its own colour with its vision circle, its waypoints (dots
     joined by a line) and, when it carries a resource, a gold dot at its centre.
     """
-
-    def grab(t: torch.Tensor) -> list:
-        return t[index].detach().cpu().tolist()
-
-    pos, carry, res, inv, inv_on, wps, present = map(
-        grab,
-        (
-            env.pos,
-            env.carry,
-            env.res_pos,
-            env.inv_pos,
-            env.inv_active,
-            env.waypoints,
-            env.present,
-        ),
-    )
+    pos, carry, res, inv, inv_on, wps, present = _state(env, index)
     team = [i for i, here in enumerate(present) if here]  # robots absent from the team: not drawn
     scale = size * (1 - 2 * MARGIN) / env.field_size
     img = Image.new("RGB", (size, size), BACKGROUND)

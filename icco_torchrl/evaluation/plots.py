@@ -75,6 +75,22 @@ def draw_segment(ax, run: ScheduleRun, segment: int, trial: int = 0) -> None:
     half = run.geometry["half"]
     start, stop = run.bounds[segment]
     traj = {k: v[start : stop + 1, trial] for k, v in run.trajectory.items() if k != "waypoints"}
+    _draw_field(ax, run, segment)
+    _draw_items(ax, traj, run.trajectory["waypoints"][start:stop, trial].reshape(-1, 2))
+    events = _events(traj["carry"], traj["defended"])
+    _draw_robots(ax, traj["pos"])
+    _draw_events(ax, events, traj["pos"])
+    counts = ", ".join(f"{name} {int(mask.sum())}" for name, mask in events.items())
+    ax.set_title(f"{run.names[segment]}\n{counts}", fontsize=8)
+    ax.set_xlim(-half * 1.03, half * 1.03)
+    ax.set_ylim(-half * 1.03, half * 1.03)
+    ax.set_aspect("equal")
+    ax.set_axis_off()  # the field's own border frames the panel
+
+
+def _draw_field(ax, run: ScheduleRun, segment: int) -> None:
+    """Draw the field's border, the instructed quadrant (shaded) and home."""
+    half = run.geometry["half"]
     ax.add_patch(Rectangle((-half, -half), 2 * half, 2 * half, fill=False, lw=1.2, color="0.35"))
     quadrant = run.quadrants[segment]
     if quadrant is not None:
@@ -87,6 +103,10 @@ def draw_segment(ax, run: ScheduleRun, segment: int, trial: int = 0) -> None:
     ax.add_patch(
         Circle((0, 0), run.geometry["home_radius"], color=HOME, ec="0.35", zorder=2, label="home")
     )
+
+
+def _draw_items(ax, traj: dict[str, np.ndarray], wps: np.ndarray) -> None:
+    """Draw the resources, the waypoints ``wps`` [M, 2] in force and the invaders' paths."""
     resources = np.unique(np.round(traj["res_pos"].reshape(-1, 2), 4), axis=0)
     ax.scatter(
         resources[:, 0],
@@ -97,7 +117,6 @@ def draw_segment(ax, run: ScheduleRun, segment: int, trial: int = 0) -> None:
         zorder=3,
         label="resource",
     )
-    wps = run.trajectory["waypoints"][start:stop, trial].reshape(-1, 2)
     ax.scatter(wps[:, 0], wps[:, 1], s=3, c="0.5", alpha=0.15, zorder=1, label="waypoints")
     for i in range(traj["inv_pos"].shape[1]):
         path = np.where(traj["inv_active"][:, i, None], traj["inv_pos"][:, i], np.nan)
@@ -110,8 +129,10 @@ def draw_segment(ax, run: ScheduleRun, segment: int, trial: int = 0) -> None:
             zorder=3,
             label="invader" if i == 0 else None,
         )
-    events = _events(traj["carry"], traj["defended"])
-    pos = traj["pos"]
+
+
+def _draw_robots(ax, pos: np.ndarray) -> None:
+    """Draw each robot's path ``pos`` [T, N, 2], hollow at its start and filled at its end."""
     for i in range(pos.shape[1]):
         ax.plot(pos[:, i, 0], pos[:, i, 1], c=_rgb(i), lw=1.3, zorder=4, label=f"robot {i}")
         ax.scatter(
@@ -125,6 +146,10 @@ def draw_segment(ax, run: ScheduleRun, segment: int, trial: int = 0) -> None:
         ax.scatter(
             *pos[-1, i], s=25, c=[_rgb(i)], zorder=5, label="end (filled)" if i == 0 else None
         )
+
+
+def _draw_events(ax, events: dict[str, np.ndarray], pos: np.ndarray) -> None:
+    """Mark where each pick, delivery and defense of :func:`_events` happened."""
     styles = {
         "pick": dict(marker="*", s=90, c=RESOURCE),
         "collect": dict(marker="s", s=40, c=HOME),
@@ -142,12 +167,6 @@ def draw_segment(ax, run: ScheduleRun, segment: int, trial: int = 0) -> None:
             label=name,
             **styles[name],
         )
-    counts = ", ".join(f"{name} {int(mask.sum())}" for name, mask in events.items())
-    ax.set_title(f"{run.names[segment]}\n{counts}", fontsize=8)
-    ax.set_xlim(-half * 1.03, half * 1.03)
-    ax.set_ylim(-half * 1.03, half * 1.03)
-    ax.set_aspect("equal")
-    ax.set_axis_off()  # the field's own border frames the panel
 
 
 def plot_trajectories(

@@ -86,6 +86,34 @@ def run_schedule(
     """
     total = check_schedule(schedule, trials)
     raw = base_env(env)
+    _check_env(raw, trials, total)
+    names = [name for name, _, _ in schedule]
+    ends = np.cumsum([steps for _, _, steps in schedule]).tolist()
+    bounds = list(zip([0, *ends[:-1]], ends))
+    states, waypoints, values = _play(env, raw, policy, schedule, on_step)
+    trajectory = {key: torch.stack(v).cpu().numpy() for key, v in states.items()}
+    trajectory["waypoints"] = torch.stack(waypoints).cpu().numpy()
+    per_step = {key: torch.stack([v[key] for v in values]).cpu().numpy() for key in values[0]}
+    counters = [
+        dict(segment=name, **source.stats)
+        for name, source, _ in schedule
+        if hasattr(source, "stats")
+    ]
+    quadrants = [source.quadrant for _, source, _ in schedule]
+    return ScheduleRun(
+        names,
+        bounds,
+        quadrants,
+        trajectory,
+        per_step,
+        trial_rows(per_step, names, bounds, **labels),
+        _geometry(raw),
+        counters,
+    )
+
+
+def _check_env(raw, trials: int, total: int) -> None:
+    """Fail fast on an env that cannot play ``trials`` trials of a ``total``-step schedule."""
     if raw.num_envs != trials:
         raise ValueError(
             f"the env runs {raw.num_envs} envs but trials={trials}: build it with num_envs=trials"
@@ -100,9 +128,12 @@ def run_schedule(
             "the env regenerates its own waypoints: build it with waypoint_mode='external'"
         )
 
-    names = [name for name, _, _ in schedule]
-    ends = np.cumsum([steps for _, _, steps in schedule]).tolist()
-    bounds = list(zip([0, *ends[:-1]], ends))
+
+def _play(
+    env, raw, policy: Callable, schedule: Schedule, on_step: Callable | None
+) -> tuple[dict[str, list], list, list]:
+    """One greedy episode of ``schedule``: the states recorded (:data:`STATE_KEYS`), and per
+    step the waypoints in force and the step's metric values."""
     states = {key: [] for key in STATE_KEYS}
     waypoints, values = [], []  # per step: the waypoints in force, the step's metric values
 
@@ -130,32 +161,17 @@ def run_schedule(
                     step_values(raw, td.get("next"), waypoints[-1], source.quadrant, sent, present)
                 )
                 td = step_mdp(td)
+    return states, waypoints, values
 
-    trajectory = {key: torch.stack(v).cpu().numpy() for key, v in states.items()}
-    trajectory["waypoints"] = torch.stack(waypoints).cpu().numpy()
-    per_step = {key: torch.stack([v[key] for v in values]).cpu().numpy() for key in values[0]}
-    counters = [
-        dict(segment=name, **source.stats)
-        for name, source, _ in schedule
-        if hasattr(source, "stats")
-    ]
-    geometry = dict(
+
+def _geometry(raw) -> dict[str, float]:
+    """The field's half width and the radii of home, resources, robots and invaders."""
+    return dict(
         half=raw.half,
         home_radius=raw.home_radius,
         resource_radius=raw.resource_radius,
         agent_radius=raw.agent_radius,
         invader_radius=raw.invader_radius,
-    )
-    quadrants = [source.quadrant for _, source, _ in schedule]
-    return ScheduleRun(
-        names,
-        bounds,
-        quadrants,
-        trajectory,
-        per_step,
-        trial_rows(per_step, names, bounds, **labels),
-        geometry,
-        counters,
     )
 
 

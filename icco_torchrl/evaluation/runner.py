@@ -221,6 +221,113 @@ def _restore(cfg: DictConfig, path: Path, total: int, eval_params: dict) -> dict
         ) from None
 
 
+def _note_differences(path: Path, diffs: list[str]) -> None:
+    """Print which env.params differ from the checkpoint's training env, and what that does."""
+    if diffs:
+        print(
+            f"note: {path} is evaluated in another env than it was trained in: "
+            + "; ".join(diffs)
+            + ". Scores: "
+            + difference_effect([d.split(":")[0] for d in diffs])
+        )
+
+
+def _checkpoint_entry(
+    path: Path, restored: dict, trained: dict, label: str, diffs: list[str], size: int
+) -> dict:
+    """The :attr:`Evaluation.checkpoints` entry of one checkpoint."""
+    return dict(
+        path=str(path),
+        method=label,
+        seed=trained["seed"],
+        frames=restored["checkpoint"].get("frames"),
+        env_differences=diffs,
+        team_size=size,
+        trained_team_size=trained["env"]["params"]["n_agents"],
+        trained_team_sizes=trained["train"].get("team_sizes"),
+        broadcast_threshold=(
+            trained["method"]["broadcast_threshold"] if trained["method"]["coordinator"] else None
+        ),
+    )
+
+
+def _add_run(out: Evaluation, label: str, run) -> None:
+    """Add a schedule run's metrics rows to ``out`` (and keep the method's first run)."""
+    out.rows += run.rows
+    out.runs.setdefault(label, run)
+
+
+def _evaluate_checkpoint(
+    cfg: DictConfig,
+    path: Path,
+    make_schedule: Callable[[int], Schedule],
+    total: int,
+    eval_params: dict,
+    out: Evaluation,
+    gif_stem: Path | None,
+    label_suffix: str,
+) -> None:
+    """Play every episode with the checkpoint at ``path`` into ``out`` (and record its GIF)."""
+    restored = _restore(cfg, path, total, eval_params)
+    trained = OmegaConf.to_container(restored["cfg"], resolve=True)
+    label, seed = method_label(trained, label_suffix), trained["seed"]
+    diffs = _differences(eval_params, trained["env"]["params"])
+    _note_differences(path, diffs)
+    out.checkpoints.append(_checkpoint_entry(path, restored, trained, label, diffs, out.team_size))
+    for episode in range(cfg.eval.episodes):
+        record = gif_stem is not None and episode == 0 and label not in out.runs
+        on_step, frames = _gif_recorder(total) if record else (None, None)
+        run = run_schedule(
+            restored["env"],
+            restored["policy"],
+            make_schedule(episode),
+            cfg.eval.trials,
+            on_step=on_step,
+            method=label,
+            seed=seed,
+            checkpoint=str(path),
+            episode=episode,
+        )
+        out.sources += [dict(method=label, seed=seed, episode=episode, **s) for s in run.sources]
+        _add_run(out, label, run)
+        if record:
+            from icco_torchrl.envs.render import write_gif
+
+            out.gifs.append(gif_stem.with_name(f"{gif_stem.name}_{slug(label)}.gif"))
+            write_gif(frames, out.gifs[-1], fps=10)
+
+
+def _evaluate_reference(
+    cfg: DictConfig,
+    name: str,
+    make_schedule: Callable[[int], Schedule],
+    total: int,
+    eval_params: dict,
+    out: Evaluation,
+) -> None:
+    """Play every episode with the reference policy ``name`` into ``out``."""
+    e = cfg.eval
+    label = reference_label(name, e.blend_radius)
+    for episode in range(e.episodes):
+        env = ResourceCollectionEnv(
+            num_envs=e.trials,
+            seed=cfg.seed + EVAL_SEED_OFFSET,
+            **{**eval_params, "max_steps": total, "waypoint_mode": "external"},
+        )
+        policy = make_reference_policy(name, env, radius=e.blend_radius, seed=cfg.seed + episode)
+        run = run_schedule(
+            env,
+            policy,
+            make_schedule(episode),
+            e.trials,
+            method=label,
+            seed=-1,
+            checkpoint="",
+            episode=episode,
+        )
+        _add_run(out, label, run)
+
+
 def evaluate_checkpoints(
     cfg: DictConfig,
     paths: Sequence[Path],
@@ -233,91 +340,67 @@ def evaluate_checkpoints(
     checkpoint, ``eval.episodes`` times ``eval.trials`` trials. ``label_suffix`` is appended to
     the method names (e.g. "-TAP"); with ``gif_stem`` trial 0 of each method's first checkpoint
     is recorded to ``<gif_stem>_<method>.gif``."""
-    torch.set_num_threads(
-        cfg.train.threads
-    )  # tiny networks: extra threads only contend on shared CPUs
-    e = cfg.eval
+    # tiny networks: extra threads only contend on shared CPUs
+    torch.set_num_threads(cfg.train.threads)
     size = team_size(cfg, paths)
     eval_params = {**OmegaConf.to_container(cfg.env.params, resolve=True), "n_agents": size}
     out = Evaluation(team_size=size)
-    total = check_schedule(make_schedule(0), e.trials)
+    total = check_schedule(make_schedule(0), cfg.eval.trials)
     for path in paths:
-        restored = _restore(cfg, path, total, eval_params)
-        trained = OmegaConf.to_container(restored["cfg"], resolve=True)
-        label, seed = method_label(trained, label_suffix), trained["seed"]
-        diffs = _differences(eval_params, trained["env"]["params"])
-        if diffs:
-            print(
-                f"note: {path} is evaluated in another env than it was trained in: "
-                + "; ".join(diffs)
-                + ". Scores: "
-                + difference_effect([d.split(":")[0] for d in diffs])
-            )
-        out.checkpoints.append(
-            dict(
-                path=str(path),
-                method=label,
-                seed=seed,
-                frames=restored["checkpoint"].get("frames"),
-                env_differences=diffs,
-                team_size=size,
-                trained_team_size=trained["env"]["params"]["n_agents"],
-                trained_team_sizes=trained["train"].get("team_sizes"),
-                broadcast_threshold=(
-                    trained["method"]["broadcast_threshold"]
-                    if trained["method"]["coordinator"]
-                    else None
-                ),
-            )
+        _evaluate_checkpoint(
+            cfg, path, make_schedule, total, eval_params, out, gif_stem, label_suffix
         )
-        for episode in range(e.episodes):
-            record = gif_stem is not None and episode == 0 and label not in out.runs
-            on_step, frames = _gif_recorder(total) if record else (None, None)
-            run = run_schedule(
-                restored["env"],
-                restored["policy"],
-                make_schedule(episode),
-                e.trials,
-                on_step=on_step,
-                method=label,
-                seed=seed,
-                checkpoint=str(path),
-                episode=episode,
-            )
-            out.rows += run.rows
-            out.sources += [
-                dict(method=label, seed=seed, episode=episode, **s) for s in run.sources
-            ]
-            out.runs.setdefault(label, run)
-            if record:
-                from icco_torchrl.envs.render import write_gif
-
-                out.gifs.append(gif_stem.with_name(f"{gif_stem.name}_{slug(label)}.gif"))
-                write_gif(frames, out.gifs[-1], fps=10)
-    for name in e.references:  # scripted yardsticks on the same initial configurations
-        label = reference_label(name, e.blend_radius)
-        for episode in range(e.episodes):
-            env = ResourceCollectionEnv(
-                num_envs=e.trials,
-                seed=cfg.seed + EVAL_SEED_OFFSET,
-                **{**eval_params, "max_steps": total, "waypoint_mode": "external"},
-            )
-            policy = make_reference_policy(
-                name, env, radius=e.blend_radius, seed=cfg.seed + episode
-            )
-            run = run_schedule(
-                env,
-                policy,
-                make_schedule(episode),
-                e.trials,
-                method=label,
-                seed=-1,
-                checkpoint="",
-                episode=episode,
-            )
-            out.rows += run.rows
-            out.runs.setdefault(label, run)
+    for name in cfg.eval.references:  # scripted yardsticks on the same initial configurations
+        _evaluate_reference(cfg, name, make_schedule, total, eval_params, out)
     return out
+
+
+def _report_markdown(
+    result: Evaluation, e: DictConfig, title: str, summary: list, steps: dict, segments: list
+) -> str:
+    """The report's Markdown: title, setup, the whole-episode table and rewards per segment."""
+    header = (
+        f"# {title}\n\n{e.trials} trials x {e.episodes} episode(s) per checkpoint"
+        + (f", teams of {result.team_size} robots" if result.team_size else "")
+        + "; segments: "
+        + ", ".join(f"{s} ({steps[s]} steps)" for s in segments)
+        + ".\nMean ± std over trials (seeds pooled). Rewards are team totals (sum over robots); "
+        + "the columns are defined in docs/metrics.md.\n"
+        + (
+            f"'{SHARE}': the mean team reward over the best scripted team's on the same episodes.\n"
+            if best_scripted_shares(summary)
+            else ""
+        )
+    )
+    return (
+        f"{header}\n## Whole episode\n\n{markdown_table(summary)}\n\n"
+        f"## Team reward per segment\n\n{segment_table(summary, 'reward')}\n"
+    )
+
+
+def _report_figures(
+    result: Evaluation,
+    summary: list,
+    out_dir: Path,
+    name: str,
+    segments: list,
+    traj_segments: Sequence[int] | None,
+) -> list[Path]:
+    """The reward bars and the trajectory panels, written into ``out_dir``; returns their paths."""
+    from icco_torchrl.evaluation.plots import plot_bars, plot_trajectories
+
+    figures = plot_bars(
+        summary,
+        out_dir / f"{name}_reward",
+        "reward",
+        segments=[*segments, EPISODE],
+        ylabel="team reward",
+    )
+    return figures + plot_trajectories(
+        result.runs,
+        out_dir / f"{name}_trajectories",
+        segments=range(len(segments)) if traj_segments is None else traj_segments,
+    )
 
 
 def write_report(
@@ -333,45 +416,16 @@ def write_report(
     """Tables (CSV, Markdown, JSON with ``meta``) and figures into ``out_dir``; prints the
     Markdown and returns the first method's mean episode reward. ``traj_segments`` picks the
     segments drawn (default: all)."""
-    from icco_torchrl.evaluation.plots import plot_bars, plot_trajectories
-
     rows, e = result.rows, cfg.eval
     summary = summarize(rows, by=("method", "segment"))
     steps = {r["segment"]: r["steps"] for r in rows}
     segments = [s for s in steps if s != EPISODE]
-    header = (
-        f"# {title}\n\n{e.trials} trials x {e.episodes} episode(s) per checkpoint"
-        + (f", teams of {result.team_size} robots" if result.team_size else "")
-        + "; segments: "
-        + ", ".join(f"{s} ({steps[s]} steps)" for s in segments)
-        + ".\nMean ± std over trials (seeds pooled). Rewards are team totals (sum over robots); "
-        + "the columns are defined in docs/metrics.md.\n"
-        + (
-            f"'{SHARE}': the mean team reward over the best scripted team's on the same episodes.\n"
-            if best_scripted_shares(summary)
-            else ""
-        )
-    )
-    markdown = (
-        f"{header}\n## Whole episode\n\n{markdown_table(summary)}\n\n"
-        f"## Team reward per segment\n\n{segment_table(summary, 'reward')}\n"
-    )
+    markdown = _report_markdown(result, e, title, summary, steps, segments)
     out_dir.mkdir(parents=True, exist_ok=True)
     write_csv(rows, out_dir / f"{name}_trials.csv")
     write_csv(summary, out_dir / f"{name}_summary.csv")
     (out_dir / f"{name}.md").write_text(markdown)
-    figures = plot_bars(
-        summary,
-        out_dir / f"{name}_reward",
-        "reward",
-        segments=[*segments, EPISODE],
-        ylabel="team reward",
-    )
-    figures += plot_trajectories(
-        result.runs,
-        out_dir / f"{name}_trajectories",
-        segments=range(len(segments)) if traj_segments is None else traj_segments,
-    )
+    figures = _report_figures(result, summary, out_dir, name, segments, traj_segments)
     write_json(
         dict(
             **(meta or {}),

@@ -482,6 +482,33 @@ class LLMPlanner:
         request still running is abandoned to its timeout, and counts in ``MAX_REQUESTS``).
         """
         pos = _points(positions, "positions")
+        messages, fmt, key = self._request(instruction, pos, resources, invader)
+        self.stats["calls"] += 1
+        cached = self._cached(key, len(pos))
+        if cached is not None:
+            return cached
+        litellm = _litellm()  # outside the loop: a broken install is an error, not a bad reply
+        start = time.monotonic()
+        deadline = start + self.deadline_s
+        waypoints, raw, error, attempts, answered = self._ask(
+            litellm, instruction, messages, fmt, len(pos), mock_response, cancel, deadline
+        )
+        if waypoints is not None:
+            self.cache.put(key, raw, model=self.model, messages=messages)
+            return PlanResult(waypoints.astype(np.float32), ok=True, attempts=attempts, raw=raw)
+        if not answered and not self.fallback_on_error:
+            raise LLMUnavailable(
+                f"LLM {self.model} at {self.api_base or 'its default URL'} gave no reply to "
+                f"{instruction!r} ({attempts} attempt(s) in {time.monotonic() - start:.1f} s): "
+                f"{error}; check llm.api_base, the API key and that the server is up, or set "
+                "llm.fallback_on_error=true to run on fallback waypoints"
+            )
+        return self._fallback(instruction, pos, previous, attempts, error, raw)
+
+    def _request(
+        self, instruction: str, pos: np.ndarray, resources: Any, invader: Any
+    ) -> tuple[list[dict[str, str]], dict[str, Any], str]:
+        """The messages, ``response_format`` and cache key of one plan's request."""
         messages = build_messages(
             instruction,
             pos,
@@ -495,24 +522,37 @@ class LLMPlanner:
         key = cache_key(
             self.model, messages, {"response_format": fmt, "temperature": self.temperature}
         )
-        self.stats["calls"] += 1
-        cached = self.cache.get(key)
-        if cached is not None:
-            try:
-                waypoints = parse_reply(cached, len(pos), self.n_waypoints, self.field_size)
-            except ReplyError as exc:
-                logger.warning(
-                    "ignoring invalid cached LLM reply (%s); asking %s again", exc, self.model
-                )
-            else:
-                self.stats["cache_hits"] += 1
-                return PlanResult(
-                    waypoints.astype(np.float32), ok=True, attempts=0, raw=cached, cached=True
-                )
+        return messages, fmt, key
 
-        litellm = _litellm()  # outside the loop: a broken install is an error, not a bad reply
-        start = time.monotonic()
-        deadline = start + self.deadline_s
+    def _cached(self, key: str, n_agents: int) -> PlanResult | None:
+        """The cached reply under ``key`` as a plan; None when there is none or it is invalid."""
+        cached = self.cache.get(key)
+        if cached is None:
+            return None
+        try:
+            waypoints = parse_reply(cached, n_agents, self.n_waypoints, self.field_size)
+        except ReplyError as exc:
+            logger.warning(
+                "ignoring invalid cached LLM reply (%s); asking %s again", exc, self.model
+            )
+            return None
+        self.stats["cache_hits"] += 1
+        return PlanResult(
+            waypoints.astype(np.float32), ok=True, attempts=0, raw=cached, cached=True
+        )
+
+    def _ask(
+        self,
+        litellm: Any,
+        instruction: str,
+        messages: list[dict[str, str]],
+        fmt: dict[str, Any],
+        n_agents: int,
+        mock_response: Any,
+        cancel: threading.Event | None,
+        deadline: float,
+    ) -> tuple[np.ndarray | None, str | None, str, int, bool]:
+        """``(waypoints or None, raw, error, attempts, answered)``: ask until a reply parses."""
         conversation, raw, error, attempts, answered = messages, None, "", 0, False
         for attempt in range(1, self.max_retries + 2):
             remaining = deadline - time.monotonic()
@@ -527,52 +567,49 @@ class LLMPlanner:
                     litellm, conversation, fmt, _nth(mock_response, attempt - 1), remaining, cancel
                 )
                 answered = True
-                waypoints = parse_reply(raw, len(pos), self.n_waypoints, self.field_size)
+                waypoints = parse_reply(raw, n_agents, self.n_waypoints, self.field_size)
             except PlanCancelled:
                 raise
             except PlannerDeclined as exc:
-                error, stop = (
-                    str(exc),
-                    True,
-                )  # "cannot do this" is an answer, not noise: asking again changes nothing
+                # "cannot do this" is an answer, not noise: asking again changes nothing
+                error, stop = str(exc), True
             except ReplyError as exc:
                 error = str(exc)
-                conversation = messages + self._feedback(raw, error, len(pos))
-            except (
-                Exception
-            ) as exc:  # timeouts, auth, rate limits, provider bugs: no reply this attempt
+                conversation = messages + self._feedback(raw, error, n_agents)
+            except Exception as exc:
+                # timeouts, auth, rate limits, provider bugs: no reply this attempt
                 error, stop = _describe(exc), _is_final(exc)
                 if not stop and attempt <= self.max_retries and self.backoff_s > 0:
-                    pause = min(
-                        self.backoff_s * 2 ** (attempt - 1), max(deadline - time.monotonic(), 0.0)
-                    )
-                    if cancel is not None and cancel.wait(pause):
-                        raise PlanCancelled(f"planning {instruction!r} was cancelled") from None
-                    if cancel is None:
-                        time.sleep(pause)
+                    self._back_off(attempt, deadline, instruction, cancel)
             else:
-                self.cache.put(key, raw, model=self.model, messages=messages)
-                return PlanResult(waypoints.astype(np.float32), ok=True, attempts=attempt, raw=raw)
+                return waypoints, raw, error, attempt, answered
             self.stats["failures"] += 1
-            logger.warning(
-                "LLM %s attempt %d/%d for %r failed: %s; raw reply: %r",
-                self.model,
-                attempt,
-                self.max_retries + 1,
-                instruction,
-                error,
-                None if raw is None else _clip(raw, _LOGGED_CHARS),
-            )
+            self._log_failure(attempt, instruction, error, raw)
             if stop:
                 break
-        if not answered and not self.fallback_on_error:
-            raise LLMUnavailable(
-                f"LLM {self.model} at {self.api_base or 'its default URL'} gave no reply to "
-                f"{instruction!r} ({attempts} attempt(s) in {time.monotonic() - start:.1f} s): "
-                f"{error}; check llm.api_base, the API key and that the server is up, or set "
-                "llm.fallback_on_error=true to run on fallback waypoints"
-            )
-        return self._fallback(instruction, pos, previous, attempts, error, raw)
+        return None, raw, error, attempts, answered
+
+    def _log_failure(self, attempt: int, instruction: str, error: str, raw: str | None) -> None:
+        """Log one rejected attempt, its raw reply cut short."""
+        logger.warning(
+            "LLM %s attempt %d/%d for %r failed: %s; raw reply: %r",
+            self.model,
+            attempt,
+            self.max_retries + 1,
+            instruction,
+            error,
+            None if raw is None else _clip(raw, _LOGGED_CHARS),
+        )
+
+    def _back_off(
+        self, attempt: int, deadline: float, instruction: str, cancel: threading.Event | None
+    ) -> None:
+        """Pause after a provider error (doubling per attempt, cut to the deadline)."""
+        pause = min(self.backoff_s * 2 ** (attempt - 1), max(deadline - time.monotonic(), 0.0))
+        if cancel is not None and cancel.wait(pause):
+            raise PlanCancelled(f"planning {instruction!r} was cancelled") from None
+        if cancel is None:
+            time.sleep(pause)
 
     def _complete(
         self,
@@ -658,26 +695,8 @@ def _within(
     them still run, a new request waits for one to end, so abandoned requests cannot pile up.
     """
     end = time.monotonic() + seconds
-
-    def wait(thread: threading.Thread) -> None:
-        """Join ``thread`` until it ends, ``end`` passes or ``cancel`` is set."""
-        while thread.is_alive():
-            left = end - time.monotonic()
-            if cancel is not None and cancel.is_set():
-                raise PlanCancelled("the plan was cancelled")
-            if left <= 0:
-                return
-            thread.join(min(left, 0.05) if cancel is not None else left)
-
     if running is not None:
-        running[:] = [t for t in running if t.is_alive()]
-        while len(running) >= MAX_REQUESTS:
-            wait(running[0])
-            running[:] = [t for t in running if t.is_alive()]
-            if len(running) >= MAX_REQUESTS and time.monotonic() >= end:
-                raise DeadlineExceeded(
-                    f"{len(running)} earlier requests still running at the plan's deadline"
-                )
+        _wait_for_slot(running, end, cancel)
     outcome: dict[str, Any] = {}
 
     def run() -> None:
@@ -690,7 +709,7 @@ def _within(
     if running is not None:
         running.append(worker)
     worker.start()
-    wait(worker)
+    _join(worker, end, cancel)
     if worker.is_alive():
         raise DeadlineExceeded(
             f"no reply within the plan's deadline ({seconds:.1f} s left of llm.deadline_s)"
@@ -698,6 +717,31 @@ def _within(
     if "error" in outcome:
         raise outcome["error"]
     return outcome["value"]
+
+
+def _join(thread: threading.Thread, end: float, cancel: threading.Event | None) -> None:
+    """Join ``thread`` until it ends, ``end`` passes or ``cancel`` is set."""
+    while thread.is_alive():
+        left = end - time.monotonic()
+        if cancel is not None and cancel.is_set():
+            raise PlanCancelled("the plan was cancelled")
+        if left <= 0:
+            return
+        thread.join(min(left, 0.05) if cancel is not None else left)
+
+
+def _wait_for_slot(
+    running: list[threading.Thread], end: float, cancel: threading.Event | None
+) -> None:
+    """Wait until fewer than ``MAX_REQUESTS`` of ``running`` still run (pruning ended ones)."""
+    running[:] = [t for t in running if t.is_alive()]
+    while len(running) >= MAX_REQUESTS:
+        _join(running[0], end, cancel)
+        running[:] = [t for t in running if t.is_alive()]
+        if len(running) >= MAX_REQUESTS and time.monotonic() >= end:
+            raise DeadlineExceeded(
+                f"{len(running)} earlier requests still running at the plan's deadline"
+            )
 
 
 def _nth(mock: Any, index: int) -> Any:

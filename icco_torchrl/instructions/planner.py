@@ -207,6 +207,26 @@ def _normalise(instruction: str) -> str:
     return _HOLD_NEGATED.sub("hold", text)
 
 
+def _place(
+    text: str,
+    point: tuple[float, float] | None,
+    quadrant: int | None,
+    direction: tuple[float, float],
+    half: float,
+) -> tuple[tuple[float, float] | None, str]:
+    """``(anchor, place name)`` named by the text: point > quadrant > direction > centre."""
+    if point is not None:
+        return point, f"point ({point[0]:g}, {point[1]:g})"
+    if quadrant is not None:
+        sx, sy = _QUADRANT_SIGNS[quadrant]
+        return (sx * half / 2, sy * half / 2), f"quadrant {quadrant}"
+    if direction != (0.0, 0.0):
+        return _side_anchor(direction, half), _place_name(direction)
+    if _CENTRE.search(text):
+        return (0.0, 0.0), "the centre"
+    return None, ""
+
+
 def parse(instruction: str, half: float) -> Intent:
     """Map an instruction to an :class:`Intent`, or raise :class:`UnknownInstruction`.
 
@@ -223,17 +243,7 @@ def parse(instruction: str, half: float) -> Intent:
 
     point, quadrant = _point(text), _quadrant(text)
     direction = _direction(text, instruction)
-    anchor: tuple[float, float] | None = None
-    place = ""
-    if point is not None:
-        anchor, place = point, f"point ({point[0]:g}, {point[1]:g})"
-    elif quadrant is not None:
-        sx, sy = _QUADRANT_SIGNS[quadrant]
-        anchor, place = (sx * half / 2, sy * half / 2), f"quadrant {quadrant}"
-    elif direction != (0.0, 0.0):
-        anchor, place = _side_anchor(direction, half), _place_name(direction)
-    elif _CENTRE.search(text):
-        anchor, place = (0.0, 0.0), "the centre"
+    anchor, place = _place(text, point, quadrant, direction, half)
     centred = anchor is None or anchor == (0.0, 0.0)
     spread = bool(_SPREAD.search(text))
     sided = direction != (0.0, 0.0) and point is None and quadrant is None

@@ -114,15 +114,37 @@ def _planner_label(cfg: DictConfig) -> str:
     )
 
 
+def _prepare(cfg: DictConfig, command: str) -> Path:
+    """The checkpoint to run, once the token is kept private, exposure warned of, logging set."""
+    live = cfg.live
+    _keep_token_private(live.get("token"))
+    checkpoint = _checkpoint(cfg, command)
+    _warn_if_exposed(live.host, live.get("token"), command)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    return checkpoint
+
+
+def _live_server(cfg: DictConfig, loop: LiveLoop, checkpoint: Path, drive: bool) -> LiveServer:
+    """The page's server for ``loop`` (``drive``: it ticks the loop, else it only shows it)."""
+    live = cfg.live
+    return LiveServer(
+        loop,
+        host=live.host,
+        port=live.web_port,
+        rate_hz=live.rate_hz,
+        drive=drive,
+        policy=checkpoint.name,
+        planner=_planner_label(cfg),
+        token=live.get("token"),
+    )
+
+
 def run_live(cfg: DictConfig) -> float:
     """``icco live``: serve the page and drive the team until stopped; returns the ticks run."""
     from icco_torchrl.instructions import LLMPlanner
 
     live = cfg.live
-    _keep_token_private(live.get("token"))
-    checkpoint = _checkpoint(cfg, "live")
-    _warn_if_exposed(live.host, live.get("token"))
-    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    checkpoint = _prepare(cfg, "live")
     loop = LiveLoop.from_checkpoint(
         checkpoint,
         planner=LLMPlanner.from_config(cfg.llm),
@@ -130,15 +152,7 @@ def run_live(cfg: DictConfig) -> float:
         seed=cfg.seed,
         max_robots=live.get("max_robots"),
     )
-    server = LiveServer(
-        loop,
-        host=live.host,
-        port=live.web_port,
-        rate_hz=live.rate_hz,
-        policy=checkpoint.name,
-        planner=_planner_label(cfg),
-        token=live.get("token"),
-    )
+    server = _live_server(cfg, loop, checkpoint, drive=True)
     stop = _stop_on_signals()
 
     def started(address):
@@ -167,81 +181,59 @@ def _totals(loop: LiveLoop) -> str:
     )
 
 
-def run_bridge(cfg: DictConfig) -> float:
-    from icco_torchrl.instructions import LLMPlanner
-
-    live = cfg.live
-    _keep_token_private(live.get("token"))
-    checkpoint = _checkpoint(cfg, "bridge")
-    _warn_if_exposed(live.host, live.get("token"), "bridge")
-    logging.basicConfig(level=logging.INFO, format="%(message)s")
-    limits = RobotLimits(
+def _robot_limits(live: DictConfig) -> RobotLimits:
+    """The robots' limits of motion from ``live.*``."""
+    return RobotLimits(
         max_speed=live.max_speed,
         max_turn=live.max_turn,
         max_accel=live.max_accel,
         max_turn_accel=live.max_turn_accel,
         radius=live.robot_radius,
     )
-    loop = LiveLoop.from_checkpoint(
-        checkpoint,
-        planner=LLMPlanner.from_config(cfg.llm),
-        device=cfg.device,
-        max_robots=live.get("max_robots"),
-    )
-    bridge = Bridge(
-        loop,
-        host=live.host,
-        port=live.port,
-        rate_hz=live.rate_hz,
-        timeout=live.timeout_s,
+
+
+def _watch_page(cfg: DictConfig, loop: LiveLoop, bridge: Bridge, checkpoint: Path) -> LiveServer:
+    """The page showing the bridge's team, started in a thread (the bridge closed if it fails)."""
+    page = _live_server(cfg, loop, checkpoint, drive=False)
+    try:
+        address = page.start_in_thread()
+    except OSError:
+        bridge.close()
+        raise
+    page.watch(bridge)
+    print(f"icco bridge: watch it at {_page_url(address, cfg.live.get('token'))}", flush=True)
+    _warm_planner()
+    return page
+
+
+def _fleet_thread(
+    cfg: DictConfig, loop: LiveLoop, bridge: Bridge, limits: RobotLimits, stop: threading.Event
+) -> threading.Thread:
+    """A thread (not started) running a simulated fleet of the team's robots against ``bridge``."""
+    fleet = SimulatedFleet(
+        bridge.address,
+        n_robots=len(loop.team),  # the checkpoint's team; live.max_robots leaves room
+        n_resources=loop.raw.n_resources,
         limits=limits,
-        token=live.get("token"),
+        field_size=loop.raw.field_size,
+        seed=cfg.seed,
+        token=cfg.live.get("token"),
     )
-    page = None
-    if live.web:
-        page = LiveServer(
-            loop,
-            host=live.host,
-            port=live.web_port,
-            rate_hz=live.rate_hz,
-            drive=False,
-            policy=checkpoint.name,
-            planner=_planner_label(cfg),
-            token=live.get("token"),
-        )
-        try:
-            address = page.start_in_thread()
-        except OSError:
-            bridge.close()
-            raise
-        page.watch(bridge)
-        print(f"icco bridge: watch it at {_page_url(address, live.get('token'))}", flush=True)
-        _warm_planner()
-    stop = _stop_on_signals()
-    threads = []
-    if live.fleet:
-        fleet = SimulatedFleet(
-            bridge.address,
-            n_robots=len(loop.team),  # the checkpoint's team; live.max_robots leaves room
-            n_resources=loop.raw.n_resources,
-            limits=limits,
-            field_size=loop.raw.field_size,
-            seed=cfg.seed,
-            token=live.get("token"),
-        )
-        threads.append(
-            threading.Thread(target=fleet.run, args=(stop, live.seconds or 1e9), daemon=True)
-        )
-    source = "with the simulated fleet" if live.fleet else "waiting for state messages"
-    print(
-        f"icco bridge: listening on udp {bridge.address[0]}:{bridge.address[1]} at "
-        f"{live.rate_hz:g} Hz ({source}); Ctrl-C stops",
-        flush=True,
-    )
+    return threading.Thread(target=fleet.run, args=(stop, cfg.live.seconds or 1e9), daemon=True)
+
+
+def _serve_bridge(
+    bridge: Bridge,
+    page: LiveServer | None,
+    threads: list[threading.Thread],
+    stop: threading.Event,
+    seconds: float | None,
+) -> None:
+    """Serve until stopped or ``seconds`` run out, then stop the threads, bridge and page."""
     for t in threads:
         t.start()
     try:
-        bridge.serve(stop, max_seconds=live.seconds)
+        bridge.serve(stop, max_seconds=seconds)
     finally:
         stopped = stop.is_set()
         stop.set()
@@ -249,8 +241,12 @@ def run_bridge(cfg: DictConfig) -> float:
             t.join(timeout=5)
         bridge.close()
         if page is not None:
-            ran_out = not stopped and live.seconds is not None
-            page.close(reason=f"live.seconds={live.seconds:g} ran out" if ran_out else None)
+            ran_out = not stopped and seconds is not None
+            page.close(reason=f"live.seconds={seconds:g} ran out" if ran_out else None)
+
+
+def _print_bridge_summary(bridge: Bridge, live: DictConfig) -> None:
+    """Print what the bridge did: messages, commands, rate, latency and the team at the end."""
     s = bridge.stats
     latency = np.median(s["latency_ms"]) if s["latency_ms"] else float("nan")
     rate = bridge.mean_rate()
@@ -268,4 +264,39 @@ def run_bridge(cfg: DictConfig) -> float:
         "refused (team full)",
         flush=True,
     )
-    return float(s["commands"])
+
+
+def run_bridge(cfg: DictConfig) -> float:
+    """``icco bridge``: command robots over UDP until stopped; returns the commands sent."""
+    from icco_torchrl.instructions import LLMPlanner
+
+    live = cfg.live
+    checkpoint = _prepare(cfg, "bridge")
+    limits = _robot_limits(live)
+    loop = LiveLoop.from_checkpoint(
+        checkpoint,
+        planner=LLMPlanner.from_config(cfg.llm),
+        device=cfg.device,
+        max_robots=live.get("max_robots"),
+    )
+    bridge = Bridge(
+        loop,
+        host=live.host,
+        port=live.port,
+        rate_hz=live.rate_hz,
+        timeout=live.timeout_s,
+        limits=limits,
+        token=live.get("token"),
+    )
+    page = _watch_page(cfg, loop, bridge, checkpoint) if live.web else None
+    stop = _stop_on_signals()
+    threads = [_fleet_thread(cfg, loop, bridge, limits, stop)] if live.fleet else []
+    source = "with the simulated fleet" if live.fleet else "waiting for state messages"
+    print(
+        f"icco bridge: listening on udp {bridge.address[0]}:{bridge.address[1]} at "
+        f"{live.rate_hz:g} Hz ({source}); Ctrl-C stops",
+        flush=True,
+    )
+    _serve_bridge(bridge, page, threads, stop, live.seconds)
+    _print_bridge_summary(bridge, live)
+    return float(bridge.stats["commands"])

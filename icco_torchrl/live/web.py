@@ -215,6 +215,33 @@ class _Client:
         return [f for f in frames if f is not None]
 
 
+def _check_settings(rate_hz: float, token: str | None, max_clients: int) -> None:
+    """Raise ``ValueError`` naming the first bad one of a server's settings."""
+    if not rate_hz > 0:
+        raise ValueError(f"rate_hz must be > 0, got {rate_hz!r}")
+    if token is not None and not str(token).strip():
+        raise ValueError("live.token must be a non-empty string, or null for none")
+    if isinstance(max_clients, bool) or not isinstance(max_clients, int) or max_clients < 1:
+        raise ValueError(f"max_clients must be an integer >= 1, got {max_clients!r}")
+
+
+def _new_stats() -> dict:
+    """A server's counters, all zero (``latency_ms``: the tick latencies, none yet)."""
+    return {
+        "broadcasts": 0,
+        "frames": 0,
+        "dropped": 0,
+        "errors": 0,
+        "connections": 0,
+        "refused": 0,  # requests over a tab's rate limit
+        "busy": 0,  # team changes over the server's CHANGE_RATE
+        "forbidden": 0,  # HTTP requests and upgrades refused (Host, Origin, token)
+        "full": 0,  # connections refused: max_clients tabs or all connections in use
+        "failed": 0,  # requests whose handling raised (answered with an error)
+        "latency_ms": [],
+    }
+
+
 class LiveServer:
     """Serve ``loop`` to browser tabs (module docstring). ``drive=False``: show a loop that
     another owner ticks, the bridge (pause/step/reset/speed are then refused with a message)."""
@@ -232,12 +259,7 @@ class LiveServer:
         token: str | None = None,
         max_clients: int = MAX_CLIENTS,
     ):
-        if not rate_hz > 0:
-            raise ValueError(f"rate_hz must be > 0, got {rate_hz!r}")
-        if token is not None and not str(token).strip():
-            raise ValueError("live.token must be a non-empty string, or null for none")
-        if isinstance(max_clients, bool) or not isinstance(max_clients, int) or max_clients < 1:
-            raise ValueError(f"max_clients must be an integer >= 1, got {max_clients!r}")
+        _check_settings(rate_hz, token, max_clients)
         self.max_clients = max_clients
         self.loop, self.host, self.port, self.rate_hz, self.drive = (
             loop,
@@ -253,19 +275,7 @@ class LiveServer:
         self._refusals, self._failures = Throttle(), Throttle()  # log lines
         self.paused, self.speed = False, 1.0
         self.clients: set[_Client] = set()
-        self.stats = {
-            "broadcasts": 0,
-            "frames": 0,
-            "dropped": 0,
-            "errors": 0,
-            "connections": 0,
-            "refused": 0,  # requests over a tab's rate limit
-            "busy": 0,  # team changes over the server's CHANGE_RATE
-            "forbidden": 0,  # HTTP requests and upgrades refused (Host, Origin, token)
-            "full": 0,  # connections refused: max_clients tabs or all connections in use
-            "failed": 0,  # requests whose handling raised (answered with an error)
-            "latency_ms": [],
-        }
+        self.stats = _new_stats()
         self.address: tuple[str, int] | None = None
         self._steps = 0  # single steps requested while paused
         self._aio: asyncio.AbstractEventLoop | None = None
