@@ -19,11 +19,14 @@ from functools import cache
 from icco_torchrl.paths import CONF_DIR
 
 # What a table label may carry after the method's label, with its results.json spelling: the
-# task-aligned prompt of ``icco instruct llm.prompt=tap`` ("QMIX-TAP") and agents trained on the
-# instruction reward alone ("QMIX-TAP w/o TR", ``experiment=inst_only``), in that order.
+# task-aligned prompt of ``icco instruct llm.prompt=tap`` ("QMIX-TAP"), agents trained on the
+# instruction reward alone ("QMIX-TAP w/o TR", ``experiment=inst_only``) and agents that learned
+# from a scripted team's data ("ICCO + teacher data", ``train.teacher``: never the paper's
+# method), in that order.
 TAP = "-TAP"
 WITHOUT_TASK_REWARD = " w/o TR"
-SUFFIX_NAMES = ((TAP, "_tap"), (WITHOUT_TASK_REWARD, "_wo_tr"))
+TEACHER = " + teacher data"
+SUFFIX_NAMES = ((TAP, "_tap"), (WITHOUT_TASK_REWARD, "_wo_tr"), (TEACHER, "_teacher"))
 
 
 def names() -> tuple[str, ...]:

@@ -210,7 +210,7 @@ class TrainingRun:
         self._restore(ckpt, path)
         # A run with frames left writes its final outputs anew; one at its budget writes only
         # those its checkpoint says are missing (a stop in the final evaluation).
-        self.outputs = outputs_of(ckpt, self.run_dir) if self.remaining == 0 else fresh_outputs()
+        self.outputs = outputs_of(ckpt) if self.remaining == 0 else fresh_outputs()
         logged = last_evaluation(self.run_dir, ckpt["frames"])
         if logged is not None:  # the evaluation of its last frame, already in eval.csv
             self.evaluated.append((ckpt["frames"], logged))
@@ -277,9 +277,9 @@ class TrainingRun:
         self.explore.eps.fill_(epsilon(self.progress.frames, self.cfg.train))
         set_rng_state(state["rng"], run.env)
         self.collector_torch = state["rng"].get("collector_torch")
-        self.outputs = outputs_of(state, self.run_dir)
-        self.replay_id = state.get("replay_id")
-        self.replay_segments = state.get("replay_segments", 0)
+        self.outputs = outputs_of(state)
+        self.replay_id = state["replay_id"]
+        self.replay_segments = state["replay_segments"]
 
     # ------------------------------------------------------------------ loop
     def loop(self, remaining: int) -> bool:

@@ -235,7 +235,7 @@ def test_default_options_build_todays_networks():
     cfg = compose_config(["method=icco"])
     assert cfg.method.mixer == "qmix" and cfg.method.posterior_input == "flat"
     ckpt = load_checkpoint(DEMO)
-    assert ckpt["cfg"]["method"]["mixer"] == "qmix"  # filled in: written before the field
+    assert ckpt["cfg"]["method"]["mixer"] == "qmix"  # written before the field: converted
     assert ckpt["cfg"]["method"]["posterior_input"] == "flat"
     demo_cfg = validate(OmegaConf.create(ckpt["cfg"]))
     mods, loss = networks(demo_cfg, ObsLayout(**ckpt["layout"]))

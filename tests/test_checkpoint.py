@@ -4,21 +4,26 @@ one plain line for every unreadable file, full disk, read-only folder, busy or m
 from __future__ import annotations
 
 import errno
+import importlib.util
 import json
 import os
 import pickle
+import subprocess
+import sys
 import tempfile
 
 import numpy as np
 import pytest
 import torch
+from conftest import ROOT
+from omegaconf import OmegaConf
 from tensordict import TensorDict
 from torchrl.data import LazyTensorStorage, RandomSampler, TensorDictReplayBuffer
 
 from icco_torchrl.training import replay_dump, run_folder
 from icco_torchrl.training.checkpoint import (
     FORMAT_VERSION,
-    METHOD_FIELDS_ADDED,
+    check_resumable,
     load_checkpoint,
     restore_replay,
     save_checkpoint,
@@ -100,16 +105,7 @@ def test_a_checkpoint_round_trips_and_loads_weights_only(tmp_path):
 
     loaded = load_checkpoint(path, require=())
     assert loaded["format_version"] == FORMAT_VERSION
-    # method fields added after the checkpoint was written come back with the value it was trained
-    # with
-    assert loaded["cfg"] == {
-        **payload["cfg"],
-        "method": {**payload["cfg"]["method"], **METHOD_FIELDS_ADDED},
-    }
-    assert (
-        loaded["cfg"]["method"]["waypoint_features"] is False
-        and "z_input" not in loaded["cfg"]["method"]  # a removed option, at its one value
-    )
+    assert loaded["cfg"] == payload["cfg"]  # as written: nothing is filled in on loading
     assert loaded["frames"] == 2048 and loaded["epsilon"] == 0.25
     assert loaded["scalars"] == [1.5, 3]
     assert torch.equal(loaded["loss"]["w"], payload["loss"]["w"])
@@ -129,25 +125,6 @@ def test_a_checkpoint_round_trips_and_loads_weights_only(tmp_path):
     assert torch.equal(torch.rand(4), expected[1]) and torch.equal(
         torch.rand(4, generator=gen), expected[2]
     )
-
-
-def test_a_method_field_the_checkpoint_has_is_kept(tmp_path):
-    payload = {"cfg": {"method": {"name": "icco", "waypoint_features": True}}, "loss": {}}
-    loaded = load_checkpoint(save_checkpoint(tmp_path / "checkpoint.pt", payload), require=())
-    method = loaded["cfg"]["method"]
-    assert method["name"] == "icco" and method["waypoint_features"] is True  # kept, not upgraded
-    others = {k: v for k, v in METHOD_FIELDS_ADDED.items() if k != "waypoint_features"}
-    assert {k: method[k] for k in others} == others  # the fields it lacks: their old values
-
-
-def test_a_checkpoint_written_before_weights_only_loading_still_loads(tmp_path):
-    path = tmp_path / "old.pt"
-    state = np.random.get_state()
-    torch.save(
-        {"format_version": FORMAT_VERSION, "rng": {"numpy": state}}, path
-    )  # the previous writer
-    loaded = load_checkpoint(path, require=())
-    np.testing.assert_array_equal(loaded["rng"]["numpy"][1], state[1])
 
 
 def test_stale_checkpoint_temp_files_are_removed(tmp_path):
@@ -541,8 +518,188 @@ def test_a_dump_of_another_checkpoint_is_refused_in_one_line(tmp_path):
     assert f"delete {tmp_path / 'replay'}" in message
 
 
-def test_final_outputs_are_recorded_and_older_checkpoints_judged_by_their_files(tmp_path):
-    assert outputs_of({"outputs": {"final_evaluation": True}}, tmp_path)["learning_curve"] is False
-    assert outputs_of({}, tmp_path)["final_evaluation"] is False  # no curve: write them
+def test_final_outputs_are_recorded_and_a_checkpoint_without_the_record_is_not_resumed(tmp_path):
+    assert outputs_of({"outputs": {"final_evaluation": True}})["learning_curve"] is False
+    state = {key: {} for key in ("optimizer", "updater", "rng", "outputs")}
+    state.update(batches=1, replay_id=None, replay_segments=0)
+    for broken, said in (({"outputs": None}, "outputs record is no dict"), ({}, "lacks")):
+        ckpt = {**state, **broken} if broken else {k: v for k, v in state.items() if k != "outputs"}
+        with pytest.raises(CheckpointError, match=said) as info:
+            check_resumable(ckpt, None, None, tmp_path / "checkpoint.pt")
+        assert "\n" not in str(info.value) and str(tmp_path) in str(info.value)
+
+
+# ---------------------------------------------------------------- older formats: the converter
+CONVERT = "python tools/convert_checkpoint.py"
+
+
+def converter():
+    """tools/convert_checkpoint.py as a module (a script outside the package)."""
+    spec = importlib.util.spec_from_file_location(
+        "convert_checkpoint", ROOT / "tools" / "convert_checkpoint.py"
+    )
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _format_2(path, payload):
+    """``payload`` as the writer of format 2 saved it (numpy arrays pickled as such)."""
+    torch.save({"format_version": 2, **payload}, path)
+    return path
+
+
+@pytest.mark.parametrize("name", ["checkpoint.pt", "demo_icco.pt"])
+def test_a_checkpoint_of_an_older_format_is_refused_in_one_line_naming_the_converter(
+    tmp_path, name
+):
+    path = _format_2(tmp_path / name, {"cfg": {"method": {}, "env": {}}, "layout": {}, "loss": {}})
+    with pytest.raises(CheckpointError) as info:
+        load_checkpoint(path)
+    message = str(info.value)
+    new = path.with_name(f"{path.stem}_v{FORMAT_VERSION}.pt")
+    assert "\n" not in message and message.startswith(f"{path} has checkpoint format 2;")
+    assert f"reads only format {FORMAT_VERSION}: convert it with {CONVERT} {path} {new}" in message
+    assert (f"{CONVERT} --in-place {path}" in message) == (name == "checkpoint.pt")
+    # the writer before weights-only files (numpy arrays pickled): named by what it refers to
+    _format_2(path, {"rng": {"numpy": np.random.get_state()}})
+    with pytest.raises(CheckpointError) as info:
+        load_checkpoint(path, require=())
+    message = str(info.value)
+    assert "\n" not in message and "numpy" in message and f"{CONVERT} {path} {new}" in message
+    torch.save({"format_version": FORMAT_VERSION + 1, "loss": {}}, path)
+    with pytest.raises(CheckpointError, match="newer than the format .*: use the icco-torchrl"):
+        load_checkpoint(path)
+
+
+def _trained_with(tmp_path, **removed):
+    """A format-2 checkpoint of real networks, written before the fields of the converter's tables
+    were added (its config lacks them; its networks have no waypoint features, as then), with the
+    ``removed`` options it was trained with; and the networks' state."""
+    from icco_torchrl.training.build import build, compose_config
+
+    tables = converter()
+    cfg = compose_config(["method=icco", "method.waypoint_features=false"])
+    run = build(cfg, num_envs=2)
+    old = OmegaConf.to_container(cfg, resolve=True)
+    for key in tables.METHOD_FIELDS_ADDED:
+        old["method"].pop(key, None)
+    for key in tables.TRAIN_FIELDS_ADDED:
+        old["train"].pop(key, None)
+    old["method"].update(removed)
+    state = {k: v.clone() for k, v in run.loss.state_dict().items()}
+    payload = {"cfg": old, "layout": dict(run.layout.__dict__), "loss": state, "frames": 512}
+    payload["rng"] = {"numpy": np.random.get_state()}  # a numpy array, pickled as such
+    return _format_2(tmp_path / "old.pt", payload), state
+
+
+def test_the_converter_fills_added_fields_drops_a_removed_option_and_keeps_the_networks(
+    tmp_path, capsys
+):
+    from icco_torchrl.training.restore import restore
+
+    tables = converter()
+    old, state = _trained_with(tmp_path, z_input="head", reward_channels="team")
+    before = old.read_bytes()
+    new = tmp_path / "new.pt"
+    assert tables.main([str(old), str(new)]) == 0
+    said = capsys.readouterr().out
+    assert f"{old} (format 2) -> {new} (format {FORMAT_VERSION})" in said
+    assert "method.mixer='qmix'" in said and "method.z_input dropped" in said
+    assert old.read_bytes() == before  # the source is left as it was
+    ckpt = load_checkpoint(new)
+    method, train = ckpt["cfg"]["method"], ckpt["cfg"]["train"]
+    for added, fields in ((tables.METHOD_FIELDS_ADDED, method), (tables.TRAIN_FIELDS_ADDED, train)):
+        assert {k: fields.get(k, v) for k, v in added.items()} == added  # at the old values
+    assert method["waypoint_features"] is False and train["sequence_length"] == 4
+    assert not set(tables.METHOD_FIELDS_REMOVED) & set(method)
+    assert isinstance(ckpt["rng"]["numpy"][1], np.ndarray)  # stored as a tensor, read back
+    torch.load(new, weights_only=True)  # no numpy object left in the file
+    run = restore(new, num_envs=2)  # the same networks, every weight as trained
+    restored = run.loss.state_dict()
+    assert set(restored) == set(state) and all(torch.equal(restored[k], state[k]) for k in state)
+
+
+@pytest.mark.parametrize(
+    "option, value, commit",
+    [("z_input", "mlp", "396580d"), ("reward_channels", "per_robot", "6ecb567")],
+)
+def test_the_converter_refuses_a_removed_option_at_another_value_in_one_line(
+    tmp_path, capsys, option, value, commit
+):
+    tables = converter()
+    old, _ = _trained_with(tmp_path, **{option: value})
+    new = tmp_path / "new.pt"
+    assert tables.main([str(old), str(new)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and err.startswith("convert_checkpoint: ")
+    assert f"{old} was trained with method.{option}={value!r}" in err and commit in err
+    assert not new.exists() and not [p for p in tmp_path.iterdir() if p.name.endswith(".tmp")]
+
+
+def test_the_converter_run_as_a_script_refuses_in_one_line_without_a_traceback(tmp_path):
+    old = _format_2(tmp_path / "old.pt", {"cfg": {"method": {"z_input": "mlp"}}, "loss": {}})
+    missing = tmp_path / "missing.pt"
+    for args in ([old, tmp_path / "new.pt"], [missing, tmp_path / "x.pt"]):
+        proc = subprocess.run(
+            [sys.executable, "tools/convert_checkpoint.py", *map(str, args)],
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
+        assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+        assert len(proc.stderr.strip().splitlines()) == 1 and str(args[0]) in proc.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["old.pt"]
+
+
+def test_a_run_converted_in_place_resumes_with_its_replay_dump(tmp_path):
+    """A run of format 2 (its checkpoint written before the final outputs were recorded, its dump
+    of replay format 2): loading either is one line naming the converter; converted in place, the
+    checkpoint records its outputs (its learning curve exists) and the dump restores."""
+    buffer = make_buffer(16)
+    buffer.extend(segments(4))
+    training = {"optimizer": {}, "updater": {}, "batches": 1, "rng": {}}
+    path, dump_id = save_run(tmp_path, {**_run_payload(8), **training}, buffer)
+    raw = torch.load(path, weights_only=True)
+    raw.pop("outputs", None)
+    torch.save({**raw, "format_version": 2}, path)
+    manifest = tmp_path / "replay" / "manifest.json"
+    manifest.write_text(json.dumps({**json.loads(manifest.read_text()), "format": 2}))
     (tmp_path / "learning_curve.png").write_bytes(b"png")
-    assert outputs_of({}, tmp_path)["learning_curve"] is True
+    with pytest.raises(CheckpointError, match=f"{CONVERT} --in-place {path}"):
+        load_checkpoint(path)
+    with pytest.raises(CheckpointError) as info:
+        load_replay(make_buffer(16), tmp_path / "replay")
+    message = str(info.value)
+    assert "\n" not in message and "has format 2; this icco-torchrl reads only format" in message
+    assert f"{CONVERT} --in-place {tmp_path}" in message
+    assert f"delete {tmp_path / 'replay'}" in message
+
+    assert converter().main(["--in-place", str(tmp_path)]) == 0
+    ckpt = load_checkpoint(path)
+    assert ckpt["outputs"]["learning_curve"] is True and ckpt["replay_id"] == dump_id
+    assert json.loads(manifest.read_text())["format"] == replay_dump.REPLAY_FORMAT
+    restored = make_buffer(16)
+    assert restore_replay(restored, tmp_path, ckpt, path) == "replay buffer restored: 4 segments"
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        LOCK_FILE,
+        "checkpoint.pt",
+        "learning_curve.png",
+        "replay",
+    ]
+
+
+def test_nothing_in_the_package_mentions_the_upgrade_tables():
+    """The upgrade of older checkpoints lives in tools/convert_checkpoint.py only."""
+    tables = ("METHOD_FIELDS_ADDED", "METHOD_FIELDS_REMOVED", "TRAIN_FIELDS_ADDED")
+    names = (*tables, "_upgrade", "legacy_numpy_globals", "safe_globals")
+    found = [
+        f"{path.relative_to(ROOT)}: {name}"
+        for path in sorted((ROOT / "icco_torchrl").rglob("*.py"))
+        for name in names
+        if name in path.read_text()
+    ]
+    assert not found, found
+    tool = (ROOT / "tools" / "convert_checkpoint.py").read_text()
+    assert all(f"\n{name} = " in tool for name in tables)

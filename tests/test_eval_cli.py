@@ -217,7 +217,9 @@ def _text(path):
 def _fields_missing(path):
     import torch
 
-    torch.save({"format_version": 2}, path)
+    from icco_torchrl.training.checkpoint import FORMAT_VERSION
+
+    torch.save({"format_version": FORMAT_VERSION}, path)
 
 
 @pytest.mark.parametrize("make", [_text, _fields_missing])

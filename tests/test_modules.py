@@ -13,7 +13,7 @@ import torch
 from torch.distributions import Independent, Normal
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from icco_torchrl.envs.resource_collection import ObsLayout
+from icco_torchrl.envs.layout import ObsLayout
 from icco_torchrl.modules import (
     EntityAttentionEncoder,
     Posterior,
@@ -599,3 +599,29 @@ def test_z_reaches_the_q_head_of_its_own_step_only():
     q, q_other = net.sequence(obs, prev, h0, z=z), net.sequence(obs, prev, h0, z=other)
     assert not torch.allclose(q[:, 0], q_other[:, 0])
     assert torch.allclose(q[:, 1], q_other[:, 1])
+
+
+def test_layer_norm_makes_the_agent_blind_to_the_scale_of_its_embedding():
+    """With ``layer_norm`` the GRU's input is normalised: scaling the embedding (weights, bias and
+    previous-action rows) by 3 leaves Q unchanged; without it, Q changes. One step equals the
+    sequence's first step either way."""
+    from icco_torchrl.envs import ResourceCollectionEnv
+
+    env = ResourceCollectionEnv(num_envs=2, seed=0)
+    td = env.reset()
+    obs = td["agents", "observation"].unsqueeze(1)
+    prev, h0 = torch.zeros(2, 1, 3, dtype=torch.long), torch.randn(2, 3, 16)
+    for layer_norm in (True, False):
+        torch.manual_seed(0)
+        net = RecurrentQNet(env.layout, n_actions=5, hidden=16, layer_norm=layer_norm)
+        assert any(isinstance(m, torch.nn.LayerNorm) for m in net.modules()) == layer_norm
+        q = net.sequence(obs, prev, h0)
+        torch.testing.assert_close(net.step(obs[:, 0], prev[:, 0], h0)[0], q[:, 0])
+        with torch.no_grad():
+            for p in (net.embed.weight, net.embed.bias, net.prev_action_embed.weight):
+                p.mul_(3.0)
+        scaled = net.sequence(obs, prev, h0)
+        if layer_norm:
+            torch.testing.assert_close(scaled, q, atol=1e-4, rtol=1e-4)
+        else:
+            assert not torch.allclose(scaled, q, atol=1e-3)

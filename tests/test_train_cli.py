@@ -50,6 +50,13 @@ def test_every_method_trains_end_to_end(tmp_path, method):
         ) == (method == "qmix_full_flat")
 
 
+def test_layer_norm_trains_end_to_end(tmp_path):
+    run_cli("train", "method.layer_norm=true", *SMOKE, f"hydra.run.dir={tmp_path}")
+    ckpt = load_checkpoint(tmp_path / "checkpoint.pt")
+    assert ckpt["cfg"]["method"]["layer_norm"] is True
+    assert any("trunk_norm" in key for key in ckpt["loss"])
+
+
 def test_training_reports_the_reference_policies(tmp_path):
     import json
 
@@ -501,7 +508,8 @@ def test_repeated_kills_inside_checkpoints_and_dumps_lose_nothing(tmp_path):
 
 
 def test_an_exported_policy_acts_like_its_checkpoint_and_cannot_be_resumed(tmp_path):
-    from icco_torchrl.training.restore import export_policy, restore
+    from icco_torchrl.training.checkpoint import export_policy
+    from icco_torchrl.training.restore import restore
 
     run_cli("train", *SMOKE, "train.total_frames=1024", f"hydra.run.dir={tmp_path}")
     small = export_policy(tmp_path / "checkpoint.pt", tmp_path / "policy.pt")

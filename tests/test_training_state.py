@@ -12,7 +12,7 @@ import torch
 
 from icco_torchrl.trainer import TrainingRun
 from icco_torchrl.training.build import build
-from icco_torchrl.training.checkpoint import load_checkpoint
+from icco_torchrl.training.checkpoint import FORMAT_VERSION, load_checkpoint
 from icco_torchrl.training.config import compose_config
 from icco_torchrl.training.logger import RunLogger
 from icco_torchrl.training.replay_dump import load_replay
@@ -73,7 +73,7 @@ def test_a_state_dict_loaded_into_a_fresh_run_gives_its_state_and_its_next_updat
     }
     # The checkpoint on disk is the state, field for field (and the format's version).
     ckpt = load_checkpoint(tmp_path / "first" / "checkpoint.pt")
-    assert ckpt.pop("format_version") == 2
+    assert ckpt.pop("format_version") == FORMAT_VERSION
     assert_same(ckpt, state, "checkpoint")
     row = first.learn()  # the next update from the saved state
     after = copy.deepcopy(first.run.loss.state_dict())

@@ -38,15 +38,16 @@ TEACHER = ["train.teacher='blend(defend=1.75)'", "train.teacher_envs=8", "train.
 SCREENS = {  # name: (lever, method, overrides)
     "icco": ("control", "icco", []),
     "icco_teacher": ("defend-first team's data, 25 % of every batch", "icco", TEACHER),
-    "icco_channels": (
-        "per-robot reward channels: each robot's own terms in a value of its own",
+    "icco_layernorm": (
+        "LayerNorm in the agent's trunk (the GRU's input) and Q head",
         "icco",
-        ["method.reward_channels=per_robot"],
+        ["method.layer_norm=true"],
     ),
-    "icco_channels_aux": (
-        "per-robot reward channels as an auxiliary: the whole Q mixed on the whole reward",
+    "icco_process": (
+        "speed recipe, not a lever: the env and acting in a collector process "
+        "(train.collector=process, one batch of policy lag); learning must stay the control's",
         "icco",
-        ["method.reward_channels=per_robot_aux"],
+        ["train.collector=process"],
     ),
     "qmix_full": ("control", "qmix_full", []),
     "qmix_full_teacher": (
@@ -58,8 +59,7 @@ SCREENS = {  # name: (lever, method, overrides)
 LABELS = {
     "icco_teacher": "ICCO + teacher data",
     "qmix_full_teacher": "QMIX (FULL) + teacher data",
-    "icco_channels": "ICCO, per-robot reward channels",
-    "icco_channels_aux": "ICCO, per-robot reward channels (auxiliary)",
+    "icco_layernorm": "ICCO + LayerNorm",
 }
 
 

@@ -1,11 +1,11 @@
 """Environments: the batched TorchRL task, its waypoint sources (random walk, quadrant reference,
 fixed waypoints), its PettingZoo view and rendering."""
 
+from icco_torchrl.envs.layout import ObsLayout
 from icco_torchrl.envs.resource_collection import (
     EVENT_KEYS,
     EVENTS,
     N_ACTIONS,
-    ObsLayout,
     ResourceCollectionEnv,
 )
 from icco_torchrl.envs.waypoints import (

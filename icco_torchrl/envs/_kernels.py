@@ -115,7 +115,6 @@ class Dynamics(NamedTuple):
     timer: torch.Tensor  # [I, B] respawn timers (entries of `gone` still to draw)
     picked: torch.Tensor  # [R, B] resources picked this step: need a new position
     agent_reward: torch.Tensor  # [N, B]
-    own_reward: torch.Tensor  # [N, B] the robot's own terms: instruction, pick, delivery
     r_inst: torch.Tensor  # [N, B]
     counts: torch.Tensor  # [4, B] picks, collects, defenses, invasions
 
@@ -180,7 +179,6 @@ def dynamics(
         timer=timer,
         picked=any_(took, 0),
         agent_reward=agent_reward,
-        own_reward=(p.pick * pick + p.collect * collect).float() + r_inst,
         r_inst=r_inst,
         counts=counts,
     )

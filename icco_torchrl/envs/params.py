@@ -237,12 +237,6 @@ class ResourceCollectionParams:
     validate: bool = param(
         True, "check actions and supplied waypoints at every step (costs a device sync)."
     )
-    own_reward: bool = param(
-        False,
-        'also emit ``("agents", "own_reward")``, each robot\'s own reward terms (instruction, '
-        "pick, delivery) apart from the team's (defense, invasion), for a learner with "
-        "per-robot reward channels (``method.reward_channels``).",
-    )
 
     def __post_init__(self):
         """Run every field's checks in table order, then store floats as floats and bools as

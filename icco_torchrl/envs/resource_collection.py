@@ -10,9 +10,6 @@ Keys (``B = num_envs``, ``N = n_agents``, ``K = n_waypoints``)::
     ("agents", "waypoints")    [B, N, K, 2]      instruction vectors (input and output)
     ("agents", "action")       [B, N]            0 no-op, 1 -x, 2 +x, 3 -y, 4 +y
     ("agents", "reward")       [B, N, 1]         each robot's own reward   (in "next")
-    ("agents", "own_reward")   [B, N, 1]         with ``own_reward``: its instruction, pick and
-                                                 delivery terms (the rest, defense and invasion,
-                                                 is the team's)
     ("agents", "present")      [B, N, 1]  bool   which robots are in the team (see team_sizes)
     "state"                    [B, state_dim]    global state incl. everyone's waypoints
     "step_count"               [B, 1]            steps since reset (drives z and waypoint refresh)
@@ -65,7 +62,7 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from icco_torchrl.envs._kernels import Params, any_, batch_first, batch_last, dynamics, pair_sq_dist
-from icco_torchrl.envs.layout import ObsLayout  # (re-exported: the layout this env writes)
+from icco_torchrl.envs.layout import ObsLayout
 from icco_torchrl.envs.params import (
     ResourceCollectionParams,
     keyword_args_doc,
@@ -207,7 +204,6 @@ class ResourceCollectionEnv(EnvBase):
                 observation=Unbounded((B, N, L.obs_dim), device=dev),
                 waypoints=Bounded(-self.half, self.half, (B, N, K, 2), device=dev),
                 present=Categorical(2, (B, N, 1), dtype=torch.bool, device=dev),
-                **({"own_reward": Unbounded((B, N, 1), device=dev)} if self.own_reward else {}),
                 shape=(B, N),
                 device=dev,
             ),
@@ -488,7 +484,6 @@ class ResourceCollectionEnv(EnvBase):
         zeros = torch.zeros(B, dtype=torch.int64, device=dev)
         false = torch.zeros(B, 1, dtype=torch.bool, device=dev)
         return self._output(
-            own_reward=torch.zeros(N, B, device=dev),
             events={**{k: zeros for k in _EVENTS}, "inst_reward": torch.zeros(B, device=dev)},
             done=false,
             terminated=false,
@@ -580,7 +575,6 @@ class ResourceCollectionEnv(EnvBase):
         truncated = (self.t >= self.max_steps).unsqueeze(-1)
         return self._output(
             agent_reward=d.agent_reward,
-            own_reward=d.own_reward,
             reward=d.agent_reward.sum(0).unsqueeze(-1),
             events=dict(zip(_EVENTS, d.counts), inst_reward=d.r_inst.sum(0)),
             done=truncated,
@@ -619,7 +613,6 @@ class ResourceCollectionEnv(EnvBase):
     def _output(
         self,
         agent_reward: torch.Tensor | None = None,
-        own_reward: torch.Tensor | None = None,
         events: dict | None = None,
         **root,
     ) -> TensorDictBase:
@@ -630,8 +623,6 @@ class ResourceCollectionEnv(EnvBase):
         agents = {"observation": obs, "waypoints": wp, "present": self._present_bf.clone()}
         if agent_reward is not None:
             agents["reward"] = batch_first(agent_reward).unsqueeze(-1)
-        if self.own_reward:
-            agents["own_reward"] = batch_first(own_reward).unsqueeze(-1)
         return self._td(
             {
                 "agents": self._td(agents, self._agents_batch),

@@ -22,7 +22,7 @@ from icco_torchrl import methods
 from icco_torchrl.envs.reference_policies import BEST_SCRIPTED_LABEL, reference_key
 from icco_torchrl.envs.resource_collection import EVENTS
 from icco_torchrl.envs.waypoints import QUADRANT_SIGNS
-from icco_torchrl.training.logger import read_column  # noqa: F401  (re-exported: the CSV streams' reader)
+from icco_torchrl.training.logger import read_column
 
 # Summed over steps: team reward, its instruction part, its task part, and the event counts.
 ADDITIVE = ("reward", "task_reward", "inst_reward", *EVENTS)
@@ -43,11 +43,14 @@ TASK_REWARDS = ("pick_reward", "collect_reward", "defense_reward", "invasion_pen
 def method_label(cfg: Mapping, suffix: str = "") -> str:
     """The table label of a trained configuration (its method's, :mod:`icco_torchrl.methods`),
     ``suffix`` appended (e.g. "-TAP"); agents trained on the instruction reward alone (every task
-    reward zero, ``experiment=inst_only``) get " w/o TR", as in "QMIX-TAP w/o TR"."""
+    reward zero, ``experiment=inst_only``) get " w/o TR", as in "QMIX-TAP w/o TR", and agents that
+    learned from a scripted team's data (``train.teacher``) " + teacher data"."""
     label = methods.label(cfg["method"]["name"]) + suffix
     params = cfg["env"]["params"]
     if all(float(params.get(key, 1.0)) == 0.0 for key in TASK_REWARDS):
         label += methods.WITHOUT_TASK_REWARD
+    if (cfg.get("train") or {}).get("teacher"):
+        label += methods.TEACHER
     return label
 
 

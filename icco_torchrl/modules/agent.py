@@ -76,10 +76,8 @@ class RecurrentQNet(nn.Module):
         waypoint_features: append the nearest own waypoint and the unit direction to the next one
             (:func:`~icco_torchrl.modules.waypoint_features.path_features`) to the own features;
             needs a layout.
-        channels: value channels the Q head writes per action (1: one Q). With 2 (per-robot
-            reward channels), channel 0 values the robot's own reward terms and channel 1 its
-            share of the team's; Q is their sum, and ``split=True`` returns them apart
-            ``[..., N, 2, A]``.
+        layer_norm: a LayerNorm on the GRU's input (after the observation and previous-action
+            embedding, before its ReLU) and on the Q head's hidden layer (RLPD, PQN).
     """
 
     def __init__(
@@ -95,12 +93,9 @@ class RecurrentQNet(nn.Module):
         encoder: str | None = None,
         state_encoder: str = "flat",
         waypoint_features: bool = False,
-        channels: int = 1,
+        layer_norm: bool = False,
     ):
         super().__init__()
-        if channels not in (1, 2):
-            raise ValueError(f"channels must be 1 or 2, got {channels!r}")
-        self.channels = channels
         if state_encoder not in STATE_ENCODERS:
             raise ValueError(
                 f"state_encoder must be one of {STATE_ENCODERS}, got {state_encoder!r}"
@@ -163,10 +158,17 @@ class RecurrentQNet(nn.Module):
         nn.init.uniform_(self.embed.weight, -bound, bound)
         nn.init.uniform_(self.embed.bias, -bound, bound)
         nn.init.uniform_(self.prev_action_embed.weight, -bound, bound)
+        # LayerNorm before the GRU's input and the head's ReLU (RLPD's order: Linear, norm,
+        # activation); never on the GRU state. Identity without layer_norm.
+        self.layer_norm = layer_norm
+        self.trunk_norm = nn.LayerNorm(hidden) if layer_norm else nn.Identity()
         self.gru = GRU(hidden, hidden)
         head_in = hidden + z_dim  # COPA's player: the Q head reads [GRU output; z]
         self.head = nn.Sequential(
-            nn.Linear(head_in, hidden), ReLU(), nn.Linear(hidden, n_actions * channels)
+            nn.Linear(head_in, hidden),
+            *([nn.LayerNorm(hidden)] if layer_norm else []),
+            ReLU(),
+            nn.Linear(hidden, n_actions),
         )
 
     def _path(self, obs):
@@ -176,7 +178,7 @@ class RecurrentQNet(nn.Module):
     def _features(self, obs, prev_action, state, z=None):
         x = self._encode(obs, state)
         x = self.embed(x) + self.prev_action_embed(prev_action.long())
-        return relu(x)
+        return relu(self.trunk_norm(x))
 
     def _encode(self, obs, state):
         if self.relative:
@@ -190,12 +192,8 @@ class RecurrentQNet(nn.Module):
             obs = torch.cat([*own, obs[..., self._own_dim :]], -1)
         return self.encoder(obs)
 
-    def _q(self, h, z, split: bool = False):
-        q = self.head(torch.cat([h, z], -1) if self.z_dim else h)
-        if self.channels == 1:
-            return q.unsqueeze(-2) if split else q
-        q = q.unflatten(-1, (self.channels, self.n_actions))
-        return q if split else q.sum(-2)
+    def _q(self, h, z):
+        return self.head(torch.cat([h, z], -1) if self.z_dim else h)
 
     def forward(self, obs, prev_action, hidden, step_count=None, z=None, state=None, is_init=None):
         """One step for ``[B, N, ...]`` inputs; the hidden state restarts at zero where an episode
@@ -216,13 +214,12 @@ class RecurrentQNet(nn.Module):
             q, h = self.step(obs, prev_action, keep_hidden(hidden, is_init, step_count), z, state)
         return q, h
 
-    def step(self, obs, prev_action, hidden, z=None, state=None, split: bool = False):
-        """One step from ``hidden`` as given (no restart): Q ``[B, N, A]`` (``split``: per
-        channel, ``[B, N, C, A]``) and the new hidden."""
+    def step(self, obs, prev_action, hidden, z=None, state=None):
+        """One step from ``hidden`` as given (no restart): Q ``[B, N, A]`` and the new hidden."""
         x = self._features(obs, prev_action, state, z)
         h = self.gru.step(x.reshape(-1, self.hidden), hidden.reshape(-1, self.hidden))
         h = h.reshape(x.shape)
-        return self._q(h, z, split), h
+        return self._q(h, z), h
 
     def sequence(
         self,
@@ -232,10 +229,9 @@ class RecurrentQNet(nn.Module):
         z=None,
         state=None,
         return_hidden: bool | str = False,
-        split: bool = False,
     ):
         """A segment in one GRU call: inputs ``[S, L, N, ...]``, ``hidden0 [S, N, H]`` ->
-        Q ``[S, L, N, A]`` (``split``: per channel, ``[S, L, N, C, A]``), and with
+        Q ``[S, L, N, A]``, and with
         ``return_hidden`` the hidden state after the last step ``[S, N, H]``, or with
         ``return_hidden="all"`` after every step ``[S, L, N, H]``."""
         x = self._features(obs, prev_action, state, z)
@@ -244,7 +240,7 @@ class RecurrentQNet(nn.Module):
             x.permute(0, 2, 1, 3).reshape(S * N, L, H), hidden0.reshape(S * N, H)
         )
         h = out.reshape(S, N, L, H).permute(0, 2, 1, 3)
-        q = self._q(h, z, split)
+        q = self._q(h, z)
         if return_hidden == "all":
             return q, h
         return (q, h_last.reshape(S, N, H)) if return_hidden else q

@@ -91,11 +91,6 @@ class ICCOLoss(LossModule):
         reward_reduction: how per-agent rewards ``[S, L, N, 1]`` (TorchRL multi-agent envs such as
             VMAS) become the team reward: ``"mean"`` (TorchRL's QMIX example) or ``"sum"``.
         check_finite: raise :class:`NonFiniteLossError` on a NaN/inf loss (one host sync a call).
-        mixed_channels: with an agent of two value channels [own; team]: ``"team"`` mixes the
-            team channel on the team's terms (the reward less the robots' own terms), ``"sum"``
-            mixes each robot's whole Q on the whole reward (as with one channel) and the own
-            channel is an auxiliary value of the robot's own terms. Either way the own channel
-            learns each robot's own terms, per robot.
 
     Examples:
         >>> import torch
@@ -125,8 +120,6 @@ class ICCOLoss(LossModule):
         shape. ``prev_action`` and ``rnn_hidden`` are read for recurrent agents, ``z``,
         ``z_noise`` and ``step_count`` with a coordinator, ``z_sent`` (which robots received a z,
         ``[S, T, N, 1]``) with an adaptive broadcast (a coordinator ``threshold > 0``).
-        ``own_reward`` (each robot's own reward terms, ``[S, T, N, 1]`` under ``"next"``) is read
-        for an agent with two value channels (per-robot reward channels).
         ``action_value`` is what the agent writes, ``local_value``/``global_value`` what the mixer
         reads/writes.
         """
@@ -142,7 +135,6 @@ class ICCOLoss(LossModule):
         step_count: NestedKey = "step_count"
         is_init: NestedKey = "is_init"
         reward: NestedKey = "reward"
-        own_reward: NestedKey = ("agents", "own_reward")
         done: NestedKey = "done"
         terminated: NestedKey = "terminated"
         mask: NestedKey = "mask"
@@ -179,7 +171,6 @@ class ICCOLoss(LossModule):
         entropy_coef: float = 1e-4,
         reward_reduction: str = "mean",
         check_finite: bool = True,
-        mixed_channels: str = "team",
     ):
         super().__init__()
         self._set_discount(gamma, td_lambda)
@@ -204,16 +195,6 @@ class ICCOLoss(LossModule):
                 "burn_in needs an agent with step(...) and sequence(..., return_hidden=True), "
                 "as RecurrentQNet has"
             )
-        # Per-robot reward channels: the agent writes [own; team] values per action.
-        self.channels = int(getattr(net, "channels", 1))
-        if self.channels > 1 and not self._stepping_agent:
-            raise ValueError(
-                "an agent with value channels (per-robot reward channels) needs step(...) and "
-                "sequence(..., split=True), as RecurrentQNet has"
-            )
-        if mixed_channels not in ("team", "sum"):
-            raise ValueError(f"mixed_channels must be 'team' or 'sum', got {mixed_channels!r}")
-        self.mix_sum = self.channels > 1 and mixed_channels == "sum"
         self.has_coordinator = coordinator is not None
         if hasattr(net, "z_dim") and self.has_coordinator != bool(net.z_dim):
             raise ValueError("the agent takes z (z_dim > 0) exactly when a coordinator is given")
@@ -289,8 +270,6 @@ class ICCOLoss(LossModule):
             keys += [k.z, k.z_noise] + ([k.z_sent] if self.threshold > 0 else [])
         keys += [k.step_count, k.mask]
         keys += [next_key(key) for key in (k.observation, k.state, k.reward, k.done)]
-        if self.channels > 1:
-            keys.append(next_key(k.own_reward))
         keys += [next_key(k.terminated), next_key(k.step_count)]
         local = unravel_key(k.local_value)
         for key in self.mixer.in_keys:
@@ -306,8 +285,6 @@ class ICCOLoss(LossModule):
         """The entries :meth:`forward` returns (``loss_*`` are summed by :func:`total_loss`; the
         others are detached summaries)."""
         keys = ("loss_td", "q_taken", "q_tot", "td_error")
-        if self.channels > 1:
-            keys += ("loss_td_robot",)
         if self.use_ce:
             keys += ("loss_ce", "ce_neg_entropy", "entropy")
             if self.posterior is not None:
@@ -422,30 +399,18 @@ class ICCOLoss(LossModule):
             with torch.no_grad():
                 z_tgt = self._z_sequence(batch, self.target_coordinator_params, fresh)[0]
 
-        split = self.channels > 1  # per-robot reward channels: [own; team] per action
-        q_online, q_boot = self._q_online(batch, z_on)  # [S, L, N, (C,) A], [S, N, (C,) A]
-        chosen = _taken(q_online, batch.action.long().unsqueeze(-1))  # [S, L, N, (C)]
-        mixed = (chosen.sum(-1) if self.mix_sum else chosen[..., -1]) if split else chosen
-        q_tot = self._mix(self.mixer_params, mixed, batch.mixer_inputs)
+        q_online, q_boot = self._q_online(batch, z_on)  # [S, L, N, A], [S, N, A]
+        chosen = _taken(q_online, batch.action.long().unsqueeze(-1))  # [S, L, N]
+        q_tot = self._mix(self.mixer_params, chosen, batch.mixer_inputs)
         with torch.no_grad():
             q_target = self._q_sequence(self.target_agent_params, batch, z_tgt)[:, 1:]
             if self.double_q:
                 greedy_source = torch.cat([q_online[:, 1:], q_boot.unsqueeze(1)], 1)
             else:
                 greedy_source = q_target
-            if split:  # a robot acts on the sum of its channels
-                greedy_source = greedy_source.sum(-2)
             next_value = _taken(q_target, greedy_source.argmax(-1, keepdim=True))
-            team_next = next_value
-            if split:
-                team_next = next_value.sum(-1) if self.mix_sum else next_value[..., -1]
-            q_tot_next = self._mix(self.target_mixer_params, team_next, batch.next_mixer_inputs)
-            reward = batch.reward
-            if split:  # the team's terms: what the robots' own terms leave of the team reward
-                if not self.mix_sum:
-                    reward = reward - batch.own_reward.sum(-1, keepdim=True)
-                own_target = self._targets(batch, batch.own_reward, next_value[..., 0])  # [S, L, N]
-            target = self._targets(batch, reward, q_tot_next)
+            q_tot_next = self._mix(self.target_mixer_params, next_value, batch.next_mixer_inputs)
+            target = self._targets(batch, batch.reward, q_tot_next)
 
         weight = self._loss_weight(batch.mask).to(q_tot.dtype)  # [S, L]
         n_valid = weight.sum().clamp_min(1.0)
@@ -455,16 +420,13 @@ class ICCOLoss(LossModule):
             self.layout, batch.state, chosen.shape[2]
         )
         n_robots = robot_weight.sum().clamp_min(1.0)
-        taken = chosen.detach().sum(-1) if split else chosen.detach()
+        taken = chosen.detach()
         out = {
             "loss_td": (weight * td_error.pow(2)).sum() / n_valid,
             "q_taken": (robot_weight * taken).sum() / n_robots,
             "q_tot": (weight * q_tot.detach().squeeze(-1)).sum() / n_valid,
             "td_error": (weight * td_error.detach().abs()).sum() / n_valid,
         }
-        if split:  # each robot's own value, on its own terms, over the present robot-steps
-            own_error = chosen[..., 0] - own_target
-            out["loss_td_robot"] = (robot_weight * own_error.pow(2)).sum() / n_robots
         if self.use_ce:
             out.update(self._consistency(batch, z_on, loc_w, scale_w))
         return out
@@ -556,14 +518,12 @@ class ICCOLoss(LossModule):
         with params.to_module(self.agent, preserve_module_state=False):
             if not self._sequence_agent:
                 return self._call_agent(batch, z_seq, slice(None))
-            split = {"split": True} if self.channels > 1 else {}
             return self.agent.module.sequence(
                 batch.obs_seq,
                 batch.prev_seq,
                 batch.hidden[:, 0],
                 z=z_seq,
                 state=self._agent_state(batch),
-                **split,
             )
 
     def _q_online(self, batch: LossBatch, z_seq) -> tuple[torch.Tensor, torch.Tensor | None]:
@@ -580,7 +540,6 @@ class ICCOLoss(LossModule):
                 q = net.sequence(obs, prev, h0, z=z_seq, state=self._agent_state(batch))
                 return q[:, :L], (q[:, L].detach() if self.double_q else None)
             pieces, hidden = [], h0
-            split = {"split": True} if self.channels > 1 else {}
             for start, end, grad in ((0, B, False), (B, L, True)):  # burn-in, learned steps
                 if start == end:
                     continue
@@ -593,16 +552,13 @@ class ICCOLoss(LossModule):
                         z=_at(z_seq, steps),
                         state=self._agent_state(batch, steps),
                         return_hidden=True,
-                        **split,
                     )
                 pieces.append(q)
             q_boot = None
             if self.double_q:  # one more step from the last hidden state, without autograd
                 with torch.no_grad():
                     state = self._agent_state(batch, L)
-                    q_boot, _ = net.step(
-                        obs[:, L], prev[:, L], hidden, _at(z_seq, L), state, **split
-                    )
+                    q_boot, _ = net.step(obs[:, L], prev[:, L], hidden, _at(z_seq, L), state)
         return torch.cat(pieces, 1) if len(pieces) > 1 else pieces[0], q_boot
 
     def _call_agent(self, batch: LossBatch, z_seq, steps: slice) -> torch.Tensor:

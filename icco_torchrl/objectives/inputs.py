@@ -103,7 +103,6 @@ class LossBatch:
         state_shape: the state's trailing shape as the batch holds it (``(D,)`` for a flat one),
             for an agent that reads the state through its keys.
         reward: the team reward ``[S, L, 1]`` (per-robot rewards reduced).
-        own_reward: each robot's own reward terms ``[S, L, N]``, with per-robot reward channels.
         terminated: the team's termination ``[S, L, 1]``.
         done: the team's done ``[S, L, 1]``, read when the batch has no ``mask``.
         is_init: the steps that start an episode ``[S, L]`` (read, or ``step_count == 0``).
@@ -131,7 +130,6 @@ class LossBatch:
     next_state: Tensor
     state_shape: tuple[int, ...]
     reward: Tensor
-    own_reward: Tensor | None
     terminated: Tensor
     done: Tensor | None
     is_init: Tensor | None
@@ -152,7 +150,7 @@ def read_batch(loss, td: TensorDictBase) -> LossBatch:
     """The checked inputs of ``loss`` (an :class:`~icco_torchrl.objectives.ICCOLoss`) from
     ``td [S, L]`` (time last), views of the batch (the few ops that build the sequences are
     :func:`assemble`'s), from the loss's public description of what it reads (``tensor_keys``,
-    ``recurrent``, ``reads_prev_action``, ``has_coordinator``, ``channels``, ``threshold``,
+    ``recurrent``, ``reads_prev_action``, ``has_coordinator``, ``threshold``,
     ``reward_reduction``, ``mixer_inputs``)."""
     if td.batch_dims != 2:
         raise ValueError(
@@ -183,10 +181,6 @@ def read_batch(loss, td: TensorDictBase) -> LossBatch:
     )
     reward = team_value(td, next_key(k.reward), N, "reward", reduction)
     terminated = team_value(td, next_key(k.terminated), N, "flag", reduction)
-    own_reward = None
-    if loss.channels > 1:  # per-robot reward channels: each robot's own terms [S, L, N]
-        own = get_checked(td, next_key(k.own_reward), "[S, T, N, 1]", trailing=(N, 1))
-        own_reward = own.squeeze(-1)
     step_count = get_checked(
         td, k.step_count, "[S, T, 1]", trailing=(1,), optional=not loss.has_coordinator
     )
@@ -225,7 +219,6 @@ def read_batch(loss, td: TensorDictBase) -> LossBatch:
         next_state=next_state,
         state_shape=tuple(raw_state.shape[2:]),
         reward=reward,
-        own_reward=own_reward,
         terminated=terminated,
         done=done,
         is_init=None if is_init is None else is_init.reshape(S, L).bool(),

@@ -53,8 +53,6 @@ def make_env(
     """The batched env with the primer that carries the policy's recurrent state, and with
     ``shaping`` (a ``train.shaping`` node) its potential-based reward shaping."""
     params = {**OmegaConf.to_container(cfg.env.params, resolve=True), **overrides}
-    if cfg.method.reward_channels != "team":  # the per-robot terms the loss learns apart
-        params["own_reward"] = True
     base = ResourceCollectionEnv(
         num_envs=num_envs or cfg.env.num_envs,
         device=device,
@@ -99,7 +97,7 @@ def make_modules(cfg: DictConfig, layout, device, *, n_actions: int) -> dict:
             encoder=m.encoder,
             state_encoder=m.state_encoder,
             waypoint_features=m.waypoint_features,
-            channels=1 if m.reward_channels == "team" else 2,
+            layer_norm=m.layer_norm,
         ),
         "mixer": make_mixer(
             layout.state_dim,
@@ -151,7 +149,6 @@ def make_loss(cfg: DictConfig, mods: dict) -> ICCOLoss:
         double_q=t.double_q,
         ce_coef=m.ce_coef if m.coordinator else 0.0,
         entropy_coef=m.entropy_coef if m.coordinator else 0.0,
-        mixed_channels="sum" if m.reward_channels == "per_robot_aux" else "team",
     )
 
 

@@ -1,6 +1,6 @@
-"""A checkpoint: its file format, the upgrades of older files, the rules of a resume, and the pair
-of a run's checkpoint and its replay dump. The run folder's files and lock are
-:mod:`.run_folder`'s; the replay dump's format is :mod:`.replay_dump`'s.
+"""A checkpoint: its file format, the rules of a resume, and the pair of a run's checkpoint and
+its replay dump. The run folder's files and lock are :mod:`.run_folder`'s; the replay dump's format
+is :mod:`.replay_dump`'s.
 
 - **Format.** A checkpoint holds only tensors and plain Python data and is read with
   ``torch.load(weights_only=True)``: a crafted file cannot run code. It is written atomically
@@ -9,8 +9,9 @@ of a run's checkpoint and its replay dump. The run folder's files and lock are
   is one :class:`~icco_torchrl.training.run_folder.CheckpointError` line naming the path; so is a
   write that fails (a full disk, a read-only folder), which leaves no temp file. What a training
   run puts in it is ``TrainingRun.state_dict()`` (:mod:`icco_torchrl.trainer`).
-- **Upgrades.** Fields added or removed since older checkpoints were written
-  (:data:`METHOD_FIELDS_ADDED` ...), filled in by :func:`load_checkpoint`.
+- **One format.** Only :data:`FORMAT_VERSION` is read; a file of another format is one line
+  naming the command that converts it (``tools/convert_checkpoint.py``, outside the package, which
+  holds the upgrades of older files).
 - **Resume rules.** :func:`check_resumable`: what a resumed run cannot change, and whether the
   networks and env layout fit (:func:`check_compatible`, :func:`load_weights`).
 - **Checkpoint and dump.** :func:`save_run` writes the dump, then the checkpoint naming the dump's
@@ -24,6 +25,7 @@ import io
 import os
 import pickle
 import re
+import shlex
 import shutil
 import uuid
 import warnings
@@ -50,60 +52,28 @@ from icco_torchrl.training.run_folder import (
     write_atomically,
 )
 
+# 3: every config field is in the file (older files: tools/convert_checkpoint.py fills them in).
 # 2: agent embeds the previous action with nn.Embedding, attention keys have no bias.
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3
+# Converts a checkpoint of an older format (run from the repository's root).
+CONVERTER = "tools/convert_checkpoint.py"
 
 
 # What an exported policy keeps (:func:`export_policy`); with ``loss``, what every checkpoint has.
 POLICY_KEYS = ("format_version", "cfg", "layout", "frames", "updates")
 # What a resume needs beyond that.
-TRAINING_KEYS = ("optimizer", "updater", "batches", "rng")
+TRAINING_KEYS = (
+    "optimizer",
+    "updater",
+    "batches",
+    "rng",
+    "outputs",
+    "replay_id",
+    "replay_segments",
+)
 
 # numpy arrays (the RNG state of ``np.random.get_state()``) are stored as tensors under this tag.
 _NDARRAY = "__ndarray__"
-
-# ---------------------------------------------------------------- upgrades of older checkpoints
-# Method fields added after checkpoints had been written, with the value those older checkpoints
-# were trained with (not today's default, which may differ): load_checkpoint fills them in, so an
-# older checkpoint (the demo policy, a committed result) restores the networks it was trained with.
-METHOD_FIELDS_ADDED = {
-    "waypoint_features": False,
-    "mixer": "qmix",
-    "posterior_input": "flat",
-    "broadcast_threshold": 0.0,
-    "reward_channels": "team",
-}
-# Options measured and dropped from the library, with the only value it still builds: a checkpoint
-# trained with another value is refused in one line naming the commit that can load it.
-METHOD_FIELDS_REMOVED = {"instruction_head": False, "z_input": "head"}
-# Train fields added after checkpoints had been written, with the value those runs trained with:
-# a resumed older run keeps its recipe (4-step items, no shaping) instead of today's defaults.
-TRAIN_FIELDS_ADDED = {
-    "sequence_length": 4,
-    "burn_in": 0,
-    "shaping": {"potentials": [], "weight": 0.3},
-}
-REMOVED_AT = "396580d"
-
-
-def _upgrade(payload: dict, path: Path) -> dict:
-    """``payload``'s config with the fields added since it was written (at the values it was
-    trained with); an option removed since is refused in one line."""
-    train = payload.get("cfg", {}).get("train")
-    if isinstance(train, dict):
-        for key, value in TRAIN_FIELDS_ADDED.items():  # added later: it trained the old way
-            train.setdefault(key, value)
-    method = payload.get("cfg", {}).get("method")
-    if isinstance(method, dict):
-        for key, value in METHOD_FIELDS_ADDED.items():  # added later: it had the old behaviour
-            method.setdefault(key, value)
-        for key, value in METHOD_FIELDS_REMOVED.items():  # dropped options: only one value loads
-            if method.pop(key, value) != value:
-                raise CheckpointError(
-                    f"{path} was trained with method.{key}, an option removed from icco-torchrl; "
-                    f"evaluate it at commit {REMOVED_AT}"
-                )
-    return payload
 
 
 # ---------------------------------------------------------------- the file format
@@ -149,29 +119,12 @@ def save_checkpoint(path: str | Path, payload: dict[str, Any]) -> Path:
 
 
 # ---------------------------------------------------------------- reading files
-def _legacy_numpy_globals() -> list:
-    """What checkpoints written before the weights-only format need: numpy's ndarray rebuild.
-
-    ``_reconstruct`` builds an empty array of an allow-listed class and ``ndarray.__setstate__``
-    fills it from raw bytes; nothing else is allowed, so these run no code of the file's choosing.
-    """
-    core = getattr(np, "_core", None) or np.core
-    return [core.multiarray._reconstruct, np.ndarray, np.dtype, type(np.dtype(np.uint32))]
-
-
 def _load_weights_only(path: Path, map_location) -> Any:
-    """``torch.load(weights_only=True)``; files of the previous writer also need numpy's array
-    rebuild (see :func:`_legacy_numpy_globals`), allowed for this call only. torch's warnings
-    about a file's pickle protocol are not the user's business: the error, if any, is."""
+    """``torch.load(weights_only=True)``. torch's warnings about a file's pickle protocol are not
+    the user's business: the error, if any, is."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        try:
-            return torch.load(path, map_location=map_location, weights_only=True)
-        except Exception as err:
-            if "numpy" not in str(err) or "GLOBAL" not in str(err):
-                raise
-        with torch.serialization.safe_globals(_legacy_numpy_globals()):
-            return torch.load(path, map_location=map_location, weights_only=True)
+        return torch.load(path, map_location=map_location, weights_only=True)
 
 
 def _refused_by_the_unpickler(err: Exception) -> bool:
@@ -195,6 +148,12 @@ def _read_error(path: Path, err: Exception) -> CheckpointError:
         )
     if head.startswith(b"PK") or head[:1] == b"\x80":  # a zip archive of torch.save, or a pickle
         unsafe = re.search(r"GLOBAL (\S+)", str(err))
+        if unsafe and unsafe.group(1).startswith("numpy."):  # the writer before weights-only files
+            return CheckpointError(
+                f"{path} refers to {unsafe.group(1)}, as checkpoints written before the "
+                f"weights-only format (format 2 and older) do; this icco-torchrl reads only format "
+                f"{FORMAT_VERSION}: {_convert_it(path)}"
+            )
         what = (
             f"refers to {unsafe.group(1)}, which a checkpoint never holds"
             if unsafe
@@ -212,10 +171,11 @@ def _read_error(path: Path, err: Exception) -> CheckpointError:
 def load_checkpoint(
     path: str | Path, map_location="cpu", *, require: tuple[str, ...] = ("cfg", "layout", "loss")
 ) -> dict[str, Any]:
-    """The checkpoint at ``path``, upgraded to today's config fields (:func:`_upgrade`).
+    """The checkpoint at ``path``, of :data:`FORMAT_VERSION`.
 
     Anything else (a missing, empty, truncated, text, crafted or foreign file, another format, a
-    dict without the ``require``d fields) is one :class:`CheckpointError` line naming ``path``."""
+    dict without the ``require``d fields) is one :class:`CheckpointError` line naming ``path``;
+    an older format's names the command that converts it (:func:`another_format`)."""
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"checkpoint not found: {path}")
@@ -234,11 +194,7 @@ def load_checkpoint(
             f"{type(version).__name__}, where icco-torchrl writes an integer ({FORMAT_VERSION})"
         )
     if version != FORMAT_VERSION:
-        raise CheckpointError(
-            f"{path} has checkpoint format {payload['format_version']}; this version of "
-            f"icco-torchrl reads format {FORMAT_VERSION} (the networks changed): retrain, or "
-            "evaluate it with the release that wrote it"
-        )
+        raise another_format(path, version)
     missing = [key for key in require if key not in payload]
     if missing:
         raise CheckpointError(
@@ -253,7 +209,35 @@ def load_checkpoint(
         )
     if "loss" in require and not isinstance(payload["loss"], dict):
         raise CheckpointError(f"{path} is not a complete icco-torchrl checkpoint: loss is no dict")
-    return _upgrade(_from_plain(payload), path)
+    return _from_plain(payload)
+
+
+def another_format(path: Path, version: int) -> CheckpointError:
+    """The one line for a checkpoint of another format than :data:`FORMAT_VERSION`: an older one
+    names the command that converts it (a run's ``checkpoint.pt`` also in place, with its replay
+    dump, so its run can be resumed)."""
+    if version > FORMAT_VERSION:
+        return CheckpointError(
+            f"{path} has checkpoint format {version}, newer than the format {FORMAT_VERSION} this "
+            "icco-torchrl reads: use the icco-torchrl that wrote it"
+        )
+    return CheckpointError(
+        f"{path} has checkpoint format {version}; this icco-torchrl reads only format "
+        f"{FORMAT_VERSION}: {_convert_it(path)}"
+    )
+
+
+def _convert_it(path: Path) -> str:
+    """The command that converts the checkpoint ``path`` (a run's also in place)."""
+    old = shlex.quote(str(path))
+    new = shlex.quote(str(path.with_name(f"{path.stem}_v{FORMAT_VERSION}{path.suffix}")))
+    in_place = (
+        f" (or python {CONVERTER} --in-place {old}, which also converts its run's replay dump so "
+        "the run can be resumed)"
+        if path.name == CHECKPOINT
+        else ""
+    )
+    return f"convert it with python {CONVERTER} {old} {new}{in_place}"
 
 
 # ---------------------------------------------------------------- resume rules
@@ -309,8 +293,6 @@ def check_compatible(ckpt: dict[str, Any], cfg, layout, path: str | Path) -> Non
     ``resume=`` and by :func:`~icco_torchrl.training.restore.restore`; raises one
     ``CheckpointError`` naming every difference."""
     cfg = cfg if isinstance(cfg, dict) else OmegaConf.to_container(cfg, resolve=True)
-    # ``ckpt`` comes from load_checkpoint, which filled in the method fields added since it was
-    # written.
     saved_m, m = ckpt["cfg"]["method"], cfg["method"]
     method = [
         f"method.{key}: checkpoint {saved_m.get(key)!r} vs config {m.get(key)!r}"
@@ -346,8 +328,9 @@ def check_resumable(ckpt: dict, cfg: DictConfig, layout, path: str | Path) -> No
         raise CheckpointError(
             f"{path} cannot be resumed: it lacks the training state {', '.join(missing)}"
         )
-    # The saved config through today's schema, so fields added since it was written compare as
-    # defaults.
+    if not isinstance(ckpt["outputs"], dict):
+        raise CheckpointError(f"{path} cannot be resumed: its outputs record is no dict")
+    # The saved config through today's schema (its types and defaults), as the run's own.
     saved = OmegaConf.to_container(validate(OmegaConf.create(ckpt["cfg"])), resolve=True)
     check_resume_overrides(saved, OmegaConf.to_container(cfg, resolve=True), path)
     check_compatible(ckpt, cfg, layout, path)
@@ -428,8 +411,6 @@ def restore_replay(buffer, run_dir: str | Path, ckpt: dict, path: str | Path) ->
     dump = Path(run_dir) / REPLAY_DIR
     remove_stale_temps(dump)
     expected = ckpt.get("replay_id")
-    if expected is None:  # written before dumps had ids
-        return _restored(buffer, dump, load_replay(buffer, dump), run_dir)
     previous = previous_dump(dump)
     if dump_id_of(dump) == expected:
         return _restored(buffer, dump, load_replay(buffer, dump), run_dir)

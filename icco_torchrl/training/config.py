@@ -99,16 +99,14 @@ class MethodConfig:
     # Agents also read the nearest own waypoint and the path direction r_inst scores
     # (modules/waypoint_features.py).
     waypoint_features: bool = True
-    # Which rewards the Q-values learn: the team reward through the mixer | per robot, each
-    # robot's own terms (instruction, pick, delivery) in a value of its own beside the team's
-    # (defense, invasion) mixed as before; the robot acts on their sum | per_robot_aux: the same two
-    # values, their sum mixed on the whole reward as with one channel, the own one also learning
-    # the robot's own terms (objectives/icco_loss.py, mixed_channels).
-    reward_channels: str = _field("team", choices=("team", "per_robot", "per_robot_aux"))
+    # LayerNorm in the agent's trunk (the GRU's input) and Q head (modules/agent.py): a screen
+    # lever (experiments/best_team), off by default.
+    layer_norm: bool = False
 
 
-# The fields added or removed since older checkpoints were written, and their upgrade, live with
-# the checkpoint format: icco_torchrl/training/checkpoint.py.
+# A checkpoint holds every field of its format (training/checkpoint.py: FORMAT_VERSION); the fields
+# added or removed since older files were written, and their upgrade, live in the one script that
+# converts such files: tools/convert_checkpoint.py (outside the package).
 
 
 def _env_params_schema(name: str = "EnvParams", unset: bool = False) -> type:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import errno
 import json
 import os
+import shlex
 import shutil
 import tempfile
 import zlib
@@ -31,8 +32,9 @@ from icco_torchrl.training.run_folder import (
 # A dump is ``storage/`` (the filled segments: one raw C-order file per key, no pickle) and
 # ``manifest.json`` (its id, segment count, writer position, every key's dtype and shape, and the
 # size and CRC-32 of every file), written last: a dump without a valid manifest is never loaded.
-# Format 1 (a memory-mapped TensorDict under ``storage/``) is still read.
-REPLAY_FORMAT = 2
+# Only this format is read; a dump of another is refused in one line naming the command that
+# converts its run (a format-2 dump: the same files, tools/convert_checkpoint.py --in-place).
+REPLAY_FORMAT = 3
 MANIFEST = "manifest.json"
 STORAGE_DIR = "storage"
 _DTYPES = {
@@ -169,21 +171,25 @@ def _read_manifest(path: Path) -> dict:
     try:
         manifest = json.loads((path / MANIFEST).read_text())
     except FileNotFoundError:
-        raise _damaged(
-            path,
-            f"{MANIFEST} is missing (an interrupted dump, or one written by an older icco-torchrl)",
-        ) from None
+        raise _damaged(path, f"{MANIFEST} is missing (an interrupted dump)") from None
     except (OSError, ValueError) as err:
         raise _damaged(path, f"{MANIFEST} is unreadable ({type(err).__name__})") from None
-    keys = {"format", "segments", "capacity", "cursor", "write_count", "files"}
+    fmt = manifest.get("format") if isinstance(manifest, dict) else None
+    if type(fmt) is int and fmt != REPLAY_FORMAT:
+        raise CheckpointError(
+            f"replay buffer dump {path} has format {fmt}; this icco-torchrl reads only format "
+            f"{REPLAY_FORMAT}: convert its run with python tools/convert_checkpoint.py --in-place "
+            f"{shlex.quote(str(path.parent))}, or delete {path} to resume with an empty buffer"
+        )
+    keys = {"format", "segments", "capacity", "cursor", "write_count", "files", "tensors"}
     if (
         not isinstance(manifest, dict)
-        or manifest.get("format") not in (1, REPLAY_FORMAT)
+        or fmt != REPLAY_FORMAT
         or not keys <= set(manifest)
         or not isinstance(manifest["files"], dict)
-        or (manifest["format"] == 2 and not isinstance(manifest.get("tensors"), dict))
+        or not isinstance(manifest["tensors"], dict)
     ):
-        raise _damaged(path, f"{MANIFEST} is not a replay manifest of format 1 or {REPLAY_FORMAT}")
+        raise _damaged(path, f"{MANIFEST} is not a replay manifest of format {REPLAY_FORMAT}")
     root = path.resolve()
     for name, expected in manifest["files"].items():
         file = (path / name).resolve()
@@ -202,7 +208,7 @@ def _read_manifest(path: Path) -> dict:
 
 
 def _read_dump(path: Path, manifest: dict):
-    """The dumped segments of a format-2 dump as a TensorDict (its files were checked)."""
+    """The dumped segments as a TensorDict (its files were checked)."""
     from tensordict import TensorDict
 
     n = manifest["segments"]
@@ -222,15 +228,10 @@ def _read_dump(path: Path, manifest: dict):
 
 def _restore_buffer(buffer, path: Path, manifest: dict) -> None:
     """Write the dumped segments back into the slots they came from and restore the writer."""
-    from tensordict import TensorDict
-
     n, cursor, count = manifest["segments"], manifest["cursor"], manifest["write_count"]
     if not n:
         return
-    if manifest["format"] == 1:
-        data = TensorDict.load_memmap(path / STORAGE_DIR, allow_pickle=False)
-    else:
-        data = _read_dump(path, manifest)
+    data = _read_dump(path, manifest)
     if data.batch_size[0] != n:
         raise _damaged(path, f"{STORAGE_DIR} holds {data.batch_size[0]} segments, the manifest {n}")
     if isinstance(

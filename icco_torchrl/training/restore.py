@@ -13,10 +13,8 @@ from omegaconf import OmegaConf
 
 from icco_torchrl.envs.layout import ObsLayout
 from icco_torchrl.training.build import EVAL_SEED_OFFSET, Run, build
-from icco_torchrl.training.checkpoint import (  # noqa: F401 (export_policy: its old home)
-    POLICY_KEYS,
+from icco_torchrl.training.checkpoint import (
     check_compatible,
-    export_policy,
     load_checkpoint,
     load_weights,
     policy_weights,

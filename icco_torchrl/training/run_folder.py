@@ -175,14 +175,10 @@ def fresh_outputs() -> dict:
     return {"final_evaluation": False, "final_metrics": {}, "learning_curve": False}
 
 
-def outputs_of(ckpt: dict, run_dir: str | Path) -> dict:
+def outputs_of(ckpt: dict) -> dict:
     """Whether the final evaluation (and its metrics) and the learning curve of the checkpoint's
-    last frame were written. Checkpoints written before this was recorded count as complete when
-    their learning curve exists."""
-    if isinstance(ckpt.get("outputs"), dict):
-        return {**fresh_outputs(), **ckpt["outputs"]}
-    done = (Path(run_dir) / "learning_curve.png").is_file()
-    return {**fresh_outputs(), "final_evaluation": done, "learning_curve": done}
+    last frame were written (its ``outputs`` record, which ``check_resumable`` requires)."""
+    return {**fresh_outputs(), **ckpt["outputs"]}
 
 
 def last_evaluation(run_dir: str | Path, frames: int) -> dict | None:
