@@ -287,21 +287,11 @@ class TrainingRun:
         if remaining <= 0:
             return False
         run, t, p = self.run, self.cfg.train, self.progress
-        # train.collector: inline, or a process that starts with the loop (collector_process.py).
-        collector = make_collector(
-            run,
-            self.cfg,
-            remaining,
-            frames=p.frames,
-            epsilon=lambda frames: epsilon(frames, t),
-            streams=self.collector_torch,
-        )
+        collector = self._make_collector(remaining)
         taught = run.teacher.rows if run.teacher is not None else 0  # the teacher's env rows
         tracker = EpisodeTracker(self.cfg.env.num_envs - taught, run.env.device)
-        recent, episode_stats = (
-            [],
-            {k: float("nan") for k in EPISODE_COLUMNS},
-        )  # episodes since the last row
+        recent = []  # episodes since the last row
+        episode_stats = {k: float("nan") for k in EPISODE_COLUMNS}
         last_eval = last_ckpt = p.frames
         start_wall, start_frames = time.perf_counter(), p.frames
         stop = GracefulInterrupt()
@@ -310,58 +300,21 @@ class TrainingRun:
             for batch in collector:
                 self.timers["collect"] += time.perf_counter() - tick
                 self.collector_torch = getattr(collector, "torch_rng", None)
-                p.frames += batch.numel()
-                p.batches += 1
-                self.explore.eps.fill_(epsilon(p.frames, t))
-                recent.append(tracker.update(batch[taught:]))  # the learner's episodes
-                # Only what the loss reads is replayed.
-                replayed = batch.select(*run.loss.in_keys, strict=False)
-                if run.teacher is not None:
-                    replayed = run.teacher.split(replayed)
-                items = run.cutter(replayed)
-                if items.shape[0]:  # items longer than a batch complete in a later one
-                    run.buffer.extend(items)
-                tick = time.perf_counter()
-                try:
-                    row = self.learn()
-                except UpdateAbandoned:  # a stop cut an update's compile short: not applied
-                    row = {}
-                self.timers["train"] += time.perf_counter() - tick
+                recent.append(self._take_batch(batch, tracker, taught))
+                row = self._timed_learn()
                 if p.batches % self.cfg.logger.log_interval == 0:
                     episode_stats = self.log_train(row, recent) or episode_stats
                     recent = []
-                sps = (p.frames - start_frames) / (time.perf_counter() - start_wall)
-                self.logger.log(
-                    "timing",
-                    {
-                        "frames": p.frames,
-                        "sps": sps,
-                        **{f"time_{k}": v for k, v in self.timers.items()},
-                    },
-                )
+                sps = self._log_timing(start_wall, start_frames)
                 # On a fixed grid of frames (every interval crossed), so a resumed run evaluates and
                 # checkpoints at the same frames as an uninterrupted one.
-                if t.eval_interval and p.frames // t.eval_interval > last_eval // t.eval_interval:
+                if self._crossed(t.eval_interval, last_eval):
                     self.evaluate()
                     last_eval = p.frames
-                if (
-                    t.checkpoint_interval
-                    and p.frames // t.checkpoint_interval > last_ckpt // t.checkpoint_interval
-                ):
+                if self._crossed(t.checkpoint_interval, last_ckpt):
                     self.save()
                     last_ckpt = p.frames
-                self.logger.progress(
-                    p.frames,
-                    **{
-                        "env-steps/s": sps,
-                        "epsilon": float(self.explore.eps),
-                        "episode reward": episode_stats["episode_reward"],
-                        "picks": episode_stats["episode_pick"],
-                        "deliveries": episode_stats["episode_collect"],
-                        "defenses": episode_stats["episode_defense"],
-                        "invasions": episode_stats["episode_invasion"],
-                    },
-                )
+                self._show_progress(sps, episode_stats)
                 if stop.requested:
                     break
                 tick = time.perf_counter()
@@ -376,6 +329,79 @@ class TrainingRun:
                 f"saving a checkpoint"
             )
         return stop.requested
+
+    def _make_collector(self, remaining: int):
+        """The collector of ``remaining`` frames from the run's progress and RNG streams."""
+        t = self.cfg.train
+        # train.collector: inline, or a process that starts with the loop (collector_process.py).
+        return make_collector(
+            self.run,
+            self.cfg,
+            remaining,
+            frames=self.progress.frames,
+            epsilon=lambda frames: epsilon(frames, t),
+            streams=self.collector_torch,
+        )
+
+    def _take_batch(self, batch, tracker: EpisodeTracker, taught: int) -> torch.Tensor:
+        """Count a collected batch, advance the exploration schedule and replay what the loss
+        reads; returns the learner's episodes that ended in it."""
+        run, p = self.run, self.progress
+        p.frames += batch.numel()
+        p.batches += 1
+        self.explore.eps.fill_(epsilon(p.frames, self.cfg.train))
+        finished = tracker.update(batch[taught:])  # the learner's episodes
+        # Only what the loss reads is replayed.
+        replayed = batch.select(*run.loss.in_keys, strict=False)
+        if run.teacher is not None:
+            replayed = run.teacher.split(replayed)
+        items = run.cutter(replayed)
+        if items.shape[0]:  # items longer than a batch complete in a later one
+            run.buffer.extend(items)
+        return finished
+
+    def _timed_learn(self) -> dict:
+        """:meth:`learn`, its time added to the ``train`` timer."""
+        tick = time.perf_counter()
+        try:
+            row = self.learn()
+        except UpdateAbandoned:  # a stop cut an update's compile short: not applied
+            row = {}
+        self.timers["train"] += time.perf_counter() - tick
+        return row
+
+    def _log_timing(self, start_wall: float, start_frames: int) -> float:
+        """One ``timing.csv`` row; returns the env steps per second since the loop started."""
+        p = self.progress
+        sps = (p.frames - start_frames) / (time.perf_counter() - start_wall)
+        self.logger.log(
+            "timing",
+            {
+                "frames": p.frames,
+                "sps": sps,
+                **{f"time_{k}": v for k, v in self.timers.items()},
+            },
+        )
+        return sps
+
+    def _crossed(self, interval: int, last: int) -> bool:
+        """Whether the frames since ``last`` crossed a multiple of ``interval`` (0: never)."""
+        return bool(interval) and self.progress.frames // interval > last // interval
+
+    def _show_progress(self, sps: float, episode_stats: dict) -> None:
+        """The progress bar at the current frame, with the last logged episodes' means."""
+        self.logger.progress(
+            self.progress.frames,
+            **{
+                "env-steps/s": sps,
+                "epsilon": float(self.explore.eps),
+                "episode reward": episode_stats["episode_reward"],
+                "picks": episode_stats["episode_pick"],
+                "deliveries": episode_stats["episode_collect"],
+                "defenses": episode_stats["episode_defense"],
+                "invasions": episode_stats["episode_invasion"],
+            },
+        )
 
     def learn(self) -> dict:
         """``train.updates_per_batch`` updates once the buffer holds the warm-up; the last update's

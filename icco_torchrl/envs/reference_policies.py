@@ -213,7 +213,14 @@ class HeuristicPolicy(ReferencePolicy):
             target = torch.where(sel.unsqueeze(-1), point.unsqueeze(1), target)
             role = role.masked_fill(sel, DEFEND)
             busy = busy | sel
-        # Free robots: nearest resource not claimed by a lower-index robot.
+        self._claim_resources(pos, target, busy)
+        return target, (target - pos).norm(dim=-1), role
+
+    def _claim_resources(self, pos: torch.Tensor, target: torch.Tensor, busy: torch.Tensor) -> None:
+        """Send each free robot (not ``busy [B, N]``, at ``pos [B, N, 2]``) to the nearest
+        resource not claimed by a lower-index robot, in ``target [B, N, 2]``."""
+        e = self.env
+        B, N = busy.shape
         d_res = torch.cdist(pos, e.res_pos)  # [B, N, R]
         claimed = torch.zeros_like(d_res[:, 0], dtype=torch.bool)  # [B, R]
         for n in range(N):  # robots claim in index order
@@ -226,7 +233,6 @@ class HeuristicPolicy(ReferencePolicy):
             claimed = claimed | (
                 torch.nn.functional.one_hot(j, claimed.shape[1]).bool() & free.unsqueeze(-1)
             )
-        return target, (target - pos).norm(dim=-1), role
 
     def act(self) -> torch.Tensor:
         return steer(lookahead(self.env)[0], self.targets()[0])

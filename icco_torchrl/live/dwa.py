@@ -58,17 +58,8 @@ def dwa_command(
     control period (the window's size is ``accel * dt``).
     """
     x, y, theta = map(float, pose)
-    v0, w0 = map(float, velocity)
     L = limits
-    vs = np.linspace(
-        max(0.0, v0 - L.max_accel * dt), min(L.max_speed, v0 + L.max_accel * dt), samples
-    )
-    ws = np.linspace(
-        max(-L.max_turn, w0 - L.max_turn_accel * dt),
-        min(L.max_turn, w0 + L.max_turn_accel * dt),
-        2 * samples - 1,
-    )
-    v, w = (a.ravel() for a in np.meshgrid(vs, ws))  # [S]
+    v, w = _window(velocity, L, dt, samples)  # [S]
     steps = max(1, int(round(horizon / dt)))
     t = np.arange(1, steps + 1) * dt  # [H]
     heading = theta + w[:, None] * t  # [S, H]
@@ -91,3 +82,18 @@ def dwa_command(
     if not np.isfinite(cost[best]):  # boxed in: stop turning in place
         return 0.0, 0.0
     return float(v[best]), float(w[best])
+
+
+def _window(velocity, L: RobotLimits, dt: float, samples: int) -> tuple[np.ndarray, np.ndarray]:
+    """The ``(v, w)`` pairs ``[S]`` reachable from ``velocity`` within ``dt``: ``samples`` speeds
+    by ``2 * samples - 1`` turn rates."""
+    v0, w0 = map(float, velocity)
+    vs = np.linspace(
+        max(0.0, v0 - L.max_accel * dt), min(L.max_speed, v0 + L.max_accel * dt), samples
+    )
+    ws = np.linspace(
+        max(-L.max_turn, w0 - L.max_turn_accel * dt),
+        min(L.max_turn, w0 + L.max_turn_accel * dt),
+        2 * samples - 1,
+    )
+    return tuple(a.ravel() for a in np.meshgrid(vs, ws))

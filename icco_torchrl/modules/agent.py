@@ -54,6 +54,21 @@ def keep_hidden(
     return hidden * keep.to(hidden.dtype)
 
 
+def _check_agent_args(layout, *, n_actions, state_encoder: str, waypoint_features: bool) -> None:
+    """:class:`RecurrentQNet`'s checks of its arguments that do not depend on the encoder."""
+    if state_encoder not in STATE_ENCODERS:
+        raise ValueError(f"state_encoder must be one of {STATE_ENCODERS}, got {state_encoder!r}")
+    if not isinstance(n_actions, int) or n_actions < 1:
+        raise ValueError(
+            f"n_actions must be a positive integer (the env's action count), got {n_actions!r}"
+        )
+    if waypoint_features and layout is None:
+        raise ValueError(
+            "waypoint_features reads the own waypoints of a structured observation: it needs a "
+            "layout"
+        )
+
+
 class RecurrentQNet(nn.Module):
     """Q-values ``[..., N, n_actions]`` from observations, previous actions, z and a GRU state.
 
@@ -96,30 +111,41 @@ class RecurrentQNet(nn.Module):
         layer_norm: bool = False,
     ):
         super().__init__()
-        if state_encoder not in STATE_ENCODERS:
-            raise ValueError(
-                f"state_encoder must be one of {STATE_ENCODERS}, got {state_encoder!r}"
-            )
-        if not isinstance(n_actions, int) or n_actions < 1:
-            raise ValueError(
-                f"n_actions must be a positive integer (the env's action count), got {n_actions!r}"
-            )
+        _check_agent_args(
+            layout,
+            n_actions=n_actions,
+            state_encoder=state_encoder,
+            waypoint_features=waypoint_features,
+        )
         self.hidden, self.z_dim, self.full_state, self.n_actions = (
             hidden,
             z_dim,
             full_state,
             n_actions,
         )
-        if waypoint_features and layout is None:
-            raise ValueError(
-                "waypoint_features reads the own waypoints of a structured observation: it needs a "
-                "layout"
-            )
         self.waypoint_features = waypoint_features
         # the robot's own waypoints in its observation (read by the waypoint features)
         self._own_waypoints = layout.own_waypoints if layout is not None else None
-        wf = PATH_FEATURES if waypoint_features else 0
         self.relative = full_state and state_encoder == "relative"
+        self._make_encoder(layout, encoder, obs_dim=obs_dim, state_dim=state_dim)
+        self._make_embedding(hidden, n_actions)
+        # LayerNorm before the GRU's input and the head's ReLU (RLPD's order: Linear, norm,
+        # activation); never on the GRU state. Identity without layer_norm.
+        self.layer_norm = layer_norm
+        self.trunk_norm = nn.LayerNorm(hidden) if layer_norm else nn.Identity()
+        self.gru = GRU(hidden, hidden)
+        head_in = hidden + z_dim  # COPA's player: the Q head reads [GRU output; z]
+        self.head = nn.Sequential(
+            nn.Linear(head_in, hidden),
+            *([nn.LayerNorm(hidden)] if layer_norm else []),
+            ReLU(),
+            nn.Linear(hidden, n_actions),
+        )
+
+    def _make_encoder(self, layout, encoder, *, obs_dim, state_dim) -> None:
+        """The observation encoder (``self.encoder``) and the width of the own features."""
+        hidden, full_state = self.hidden, self.full_state
+        wf = PATH_FEATURES if self.waypoint_features else 0
         if layout is None:  # a flat observation (any env): [obs; state] through an MLP
             if obs_dim is None:
                 raise ValueError(
@@ -150,6 +176,10 @@ class RecurrentQNet(nn.Module):
                 hidden=hidden,
             )
             self._own_dim = layout.own_dim
+
+    def _make_embedding(self, hidden: int, n_actions: int) -> None:
+        """The input embedding of the features and the previous action (``embed``,
+        ``prev_action_embed``), initialised as one ``nn.Linear`` over their concatenation."""
         # embed([features; one_hot(prev_action)]) written as a linear map plus a per-action row:
         # the same function without building the one-hot and the concatenation.
         self.embed = nn.Linear(hidden, hidden)
@@ -158,18 +188,6 @@ class RecurrentQNet(nn.Module):
         nn.init.uniform_(self.embed.weight, -bound, bound)
         nn.init.uniform_(self.embed.bias, -bound, bound)
         nn.init.uniform_(self.prev_action_embed.weight, -bound, bound)
-        # LayerNorm before the GRU's input and the head's ReLU (RLPD's order: Linear, norm,
-        # activation); never on the GRU state. Identity without layer_norm.
-        self.layer_norm = layer_norm
-        self.trunk_norm = nn.LayerNorm(hidden) if layer_norm else nn.Identity()
-        self.gru = GRU(hidden, hidden)
-        head_in = hidden + z_dim  # COPA's player: the Q head reads [GRU output; z]
-        self.head = nn.Sequential(
-            nn.Linear(head_in, hidden),
-            *([nn.LayerNorm(hidden)] if layer_norm else []),
-            ReLU(),
-            nn.Linear(hidden, n_actions),
-        )
 
     def _path(self, obs):
         # own features are [x, y, vx, vy, carry, K relative waypoints] (ObsLayout)

@@ -60,6 +60,16 @@ class NonFiniteLossError(FloatingPointError):
     """Raised instead of stepping an optimiser on a NaN/inf loss."""
 
 
+def _check_weights(ce_coef: float, entropy_coef: float, reward_reduction: str) -> None:
+    """:class:`ICCOLoss`'s checks of its CE weights and its reward reduction."""
+    if ce_coef < 0 or entropy_coef < 0:
+        raise ValueError(f"ce_coef and entropy_coef must be >= 0, got {ce_coef}, {entropy_coef}")
+    if reward_reduction not in REWARD_REDUCTIONS:
+        raise ValueError(
+            f"reward_reduction must be one of {REWARD_REDUCTIONS}, got {reward_reduction!r}"
+        )
+
+
 class ICCOLoss(LossModule):
     """TD + consistency loss over replayed sequences for ICCO and its QMIX baselines.
 
@@ -174,27 +184,9 @@ class ICCOLoss(LossModule):
     ):
         super().__init__()
         self._set_discount(gamma, td_lambda)
-        if ce_coef < 0 or entropy_coef < 0:
-            raise ValueError(
-                f"ce_coef and entropy_coef must be >= 0, got {ce_coef}, {entropy_coef}"
-            )
-        if reward_reduction not in REWARD_REDUCTIONS:
-            raise ValueError(
-                f"reward_reduction must be one of {REWARD_REDUCTIONS}, got {reward_reduction!r}"
-            )
+        _check_weights(ce_coef, entropy_coef, reward_reduction)
         net = agent.module
-        # The sequence protocol (RecurrentQNet and stand-ins): a sequence in one call.
-        self._sequence_agent = hasattr(net, "sequence")
-        if not isinstance(burn_in, int) or burn_in < 0:
-            raise ValueError(f"burn_in must be an integer >= 0, got {burn_in!r}")
-        # With step(...) and sequence(..., return_hidden=True) as well: burn-in, and double Q
-        # without the backward pass of the bootstrap input.
-        self._stepping_agent = self._sequence_agent and hasattr(net, "step")
-        if burn_in and not self._stepping_agent:
-            raise ValueError(
-                "burn_in needs an agent with step(...) and sequence(..., return_hidden=True), "
-                "as RecurrentQNet has"
-            )
+        self._set_agent_protocol(net, burn_in)
         self.has_coordinator = coordinator is not None
         if hasattr(net, "z_dim") and self.has_coordinator != bool(net.z_dim):
             raise ValueError("the agent takes z (z_dim > 0) exactly when a coordinator is given")
@@ -215,6 +207,22 @@ class ICCOLoss(LossModule):
         if posterior is not None and not isinstance(posterior, TensorDictModule):
             posterior = _Holder(posterior)
         self.posterior = posterior if self.has_coordinator and ce_coef > 0 else None
+
+    def _set_agent_protocol(self, net: nn.Module, burn_in: int) -> None:
+        """What the agent ``net`` can do (a sequence in one call, a step), checked against
+        ``burn_in``."""
+        # The sequence protocol (RecurrentQNet and stand-ins): a sequence in one call.
+        self._sequence_agent = hasattr(net, "sequence")
+        if not isinstance(burn_in, int) or burn_in < 0:
+            raise ValueError(f"burn_in must be an integer >= 0, got {burn_in!r}")
+        # With step(...) and sequence(..., return_hidden=True) as well: burn-in, and double Q
+        # without the backward pass of the bootstrap input.
+        self._stepping_agent = self._sequence_agent and hasattr(net, "step")
+        if burn_in and not self._stepping_agent:
+            raise ValueError(
+                "burn_in needs an agent with step(...) and sequence(..., return_hidden=True), "
+                "as RecurrentQNet has"
+            )
 
     def _set_discount(self, gamma: float, td_lambda: float) -> None:
         if not 0 <= gamma <= 1:

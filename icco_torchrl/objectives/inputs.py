@@ -152,28 +152,14 @@ def read_batch(loss, td: TensorDictBase) -> LossBatch:
     :func:`assemble`'s), from the loss's public description of what it reads (``tensor_keys``,
     ``recurrent``, ``reads_prev_action``, ``has_coordinator``, ``threshold``,
     ``reward_reduction``, ``mixer_inputs``)."""
-    if td.batch_dims != 2:
-        raise ValueError(
-            f"ICCOLoss expects sequences with batch [S, T] (time last), got batch "
-            f"{list(td.batch_size)}"
-        )
-    k, net, reduction = loss.tensor_keys, loss.agent.module, loss.reward_reduction
+    _check_sequences(td)
+    k, reduction = loss.tensor_keys, loss.reward_reduction
     S, L = td.batch_size
     N = get_checked(td, k.action, "[S, T, N]", ndim=3).shape[-1]
     obs_width = get_checked(td, k.observation, "[S, T, N, obs_dim]", ndim=4).shape[-1]
     obs_shape = (N, obs_width)
-    width = getattr(net, "hidden", None)
-    hidden = get_checked(
-        td,
-        k.rnn_hidden,
-        f"[S, T, N, {width or 'hidden'}]",
-        optional=not loss.recurrent,
-        trailing=(N, width) if width else None,
-    )
-    state_expected = "[S, T, state_dim] (trailing dims are flattened)"
-    raw_state = get_checked(td, k.state, state_expected)
-    state = raw_state.reshape(S, L, -1)
-    next_state = get_checked(td, next_key(k.state), state_expected).reshape(S, L, -1)
+    hidden = _read_hidden(loss, td, N)
+    states = _read_states(td, k, S, L)
     obs = get_checked(td, k.observation, "[S, T, N, obs_dim]", trailing=obs_shape)
     next_obs = get_checked(td, next_key(k.observation), "[S, T, N, obs_dim]", trailing=obs_shape)
     prev_action = get_checked(
@@ -184,6 +170,64 @@ def read_batch(loss, td: TensorDictBase) -> LossBatch:
     step_count = get_checked(
         td, k.step_count, "[S, T, 1]", trailing=(1,), optional=not loss.has_coordinator
     )
+    episodes = _read_episode_bounds(td, k, N, reduction, step_count)
+    coordination = _read_coordination(loss, td, N, step_count)
+    mixer_inputs, next_mixer_inputs = loss.mixer_inputs(td)
+    return LossBatch(
+        obs=obs,
+        next_obs=next_obs,
+        action=td.get(k.action),
+        prev_action=prev_action,
+        hidden=hidden,
+        **states,
+        reward=reward,
+        terminated=terminated,
+        **episodes,
+        **coordination,
+        mixer_inputs=mixer_inputs,
+        next_mixer_inputs=next_mixer_inputs,
+    )
+
+
+def _check_sequences(td: TensorDictBase) -> None:
+    """Refuse a batch that is not sequences ``[S, T]``."""
+    if td.batch_dims != 2:
+        raise ValueError(
+            f"ICCOLoss expects sequences with batch [S, T] (time last), got batch "
+            f"{list(td.batch_size)}"
+        )
+
+
+def _read_hidden(loss, td: TensorDictBase, N: int) -> Tensor | None:
+    """The stored recurrent state ``[S, L, N, H]`` (None when the loss's agent is not
+    recurrent and the batch has none)."""
+    width = getattr(loss.agent.module, "hidden", None)
+    return get_checked(
+        td,
+        loss.tensor_keys.rnn_hidden,
+        f"[S, T, N, {width or 'hidden'}]",
+        optional=not loss.recurrent,
+        trailing=(N, width) if width else None,
+    )
+
+
+def _read_states(td: TensorDictBase, k, S: int, L: int) -> dict:
+    """The :class:`LossBatch` fields of the global state: ``state`` and ``next_state``
+    flattened to ``[S, L, D]``, and ``state_shape``."""
+    state_expected = "[S, T, state_dim] (trailing dims are flattened)"
+    raw_state = get_checked(td, k.state, state_expected)
+    next_state = get_checked(td, next_key(k.state), state_expected).reshape(S, L, -1)
+    return {
+        "state": raw_state.reshape(S, L, -1),
+        "next_state": next_state,
+        "state_shape": tuple(raw_state.shape[2:]),
+    }
+
+
+def _read_episode_bounds(td: TensorDictBase, k, N: int, reduction: str, step_count) -> dict:
+    """The :class:`LossBatch` fields that bound the episodes: ``is_init`` (read, or
+    ``step_count == 0``), ``mask`` (the cutter's) and, without a mask, ``done``."""
+    S, L = td.batch_size
     is_init = team_value(td, k.is_init, N, "flag", reduction, optional=True)
     if is_init is None and step_count is not None:
         is_init = step_count == 0  # derived
@@ -195,11 +239,23 @@ def read_batch(loss, td: TensorDictBase) -> LossBatch:
         raise ValueError(
             f"ICCOLoss: key {k.mask!r} must have shape [S, T] or [S, T, 1], got {list(mask.shape)}"
         )
+    return {
+        "done": done,
+        "is_init": None if is_init is None else is_init.reshape(S, L).bool(),
+        "mask": None if mask is None else mask.reshape(S, L).bool(),
+    }
+
+
+def _read_coordination(loss, td: TensorDictBase, N: int, step_count) -> dict:
+    """The :class:`LossBatch` fields a coordinator needs (``z``, ``z_noise``, ``z_sent``,
+    ``step_count``, ``next_step_count``); all None without one."""
+    k = loss.tensor_keys
     z = z_noise = z_sent = next_step_count = None
     if loss.has_coordinator:
-        z_shape = (N, net.z_dim)
-        z = get_checked(td, k.z, f"[S, T, N, {net.z_dim}]", trailing=z_shape)
-        z_noise = get_checked(td, k.z_noise, f"[S, T, N, {net.z_dim}]", trailing=z_shape)
+        z_dim = loss.agent.module.z_dim
+        z_shape = (N, z_dim)
+        z = get_checked(td, k.z, f"[S, T, N, {z_dim}]", trailing=z_shape)
+        z_noise = get_checked(td, k.z_noise, f"[S, T, N, {z_dim}]", trailing=z_shape)
         if loss.threshold > 0:
             z_sent = get_checked(td, k.z_sent, "[S, T, N, 1]", trailing=(N, 1)).bool()
         step_count = step_count.squeeze(-1)
@@ -208,29 +264,13 @@ def read_batch(loss, td: TensorDictBase) -> LossBatch:
         ).squeeze(-1)
     else:
         step_count = None
-    mixer_inputs, next_mixer_inputs = loss.mixer_inputs(td)
-    return LossBatch(
-        obs=obs,
-        next_obs=next_obs,
-        action=td.get(k.action),
-        prev_action=prev_action,
-        hidden=hidden,
-        state=state,
-        next_state=next_state,
-        state_shape=tuple(raw_state.shape[2:]),
-        reward=reward,
-        terminated=terminated,
-        done=done,
-        is_init=None if is_init is None else is_init.reshape(S, L).bool(),
-        mask=None if mask is None else mask.reshape(S, L).bool(),
-        z=z,
-        z_noise=z_noise,
-        z_sent=z_sent,
-        step_count=step_count,
-        next_step_count=next_step_count,
-        mixer_inputs=mixer_inputs,
-        next_mixer_inputs=next_mixer_inputs,
-    )
+    return {
+        "z": z,
+        "z_noise": z_noise,
+        "z_sent": z_sent,
+        "step_count": step_count,
+        "next_step_count": next_step_count,
+    }
 
 
 def assemble(batch: LossBatch, reads_state: bool) -> LossBatch:

@@ -111,29 +111,36 @@ def make_modules(cfg: DictConfig, layout, device, *, n_actions: int) -> dict:
         "posterior": None,
     }
     if m.coordinator:
-        mods["coordinator"] = make_coordinator(
-            layout,
-            z_dim=m.z_dim,
-            hidden=m.hidden,
-            period=m.period,
-            encoder=m.encoder,
-            state_encoder=m.state_encoder,
-            init_logvar=m.z_init_logvar,
-            threshold=m.broadcast_threshold,
-        )
-        if m.ce_coef > 0:
-            mods["posterior"] = make_posterior(
-                layout,
-                n_actions=n_actions,
-                z_dim=m.z_dim,
-                hidden=m.hidden,
-                combine=m.posterior,
-                inputs=m.posterior_input,
-            )
+        mods["coordinator"], mods["posterior"] = _make_coordination(m, layout, n_actions)
     for mod in mods.values():
         if mod is not None:
             mod.to(device)
     return mods
+
+
+def _make_coordination(m: DictConfig, layout, n_actions: int) -> tuple:
+    """The coordinator of ``method`` node ``m`` and, with ``ce_coef > 0``, its posterior."""
+    coordinator = make_coordinator(
+        layout,
+        z_dim=m.z_dim,
+        hidden=m.hidden,
+        period=m.period,
+        encoder=m.encoder,
+        state_encoder=m.state_encoder,
+        init_logvar=m.z_init_logvar,
+        threshold=m.broadcast_threshold,
+    )
+    posterior = None
+    if m.ce_coef > 0:
+        posterior = make_posterior(
+            layout,
+            n_actions=n_actions,
+            z_dim=m.z_dim,
+            hidden=m.hidden,
+            combine=m.posterior,
+            inputs=m.posterior_input,
+        )
+    return coordinator, posterior
 
 
 def make_loss(cfg: DictConfig, mods: dict) -> ICCOLoss:
@@ -229,33 +236,14 @@ def build(
     the same weights every time."""
     device = resolve_device(cfg.device if device is None else str(device))
     t = cfg.train
-    if for_training:  # training-only env parameters (reward shaping); evaluations keep env.params
-        env_overrides = {**set_env_params(t.env_params), **env_overrides}
-        if t.get("team_sizes"):  # per-env team sizes: the training env only, like env_params
-            env_overrides.setdefault("team_sizes", tuple(t.team_sizes))
-    shaping = t.shaping if for_training else None
-    env = make_env(
-        cfg, num_envs=num_envs, seed=seed, device=device, shaping=shaping, **env_overrides
-    )
-    eval_env = (
-        make_env(cfg, num_envs=t.eval_envs, seed=cfg.seed + VALIDATION_SEED_OFFSET, device=device)
-        if for_training
-        else None
+    env, eval_env = _make_envs(
+        cfg, num_envs=num_envs, seed=seed, device=device, for_training=for_training, **env_overrides
     )
     layout = env.base_env.layout
     mods = make_modules(cfg, layout, device, n_actions=action_count(env))
     guide = teacher = None
     if for_training and (t.get("explore_guide") or t.get("teacher")):  # scripted policies
-        from icco_torchrl.envs.reference_policies import make_reference_policy
-
-        def scripted(name, field):
-            try:
-                return make_reference_policy(name, env, radius=cfg.eval.blend_radius, seed=cfg.seed)
-            except (TypeError, ValueError) as err:
-                raise ConfigError(f"config field 'train.{field}': {err}") from None
-
-        guide = scripted(t.explore_guide, "explore_guide") if t.get("explore_guide") else None
-        teacher = scripted(t.teacher, "teacher") if t.get("teacher") else None
+        guide, teacher = _scripted_policies(cfg, env)
     policy = make_policy(
         mods["agent"],
         env.full_action_spec_unbatched,
@@ -278,28 +266,71 @@ def build(
         eval_env=eval_env,
     )
     if for_training:
-        run.optim = make_optimizer(cfg, loss)
-        run.update = make_update(cfg, loss, run.optim)
-        run.updater = make_target_updater(
-            loss, t.target_update, interval=t.target_update_interval, tau=t.tau
-        )
-        taught = teacher_items(cfg)
-        run.buffer = TensorDictReplayBuffer(
-            storage=LazyTensorStorage(t.buffer_segments, device=device),
-            sampler=RandomSampler(),
-            batch_size=t.batch_segments - taught,
-        )
-        if teacher is not None:
-            run.teacher = TeacherReplay(
-                rows=t.teacher_envs,
-                cutter=SegmentCutter(length=t.sequence_length),
-                buffer=TensorDictReplayBuffer(
-                    storage=LazyTensorStorage(t.buffer_segments, device=device),
-                    sampler=RandomSampler(),
-                    batch_size=taught,
-                ),
-            )
+        _add_training_parts(run, device, with_teacher=teacher is not None)
     return run
+
+
+def _make_envs(cfg: DictConfig, *, num_envs, seed, device, for_training: bool, **env_overrides):
+    """:func:`build`'s env and, ``for_training``, its evaluation env (else None)."""
+    t = cfg.train
+    if for_training:  # training-only env parameters (reward shaping); evaluations keep env.params
+        env_overrides = {**set_env_params(t.env_params), **env_overrides}
+        if t.get("team_sizes"):  # per-env team sizes: the training env only, like env_params
+            env_overrides.setdefault("team_sizes", tuple(t.team_sizes))
+    shaping = t.shaping if for_training else None
+    env = make_env(
+        cfg, num_envs=num_envs, seed=seed, device=device, shaping=shaping, **env_overrides
+    )
+    eval_env = (
+        make_env(cfg, num_envs=t.eval_envs, seed=cfg.seed + VALIDATION_SEED_OFFSET, device=device)
+        if for_training
+        else None
+    )
+    return env, eval_env
+
+
+def _scripted_policies(cfg: DictConfig, env: TransformedEnv) -> tuple:
+    """``train.explore_guide`` and ``train.teacher``'s scripted policies (None where unset)."""
+    from icco_torchrl.envs.reference_policies import make_reference_policy
+
+    t = cfg.train
+
+    def scripted(name, field):
+        try:
+            return make_reference_policy(name, env, radius=cfg.eval.blend_radius, seed=cfg.seed)
+        except (TypeError, ValueError) as err:
+            raise ConfigError(f"config field 'train.{field}': {err}") from None
+
+    guide = scripted(t.explore_guide, "explore_guide") if t.get("explore_guide") else None
+    teacher = scripted(t.teacher, "teacher") if t.get("teacher") else None
+    return guide, teacher
+
+
+def _add_training_parts(run: Run, device, *, with_teacher: bool) -> None:
+    """The optimiser, update, target updater and replay buffers (the teacher's too) of ``run``."""
+    cfg, loss = run.cfg, run.loss
+    t = cfg.train
+    run.optim = make_optimizer(cfg, loss)
+    run.update = make_update(cfg, loss, run.optim)
+    run.updater = make_target_updater(
+        loss, t.target_update, interval=t.target_update_interval, tau=t.tau
+    )
+    taught = teacher_items(cfg)
+    run.buffer = TensorDictReplayBuffer(
+        storage=LazyTensorStorage(t.buffer_segments, device=device),
+        sampler=RandomSampler(),
+        batch_size=t.batch_segments - taught,
+    )
+    if with_teacher:
+        run.teacher = TeacherReplay(
+            rows=t.teacher_envs,
+            cutter=SegmentCutter(length=t.sequence_length),
+            buffer=TensorDictReplayBuffer(
+                storage=LazyTensorStorage(t.buffer_segments, device=device),
+                sampler=RandomSampler(),
+                batch_size=taught,
+            ),
+        )
 
 
 def teacher_items(cfg: DictConfig) -> int:

@@ -503,8 +503,39 @@ def validate(cfg: DictConfig | dict) -> DictConfig:
     except OmegaConfBaseException as err:
         raise _field_error(err) from None
     _check_fields(merged, Config)
-    m, t = merged.method, merged.train
+    t = merged.train
     # Rules between fields.
+    _check_method(merged.method)
+    _check_segments(merged)
+    _check_shaping(t.shaping, merged.env.params)
+    if not t.eps_end <= t.eps_init:
+        raise ConfigError(
+            "config fields 'train.eps_init'/'train.eps_end' need 0 <= eps_end <= eps_init <= 1"
+        )
+    if merged.llm.n_waypoints != merged.env.params.n_waypoints:
+        raise ConfigError(
+            f"config field 'llm.n_waypoints' ({merged.llm.n_waypoints}) must equal "
+            f"'env.params.n_waypoints' ({merged.env.params.n_waypoints})"
+        )
+    for name in merged.eval.references:
+        try:
+            parse_reference(name)
+        except ValueError as err:
+            raise ConfigError(f"config field 'eval.references': {err}") from None
+    _check_teacher(merged)
+    _check_replay_ratio(merged)
+    _check_training_env(merged)
+    device = resolve_device(merged.device)
+    if t.cudagraphs and device.type != "cuda":
+        raise ConfigError(
+            f"config field 'train.cudagraphs' captures CUDA graphs: it needs a CUDA device, and "
+            f"device is {merged.device!r} ({device.type})"
+        )
+    return merged
+
+
+def _check_method(m) -> None:
+    """The rules between the ``method`` fields."""
     if m.coordinator and m.z_dim < 1:
         raise ConfigError(
             "config field 'method.z_dim' must be >= 1 when method.coordinator is true"
@@ -513,6 +544,11 @@ def validate(cfg: DictConfig | dict) -> DictConfig:
         raise ConfigError(
             "config fields 'method.coordinator' and 'method.full_state' are exclusive"
         )
+
+
+def _check_segments(cfg) -> None:
+    """The replayed segments fit the buffer and the broadcast period, with steps after burn-in."""
+    m, t = cfg.method, cfg.train
     if t.batch_segments > t.buffer_segments:
         raise ConfigError(
             f"config field 'train.batch_segments' ({t.batch_segments}) exceeds "
@@ -533,39 +569,21 @@ def validate(cfg: DictConfig | dict) -> DictConfig:
             f"config field 'train.burn_in' ({t.burn_in}) must be less than "
             f"'train.sequence_length' ({t.sequence_length})"
         )
-    _check_shaping(t.shaping, merged.env.params)
-    if not t.eps_end <= t.eps_init:
-        raise ConfigError(
-            "config fields 'train.eps_init'/'train.eps_end' need 0 <= eps_end <= eps_init <= 1"
-        )
-    if merged.llm.n_waypoints != merged.env.params.n_waypoints:
-        raise ConfigError(
-            f"config field 'llm.n_waypoints' ({merged.llm.n_waypoints}) must equal "
-            f"'env.params.n_waypoints' ({merged.env.params.n_waypoints})"
-        )
-    for name in merged.eval.references:
-        try:
-            parse_reference(name)
-        except ValueError as err:
-            raise ConfigError(f"config field 'eval.references': {err}") from None
-    _check_teacher(merged)
-    _check_replay_ratio(merged)
-    _check_env_params(merged.env.params)
+
+
+def _check_training_env(cfg) -> None:
+    """``env.params``, and the training env's own parameters (``train.env_params``,
+    ``train.team_sizes``) over them."""
+    t = cfg.train
+    _check_env_params(cfg.env.params)
     shaping = set_env_params(t.env_params)
     if shaping:
         _check_env_params(
-            {**OmegaConf.to_container(merged.env.params, resolve=True), **shaping},
+            {**OmegaConf.to_container(cfg.env.params, resolve=True), **shaping},
             "train.env_params",
             only=list(shaping),
         )
-    _check_team_sizes(t.team_sizes, shaping.get("n_agents", merged.env.params.n_agents))
-    device = resolve_device(merged.device)
-    if t.cudagraphs and device.type != "cuda":
-        raise ConfigError(
-            f"config field 'train.cudagraphs' captures CUDA graphs: it needs a CUDA device, and "
-            f"device is {merged.device!r} ({device.type})"
-        )
-    return merged
+    _check_team_sizes(t.team_sizes, shaping.get("n_agents", cfg.env.params.n_agents))
 
 
 def _check_teacher(cfg) -> None:
