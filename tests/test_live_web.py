@@ -810,8 +810,9 @@ def test_the_page_in_a_real_browser_go_right_moves_waypoints_and_robots(served, 
             assert len(shown) == 3 and all(a == b for a, b in shown), shown
             assert "nearest waypoint" in await tools.js(_text("team-controls"))
             start = await tools.js("icco.state.tick")
-            # Within 60 ticks every robot is in the right half of the field.
-            await tools.until("icco.state.positions.every(p => p[0] > 0)", timeout=10)
+            # Within 60 ticks the team is in the right half of the field: at least two of its three
+            # robots (the demo policy sends one to intercept the invader, wherever it is).
+            await tools.until("icco.state.positions.filter(p => p[0] > 0).length >= 2", timeout=10)
             assert await tools.js("icco.state.tick") - start <= 60
             # The panel shows the running counts; an empty instruction is reported in the page.
             assert await tools.js("document.getElementById('tick').textContent.length > 0")
