@@ -11,7 +11,8 @@ continues from its checkpoint when the script runs again. Each screen is then ev
 four-quadrant experiment (``experiments/four_quadrants/run.py``: ``icco eval
 eval.protocol=quadrants``, 20 trials per seed, seeds pooled, the scripted references on the same
 episodes) into ``screens/<screen>/``. A lever that uses a scripted policy in training is reported
-under its own label (``LABELS``), never as the paper's method.
+under its own label (``"<method> + teacher data"``, from the run's ``train.teacher``: see
+``icco_torchrl.evaluation.metrics.method_label``), never as the paper's method.
 """
 
 from __future__ import annotations
@@ -55,11 +56,6 @@ SCREENS = {  # name: (lever, method, overrides)
         "qmix_full",
         TEACHER,
     ),
-}
-LABELS = {
-    "icco_teacher": "ICCO + teacher data",
-    "qmix_full_teacher": "QMIX (FULL) + teacher data",
-    "icco_layernorm": "ICCO + LayerNorm",
 }
 
 
