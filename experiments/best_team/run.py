@@ -35,9 +35,16 @@ SEEDS = (0, 1)
 # The defend-first team (the interceptor acts within 1.75 m, every other robot follows). The 2M
 # ICCO screen's runs were trained as `train.teacher=best_scripted` while best_scripted was this
 # team, before the frontier search moved it (experiments/calibration/README.md).
-TEACHER = ["train.teacher='blend(defend=1.75)'", "train.teacher_envs=8", "train.teacher_share=0.25"]
+TEACHER = [
+    "train.teacher='blend(defend=1.75)'",
+    "train.teacher_envs=8",
+    "train.teacher_share=0.25",
+    "method.layer_norm=false",
+]
+# The controls are the agent without LayerNorm, as they were trained before it became the default.
+CONTROL = ["method.layer_norm=false"]
 SCREENS = {  # name: (lever, method, overrides)
-    "icco": ("control", "icco", []),
+    "icco": ("control", "icco", CONTROL),
     "icco_teacher": ("defend-first team's data, 25 % of every batch", "icco", TEACHER),
     "icco_layernorm": (
         "LayerNorm in the agent's trunk (the GRU's input) and Q head",
@@ -48,9 +55,9 @@ SCREENS = {  # name: (lever, method, overrides)
         "speed recipe, not a lever: the env and acting in a collector process "
         "(train.collector=process, one batch of policy lag); learning must stay the control's",
         "icco",
-        ["train.collector=process"],
+        ["train.collector=process", *CONTROL],
     ),
-    "qmix_full": ("control", "qmix_full", []),
+    "qmix_full": ("control", "qmix_full", CONTROL),
     "qmix_full_teacher": (
         "defend-first team's data, 25 % of every batch",
         "qmix_full",

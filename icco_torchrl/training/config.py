@@ -99,9 +99,10 @@ class MethodConfig:
     # Agents also read the nearest own waypoint and the path direction r_inst scores
     # (modules/waypoint_features.py).
     waypoint_features: bool = True
-    # LayerNorm in the agent's trunk (the GRU's input) and Q head (modules/agent.py): a screen
-    # lever (experiments/best_team), off by default.
-    layer_norm: bool = False
+    # LayerNorm in the agent's trunk (the GRU's input) and Q head (modules/agent.py). On by
+    # default: the best-team screen (experiments/best_team) measured ICCO at 88 % of the best
+    # scripted team at 2M frames with it, 78 % without (2 seeds each); false is the paper's agent.
+    layer_norm: bool = True
 
 
 # A checkpoint holds every field of its format (training/checkpoint.py: FORMAT_VERSION); the fields
