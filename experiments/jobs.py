@@ -156,6 +156,55 @@ def _thin_timing(timing: Path, evals: Path) -> list[dict]:
     return kept
 
 
+# The blocks of a run's ``config.yaml`` that make its training recipe (the seed aside; ``eval``,
+# ``live`` and ``llm`` only say how it is watched), and those every method of one table shares
+# (its method block is its own).
+RECIPE_BLOCKS = ("method", "env", "train")
+SHARED_BLOCKS = ("env", "train")
+
+
+def _flat(tree, prefix: str = "") -> dict:
+    if not isinstance(tree, dict):
+        return {prefix: tree}
+    out = {}
+    for key, value in tree.items():
+        out.update(_flat(value, f"{prefix}.{key}" if prefix else str(key)))
+    return out
+
+
+def check_one_recipe(runs: dict[Path, str]) -> None:
+    """Refuse to pool runs ``{folder: method}`` trained with different recipes (a record of an
+    older recipe left beside the new ones): the runs of one method share their
+    :data:`RECIPE_BLOCKS`, and all runs their :data:`SHARED_BLOCKS`. A mismatch is one
+    line naming the two runs and the first field that differs."""
+    import yaml
+
+    configs = {}
+    for folder in runs:
+        path = folder / "config.yaml"
+        tree = yaml.safe_load(path.read_text()) if path.is_file() else {}
+        configs[folder] = {
+            k: v for k, v in _flat(tree or {}).items() if k.split(".")[0] in RECIPE_BLOCKS
+        }
+    first_of: dict[str, Path] = {}
+    for folder, method in runs.items():
+        for other, blocks in ((first_of.get(method), None), (next(iter(runs)), SHARED_BLOCKS)):
+            if other is None or other == folder:
+                continue
+            a, b = configs[other], configs[folder]
+            keys = sorted(
+                k for k in a.keys() | b.keys() if blocks is None or k.split(".")[0] in blocks
+            )
+            for key in keys:
+                if a.get(key, "(absent)") != b.get(key, "(absent)"):
+                    raise SystemExit(
+                        f"{other.name} and {folder.name} were trained with different recipes "
+                        f"({key}: {a.get(key, '(absent)')} vs {b.get(key, '(absent)')}): one table "
+                        "pools one recipe; move the other's records to a folder of their own"
+                    )
+        first_of.setdefault(method, folder)
+
+
 def keep_records(results: Path, trials: Path, records: Path) -> list[Path]:
     """File each checkpoint of an ``icco eval`` (``results``: its JSON, ``trials``: its trials
     CSV) as a record ``records/<run>/``: the run's :data:`RECORD_FILES` (``timing.csv`` cut to

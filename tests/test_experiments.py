@@ -621,3 +621,37 @@ def test_team_size_keeps_an_evaluation_only_with_its_overrides_and_newer_than_it
     os.utime(checkpoint, None)  # retrained after the evaluation
     os.utime(out / "quadrants.json", (1e9 - 1, 1e9 - 1))
     assert not run.is_current(out, overrides, [checkpoint])
+
+
+def test_records_of_two_recipes_are_not_pooled_into_one_table(tmp_path):
+    """A record of an older recipe left beside the new ones (a seed trained before LayerNorm
+    became the default) stops the report in one line naming both runs and the field."""
+    jobs = _load(ROOT / "experiments" / "jobs.py")
+    base = {"method": {"name": "icco", "layer_norm": True}, "env": {"num_envs": 32}}
+    configs = {
+        "icco_seed0": {**base, "seed": 0, "train": {"lr": 1e-3}},
+        "icco_seed1": {**base, "seed": 1, "train": {"lr": 1e-3}, "eval": {"trials": 5}},
+        "qmix_seed0": {"method": {"name": "qmix"}, "env": {"num_envs": 32}, "train": {"lr": 1e-3}},
+    }
+    for name, config in configs.items():
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "config.yaml").write_text(json.dumps(config))  # JSON is YAML
+    runs = {tmp_path / "icco_seed0": "ICCO", tmp_path / "icco_seed1": "ICCO"}
+    runs[tmp_path / "qmix_seed0"] = "QMIX"
+    jobs.check_one_recipe(runs)  # seeds, eval settings and method blocks may differ
+
+    (tmp_path / "icco_seed1" / "config.yaml").write_text(
+        json.dumps({**configs["icco_seed1"], "method": {"name": "icco"}})
+    )
+    with pytest.raises(
+        SystemExit,
+        match=r"^icco_seed0 and icco_seed1 were trained with "
+        r"different recipes \(method.layer_norm: True vs \(absent\)\)",
+    ):
+        jobs.check_one_recipe(runs)
+    (tmp_path / "icco_seed1" / "config.yaml").write_text(json.dumps(configs["icco_seed1"]))
+    (tmp_path / "qmix_seed0" / "config.yaml").write_text(
+        json.dumps({**configs["qmix_seed0"], "train": {"lr": 3e-4}})
+    )
+    with pytest.raises(SystemExit, match=r"\(train.lr: 0.001 vs 0.0003\)"):
+        jobs.check_one_recipe(runs)

@@ -400,6 +400,7 @@ def pooled_records(records: Path) -> tuple[list[dict], list[dict], list[Path]]:
         entry = json.loads(path.read_text())
         entries.append((order.get(entry["method"], len(order)), entry["seed"], path.parent, entry))
     entries.sort(key=lambda e: e[:2])
+    jobs.check_one_recipe({folder: entry["method"] for *_, folder, entry in entries})
     rows = [row for *_, folder, _ in entries for row in _read_trials(folder / "trials.csv")]
     references = records / jobs.REFERENCES_TRIALS
     if references.is_file():
