@@ -181,7 +181,7 @@ def test_pages_best_scripted_rows_and_shares_are_their_results():
         pages.add(page.relative_to(ROOT).as_posix())
     for page in (
         "experiments/four_quadrants/README.md",
-        "experiments/four_quadrants/5m/README.md",
+        "experiments/four_quadrants/5m_no_layernorm/README.md",
         "experiments/language/README.md",
         "experiments/language/5m/README.md",
     ):
@@ -197,7 +197,7 @@ def test_references_added_to_a_page_must_reproduce_the_ones_it_has(tmp_path):
     here = ROOT / "experiments" / "four_quadrants"
     for name in ("README.md", "results.json"):
         (tmp_path / name).write_text((here / name).read_text())
-    source = here / "5m" / "records" / "references_trials.csv"
+    source = here / "5m_no_layernorm" / "records" / "references_trials.csv"
     rows = list(csv.DictReader(source.open()))
     for row in rows:  # other episodes: the follower a little better on one trial
         if row["method"] == "follower" and row["trial"] == "0" and row["segment"] == "episode":
