@@ -574,12 +574,14 @@ def test_a_checkpoint_of_an_older_format_is_refused_in_one_line_naming_the_conve
 
 def _trained_with(tmp_path, **removed):
     """A format-2 checkpoint of real networks, written before the fields of the converter's tables
-    were added (its config lacks them; its networks have no waypoint features, as then), with the
-    ``removed`` options it was trained with; and the networks' state."""
+    were added (its config lacks them; its networks have no waypoint features and no LayerNorm, as
+    then), with the ``removed`` options it was trained with; and the networks' state."""
     from icco_torchrl.training.build import build, compose_config
 
     tables = converter()
-    cfg = compose_config(["method=icco", "method.waypoint_features=false"])
+    cfg = compose_config(
+        ["method=icco", "method.waypoint_features=false", "method.layer_norm=false"]
+    )
     run = build(cfg, num_envs=2)
     old = OmegaConf.to_container(cfg, resolve=True)
     for key in tables.METHOD_FIELDS_ADDED:
