@@ -22,7 +22,6 @@ from omegaconf import DictConfig, OmegaConf
 
 from icco_torchrl.envs import EVENT_KEYS
 from icco_torchrl.envs.reference_policies import make_reference_policy, reference_label
-from icco_torchrl.evaluation.plots import plot_learning_curve
 from icco_torchrl.evaluation.rollout import evaluate
 from icco_torchrl.modules.policy import exploration_module
 from icco_torchrl.training.build import VALIDATION_SEED_OFFSET, Run, build
@@ -488,6 +487,9 @@ class TrainingRun:
                 if not self.outputs["final_evaluation"]:
                     self.final_evaluation(stop)
                 if not self.outputs["learning_curve"]:
+                    # matplotlib is imported only for the figure (not by a command refused early)
+                    from icco_torchrl.evaluation.plots import plot_learning_curve
+
                     refs_file = self.run_dir / REFERENCES_FILE
                     refs = json.loads(refs_file.read_text()) if refs_file.exists() else {}
                     plot_learning_curve(self.run_dir, refs)

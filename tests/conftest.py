@@ -1,18 +1,33 @@
-"""Shared test helpers: one CPU thread (stable on shared machines), a CLI runner, bridge + fleet."""
+"""Shared test helpers: one CPU thread (stable on shared machines), a CLI runner, finished
+training runs shared by the tests that only read or resume them, bridge + fleet."""
 
 from __future__ import annotations
 
 import contextlib
+import fcntl
+import hashlib
 import os
+import shutil
 import subprocess
 import sys
 import threading
 from pathlib import Path
 
+import pytest
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 torch.set_num_threads(1)
+
+# The files of minutes-long tests (the compiling tests, the CLI trainings), run first: pytest-xdist
+# hands tests to its workers in collection order, so the last ones left are short and the workers
+# finish together instead of one waiting for the other's last training.
+SLOW_FIRST = ("test_fast_update.py", "test_train_cli.py", "test_collector_process.py")
+
+
+def pytest_collection_modifyitems(items):
+    rank = {name: i for i, name in enumerate(SLOW_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: else as collected
 
 
 def run_cli(
@@ -39,6 +54,54 @@ def run_cli(
             f"({proc.returncode}):\n{proc.stdout[-3000:]}\n{proc.stderr[-5000:]}"
         )
     return proc
+
+
+def session_dir(tmp_path_factory, name: str) -> Path:
+    """The folder ``name`` of this test session, shared by its xdist workers (whose own base
+    folders lie in the session's), created if missing."""
+    base = tmp_path_factory.getbasetemp()
+    folder = (base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base) / name
+    folder.mkdir(exist_ok=True)
+    return folder
+
+
+@contextlib.contextmanager
+def locked(path: Path):
+    """The block run by one test process at a time (an exclusive ``flock`` on ``path``)."""
+    with open(path, "a") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
+
+
+@pytest.fixture(scope="session")
+def trained(tmp_path_factory):
+    """``trained(*args) -> folder``: a finished ``icco train ARGS`` run (:func:`run_cli`), trained
+    once per test session (its xdist workers included) and shared by every test that asks for the
+    same ``args`` (training is deterministic: the same args give the same run). Read it as it is;
+    to resume, break or otherwise change it, work on :func:`copy_run`'s copy."""
+    root = session_dir(tmp_path_factory, "trained")
+
+    def train(*args: str) -> Path:
+        name = hashlib.sha1("\0".join(args).encode()).hexdigest()[:12]
+        folder, done = root / name, root / f"{name}.done"
+        with locked(root / f"{name}.lock"):
+            if not done.exists():
+                shutil.rmtree(folder, ignore_errors=True)  # a failed attempt's
+                run_cli("train", *args, f"hydra.run.dir={folder}")
+                done.write_text(" ".join(args) + "\n")
+        return folder
+
+    return train
+
+
+def copy_run(folder: Path, to: Path) -> Path:
+    """A copy of the run folder ``folder`` at ``to`` (its checkpoint, logs and replay dump name
+    their files relative to the folder: the copy resumes as the original would)."""
+    shutil.copytree(folder, to)
+    return to
 
 
 @contextlib.contextmanager

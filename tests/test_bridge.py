@@ -198,19 +198,14 @@ def test_a_port_in_use_is_one_clear_line():
         first.close()
 
 
-def test_icco_bridge_with_the_simulated_fleet_through_the_cli(tmp_path):
+def test_icco_bridge_with_the_simulated_fleet_through_the_cli(tmp_path, trained):
     import socket
 
-    from conftest import run_cli
+    from conftest import copy_run, run_cli
 
-    run_cli(
-        "train",
-        "method=qmix",
-        "experiment=smoke",
-        "logger.progress=false",
-        f"hydra.run.dir={tmp_path}",
-    )
-    ckpt = tmp_path / "checkpoint.pt"
+    # test_train_cli.py's qmix smoke run (trained once a session)
+    run = trained("method=qmix", "experiment=smoke", "logger.progress=false")
+    ckpt = copy_run(run, tmp_path / "run") / "checkpoint.pt"
     proc = run_cli(
         "bridge",
         f"checkpoint={ckpt}",

@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from conftest import locked, session_dir
 
 from icco_torchrl.cli import main
 from icco_torchrl.envs.reference_policies import reference_label
@@ -16,13 +17,15 @@ from icco_torchrl.evaluation.plots import plot_curves
 from icco_torchrl.evaluation.runner import find_checkpoints
 from icco_torchrl.training.build import compose_config
 
-# A seconds-long training run: a checkpoint with real weights, nothing learned.
+# A seconds-long training run: a checkpoint with real weights, nothing learned (the evaluations
+# here give their own eval.references).
 SMOKE = [
     "experiment=smoke",
     "train.total_frames=256",
     "train.eval_interval=0",
     "train.checkpoint_interval=0",
     "train.eval_envs=2",
+    "eval.references=[]",
     "logger.progress=false",
 ]
 
@@ -41,9 +44,15 @@ def icco(*args: str) -> int:
 
 
 def smoke_checkpoints(tmp_path_factory, methods) -> dict[str, Path]:
-    """``{method: checkpoint}``, trained once per test run (in parallel), shared by modules."""
-    root = tmp_path_factory.getbasetemp() / "smoke_checkpoints"
-    root.mkdir(exist_ok=True)
+    """``{method: checkpoint}``, trained once per test run (in parallel), shared by modules and
+    by the xdist workers (one trains, another waits for it)."""
+    root = session_dir(tmp_path_factory, "smoke_checkpoints")
+    with locked(root / ".lock"):
+        _train_missing(root, methods)
+    return {m: root / m / "checkpoint.pt" for m in methods}
+
+
+def _train_missing(root: Path, methods) -> None:
     env = {**os.environ, "OMP_NUM_THREADS": "1", "WANDB_MODE": "disabled"}
     jobs = {
         m: subprocess.Popen(
@@ -68,7 +77,6 @@ def smoke_checkpoints(tmp_path_factory, methods) -> dict[str, Path]:
     for method, job in jobs.items():
         out, _ = job.communicate(timeout=300)
         assert job.returncode == 0, f"smoke training of {method} failed:\n{out}"
-    return {m: root / m / "checkpoint.pt" for m in methods}
 
 
 @pytest.fixture(scope="module")

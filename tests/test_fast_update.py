@@ -2,10 +2,12 @@
 loss against the eager one (same loss terms and gradients on a fixed batch), the options' bad
 input and one training run through the CLI with the compiled update.
 
-The two compiling tests share one Inductor cache and one xdist group (``make test`` runs with
-``--dist loadgroup``), so the CLI run loads what the first test compiled. A cache that cannot be
-used, a failing compile and a stop during a cold compile (cut short after seconds) are checked
-too.
+The two compiling tests share one Inductor cache, compile one at a time and run in one xdist
+group (``make test`` runs with ``--dist loadgroup``), so the CLI run loads what the first test
+compiled: Inductor's kernels and AOTAutograd's compiled forward and backward (its cache skips a
+graph with a custom autograd.Function, the loss's ReLU, unless told otherwise; the cache is this
+test session's own, so no entry outlives the code that made it). A cache that cannot be used, a
+failing compile and a stop during a cold compile (cut short after seconds) are checked too.
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import run_cli
+from conftest import locked, run_cli, session_dir
 from torch import nn
 
 from icco_torchrl.modules.gru import GRU
@@ -41,15 +43,26 @@ COMPILE_RECIPE = ["experiment=smoke", "train.sequence_length=4", "method.hidden=
 
 
 @pytest.fixture(scope="module")
-def inductor_cache(tmp_path_factory):
-    path = tmp_path_factory.getbasetemp().parent / "icco-inductor-cache"
-    old = os.environ.get("TORCHINDUCTOR_CACHE_DIR")
-    os.environ["TORCHINDUCTOR_CACHE_DIR"] = str(path)
-    yield path
-    if old is None:
-        os.environ.pop("TORCHINDUCTOR_CACHE_DIR", None)
-    else:
-        os.environ["TORCHINDUCTOR_CACHE_DIR"] = old
+def inductor_env(tmp_path_factory):
+    """This session's Inductor cache (shared by the xdist workers), given to this process and to
+    the CLI runs it starts, with AOTAutograd's cache on for the loss's custom autograd.Function
+    (the CLI run then loads the compiled forward and backward instead of tracing them again)."""
+    import torch._functorch.config as functorch_config
+
+    path = session_dir(tmp_path_factory, "icco-inductor-cache")
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("TORCHINDUCTOR_CACHE_DIR", str(path))
+        patch.setenv("TORCHINDUCTOR_AUTOGRAD_CACHE_ALLOW_CUSTOM_AUTOGRAD", "1")  # the CLI's
+        patch.setattr(functorch_config, "autograd_cache_allow_custom_autograd_functions", True)
+        yield path
+
+
+@pytest.fixture
+def inductor_cache(inductor_env):
+    """The shared cache, compiled into by one test at a time: whichever compiling test comes
+    second (on any xdist worker) loads what the first compiled."""
+    with locked(inductor_env.parent / f"{inductor_env.name}.lock"):
+        yield inductor_env
 
 
 def test_gru_has_nn_grus_parameters_init_and_values():
@@ -145,6 +158,7 @@ def test_compiled_training_through_the_cli(tmp_path, inductor_cache):
         *COMPILE_RECIPE,
         "train.compile=true",
         "train.checkpoint_buffer=false",
+        "eval.references=[]",  # the scripted policies: the eager runs of test_train_cli.py
         f"hydra.run.dir={tmp_path}",
         timeout=600,
     )

@@ -13,6 +13,7 @@ TINY = (
     "train.checkpoint_interval=0",
     "eval.trials=2",
     "train.eval_envs=2",
+    "eval.references=[]",
 )
 
 

@@ -1,4 +1,9 @@
-"""The training pipeline through the real CLI: every method, resume, determinism, bad input."""
+"""The training pipeline through the real CLI: every method, resume, determinism, bad input.
+
+Tests that only read a finished run, or resume or break a copy of one, share it (conftest's
+``trained``: one training per set of arguments); those that only need a checkpoint to resume,
+break or kill skip the reference policies (``QUICK``): they read no ``references.json``.
+"""
 
 from __future__ import annotations
 
@@ -13,7 +18,7 @@ import time
 
 import pytest
 import torch
-from conftest import run_cli
+from conftest import copy_run, run_cli
 
 from icco_torchrl import methods
 from icco_torchrl.envs.reference_policies import reference_label
@@ -22,6 +27,10 @@ from icco_torchrl.training.checkpoint import FORMAT_VERSION, load_checkpoint
 from icco_torchrl.training.run_folder import CheckpointError
 
 SMOKE = ("experiment=smoke", "logger.progress=false")
+# The smoke run without the reference policies' five evaluations at its start.
+QUICK = (*SMOKE, "eval.references=[]")
+# A new icco run's first half: the checkpoint the resume tests continue (each on its own copy).
+HALF = (*QUICK, "train.total_frames=1024")
 
 
 def read_csv(path):
@@ -30,9 +39,9 @@ def read_csv(path):
 
 
 @pytest.mark.parametrize("method", methods.names())
-def test_every_method_trains_end_to_end(tmp_path, method):
-    run_cli("train", f"method={method}", *SMOKE, f"hydra.run.dir={tmp_path}")
-    rows = read_csv(tmp_path / "train.csv")
+def test_every_method_trains_end_to_end(trained, method):
+    run = trained(f"method={method}", *SMOKE)
+    rows = read_csv(run / "train.csv")
     assert int(rows[-1]["frames"]) == 2048
     assert int(rows[-1]["updates"]) > 0
     losses = [float(r["loss_td"]) for r in rows if int(r["updates"]) > 0]
@@ -40,10 +49,10 @@ def test_every_method_trains_end_to_end(tmp_path, method):
         math.isfinite(x) and x >= 0 for x in losses
     )  # logged and finite once updates start
     assert ("loss_ce" in rows[0]) == (method == "icco")
-    assert len(read_csv(tmp_path / "eval.csv")) >= 2
-    ckpt = torch.load(tmp_path / "checkpoint.pt", weights_only=False)
+    assert len(read_csv(run / "eval.csv")) >= 2
+    ckpt = torch.load(run / "checkpoint.pt", weights_only=False)
     assert ckpt["frames"] == 2048 and ckpt["cfg"]["method"]["name"] == method
-    assert (tmp_path / "learning_curve.png").stat().st_size > 0
+    assert (run / "learning_curve.png").stat().st_size > 0
     if method.startswith("qmix_full"):  # the paper's QMIX (FULL) reads the state as one flat vector
         assert ckpt["cfg"]["method"]["full_state"] and (
             ckpt["cfg"]["method"]["state_encoder"] == "flat"
@@ -51,17 +60,17 @@ def test_every_method_trains_end_to_end(tmp_path, method):
 
 
 def test_layer_norm_trains_end_to_end(tmp_path):
-    run_cli("train", "method.layer_norm=true", *SMOKE, f"hydra.run.dir={tmp_path}")
+    run_cli("train", "method.layer_norm=true", *QUICK, f"hydra.run.dir={tmp_path}")
     ckpt = load_checkpoint(tmp_path / "checkpoint.pt")
     assert ckpt["cfg"]["method"]["layer_norm"] is True
     assert any("trunk_norm" in key for key in ckpt["loss"])
 
 
-def test_training_reports_the_reference_policies(tmp_path):
+def test_training_reports_the_reference_policies(trained):
     import json
 
-    run_cli("train", *SMOKE, f"hydra.run.dir={tmp_path}")
-    refs = json.loads((tmp_path / "references.json").read_text())
+    run = trained("method=icco", *SMOKE)  # the default method's smoke run
+    refs = json.loads((run / "references.json").read_text())
     assert list(refs) == [
         "random",
         "follower",
@@ -71,7 +80,7 @@ def test_training_reports_the_reference_policies(tmp_path):
     ]
     assert refs["heuristic"]["task_reward"] > refs["random"]["task_reward"] + 30
     assert refs["follower"]["inst_reward"] > refs["random"]["inst_reward"] + 30
-    rows = read_csv(tmp_path / "eval.csv")
+    rows = read_csv(run / "eval.csv")
     for row in rows:  # the logged task reward is the team reward without the instruction reward
         assert float(row["task_reward"]) == pytest.approx(
             float(row["reward"]) - float(row["inst_reward"]), abs=1e-3
@@ -79,28 +88,28 @@ def test_training_reports_the_reference_policies(tmp_path):
 
 
 def test_same_seed_gives_identical_metrics(tmp_path):
-    run_cli("train", *SMOKE, "seed=3", f"hydra.run.dir={tmp_path / 'a'}")
+    run_cli("train", *QUICK, "seed=3", f"hydra.run.dir={tmp_path / 'a'}")
     # The second run also logs to wandb in offline mode: no network, no account, same metrics.
     run_cli(
-        "train", *SMOKE, "seed=3", "logger.wandb.mode=offline", f"hydra.run.dir={tmp_path / 'b'}"
+        "train", *QUICK, "seed=3", "logger.wandb.mode=offline", f"hydra.run.dir={tmp_path / 'b'}"
     )
     assert list((tmp_path / "b" / "wandb").glob("offline-run-*")), "wandb offline wrote nothing"
     for stream in ("train.csv", "eval.csv"):
         assert (tmp_path / "a" / stream).read_text() == (tmp_path / "b" / stream).read_text()
-    run_cli("train", *SMOKE, "seed=4", "train.total_frames=1024", f"hydra.run.dir={tmp_path / 'c'}")
+    run_cli("train", *QUICK, "seed=4", "train.total_frames=1024", f"hydra.run.dir={tmp_path / 'c'}")
     c = read_csv(tmp_path / "c" / "train.csv")
     a = read_csv(tmp_path / "a" / "train.csv")[: len(c)]
     assert [r["loss_td"] for r in a] != [r["loss_td"] for r in c], "the seed has no effect"
 
 
-def test_resume_continues_frames_and_schedules(tmp_path):
-    run_cli("train", *SMOKE, "train.total_frames=1024", f"hydra.run.dir={tmp_path / 'part'}")
+def test_resume_continues_frames_and_schedules(tmp_path, trained):
+    copy_run(trained(*HALF), tmp_path / "part")
     first = torch.load(tmp_path / "part" / "checkpoint.pt", weights_only=False)
     assert first["frames"] == 1024
     assert first["replay_segments"] > 0 and (tmp_path / "part" / "replay").is_dir()
     proc = run_cli(
         "train",
-        *SMOKE,
+        *QUICK,
         f"resume={tmp_path / 'part' / 'checkpoint.pt'}",
         f"hydra.run.dir={tmp_path / 'other'}",
     )
@@ -114,23 +123,22 @@ def test_resume_continues_frames_and_schedules(tmp_path):
     eps = [float(r["epsilon"]) for r in rows]
     assert all(b <= a for a, b in zip(eps, eps[1:])), "epsilon restarted after resume"
     # The uninterrupted run reaches the same frame count.
-    run_cli("train", *SMOKE, f"hydra.run.dir={tmp_path / 'full'}")
-    full = read_csv(tmp_path / "full" / "train.csv")
+    full = read_csv(trained("method=icco", *SMOKE) / "train.csv")
     assert int(full[-1]["frames"]) == 2048 and float(full[-1]["epsilon"]) == pytest.approx(eps[-1])
 
 
-def test_resume_without_the_replay_dump_says_so_and_refills(tmp_path):
-    run_cli("train", *SMOKE, "train.total_frames=1024", f"hydra.run.dir={tmp_path}")
-    shutil.rmtree(tmp_path / "replay")
-    proc = run_cli("train", *SMOKE, f"resume={tmp_path / 'checkpoint.pt'}")
+def test_resume_without_the_replay_dump_says_so_and_refills(tmp_path, trained):
+    run = copy_run(trained(*HALF), tmp_path / "run")
+    shutil.rmtree(run / "replay")
+    proc = run_cli("train", *QUICK, f"resume={run / 'checkpoint.pt'}")
     assert "resuming with an empty buffer" in proc.stdout
-    assert torch.load(tmp_path / "checkpoint.pt", weights_only=False)["frames"] == 2048
+    assert torch.load(run / "checkpoint.pt", weights_only=False)["frames"] == 2048
 
 
-def test_unreadable_replay_dump_is_one_clear_line(tmp_path):
-    run_cli("train", *SMOKE, "train.total_frames=1024", f"hydra.run.dir={tmp_path}")
-    shutil.rmtree(tmp_path / "replay" / "storage")
-    proc = run_cli("train", *SMOKE, f"resume={tmp_path / 'checkpoint.pt'}", check=False)
+def test_unreadable_replay_dump_is_one_clear_line(tmp_path, trained):
+    run = copy_run(trained(*HALF), tmp_path / "run")
+    shutil.rmtree(run / "replay" / "storage")
+    proc = run_cli("train", *QUICK, f"resume={run / 'checkpoint.pt'}", check=False)
     assert (
         proc.returncode == 2
         and "replay buffer dump" in proc.stderr
@@ -141,7 +149,7 @@ def test_unreadable_replay_dump_is_one_clear_line(tmp_path):
 def test_replay_dump_can_be_turned_off(tmp_path):
     run_cli(
         "train",
-        *SMOKE,
+        *QUICK,
         "train.total_frames=1024",
         "train.checkpoint_buffer=false",
         f"hydra.run.dir={tmp_path}",
@@ -224,14 +232,14 @@ def test_checkpoint_of_another_format_names_both_formats(tmp_path):
         load_checkpoint(path)
 
 
-def test_weights_that_do_not_fit_the_networks_are_one_clear_line(tmp_path):
-    run_cli("train", *SMOKE, "method=qmix", "train.total_frames=512", f"hydra.run.dir={tmp_path}")
-    path = tmp_path / "checkpoint.pt"
+def test_weights_that_do_not_fit_the_networks_are_one_clear_line(tmp_path, trained):
+    run = copy_run(trained(*QUICK, "method=qmix", "train.total_frames=512"), tmp_path / "run")
+    path = run / "checkpoint.pt"
     ckpt = torch.load(path, weights_only=False)
     ckpt["loss"] = {k: v for k, v in ckpt["loss"].items() if "prev_action_embed" not in k}
     torch.save(ckpt, path)
     proc = run_cli(
-        "train", *SMOKE, "method=qmix", "train.total_frames=1024", f"resume={path}", check=False
+        "train", *QUICK, "method=qmix", "train.total_frames=1024", f"resume={path}", check=False
     )
     assert proc.returncode == 2 and "does not match the qmix networks" in proc.stderr
     assert "Traceback" not in proc.stderr
@@ -249,13 +257,11 @@ def test_bad_checkpoint_on_the_cli_is_one_clear_line(tmp_path):
     )
 
 
-def test_incompatible_checkpoint_is_refused(tmp_path):
-    run_cli(
-        "train", *SMOKE, "method=qmix", "train.total_frames=512", f"hydra.run.dir={tmp_path / 'q'}"
-    )
+def test_incompatible_checkpoint_is_refused(tmp_path, trained):
+    copy_run(trained(*QUICK, "method=qmix", "train.total_frames=512"), tmp_path / "q")
     proc = run_cli(
         "train",
-        *SMOKE,
+        *QUICK,
         "method=icco",
         f"resume={tmp_path / 'q' / 'checkpoint.pt'}",
         f"hydra.run.dir={tmp_path / 'i'}",
@@ -306,13 +312,13 @@ def test_kill_9_then_resume_logs_every_frame_once(tmp_path):
     """SIGKILL after a checkpoint (rows already logged past it), resume: the CSVs have the frame
     column of an uninterrupted same-seed run (values differ: the env state is not checkpointed)."""
     budget = (
-        "train.total_frames=8192",
+        "train.total_frames=4096",
         "train.checkpoint_interval=1024",
         "train.eval_interval=1024",
     )
     run = tmp_path / "killed"
     proc = subprocess.Popen(
-        [sys.executable, "-m", "icco_torchrl", "train", *SMOKE, *budget, f"hydra.run.dir={run}"],
+        [sys.executable, "-m", "icco_torchrl", "train", *QUICK, *budget, f"hydra.run.dir={run}"],
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
     )
@@ -331,8 +337,8 @@ def test_kill_9_then_resume_logs_every_frame_once(tmp_path):
     proc.kill()
     proc.wait(timeout=30)
     assert proc.returncode != 0, "the run finished before it could be killed"
-    run_cli("train", *SMOKE, *budget, f"resume={run / 'checkpoint.pt'}")
-    run_cli("train", *SMOKE, *budget, f"hydra.run.dir={tmp_path / 'whole'}")
+    run_cli("train", *QUICK, *budget, f"resume={run / 'checkpoint.pt'}")
+    run_cli("train", *QUICK, *budget, f"hydra.run.dir={tmp_path / 'whole'}")
     for stream in ("train.csv", "eval.csv", "timing.csv"):
         assert _frames(run / stream) == _frames(tmp_path / "whole" / stream), stream
 
@@ -340,7 +346,7 @@ def test_kill_9_then_resume_logs_every_frame_once(tmp_path):
 def test_a_bare_resume_continues_the_run_with_its_own_method_seed_and_budget(tmp_path):
     run_cli(
         "train",
-        *SMOKE,
+        *QUICK,
         "method=qmix",
         "seed=3",
         "train.total_frames=1024",
@@ -367,7 +373,7 @@ def test_a_resume_into_a_given_folder_keeps_the_runs_method_fields(tmp_path):
     # folder
     run_cli(
         "train",
-        *SMOKE,
+        *QUICK,
         "method.waypoint_features=false",
         "train.total_frames=512",
         f"hydra.run.dir={tmp_path}",
@@ -399,7 +405,7 @@ def test_training_env_params_shape_the_training_env_only():
 def test_training_env_params_survive_a_resume_and_may_change_there(tmp_path):
     run_cli(
         "train",
-        *SMOKE,
+        *QUICK,
         "train.env_params.collect_reward=3.5",
         "train.total_frames=512",
         f"hydra.run.dir={tmp_path}",
@@ -450,12 +456,12 @@ def test_resume_continues_in_the_checkpoint_folder():
         ("train.eps_decay_frames=5", "train.eps_decay_frames"),
     ],
 )
-def test_resume_refuses_overrides_it_cannot_honour(tmp_path, override, named):
-    run_cli("train", *SMOKE, "train.total_frames=1024", f"hydra.run.dir={tmp_path}")
-    config = (tmp_path / "config.yaml").read_text()
-    proc = run_cli("train", *SMOKE, f"resume={tmp_path / 'checkpoint.pt'}", override, check=False)
+def test_resume_refuses_overrides_it_cannot_honour(tmp_path, trained, override, named):
+    run = copy_run(trained(*HALF), tmp_path / "run")
+    config = (run / "config.yaml").read_text()
+    proc = run_cli("train", *QUICK, f"resume={run / 'checkpoint.pt'}", override, check=False)
     assert proc.returncode == 2 and f"cannot change {named}" in proc.stderr, proc.stderr
-    assert (tmp_path / "config.yaml").read_text() == config
+    assert (run / "config.yaml").read_text() == config
 
 
 def test_a_config_error_leaves_no_run_folder(tmp_path):
@@ -476,7 +482,7 @@ def test_repeated_kills_inside_checkpoints_and_dumps_lose_nothing(tmp_path):
         "train.eval_interval=1024",
     )
     run = tmp_path / "killed"
-    command = [sys.executable, "-m", "icco_torchrl", "train", *SMOKE, *budget]
+    command = [sys.executable, "-m", "icco_torchrl", "train", *QUICK, *budget]
     kills = 0
     for delay in (1.0, 2.0, 3.0):
         resume = (
@@ -498,23 +504,23 @@ def test_repeated_kills_inside_checkpoints_and_dumps_lose_nothing(tmp_path):
             kills += 1
         proc.wait(timeout=30)
     assert kills >= 2, "the run finished before it could be killed"
-    proc = run_cli("train", *SMOKE, *budget, f"resume={run / 'checkpoint.pt'}")
+    proc = run_cli("train", *QUICK, *budget, f"resume={run / 'checkpoint.pt'}")
     assert "replay buffer restored" in proc.stdout
-    run_cli("train", *SMOKE, *budget, f"hydra.run.dir={tmp_path / 'whole'}")
+    run_cli("train", *QUICK, *budget, f"hydra.run.dir={tmp_path / 'whole'}")
     for stream in ("train.csv", "eval.csv", "timing.csv"):
         assert _frames(run / stream) == _frames(tmp_path / "whole" / stream), stream
     assert load_checkpoint(run / "checkpoint.pt")["frames"] == 6144
     assert not [p.name for p in run.iterdir() if p.name.endswith(".tmp")]
 
 
-def test_an_exported_policy_acts_like_its_checkpoint_and_cannot_be_resumed(tmp_path):
+def test_an_exported_policy_acts_like_its_checkpoint_and_cannot_be_resumed(tmp_path, trained):
     from icco_torchrl.training.checkpoint import export_policy
     from icco_torchrl.training.restore import restore
 
-    run_cli("train", *SMOKE, "train.total_frames=1024", f"hydra.run.dir={tmp_path}")
-    small = export_policy(tmp_path / "checkpoint.pt", tmp_path / "policy.pt")
-    assert small.stat().st_size < 0.6 * (tmp_path / "checkpoint.pt").stat().st_size
-    full, slim = restore(tmp_path / "checkpoint.pt", num_envs=2), restore(small, num_envs=2)
+    run = copy_run(trained(*HALF), tmp_path / "run")
+    small = export_policy(run / "checkpoint.pt", run / "policy.pt")
+    assert small.stat().st_size < 0.6 * (run / "checkpoint.pt").stat().st_size
+    full, slim = restore(run / "checkpoint.pt", num_envs=2), restore(small, num_envs=2)
     a, b = full["loss"].state_dict(), slim["loss"].state_dict()
     assert all(torch.equal(a[k], b[k]) for k in a if not k.startswith("target_"))
     from torchrl.envs.utils import ExplorationType, set_exploration_type
@@ -528,7 +534,7 @@ def test_an_exported_policy_acts_like_its_checkpoint_and_cannot_be_resumed(tmp_p
             full["policy"](td.clone())["agents", "action_value"],
             slim["policy"](td.clone())["agents", "action_value"],
         )
-    proc = run_cli("train", *SMOKE, f"resume={small}", check=False)
+    proc = run_cli("train", *QUICK, f"resume={small}", check=False)
     assert proc.returncode == 2 and "is an exported policy" in proc.stderr
 
 
@@ -545,7 +551,7 @@ def _popen_train(*args):
 
 @pytest.mark.fault
 def test_two_resumes_of_one_checkpoint_at_once_the_second_is_refused_in_one_line(tmp_path):
-    run_cli("train", *SMOKE, "train.total_frames=512", f"hydra.run.dir={tmp_path}")
+    run_cli("train", *QUICK, "train.total_frames=512", f"hydra.run.dir={tmp_path}")
     ckpt = tmp_path / "checkpoint.pt"
     first = _popen_train("logger.progress=false", f"resume={ckpt}", "train.total_frames=10000000")
     lock = tmp_path / ".train.lock"
@@ -580,7 +586,7 @@ def test_two_resumes_of_one_checkpoint_at_once_the_second_is_refused_in_one_line
 def test_sigterm_in_the_final_evaluation_leaves_a_run_that_resume_completes(tmp_path):
     # eval_interval=0: the final evaluation is the first, so it runs after the last checkpoint.
     budget = ("train.total_frames=1024", "train.eval_interval=0")
-    proc = _popen_train(*SMOKE, *budget, f"hydra.run.dir={tmp_path}")
+    proc = _popen_train(*QUICK, *budget, f"hydra.run.dir={tmp_path}")
     for line in proc.stdout:
         if "[eval] final evaluation at 1024 frames" in line:
             proc.send_signal(signal.SIGTERM)
