@@ -182,6 +182,7 @@ def test_pages_best_scripted_rows_and_shares_are_their_results():
     for page in (
         "experiments/four_quadrants/README.md",
         "experiments/four_quadrants/5m_no_layernorm/README.md",
+        "experiments/four_quadrants/5m/README.md",
         "experiments/language/README.md",
         "experiments/language/5m/README.md",
     ):
