@@ -313,6 +313,15 @@ def run_arguments(out: Path, llm: str | None, readme: Path | None) -> str:
     return " ".join(shlex.quote(w) for w in words)
 
 
+def folder_note(out: Path) -> str | None:
+    """The folder's own remark on its agents (``"note"`` in ``run.json``), as a quote."""
+    saved = json.loads((out / "run.json").read_text()) if (out / "run.json").is_file() else {}
+    note = saved.get("note")
+    if not note:
+        return None
+    return "\n".join(f"> {line}".rstrip() for line in note.strip().splitlines()) + "\n"
+
+
 def calibration_link(readme: Path) -> str:
     """The calibration page (why the best scripted team is the yardstick) relative to ``readme``."""
     return Path(os.path.relpath(CALIBRATION, Path(readme).resolve().parent)).as_posix()
@@ -491,7 +500,7 @@ def main(argv=None) -> int:
         + "\n\n"
         + whole_episode(fig5b["summary"], fig5b_missing, calibration_link(args.readme)),
         table2=table,
-        recipe_note="" if page else RECIPE_NOTE,
+        recipe_note=folder_note(args.out) or ("" if page else RECIPE_NOTE),
         planner_stats=planner_stats(payloads),
         comparison=comparison(fig5b["summary"], means),
     )

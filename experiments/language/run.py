@@ -179,9 +179,12 @@ def main(argv=None) -> None:
     # What the report cannot read from the checkpoints: the command line that reproduces this
     # folder (agents and folders only where they were given).
     given = {"methods": args.methods, "sweep": args.sweep, "out": args.out}
+    # The folder's own remark on its agents ("note", written by hand), kept across runs.
+    previous = json.loads((out / "run.json").read_text()) if (out / "run.json").is_file() else {}
     (out / "run.json").write_text(
         json.dumps(
             {
+                **({"note": previous["note"]} if previous.get("note") else {}),
                 "budget": args.budget or [],
                 "seeds": args.seeds,
                 "llm": args.llm,
