@@ -194,6 +194,46 @@ def train_gpu_section() -> str:
     )
 
 
+def gpu_check_section() -> str:
+    """``benchmarks/gpu_check.sh``'s figures: the update's paths, then whole runs."""
+    data = load("gpu_train_h200.json")
+    if data is None:
+        return "(not measured: no `results/gpu_train_h200.json`)"
+    names = {"icco_alone": "ICCO alone", "icco_pair": "ICCO, beside QMIX (FULL)"}
+    names["qmix_full_pair"] = "QMIX (FULL), beside ICCO"
+    run = data.get("icco_5m")
+    rows = [{"run": "ICCO, the whole 5M run", **run}] if run else []  # first: every column
+    rows += [{"run": names.get(k, k), **v} for k, v in data["runs"].items()]
+    text = table(
+        rows,
+        {
+            "run": "run",
+            "frames": "env steps",
+            "env_steps_per_s": "env steps / s (its own timing)",
+            "collect": "collection (s)",
+            "train": "updates (s)",
+            "eval": "evaluation (s)",
+            "wall_s": "wall, process start to end (s)",
+        },
+    )
+    walls = data["wall_s"]
+    text += (
+        f"\n\nWall time of 1M frames: ICCO alone {walls['icco_alone']:.0f} s, the two runs at once "
+        f"{walls['two_runs_at_once']:.0f} s."
+    )
+    if run:
+        text += (
+            f" The 5M run's final greedy evaluation (training's protocol): "
+            f"{run['final_eval_reward']:.1f} ± {run['final_eval_reward_std']:.1f}."
+        )
+    src = "[`results/gpu_train_h200.json`](results/gpu_train_h200.json)"
+    note = f" {data['note']}" if data.get("note") else ""
+    return (
+        f"{speed_section('train_speed_h200.json')}\n\n{text}\n\n{data['gpu']}, torch "
+        f"{data['torch']}, {data['recipe']}, {data.get('date', '')}.{note} Source: {src}."
+    )
+
+
 def live_section() -> str:
     latency, clients = load("live_latency.json"), load("live_clients.json")
     parts = []
@@ -347,6 +387,7 @@ def render() -> str:
         speed=speed_section(),
         team_speed=team_speed_section(),
         train_gpu=train_gpu_section(),
+        gpu_check=gpu_check_section(),
         live=live_section(),
     )
 
