@@ -30,6 +30,25 @@ def pytest_collection_modifyitems(items):
     items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: else as collected
 
 
+def pytest_configure(config):
+    """Under ``--dist loadgroup`` an ``xdist_group`` reaches its worker as a ``@group`` suffix of
+    the test's id, which pytest 9 ignores when pytest-xdist 3.8 writes it: the group's tests then
+    spread over the workers, and the second compiling test waits out the first's cold compile on
+    a lock, one core idle. Refuse that pair in one line (pyproject.toml pins pytest below 9)."""
+    if getattr(config.option, "dist", "no") != "loadgroup":
+        return
+    import xdist
+
+    versions = [
+        tuple(int(x) for x in v.split(".")[:2]) for v in (pytest.__version__, xdist.__version__)
+    ]
+    if versions[0] >= (9, 0) and versions[1] <= (3, 8):
+        raise pytest.UsageError(
+            f"pytest {pytest.__version__} with pytest-xdist {xdist.__version__} does not keep an "
+            "xdist_group on one worker under --dist loadgroup: make install (pytest < 9)"
+        )
+
+
 def run_cli(
     *args: str, cwd: Path | None = None, timeout: float = 300, check: bool = True
 ) -> subprocess.CompletedProcess:
