@@ -124,10 +124,13 @@ def budget_section(runs: dict[str, list[Path]], info: dict) -> tuple[str, bool]:
             f"{_mean(sps):,.0f} |"
         )
     m = info.get("machine", {})
+    # The seeds of the runs shown (record folders <method>_seed<seed>), else those run.py was given.
+    named = [d.name.rpartition("_seed")[2] for dirs in runs.values() for d in dirs]
+    seeds = sorted({int(s) for s in named if s.isdigit()}) or info.get("seeds", "?")
     lines += [
         "",
         f"Training overrides: `{' '.join(info.get('budget', [])) or '(defaults)'}`; seeds "
-        f"{info.get('seeds', '?')}. Training wall time summed over run.py invocations (parallel "
+        f"{seeds}. Training wall time summed over run.py invocations (parallel "
         f"invocations add up): {_duration(info.get('train_wall_s'))}; "
         f"{_duration(info.get('eval_wall_s'))} evaluation.",
         f"Machine: {m.get('cpu', '?')} ({m.get('cores', '?')} cores), GPU: "

@@ -8,8 +8,8 @@
    folder ``<method>_seed<seed>`` per run), ``--jobs`` (2) side by side. Run the script again
    after an interruption: finished runs are kept, interrupted ones continue from their
    checkpoint with ``resume=``, missing ones are started.
-2. Evaluation: ``icco eval`` with the quadrant protocol on every checkpoint (seeds pooled per
-   method) into ``<sweep>/eval_quadrants``.
+2. Evaluation: ``icco eval`` with the quadrant protocol on the checkpoints of ``--methods`` x
+   ``--seeds`` (seeds pooled per method) into ``<sweep>/eval_quadrants``.
 3. Report: ``report.py <sweep>`` fills ``README.md`` here from ``README.template.md``.
 
 With ``--records DIR`` each evaluated run also leaves its record in ``DIR/<run>/`` (its config,
@@ -149,8 +149,12 @@ def main(argv=None) -> None:
     if args.train_only:
         return
 
+    # The runs asked for, not every run in the sweep: another seed may still be training there.
     checkpoints = [
-        str(p) for m in args.methods for p in sorted(sweep.glob(f"{m}_seed*/checkpoint.pt"))
+        str(p)
+        for m in args.methods
+        for p in (sweep / f"{m}_seed{s}" / "checkpoint.pt" for s in args.seeds)
+        if p.is_file()
     ]
     out = sweep / "eval_quadrants"
     start = time.time()
