@@ -56,8 +56,10 @@ def sps(run):  # the run's own env steps per second (its last timing row)
     return dict(env_steps_per_s=float(row["sps"]), frames=int(row["frames"]))
 runs = {name: sps(name) for name in ("icco_alone", "icco_pair", "qmix_full_pair")}
 row, final = last("icco_5m", "timing.csv"), last("icco_5m", "eval.csv")
+train = [float(r["time_train"]) for r in csv.DictReader((out / "icco_5m" / "timing.csv").open())]
 run_5m = dict(**sps("icco_5m"), wall_s=whole, **{
     k: float(row[f"time_{k}"]) for k in ("collect", "train", "eval")},
+    slowest_batch_train_s=max(b - a for a, b in zip(train, train[1:])),  # the first: its compile
     final_eval_reward=float(final["reward"]), final_eval_reward_std=float(final["reward_std"]))
 result = {"gpu": torch.cuda.get_device_name(0), "torch": torch.__version__,
           "recipe": "experiment=gpu (1024 envs x 16 steps, 8 updates of 1024 x 16, replay ratio 8)",

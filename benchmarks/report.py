@@ -226,6 +226,14 @@ def gpu_check_section() -> str:
             f" The 5M run's final greedy evaluation (training's protocol): "
             f"{run['final_eval_reward']:.1f} ± {run['final_eval_reward_std']:.1f}."
         )
+        if run.get("slowest_batch_train_s"):
+            compile_s = run["slowest_batch_train_s"]
+            rest = run["frames"] / (run["collect"] + run["train"] - compile_s + run["eval"])
+            text += (
+                f" Of its {run['train']:.1f} s of updates, {compile_s:.1f} s are the first batch's "
+                f"(the cold compile); without it the run makes {rest:,.0f} env steps/s, and "
+                "collection is the larger share."
+            )
     src = "[`results/gpu_train_h200.json`](results/gpu_train_h200.json)"
     note = f" {data['note']}" if data.get("note") else ""
     return (
