@@ -393,6 +393,7 @@ def render() -> str:
         profile=profile_section(),
         skill=skill_section(),
         speed=speed_section(),
+        speed_intel=speed_section("train_speed_intel.json"),
         team_speed=team_speed_section(),
         train_gpu=train_gpu_section(),
         gpu_check=gpu_check_section(),
