@@ -1190,7 +1190,9 @@ def test_icco_live_through_the_cli_serves_the_demo_policy_and_refuses_a_bad_chec
         assert (path.stat().st_mode & 0o077) == 0, path  # its owner's only
         assert path.is_dir() or token not in path.read_text(errors="replace"), path
     ticks = int(proc.stdout.split("icco live: ")[-1].split(" ticks")[0])
-    assert 10 <= ticks <= 25  # 2 s at 10 Hz (real time), after a start-up of unknown length
+    # 2 s at 10 Hz in real time, after a start-up of unknown length: ticking, and not as fast as
+    # it can (a loaded 2-core machine ran 9 ticks, so the floor leaves room)
+    assert 5 <= ticks <= 25
     bad = tmp_path / "bad.pt"
     bad.write_bytes(b"not a checkpoint")
     proc = run_cli("live", f"checkpoint={bad}", "live.seconds=1", check=False, timeout=120)
