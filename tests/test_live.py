@@ -13,7 +13,7 @@ import torch
 
 from icco_torchrl.instructions import LLMPlanner
 from icco_torchrl.live import LiveLoop
-from icco_torchrl.live.loop import MAX_INSTRUCTION
+from icco_torchrl.live.loop import MAX_INSTRUCTION, TOTALS, scripted_yardstick
 from icco_torchrl.live.reading import (
     MAX_REASON,
     TAP_HINT,
@@ -388,9 +388,33 @@ def test_run_keeps_its_rate_and_refuses_a_batched_env():
         ({"port": -1}, "'live.port' must be >= 0"),
         ({"web_port": 70000}, "'live.web_port' must be <= 65535"),
         ({"max_robots": 0}, "'live.max_robots' must be >= 1"),
+        ({"reference_episodes": -1}, "'live.reference_episodes' must be >= 0"),
     ],
 )
 def test_live_settings_are_range_checked_from_their_fields(override, message):
     with pytest.raises(ConfigError, match=message):
         validate({"live": override})
     assert validate({"live": {"seconds": None, "port": 0}}).live.port == 0
+
+
+def test_the_yardstick_is_the_best_scripted_team_on_the_policys_training_episodes():
+    """What the page shows beside its running mean: the best scripted team's mean totals over
+    episodes of the checkpoint's training env, the same each time, ahead of the pure follower on
+    the same episodes (the role blend defends where the follower does not)."""
+    from icco_torchrl.envs.reference_policies import make_reference_policy
+    from icco_torchrl.evaluation.rollout import evaluate
+    from icco_torchrl.training.restore import restore
+
+    ref = scripted_yardstick(DEMO, 4, seed=5)
+    assert ref["label"].startswith("best scripted (") and (ref["episodes"], ref["steps"]) == (
+        4,
+        145,
+    )
+    assert set(TOTALS) <= set(ref) and ref == scripted_yardstick(DEMO, 4, seed=5)
+    env = restore(DEMO, num_envs=4, seed=5)["env"]
+    follower = evaluate(env, make_reference_policy("follower", env), seed=5)
+    assert ref["reward"] > follower["reward"] and ref["defense"] > follower["defense"]
+    assert scripted_yardstick(DEMO, 0) is None
+    for bad in (-1, 2.5, True):
+        with pytest.raises(ValueError, match="live.reference_episodes must be an integer >= 0"):
+            scripted_yardstick(DEMO, bad)

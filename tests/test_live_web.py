@@ -742,6 +742,8 @@ def test_the_page_in_a_real_browser_go_right_moves_waypoints_and_robots(served, 
             assert await tools.js("document.title") == "icco live"
             assert "demo_icco.pt" in await tools.js(_text("policy"))
             assert (await tools.js(_text("plan"))).startswith("none yet")  # no instruction yet
+            # No yardstick given: its column and note are not shown.
+            assert await tools.js("[...document.querySelectorAll('.ref')].every(e => e.hidden)")
             # The legend names every robot and each thing on the field, in the drawn colours.
             legend = await tools.js(_text("legend"))
             for name in ("robot 0", "robot 1", "robot 2", "resource", "home", "invader"):
@@ -955,7 +957,10 @@ def test_the_page_in_a_real_browser_shows_its_totals_at_800_by_600_and_a_reset_k
     parts = build_components(cfg)
     env = make_env(cfg, num_envs=1, seed=3, max_steps=20, waypoint_mode="external")
     policy = make_policy(parts["agent"], env.full_action_spec_unbatched, parts["coordinator"])
-    server, url = served(LiveLoop(env, policy, LLMPlanner()), rate_hz=50.0)
+    # A yardstick as scripted_yardstick gives it (its numbers made up here: the page shows them).
+    reference = dict(label="best scripted (x)", episodes=16, steps=145, pick=2.0, collect=1.5)
+    reference.update(defense=9.25, invasion=0.75, reward=101.04, inst_reward=52.0)
+    server, url = served(LiveLoop(env, policy, LLMPlanner()), rate_hz=50.0, reference=reference)
     metrics = dict(width=800, height=600, deviceScaleFactor=1, mobile=False)
 
     async def scenario():
@@ -970,6 +975,13 @@ def test_the_page_in_a_real_browser_shows_its_totals_at_800_by_600_and_a_reset_k
             )
             assert box["ih"] == 600 and 0 <= box["top"] and box["bottom"] <= box["ih"], box
             assert box["right"] <= box["iw"], box
+            # The best scripted team beside the mean, with what its numbers are.
+            assert await tools.js(_text("ref-head")) == "best scripted"
+            assert await tools.js(_text("ref-reward")) == "101.0"
+            assert await tools.js(_text("ref-defense")) == "9.3"  # toFixed(1) of 9.25
+            note = await tools.js(_text("ref-note"))
+            assert "best scripted (x), the mean of 16 episodes of 145 steps" in note
+            assert "not this page's" in note
             # Episodes of 20 steps at 50 Hz: finished ones come, and their mean is shown.
             await tools.until("icco.state.finished >= 2")
             shown = await tools.js(

@@ -26,7 +26,7 @@ from icco_torchrl.live.bridge import Bridge
 from icco_torchrl.live.dwa import RobotLimits
 from icco_torchrl.live.fleet import SimulatedFleet
 from icco_torchrl.live.guard import redact_run_folder
-from icco_torchrl.live.loop import LiveLoop
+from icco_torchrl.live.loop import LiveLoop, scripted_yardstick
 from icco_torchrl.live.web import LiveServer
 
 LOOPBACK = ("127.0.0.1", "localhost", "::1")
@@ -127,6 +127,7 @@ def _prepare(cfg: DictConfig, command: str) -> Path:
 def _live_server(cfg: DictConfig, loop: LiveLoop, checkpoint: Path, drive: bool) -> LiveServer:
     """The page's server for ``loop`` (``drive``: it ticks the loop, else it only shows it)."""
     live = cfg.live
+    reference = scripted_yardstick(checkpoint, live.reference_episodes, seed=cfg.seed)
     return LiveServer(
         loop,
         host=live.host,
@@ -136,6 +137,7 @@ def _live_server(cfg: DictConfig, loop: LiveLoop, checkpoint: Path, drive: bool)
         policy=checkpoint.name,
         planner=_planner_label(cfg),
         token=live.get("token"),
+        reference=reference,
     )
 
 

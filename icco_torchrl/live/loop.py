@@ -73,6 +73,34 @@ def _restore(path, device: str, seed: int | None, max_robots: int | None, length
     return run, trained
 
 
+# The totals the page shows, and the yardstick's (:func:`scripted_yardstick`).
+TOTALS = ("pick", "collect", "defense", "invasion", "reward", "inst_reward")
+
+
+def scripted_yardstick(path, episodes: int, *, seed: int | None = None) -> dict | None:
+    """The best scripted team's mean totals over ``episodes`` episodes of the checkpoint's
+    training env (its team, its episode length, its own random instructions), for the page to
+    show beside its running mean: ``{"label", "episodes", "steps", "pick", ..., "reward"}``;
+    None for 0 episodes. The same evaluation as a run's ``references.json``."""
+    if isinstance(episodes, bool) or int(episodes) != episodes or episodes < 0:
+        raise ValueError(f"live.reference_episodes must be an integer >= 0, got {episodes!r}")
+    if episodes == 0:
+        return None
+    from icco_torchrl.envs.reference_policies import make_reference_policy, reference_label
+    from icco_torchrl.evaluation.rollout import evaluate
+    from icco_torchrl.training.restore import restore
+
+    env = restore(path, num_envs=int(episodes), seed=seed)["env"]
+    means = evaluate(env, make_reference_policy("best_scripted", env), seed=seed)
+    steps = int(getattr(env, "base_env", env).max_steps)
+    return {
+        "label": reference_label("best_scripted"),
+        "episodes": int(episodes),
+        "steps": steps,
+        **{k: means[k] for k in TOTALS},
+    }
+
+
 def _np(tensor: torch.Tensor) -> np.ndarray:
     """A numpy copy (CPU tensors would otherwise share memory with the env's state)."""
     return tensor.detach().cpu().numpy().copy()

@@ -10,8 +10,9 @@ WebSocket protocol (JSON text frames):
 
 * server -> page, once on connect: ``{"type": "hello", "mode", "field_size", "home_radius",
   "vision_radius", "n_agents", "dt", "rate_hz", "speed", "paused", "drive", "policy", "planner",
-  "max_instruction", "max_message", ...}``; ``mode`` is ``"live"`` (this server drives the team)
-  or ``"bridge"`` (robots driven by the bridge);
+  "max_instruction", "max_message", "reference", ...}``; ``mode`` is ``"live"`` (this server
+  drives the team) or ``"bridge"`` (robots driven by the bridge); ``reference`` is the yardstick
+  beside the running mean (:func:`~icco_torchrl.live.loop.scripted_yardstick`; null: none);
 * server -> page, every tick: ``{"type": "tick", ...}`` with
   :class:`~icco_torchrl.live.loop.TickState`'s fields (but ``planner``) plus ``paused``,
   ``speed``, ``clients``, ``tick_rate`` (ticks per second measured over the last 2 s; null
@@ -258,8 +259,12 @@ class LiveServer:
         planner: str = "",
         token: str | None = None,
         max_clients: int = MAX_CLIENTS,
+        reference: dict | None = None,
     ):
         _check_settings(rate_hz, token, max_clients)
+        self.reference = (
+            reference  # the yardstick beside the running mean (loop.scripted_yardstick)
+        )
         self.max_clients = max_clients
         self.loop, self.host, self.port, self.rate_hz, self.drive = (
             loop,
@@ -542,6 +547,7 @@ class LiveServer:
             "planner": self.planner,
             "max_instruction": MAX_INSTRUCTION,
             "max_message": MAX_MESSAGE,
+            "reference": self.reference,
         }
 
     # ------------------------------------------------------------------ HTTP and WebSocket handlers

@@ -31,7 +31,7 @@ from icco_torchrl.envs.reference_policies import REFERENCE_POLICIES, parse_refer
 from icco_torchrl.envs.resource_collection import check_team_sizes
 from icco_torchrl.envs.shaping import POTENTIALS, missing_for
 from icco_torchrl.modules.mixer import MIXERS
-from icco_torchrl.modules.posterior import POSTERIOR_INPUTS
+from icco_torchrl.modules.posterior import COMBINES, POSTERIOR_INPUTS
 from icco_torchrl.modules.relative import STATE_ENCODERS
 from icco_torchrl.paths import CONF_DIR
 
@@ -74,7 +74,7 @@ class MethodConfig:
     # Weight of -H(z | s, v) (COPA: 1e-4).
     entropy_coef: float = _field(1e-4, ge=0)
     # The posterior's factors: product of Gaussians | sum of log-likelihoods (COPA).
-    posterior: str = _field("product", choices=("product", "sum"))
+    posterior: str = _field("product", choices=COMBINES)
     # What the posterior reads: the flat state, joint action and observation (one team size) |
     # robot and entity tokens (any team up to env.params.n_agents; modules/posterior.py).
     posterior_input: str = _field("flat", choices=POSTERIOR_INPUTS)
@@ -105,9 +105,10 @@ class MethodConfig:
     layer_norm: bool = True
 
 
-# A checkpoint holds every field of its format (training/checkpoint.py: FORMAT_VERSION); the fields
-# added or removed since older files were written, and their upgrade, live in the one script that
-# converts such files: tools/convert_checkpoint.py (outside the package).
+# A checkpoint holds every method field there was when it was written, and one that lacks a field
+# of today's is refused (training/checkpoint.py: load_checkpoint); the fields added or removed
+# since, with the values older files trained with, live in the one script that converts such
+# files: tools/convert_checkpoint.py (outside the package). Adding a field needs no new format.
 
 
 def _env_params_schema(name: str = "EnvParams", unset: bool = False) -> type:
@@ -389,6 +390,10 @@ class LiveConfig:
     max_robots: Optional[int] = _field(None, ge=1, le=32)
     # Also run the simulated fleet (unicycles with noise and latency) in this process.
     fleet: bool = False
+    # The yardstick beside the page's running mean: the best scripted team plays this many
+    # episodes of the checkpoint's training env (its length, its own instructions) at start, a
+    # second or two; 0: none.
+    reference_episodes: int = _field(16, ge=0, le=256)
     # Stop after this many seconds (the page then shows "run ended"); null: until Ctrl-C / SIGTERM.
     seconds: Optional[float] = _field(None, gt=0)
     # Robot limits for the DWA controller (a small indoor robot, TurtleBot-like; also the
