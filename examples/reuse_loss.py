@@ -227,11 +227,16 @@ def build(
         z_dim=z_dim,
         hidden=hidden,
         period=period,
+        init_logvar=0.0,
         state_key="world",
         group=GROUP,
     )
     mixer = make_mixer(
-        state_dim, n_agents, local_value_key=(GROUP, "chosen_action_value"), state_key="world"
+        state_dim,
+        n_agents,
+        kind="qmix",
+        local_value_key=(GROUP, "chosen_action_value"),
+        state_key="world",
     )
     # The posterior has no keys of its own: ICCOLoss passes it what it read through its (renamed)
     # keys.
@@ -242,6 +247,7 @@ def build(
         state_dim=state_dim,
         z_dim=z_dim,
         hidden=hidden,
+        combine="product",
     )
     policy = make_policy(
         agent, env.full_action_spec_unbatched, coordinator, group=GROUP, action_name="move"

@@ -192,6 +192,7 @@ def train(method: str = "icco", **overrides) -> dict:
                     z_dim=z_dim,
                     hidden=cfg["hidden"],
                     period=cfg["period"],
+                    init_logvar=0.0,
                     state_key=("agents", "observation"),
                 ).to(device),
                 make_posterior(
@@ -201,6 +202,7 @@ def train(method: str = "icco", **overrides) -> dict:
                     state_dim=env.n_agents * obs_dim,
                     z_dim=z_dim,
                     hidden=cfg["hidden"],
+                    combine="product",
                 ).to(device),
             )
             if z_dim

@@ -298,10 +298,10 @@ def test_state_of_any_trailing_shape_is_flattened():
     td = segments(with_z=True)
     torch.manual_seed(0)
     coordinator = make_coordinator(
-        n_agents=N, state_dim=N * F, z_dim=Z, hidden=H, period=T, state_key=key
+        n_agents=N, state_dim=N * F, z_dim=Z, hidden=H, period=T, init_logvar=0.0, state_key=key
     )
     posterior = make_posterior(
-        n_actions=A, n_agents=N, obs_dim=F, state_dim=N * F, z_dim=Z, hidden=H
+        n_actions=A, n_agents=N, obs_dim=F, state_dim=N * F, z_dim=Z, hidden=H, combine="product"
     )
     loss = ICCOLoss(
         flat_agent(z_dim=Z), qmixer(state_shape=(N, F), state_key=key), coordinator, posterior
@@ -406,9 +406,11 @@ def test_make_value_estimator_td0_td1_tdlambda():
 
 def test_metric_keys_name_what_forward_returns():
     td = segments(with_z=True)
-    coordinator = make_coordinator(n_agents=N, state_dim=N * F, z_dim=Z, hidden=H, period=T)
+    coordinator = make_coordinator(
+        n_agents=N, state_dim=N * F, z_dim=Z, hidden=H, period=T, init_logvar=0.0
+    )
     posterior = make_posterior(
-        n_actions=A, n_agents=N, obs_dim=F, state_dim=N * F, z_dim=Z, hidden=H
+        n_actions=A, n_agents=N, obs_dim=F, state_dim=N * F, z_dim=Z, hidden=H, combine="product"
     )
     for post, ce in ((posterior, 1e-3), (None, 0.0)):
         loss = ICCOLoss(flat_agent(z_dim=Z), qmixer(), coordinator, post, ce_coef=ce)

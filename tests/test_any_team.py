@@ -284,9 +284,17 @@ def test_bad_module_arguments_fail_in_one_line():
     with pytest.raises(ValueError, match="needs the env's layout"):
         make_mixer(layout.state_dim, layout.n_agents, kind="attention")
     with pytest.raises(ValueError, match="posterior inputs must be one of"):
-        Posterior(layout, n_actions=N_ACTIONS, inputs="graph", **sizes)
+        Posterior(layout, n_actions=N_ACTIONS, inputs="graph", combine="product", **sizes)
     with pytest.raises(ValueError, match="needs a layout"):
-        Posterior(n_actions=N_ACTIONS, n_agents=3, obs_dim=8, state_dim=8, inputs="tokens", **sizes)
+        Posterior(
+            n_actions=N_ACTIONS,
+            n_agents=3,
+            obs_dim=8,
+            state_dim=8,
+            inputs="tokens",
+            combine="product",
+            **sizes,
+        )
     mixer = TokenMixer(layout, embed_dim=8, hidden=16)
     with pytest.raises(ValueError, match="TokenMixer mixes q"):
         mixer(torch.zeros(2, layout.n_agents + 1, 1), torch.zeros(2, layout.state_dim))

@@ -3,6 +3,7 @@ one plain line for every unreadable file, full disk, read-only folder, busy or m
 
 from __future__ import annotations
 
+import dataclasses
 import errno
 import importlib.util
 import json
@@ -29,6 +30,7 @@ from icco_torchrl.training.checkpoint import (
     save_checkpoint,
     save_run,
 )
+from icco_torchrl.training.config import MethodConfig
 from icco_torchrl.training.replay_dump import load_replay, save_replay
 from icco_torchrl.training.run_folder import (
     LOCK_FILE,
@@ -465,7 +467,8 @@ def test_a_lock_file_that_is_a_link_is_refused_and_its_target_left_untouched(tmp
 
 
 def _run_payload(frames):
-    return {"cfg": {"method": {}, "env": {}}, "layout": {}, "loss": {}, "frames": frames}
+    method = dataclasses.asdict(MethodConfig())  # every field of today's format
+    return {"cfg": {"method": method, "env": {}}, "layout": {}, "loss": {}, "frames": frames}
 
 
 def test_the_checkpoint_and_its_replay_dump_share_an_id(tmp_path):
@@ -619,6 +622,37 @@ def test_the_converter_fills_added_fields_drops_a_removed_option_and_keeps_the_n
     torch.load(new, weights_only=True)  # no numpy object left in the file
     run = restore(new, num_envs=2)  # the same networks, every weight as trained
     restored = run.loss.state_dict()
+    assert set(restored) == set(state) and all(torch.equal(restored[k], state[k]) for k in state)
+
+
+def test_a_checkpoint_written_before_a_method_option_is_refused_then_converted_as_it_is(tmp_path):
+    """A new method option needs no new format: a file of today's format whose config lacks the
+    option (written before it existed) is refused in one line naming the converter, never read at
+    today's default; the converter fills it at the value it trained with (its table's row)."""
+    from icco_torchrl.training.build import build, compose_config
+    from icco_torchrl.training.restore import restore
+
+    cfg = compose_config(["method=icco", "method.layer_norm=false"])
+    run = build(cfg, num_envs=2)
+    before = OmegaConf.to_container(cfg, resolve=True)
+    del before["method"]["layer_norm"]  # as when layer_norm did not exist yet
+    state = {k: v.clone() for k, v in run.loss.state_dict().items()}
+    old = tmp_path / "policy.pt"
+    payload = {"cfg": before, "layout": dict(run.layout.__dict__), "loss": state, "frames": 512}
+    save_checkpoint(old, payload)
+    for read in (load_checkpoint, lambda path: restore(path, num_envs=2)):
+        with pytest.raises(CheckpointError) as info:
+            read(old)
+        message = str(info.value)
+        assert (
+            "\n" not in message and f"{old} was written before method.layer_norm existed" in message
+        )
+        assert f"{CONVERT} {old}" in message
+    new = tmp_path / "new.pt"
+    assert converter().main([str(old), str(new)]) == 0
+    ckpt = load_checkpoint(new)
+    assert ckpt["format_version"] == FORMAT_VERSION and ckpt["cfg"]["method"]["layer_norm"] is False
+    restored = restore(new, num_envs=2).loss.state_dict()  # the networks it was trained with
     assert set(restored) == set(state) and all(torch.equal(restored[k], state[k]) for k in state)
 
 

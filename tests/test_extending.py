@@ -128,6 +128,21 @@ def test_the_worked_option_and_network_are_as_the_guide_says():
     assert "hidden=m.hidden" in build_src and make_mixer.__module__ == TokenMixer.__module__
 
 
+def test_a_new_method_option_is_three_library_files_and_a_converter_row():
+    """The guide's file list for an option: three library files (the field, where it is read, its
+    implementation), no new checkpoint format (a file without the field is refused and converted:
+    tests/test_checkpoint.py), one row in the converter outside the package."""
+    section = guide().split("## Add a method option", 1)[1].split("\n## ", 1)[0]
+    files = re.search(r"\nFiles: (.*?)\n\n", section, re.S)
+    assert files, "the option section opens with its list of files"
+    named = set(re.findall(r"`((?:icco_torchrl|tools|conf)/[\w/.]*)`", files.group(1)))
+    library = {p for p in named if p.startswith("icco_torchrl/")}
+    assert library == {"icco_torchrl/training/config.py", "icco_torchrl/training/build.py"}
+    assert "the module or loss that implements it, three in the library" in files.group(1)
+    assert named - library == {"conf/method/", "tools/convert_checkpoint.py"}
+    assert "No checkpoint format changes" in files.group(1) and "FORMAT_VERSION" not in section
+
+
 REQUIRED = inspect.Parameter.empty
 
 
@@ -135,8 +150,8 @@ REQUIRED = inspect.Parameter.empty
     "cls, sizes",
     [
         (RecurrentQNet, ("n_actions", "hidden")),
-        (Coordinator, ("z_dim", "hidden", "period")),
-        (Posterior, ("n_actions", "z_dim", "hidden")),
+        (Coordinator, ("z_dim", "hidden", "period", "init_logvar")),
+        (Posterior, ("n_actions", "z_dim", "hidden", "combine")),
         (TokenMixer, ("embed_dim", "hidden")),
     ],
 )
@@ -152,7 +167,7 @@ def test_network_sizes_are_required_keyword_arguments(cls, sizes):
 @pytest.mark.parametrize("factory", [make_agent, make_coordinator, make_posterior])
 def test_factories_forward_to_their_class_and_declare_no_size(factory):
     params = inspect.signature(factory).parameters
-    assert not {"hidden", "z_dim", "period", "n_actions"} & set(params)
+    assert not {"hidden", "z_dim", "period", "n_actions", "init_logvar", "combine"} & set(params)
     assert any(p.kind is p.VAR_KEYWORD for p in params.values())
 
 

@@ -169,7 +169,7 @@ def test_gaussian_entropy_closed_form_and_torch():
 def test_qmixer_is_monotone_in_every_local_q(seed):
     torch.manual_seed(seed)
     N, D = 3, 7
-    mixer = make_mixer(D, N, embed_dim=8).module
+    mixer = make_mixer(D, N, kind="qmix", embed_dim=8).module
     with torch.no_grad():
         for p in mixer.parameters():
             p.normal_(0.0, 1.0)  # random weights, negative ones included
@@ -380,7 +380,7 @@ def test_coordinator_emits_mean_when_deterministic(icco_short_episodes):
 
 def test_coordinator_redraws_only_envs_at_a_broadcast_step():
     torch.manual_seed(0)
-    coord = Coordinator(LAYOUT, z_dim=4, hidden=8, period=4)
+    coord = Coordinator(LAYOUT, z_dim=4, hidden=8, period=4, init_logvar=0.0)
     B, N = 4, LAYOUT.n_agents
     state = torch.randn(B, LAYOUT.state_dim)
     z_prev, noise_prev = torch.randn(B, N, 4), torch.randn(B, N, 4)
@@ -399,7 +399,7 @@ def test_coordinator_redraws_only_envs_at_a_broadcast_step():
 
 def test_coordinator_rejects_bad_period():
     with pytest.raises(ValueError, match="period"):
-        Coordinator(LAYOUT, z_dim=4, hidden=8, period=0)
+        Coordinator(LAYOUT, z_dim=4, hidden=8, period=0, init_logvar=0.0)
 
 
 # ---------------------------------------------------------------------------- TensorModule

@@ -1,4 +1,5 @@
-"""Convert an icco-torchrl checkpoint of an older format (2) to the format the library reads (3).
+"""Convert an icco-torchrl checkpoint of an older format (2), or one of today's format (3) written
+before a method option existed, to what the library reads.
 
 Usage::
 
@@ -6,7 +7,8 @@ Usage::
     python tools/convert_checkpoint.py --in-place RUN_DIR/checkpoint.pt    # or RUN_DIR
 
 The library reads only its own checkpoint format (``FORMAT_VERSION`` in
-``icco_torchrl/training/checkpoint.py``) and refuses any other in one line naming this script.
+``icco_torchrl/training/checkpoint.py``), with every field of today's ``MethodConfig``, and refuses
+any other file in one line naming this script.
 The upgrade of older files lives here, and only here:
 
 - The file is read with ``torch.load(weights_only=True)``; a file written before the weights-only

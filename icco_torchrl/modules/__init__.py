@@ -1,8 +1,10 @@
 """ICCO's networks as TensorDictModules: local agents, coordinator, mixer, posterior.
 
 Each parameter is declared once. A network's sizes (``hidden``, ``z_dim``, ``period``,
-``n_actions``) have no default here: they are required keyword arguments of its class, and the
-project's values live in one place, :class:`~icco_torchrl.training.config.MethodConfig`, which
+``n_actions``) and a method's choices (the coordinator's ``init_logvar``, the posterior's
+``combine``, the mixer's ``kind``) have no default here: they are required keyword arguments of its
+class (or factory), and the project's values live in one place,
+:class:`~icco_torchrl.training.config.MethodConfig`, which
 :func:`~icco_torchrl.training.build.build` passes field by field. Each factory (``make_agent``,
 ``make_coordinator``, ``make_posterior``) adds only the TensorDict keys and forwards every other
 keyword argument to its class, so a network's arguments are listed (and documented) once, on the
@@ -14,7 +16,9 @@ mixing width (``embed_dim=32``), which no config sets.
 
     >>> from icco_torchrl.modules import make_agent, make_coordinator
     >>> agent = make_agent(obs_dim=8, n_actions=5, hidden=16, z_dim=4)
-    >>> coordinator = make_coordinator(n_agents=3, state_dim=24, z_dim=4, hidden=16, period=4)
+    >>> coordinator = make_coordinator(
+    ...     n_agents=3, state_dim=24, z_dim=4, hidden=16, period=4, init_logvar=0.0
+    ... )
     >>> agent.module.hidden, coordinator.module.period
     (16, 4)
 """

@@ -103,7 +103,7 @@ class Coordinator(nn.Module):
             without).
         state_encoder: ``"flat"`` (absolute state tokens) or ``"relative"`` (entities seen from
             each robot; needs a layout).
-        init_logvar: initial bias of z's log-variance (0: std ~1).
+        init_logvar: initial bias of z's log-variance (0: std ~1; required, a method's choice).
         n_agents, state_dim: the team size and state width without a layout.
         threshold: adaptive broadcast (COPA's beta); 0 sends every ``period`` steps.
 
@@ -122,7 +122,7 @@ class Coordinator(nn.Module):
         period: int,
         encoder: str | None = None,
         state_encoder: str = "flat",
-        init_logvar: float = 0.0,
+        init_logvar: float,
         n_agents: int | None = None,
         state_dim: int | None = None,
         threshold: float = 0.0,

@@ -33,6 +33,8 @@ if TYPE_CHECKING:
 
 _LOG_2PI = math.log(2 * math.pi)
 POSTERIOR_INPUTS = ("flat", "tokens")
+# How the factors combine (``combine``; ``method.posterior`` chooses).
+COMBINES = ("product", "sum")
 
 
 def _gaussian_head(in_dim: int, hidden: int, z_dim: int) -> nn.Module:
@@ -55,7 +57,7 @@ def diag_normal_log_prob(x, loc, scale):
     return (-0.5 * ((x - loc) / scale) ** 2 - scale.log() - 0.5 * _LOG_2PI).sum(-1)
 
 
-def combine_log_prob(z, loc, scale, mask, combine: str = "product"):
+def combine_log_prob(z, loc, scale, mask, combine: str):
     """log q(z) from factors ``loc/scale [S, K, N, Z]`` with ``mask [S, K]``; z ``[S, N, Z]`` ->
     ``[S, N]``.
 
@@ -91,15 +93,15 @@ class Posterior(nn.Module):
         n_actions: int,
         z_dim: int,
         hidden: int,
-        combine: str = "product",
+        combine: str,
         n_agents: int | None = None,
         obs_dim: int | None = None,
         state_dim: int | None = None,
         inputs: str = "flat",
     ):
         super().__init__()
-        if combine not in ("product", "sum"):
-            raise ValueError(f"combine must be 'product' or 'sum', got {combine!r}")
+        if combine not in COMBINES:
+            raise ValueError(f"combine must be one of {COMBINES}, got {combine!r}")
         if inputs not in POSTERIOR_INPUTS:
             raise ValueError(f"posterior inputs must be one of {POSTERIOR_INPUTS}, got {inputs!r}")
         if inputs == "tokens" and layout is None:

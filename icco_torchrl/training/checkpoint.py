@@ -11,7 +11,9 @@ is :mod:`.replay_dump`'s.
   run puts in it is ``TrainingRun.state_dict()`` (:mod:`icco_torchrl.trainer`).
 - **One format.** Only :data:`FORMAT_VERSION` is read; a file of another format is one line
   naming the command that converts it (``tools/convert_checkpoint.py``, outside the package, which
-  holds the upgrades of older files).
+  holds the upgrades of older files). So is a file whose config lacks a field of today's
+  ``MethodConfig`` (written before that option existed): a new method option needs a row in the
+  converter, not a new format, and is never read at today's default by mistake.
 - **Resume rules.** :func:`check_resumable`: what a resumed run cannot change, and whether the
   networks and env layout fit (:func:`check_compatible`, :func:`load_weights`).
 - **Checkpoint and dump.** :func:`save_run` writes the dump, then the checkpoint naming the dump's
@@ -29,6 +31,7 @@ import shlex
 import shutil
 import uuid
 import warnings
+from dataclasses import fields
 from pathlib import Path
 from typing import Any
 
@@ -36,7 +39,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from icco_torchrl.training.config import set_env_params, validate
+from icco_torchrl.training.config import MethodConfig, set_env_params, validate
 from icco_torchrl.training.replay_dump import (
     dump_id_of,
     load_replay,
@@ -207,9 +210,20 @@ def load_checkpoint(
         raise CheckpointError(
             f"{path} is not a complete icco-torchrl checkpoint: its cfg has no method and env"
         )
+    if "cfg" in require and (absent := missing_method_fields(cfg["method"])):
+        raise CheckpointError(
+            f"{path} was written before {', '.join(f'method.{k}' for k in absent)} existed: "
+            f"{_convert_it(path)}"
+        )
     if "loss" in require and not isinstance(payload["loss"], dict):
         raise CheckpointError(f"{path} is not a complete icco-torchrl checkpoint: loss is no dict")
     return _from_plain(payload)
+
+
+def missing_method_fields(method: dict) -> list[str]:
+    """The fields of today's :class:`MethodConfig` that a checkpoint's ``method`` config lacks:
+    options added after it was written, which the converter fills at the value it trained with."""
+    return [f.name for f in fields(MethodConfig) if f.name not in method]
 
 
 def another_format(path: Path, version: int) -> CheckpointError:
