@@ -14,14 +14,14 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
 "$PY" -c "import sys, torch; sys.exit(0 if torch.cuda.is_available() else 'gpu_check.sh: no CUDA device here')"
-if [ -d .whl ]; then
-  "$PY" -m pip install -q --no-index --find-links .whl -e . >/tmp/gpu_check_pip.log 2>&1 \
-    || { cat /tmp/gpu_check_pip.log; exit 1; }
-fi
-export TORCHINDUCTOR_CACHE_DIR=${TORCHINDUCTOR_CACHE_DIR:-/tmp/icco-inductor}
-export WANDB_MODE=disabled LITELLM_LOCAL_MODEL_COST_MAP=True
 OUT=${RUNS:-runs/gpu_check}
 mkdir -p benchmarks/results "$OUT"
+if [ -d .whl ]; then
+  "$PY" -m pip install -q --no-index --find-links .whl -e . >"$OUT/pip.log" 2>&1 \
+    || { cat "$OUT/pip.log"; exit 1; }
+fi
+export TORCHINDUCTOR_CACHE_DIR=${TORCHINDUCTOR_CACHE_DIR:-$(cd "$OUT" && pwd)/inductor}
+export WANDB_MODE=disabled LITELLM_LOCAL_MODEL_COST_MAP=True
 nvidia-smi --query-gpu=name,memory.total --format=csv,noheader || true
 
 [ "${SPEED:-1}" = 0 ] || "$PY" benchmarks/train_speed.py --device cuda --experiment gpu --paths eager compiled graphs \

@@ -342,6 +342,46 @@ def speed_section(name: str = "train_speed.json") -> str:
     )
 
 
+def kernels_section(name: str = "update_kernels_intel.json") -> str:
+    """The compiled update kernel by kernel, with and without bool masks (update_kernels.py)."""
+    data = load(name)
+    if data is None:
+        return f"(not measured: no `results/{name}`)"
+    rows, largest = [], []
+    for path, v in data["paths"].items():
+        rows.append({"path": path, **{k: x for k, x in v.items() if not isinstance(x, list)}})
+        largest += [
+            f"`{path}`: "
+            + "; ".join(
+                f"{k['kernel'].split('cpp_fused_')[-1]} {k['ms']:.2f} ms"
+                for k in v["largest_fused"][:4]
+            )
+        ]
+    text = table(
+        rows,
+        {
+            "path": "update",
+            "ms_per_update": "ms / update",
+            "achieved_gflop_s": "achieved GFLOP/s",
+            "gemm_ms": "matrix products (ms)",
+            "gemm_gflop_s": "their GFLOP/s",
+            "fused_kernels": "fused kernels",
+            "fused_ms": "their ms",
+            "relu_mask_kernels_ms": "of which ReLU-mask kernels (ms)",
+            "other_aten_ms": "other aten ops (ms)",
+            "rest_ms": "rest (ms)",
+        },
+    )
+    isa = data["isa"]
+    return (
+        f"{text}\n\nThe largest fused kernels per update: {'; '.join(largest)}. "
+        f"{data['gflop_per_update']:.2f} GFLOP per update, {data['updates_profiled']} updates "
+        f"profiled per path, {data['threads']} thread; {data['cpu']} ({isa['cpu_capability']}, "
+        f"AMX-BF16 {'yes' if isa['amx_bf16'] else 'no'}), torch {data['torch']}. "
+        f"Source: [`results/{name}`](results/{name})."
+    )
+
+
 def team_speed_section() -> str:
     """The fixed-size path at a baseline commit and at this one (benchmarks/team_speed.py)."""
     data = load("team_speed.json")
@@ -394,6 +434,7 @@ def render() -> str:
         skill=skill_section(),
         speed=speed_section(),
         speed_intel=speed_section("train_speed_intel.json"),
+        kernels=kernels_section(),
         team_speed=team_speed_section(),
         train_gpu=train_gpu_section(),
         gpu_check=gpu_check_section(),

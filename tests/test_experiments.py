@@ -77,6 +77,24 @@ def test_benchmarks_readme_is_rendered_from_the_results():
     assert readme == report.render(), "stale: run python benchmarks/report.py"
 
 
+def test_the_kernel_profile_sorts_an_update_into_products_fused_kernels_and_the_rest():
+    kernels = _load(ROOT / "benchmarks" / "update_kernels.py")
+    events = {  # self ms per update, calls per update
+        "aten::mm": (2.0, 3.0),
+        "aten::addmm": (1.0, 2.0),
+        "graph_0_cpp_fused_relu_threshold_backward_1": (1.0, 1.0),
+        "graph_1_cpp_fused_add_softmax_2": (0.5, 1.0),
+        "aten::copy_": (0.25, 4.0),
+    }
+    r = kernels.summarise(events, ms_update=6.0, flops=1.2e9, top=1)
+    assert (r["gemm_ms"], r["gemm_calls"], r["gemm_gflop_s"]) == (3.0, 5.0, 400.0)
+    assert (r["fused_kernels"], r["fused_ms"], r["relu_mask_kernels_ms"]) == (2, 1.5, 1.0)
+    assert (r["other_aten_ms"], r["rest_ms"], r["achieved_gflop_s"]) == (0.25, 1.25, 200.0)
+    assert [k["kernel"] for k in r["largest_fused"]] == [
+        "graph_0_cpp_fused_relu_threshold_backward_1"
+    ]
+
+
 def test_the_verdict_rule_judges_a_gap_against_two_standard_errors_of_the_means():
     verdict = _load(ROOT / "experiments" / "verdict.py")
     Mean = verdict.Mean

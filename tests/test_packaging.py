@@ -17,7 +17,7 @@ from conftest import ROOT
 # An absolute path of one machine: a checkout, a home folder, a scratch folder (not one inside a
 # URL or a longer path: "github.com/org/work/" is fine).
 MACHINE_PATH = re.compile(r"(?<![\w./-])(/work/|/root/|/home/[\w.-]+/|/tmp/[\w.-]+)")
-CHECKED = (".md", ".py", ".yaml", ".json")
+CHECKED = (".md", ".py", ".yaml", ".json", ".sh", ".toml", ".html", ".txt", ".cfg")
 
 
 def test_no_absolute_machine_paths_in_tracked_files():

@@ -34,10 +34,6 @@ from icco_torchrl.objectives import ICCOLoss, total_loss
 from icco_torchrl.training import compile_cache
 from icco_torchrl.training.interrupt import abandonable
 
-# Compiled kernels persist here across runs (a cold compile of the ICCO update takes minutes on
-# a CPU, a warm one seconds), unless TORCHINDUCTOR_CACHE_DIR says otherwise.
-CACHE_DIR = compile_cache.CACHE_DIR
-
 
 def can_compile() -> str | None:
     """None when this torch build can compile, else the reason it cannot."""
