@@ -49,6 +49,16 @@ def test_every_sequence_replay_screen_and_benchmark_recipe_composes():
         compose_config(["method=icco", *skill.BUDGET, *overrides])
 
 
+def test_every_best_team_screen_composes_at_the_screen_budget_and_replay_ratio():
+    best_team = _load(ROOT / "experiments" / "best_team" / "run.py")
+    for name, (_, method, overrides) in best_team.SCREENS.items():
+        cfg = compose_config([f"method={method}", *best_team.BUDGET, *overrides])
+        t = cfg.train
+        assert cfg.method.name == method and t.total_frames >= 2_000_000, name
+        replayed = t.updates_per_batch * t.batch_segments * t.sequence_length
+        assert replayed == 8 * cfg.env.num_envs * t.steps_per_batch, name
+
+
 def _icco_glue_lines(path: Path) -> int:
     """Lines of the simple statements whose last line is marked ``# ICCO`` (as formatted)."""
     import ast
