@@ -74,7 +74,7 @@ def _restore(path, device: str, seed: int | None, max_robots: int | None, length
 
 
 # The totals the page shows, and the yardstick's (:func:`scripted_yardstick`).
-TOTALS = ("pick", "collect", "defense", "invasion", "reward", "inst_reward")
+TOTALS = (*EVENTS, "inst_reward", "reward")
 
 
 def scripted_yardstick(path, episodes: int, *, seed: int | None = None) -> dict | None:
@@ -86,11 +86,17 @@ def scripted_yardstick(path, episodes: int, *, seed: int | None = None) -> dict 
         raise ValueError(f"live.reference_episodes must be an integer >= 0, got {episodes!r}")
     if episodes == 0:
         return None
+    from omegaconf import OmegaConf
+
     from icco_torchrl.envs.reference_policies import make_reference_policy, reference_label
     from icco_torchrl.evaluation.rollout import evaluate
-    from icco_torchrl.training.restore import restore
+    from icco_torchrl.training.build import make_env
+    from icco_torchrl.training.checkpoint import load_checkpoint
+    from icco_torchrl.training.config import validate
 
-    env = restore(path, num_envs=int(episodes), seed=seed)["env"]
+    # The checkpoint's env only: the scripted team needs no networks.
+    cfg = validate(OmegaConf.create(load_checkpoint(path)["cfg"]))
+    env = make_env(cfg, num_envs=int(episodes), seed=seed)
     means = evaluate(env, make_reference_policy("best_scripted", env), seed=seed)
     steps = int(getattr(env, "base_env", env).max_steps)
     return {
@@ -185,7 +191,7 @@ class LiveLoop:
         self.env, self.raw, self.policy, self.planner = env, raw, policy, planner
         self.status = PlannerStatus()
         self.on_status = None
-        self.totals = {k: 0.0 for k in (*EVENTS, "inst_reward", "reward")}
+        self.totals = dict.fromkeys(TOTALS, 0.0)
         self.ticks, self.episode, self.finished = 0, 1, 0
         self._finished_sums = dict.fromkeys(self.totals, 0.0)  # over the finished episodes
         self._lock = threading.Lock()  # one tick or plan hand-over at a time

@@ -262,9 +262,8 @@ class LiveServer:
         reference: dict | None = None,
     ):
         _check_settings(rate_hz, token, max_clients)
-        self.reference = (
-            reference  # the yardstick beside the running mean (loop.scripted_yardstick)
-        )
+        # The yardstick beside the running mean (loop.scripted_yardstick).
+        self.reference = reference
         self.max_clients = max_clients
         self.loop, self.host, self.port, self.rate_hz, self.drive = (
             loop,
