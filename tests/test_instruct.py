@@ -265,3 +265,76 @@ def test_language_report_without_table_two_runs_reports_fig5b_and_lists_qmix_tap
     assert words.startswith("--budget experiment=repro_5m --seeds 0 --methods icco qmix_full")
     assert "--sweep multirun/four_quadrants_5m" in words
     assert words.endswith(f"--out {os.path.relpath(out)} --readme {os.path.relpath(readme)}")
+
+
+def test_table_two_runs_join_a_page_that_has_fig5b_beside_its_icco_row(
+    checkpoint, tmp_path, capsys
+):
+    """``run.py --methods qmix`` writes Table II's task-aligned runs alone: ``report.py --table2``
+    adds their rows, the verdict and the planner's statistics to the page rendered from Fig. 5b,
+    keeps its ICCO row, gives the same page when run twice, and refuses another protocol."""
+    import csv
+    import os
+
+    from test_experiments import ROOT, _load
+
+    report = _load(ROOT / "experiments" / "language" / "report.py")
+
+    def instruct(folder, *extra):
+        code = icco(
+            "instruct",
+            "Go right; Spread out",
+            f"eval.checkpoints=[{checkpoint}]",
+            "eval.trials=2",
+            "eval.steps=6",
+            *extra,
+            f"eval.out_dir={folder}",
+            f"hydra.run.dir={tmp_path / 'hydra'}",
+        )
+        assert code == 0, capsys.readouterr().err
+
+    page = tmp_path / "language"
+    instruct(page / "fig5b")
+    readme = tmp_path / "5m" / "README.md"
+    assert report.main([str(page), "--readme", str(readme)]) == 0
+    icco_row = json.loads((readme.parent / "results.json").read_text())["table2"]["methods"]["icco"]
+
+    tap = tmp_path / "tap"
+    instruct(tap / "table2_tap", "llm.prompt=tap")
+    # The smoke checkpoint is ICCO's: its rows stand in for both task-aligned agents.
+    trials = tap / "table2_tap" / "instruct_trials.csv"
+    rows = list(csv.DictReader(trials.open()))
+    learned = [r for r in rows if r["method"] == "ICCO-TAP"]
+    relabelled = [{**r, "method": m} for m in ("QMIX-TAP", "QMIX-TAP w/o TR") for r in learned]
+    with trials.open("w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(relabelled + [r for r in rows if r["method"] != "ICCO-TAP"])
+    (tap / "run.json").write_text(
+        json.dumps({"budget": [], "seeds": [0], "methods": ["qmix"], "out": os.path.relpath(tap)})
+    )
+
+    assert report.main(["--table2", str(tap), "--readme", str(readme)]) == 0
+    text = readme.read_text()
+    assert "| QMIX-TAP | 4 |" in text and "| QMIX-TAP w/o TR | 4 |" in text  # 2 trials x 2
+    assert "| ICCO | 4 |" in text and "Table II: missing" not in text
+    assert "- **Paper (Table II): ICCO > QMIX-TAP > QMIX-TAP w/o TR" in text
+    assert "Table II: instruction segments, 4 (ICCO, QMIX-TAP, QMIX-TAP w/o TR))." in text
+    assert "| table2_tap | ICCO-TAP |" in text  # the planner's statistics of the added runs
+    assert "--methods qmix --out" in text  # the command that made the added rows
+    results = json.loads((readme.parent / "results.json").read_text())["table2"]["methods"]
+    assert results["icco"] | {"share_of_best_scripted": None} == icco_row | {
+        "share_of_best_scripted": None
+    }
+    assert {"qmix_tap", "qmix_tap_wo_tr"} <= set(results)
+    # the pooled counts are the relabelled rows' own
+    picks = [float(r["pick"]) for r in learned if r["segment"] != "episode"]
+    assert results["qmix_tap"]["pick"]["mean"] == pytest.approx(sum(picks) / len(picks))
+    assert report.main(["--table2", str(tap), "--readme", str(readme)]) == 0
+    assert readme.read_text() == text  # adding twice changes nothing
+
+    other = tmp_path / "other"
+    instruct(other / "table2_tap", "llm.prompt=tap", "eval.trials=1")
+    with pytest.raises(SystemExit, match="not the page's protocol, nothing written"):
+        report.main(["--table2", str(other), "--readme", str(readme)])
+    assert readme.read_text() == text

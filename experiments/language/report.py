@@ -2,6 +2,7 @@
 
     python experiments/language/report.py multirun/language [--readme PATH]
     python experiments/language/report.py --references experiments/language/references
+    python experiments/language/report.py --table2 multirun/language_5m_tap --readme PAGE
 
 Tables come from the ``icco instruct`` outputs; the comparison with the paper is computed from
 the numbers, each verdict by the rule of ``experiments/verdict.py`` (n: trials pooled across
@@ -19,6 +20,11 @@ get the references they lack (the best scripted team; Table II's only where the 
 task-aligned run) and every row its share; the other rows, the figures and the comparison stay
 as rendered. The references the page has must come out of ``DIR`` with the same numbers (the
 same episodes), or nothing is written.
+
+``--table2 DIR`` adds Table II's task-aligned runs to a page that has Fig. 5b: ``DIR`` is a folder
+of ``run.py --methods qmix`` (only ``table2_tap/``). The page keeps its ICCO row (its Fig. 5b run,
+from its ``results.json``) and gets the QMIX-TAP rows, their references, the verdict and the
+planner's statistics; a folder of other instructions, steps or trials is refused.
 """
 
 from __future__ import annotations
@@ -85,26 +91,29 @@ def load(folder: Path) -> tuple[dict, list[dict]]:
     return payload, list(csv.DictReader((folder / "instruct_trials.csv").open()))
 
 
-def table2(rows: list[dict]) -> tuple[str, dict]:
+def table2(rows: list[dict], given: dict | None = None) -> tuple[str, dict]:
     """Markdown of picks/collects/defenses per instruction segment, and ``{method: (Mean, ...)}``
-    (``verdict.Mean`` per count, n = the method's instruction segments, seeds pooled)."""
+    (``verdict.Mean`` per count, n = the method's instruction segments, seeds pooled). ``given``:
+    rows already reduced to their means (a page's own ICCO row, :func:`add_table2`)."""
     lines = [
         "| method | segments | pick | collect | defense | paper (pick / collect / defense) |",
         "|---|---|---|---|---|---|",
     ]
-    means = {}
+    means = dict(given or {})
     for method in TABLE2:
         segs = [r for r in rows if r["method"] == method and r["segment"] != EPISODE]
+        if segs:
+            values = {k: np.array([float(r[k]) for r in segs]) for k in COUNTS}
+            means[method] = tuple(
+                verdict.Mean(float(values[k].mean()), float(values[k].std()), len(segs))
+                for k in COUNTS
+            )
         paper = " / ".join(f"{v:.1f}" for v in PAPER_TABLE2[method])
-        if not segs:
+        if method not in means:
             lines.append(f"| {method} | missing | – | – | – | {paper} |")
             continue
-        values = {k: np.array([float(r[k]) for r in segs]) for k in COUNTS}
-        means[method] = tuple(
-            verdict.Mean(float(values[k].mean()), float(values[k].std()), len(segs)) for k in COUNTS
-        )
-        cells = " | ".join(f"{values[k].mean():.1f} ± {values[k].std():.1f}" for k in COUNTS)
-        lines.append(f"| {method} | {len(segs)} | {cells} | {paper} |")
+        cells = " | ".join(f"{m.mean:.1f} ± {m.std:.1f}" for m in means[method])
+        lines.append(f"| {method} | {means[method][0].n} | {cells} | {paper} |")
     # The scripted reference policies, driven by the same task-aligned plans (extra rows, not in the
     # paper).
     for method in dict.fromkeys(
@@ -133,15 +142,43 @@ def _per_instruction(cell: dict, a: str, b: str, segments: list[str]) -> tuple[s
     return verdict.claim(g.word for g in gaps.values()), detail
 
 
+TABLE2_N = "; Table II: instruction segments, "
+
+
+def table2_n(means: dict) -> str:
+    """Table II's trials as the verdict line counts them (instruction segments per method)."""
+    return verdict.pooled_n({m: v[0].n for m, v in means.items()})
+
+
+def table2_claim(means: dict) -> str:
+    """The paper's Table II ordering, ICCO > QMIX-TAP > QMIX-TAP w/o TR, judged per count."""
+    if len(means) < len(TABLE2):
+        return (
+            f"- Table II: missing {', '.join(m for m in TABLE2 if m not in means)}; no comparison."
+        )
+    parts, words = [], []
+    for i, name in enumerate(COUNTS):
+        icco, tap, wo_tr = (means[m][i] for m in ("ICCO", "QMIX-TAP", "QMIX-TAP w/o TR"))
+        first, second = verdict.compare(icco, tap), verdict.compare(tap, wo_tr)
+        words += [first.word, second.word]
+        parts.append(
+            f"{name} {verdict.claim([first.word, second.word])} ({icco.mean:.1f} / "
+            f"{tap.mean:.1f} / {wo_tr.mean:.1f}; ICCO against QMIX-TAP {first.text(2)}, "
+            f"QMIX-TAP against w/o TR {second.text(2)})"
+        )
+    return (
+        "- **Paper (Table II): ICCO > QMIX-TAP > QMIX-TAP w/o TR on picks, deliveries and "
+        f"defenses**: {verdict.claim(words)}. Per count: " + "; ".join(parts) + "."
+    )
+
+
 def comparison(fig5b: list[dict], means: dict) -> str:
     """The paper's findings, each judged on these numbers by ``verdict.py``."""
     cell = {(r["method"], r["segment"]): r for r in fig5b}
     episode = {m: r for (m, s), r in cell.items() if s == EPISODE}
     ns = "Fig. 5b: " + verdict.pooled_n({m: r["n"] for m, r in episode.items()})
     if means:
-        ns += "; Table II: instruction segments, " + verdict.pooled_n(
-            {m: v[0].n for m, v in means.items()}
-        )
+        ns += TABLE2_N + table2_n(means)
     lines = [
         f"- **How to read the verdicts.** {verdict.RULE} n = trials pooled across seeds ({ns})."
     ]
@@ -195,25 +232,7 @@ def comparison(fig5b: list[dict], means: dict) -> str:
             )
     else:
         lines.append("- Fig. 5b: ICCO or QMIX (FULL) is missing; no comparison.")
-    if len(means) == len(TABLE2):
-        parts, words = [], []
-        for i, name in enumerate(COUNTS):
-            icco, tap, wo_tr = (means[m][i] for m in ("ICCO", "QMIX-TAP", "QMIX-TAP w/o TR"))
-            first, second = verdict.compare(icco, tap), verdict.compare(tap, wo_tr)
-            words += [first.word, second.word]
-            parts.append(
-                f"{name} {verdict.claim([first.word, second.word])} ({icco.mean:.1f} / "
-                f"{tap.mean:.1f} / {wo_tr.mean:.1f}; ICCO against QMIX-TAP {first.text(2)}, "
-                f"QMIX-TAP against w/o TR {second.text(2)})"
-            )
-        lines.append(
-            "- **Paper (Table II): ICCO > QMIX-TAP > QMIX-TAP w/o TR on picks, deliveries and "
-            f"defenses**: {verdict.claim(words)}. Per count: " + "; ".join(parts) + "."
-        )
-    else:
-        lines.append(
-            f"- Table II: missing {', '.join(m for m in TABLE2 if m not in means)}; no comparison."
-        )
+    lines.append(table2_claim(means))
     lines.append(
         "- Our environment is a re-implementation and the default planner is a rule program, so "
         "absolute numbers differ from the paper's; the orderings are what to compare."
@@ -305,8 +324,8 @@ def run_arguments(out: Path, llm: str | None, readme: Path | None) -> str:
     words = ["--budget", *saved["budget"]] if saved.get("budget") else []
     words += ["--seeds", *map(str, saved["seeds"])] if saved.get("seeds") else []
     words += ["--methods", *saved["methods"]] if saved.get("methods") else []
-    for folder in ("sweep", "out"):
-        words += [f"--{folder}", saved[folder]] if saved.get(folder) else []
+    for folder in ("sweep", "wo_tr_sweep", "out"):
+        words += [f"--{folder.replace('_', '-')}", saved[folder]] if saved.get(folder) else []
     words += ["--readme", os.path.relpath(readme)] if readme else []
     if llm:
         words += ["--llm", llm]
@@ -415,6 +434,74 @@ def add_references(readme: Path, folder: Path) -> Path:
     return readme
 
 
+TABLE2_SOURCE = "The task-aligned rows come from "
+
+
+def add_table2(readme: Path, folder: Path) -> Path:
+    """Give ``readme`` (a page with Fig. 5b and ICCO's Table II row) and its ``results.json`` the
+    task-aligned rows of ``folder/table2_tap`` (``run.py --methods qmix``), Table II's verdict and
+    the planner's statistics; ICCO's row stays the page's own (its Fig. 5b run)."""
+    path = readme.parent / "results.json"
+    results = json.loads(path.read_text())
+    tap, tap_rows = load(folder / "table2_tap")
+    pooled = results.get("table2", {})
+    icco = pooled.get("methods", {}).get("icco")
+    if icco is None or icco.get("seeds", 0) < 1:
+        raise SystemExit(f"report.py: {readme} has no ICCO row in Table II: render it first")
+    steps = next(iter(tap["segment_steps"].values()))
+    n_segments = len(tap["segment_steps"])
+    if (
+        list(tap["segment_steps"]) != results["instructions"]
+        or steps != pooled["steps"]
+        or tap["trials"] * n_segments != pooled["trials"]
+    ):
+        raise SystemExit(
+            f"report.py: {folder} has other instructions, steps or trials than {readme}: "
+            "not the page's protocol, nothing written"
+        )
+    n = icco["seeds"] * pooled["trials"]
+    given = {"ICCO": tuple(verdict.Mean(icco[k]["mean"], icco[k]["std"], n) for k in COUNTS)}
+    table, means = table2(tap_rows, given)
+    text = readme.read_text()
+    start, end, _ = table_at(text, "| method | segments |")
+    source = (
+        f"{TABLE2_SOURCE}`python experiments/language/run.py "
+        f"{run_arguments(folder, None, readme)}`; ICCO's row is its Fig. 5b run above."
+    )
+    rest = text[end:]
+    if rest.startswith("\n\n" + TABLE2_SOURCE):  # a second addition replaces the first's line
+        rest = rest[rest.index("\n", 2) :]
+    text = text[:start] + table + "\n\n" + source + rest
+    start, end, rows = table_at(text, "| run | method | requests |")
+    rows = [r for r in rows if r[0] != "table2_tap"] + table_rows(
+        planner_stats({"table2_tap": tap})
+    )[2:]
+    text = text[:start] + markdown_rows(rows) + text[end:]
+    lines = text.splitlines()
+    for i, line in enumerate(lines):
+        if line.startswith("- Table II: missing") or line.startswith("- **Paper (Table II)"):
+            lines[i] = table2_claim(means)
+        elif line.startswith("- **How to read the verdicts.**"):
+            head = line.split(TABLE2_N)[0].removesuffix(").")
+            lines[i] = head + TABLE2_N + table2_n(means) + ")."
+    text = "\n".join(lines) + "\n"
+    added = results_json(
+        summarize(per_instruction(tap_rows)),
+        protocol=pooled["protocol"],
+        steps=steps,
+        trials=pooled["trials"],
+        frames=_frames(tap),
+        segment="instruction",
+    )["methods"]
+    pooled["methods"] = {"icco": icco, **{k: v for k, v in added.items() if k != "icco"}}
+    best = pooled["methods"].get("best_scripted", {}).get("reward", {}).get("mean")
+    for entry in pooled["methods"].values():
+        entry[SHARE_KEY] = entry["reward"]["mean"] / best if best and best > 0 else None
+    write_json(results, path)
+    readme.write_text(text)
+    return readme
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -426,7 +513,16 @@ def main(argv=None) -> int:
         type=Path,
         help="add the scripted references of this folder to the page (no run folder needed)",
     )
+    parser.add_argument(
+        "--table2",
+        type=Path,
+        help="add the Table II runs of this folder (run.py --methods qmix) to the page",
+    )
     args = parser.parse_args(argv)
+    if args.table2 is not None:
+        page = add_table2(args.readme, args.table2)
+        print(f"added the Table II runs of {args.table2} to {page}")
+        return 0
     if args.references is not None:
         page = add_references(args.readme, args.references)
         print(f"added the references of {args.references} to {page}")

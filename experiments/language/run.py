@@ -26,6 +26,13 @@ those two, as the 5M reproduction does:
     python experiments/language/run.py --budget experiment=repro_5m --methods icco qmix_full \
         --sweep multirun/four_quadrants_5m --out multirun/language_5m \
         --readme experiments/language/5m/README.md
+
+and ``--methods qmix`` runs Table II alone, its rows added to a page that has Fig. 5b and ICCO's
+row (``report.py --table2``):
+
+    python experiments/language/run.py --budget experiment=repro_5m --methods qmix \
+        --sweep multirun/four_quadrants_5m --wo-tr-sweep multirun/inst_only_5m \
+        --out multirun/language_5m_tap --readme experiments/language/5m/README.md
 """
 
 from __future__ import annotations
@@ -159,14 +166,16 @@ def main(argv=None) -> None:
             args.smoke,
         )
     replan = [f"eval.replan_every={args.replan_every}"] if args.replan_every else []
-    instruct(
-        out / "fig5b",
-        [path for m in FIG5B if m in agents for path in checkpoints(sweep, m, args.seeds)],
-        trials,
-        steps,
-        args.llm,
-        replan,
-    )
+    fig5b = [m for m in FIG5B if m in agents]
+    if fig5b:
+        instruct(
+            out / "fig5b",
+            [path for m in fig5b for path in checkpoints(sweep, m, args.seeds)],
+            trials,
+            steps,
+            args.llm,
+            replan,
+        )
     if table2:
         instruct(
             out / "table2_tap",
@@ -178,7 +187,12 @@ def main(argv=None) -> None:
         )
     # What the report cannot read from the checkpoints: the command line that reproduces this
     # folder (agents and folders only where they were given).
-    given = {"methods": args.methods, "sweep": args.sweep, "out": args.out}
+    given = {
+        "methods": args.methods,
+        "sweep": args.sweep,
+        "wo_tr_sweep": args.wo_tr_sweep,
+        "out": args.out,
+    }
     # The folder's own remark on its agents ("note", written by hand), kept across runs.
     previous = json.loads((out / "run.json").read_text()) if (out / "run.json").is_file() else {}
     (out / "run.json").write_text(
@@ -192,7 +206,10 @@ def main(argv=None) -> None:
             }
         )
     )
-    run(sys.executable, str(HERE / "report.py"), str(out), "--readme", str(args.readme))
+    # Without a Fig. 5b agent the folder holds Table II's runs alone: they join a page that has
+    # Fig. 5b (``--readme``), beside its ICCO row.
+    report = [str(out)] if fig5b else ["--table2", str(out)]
+    run(sys.executable, str(HERE / "report.py"), *report, "--readme", str(args.readme))
 
 
 if __name__ == "__main__":
