@@ -449,11 +449,10 @@ def add_table2(readme: Path, folder: Path) -> Path:
     if icco is None or icco.get("seeds", 0) < 1:
         raise SystemExit(f"report.py: {readme} has no ICCO row in Table II: render it first")
     steps = next(iter(tap["segment_steps"].values()))
-    n_segments = len(tap["segment_steps"])
     if (
         list(tap["segment_steps"]) != results["instructions"]
         or steps != pooled["steps"]
-        or tap["trials"] * n_segments != pooled["trials"]
+        or tap["trials"] * len(tap["segment_steps"]) != pooled["trials"]
     ):
         raise SystemExit(
             f"report.py: {folder} has other instructions, steps or trials than {readme}: "
@@ -462,29 +461,11 @@ def add_table2(readme: Path, folder: Path) -> Path:
     n = icco["seeds"] * pooled["trials"]
     given = {"ICCO": tuple(verdict.Mean(icco[k]["mean"], icco[k]["std"], n) for k in COUNTS)}
     table, means = table2(tap_rows, given)
-    text = readme.read_text()
-    start, end, _ = table_at(text, "| method | segments |")
     source = (
         f"{TABLE2_SOURCE}`python experiments/language/run.py "
         f"{run_arguments(folder, None, readme)}`; ICCO's row is its Fig. 5b run above."
     )
-    rest = text[end:]
-    if rest.startswith("\n\n" + TABLE2_SOURCE):  # a second addition replaces the first's line
-        rest = rest[rest.index("\n", 2) :]
-    text = text[:start] + table + "\n\n" + source + rest
-    start, end, rows = table_at(text, "| run | method | requests |")
-    rows = [r for r in rows if r[0] != "table2_tap"] + table_rows(
-        planner_stats({"table2_tap": tap})
-    )[2:]
-    text = text[:start] + markdown_rows(rows) + text[end:]
-    lines = text.splitlines()
-    for i, line in enumerate(lines):
-        if line.startswith("- Table II: missing") or line.startswith("- **Paper (Table II)"):
-            lines[i] = table2_claim(means)
-        elif line.startswith("- **How to read the verdicts.**"):
-            head = line.split(TABLE2_N)[0].removesuffix(").")
-            lines[i] = head + TABLE2_N + table2_n(means) + ")."
-    text = "\n".join(lines) + "\n"
+    text = _page_with_table2(readme.read_text(), table, source, tap, means)
     added = results_json(
         summarize(per_instruction(tap_rows)),
         protocol=pooled["protocol"],
@@ -500,6 +481,29 @@ def add_table2(readme: Path, folder: Path) -> Path:
     write_json(results, path)
     readme.write_text(text)
     return readme
+
+
+def _page_with_table2(text: str, table: str, source: str, tap: dict, means: dict) -> str:
+    """The page ``text`` with Table II ``table`` and its ``source`` line (replacing an earlier
+    one), the task-aligned run's planner statistics, and Table II's verdict and n."""
+    start, end, _ = table_at(text, "| method | segments |")
+    rest = text[end:]
+    if rest.startswith("\n\n" + TABLE2_SOURCE):  # a second addition replaces the first's line
+        rest = rest[rest.index("\n", 2) :]
+    text = text[:start] + table + "\n\n" + source + rest
+    start, end, rows = table_at(text, "| run | method | requests |")
+    added = table_rows(planner_stats({"table2_tap": tap}))[2:]
+    text = (
+        text[:start] + markdown_rows([r for r in rows if r[0] != "table2_tap"] + added) + text[end:]
+    )
+    lines = text.splitlines()
+    for i, line in enumerate(lines):
+        if line.startswith("- Table II: missing") or line.startswith("- **Paper (Table II)"):
+            lines[i] = table2_claim(means)
+        elif line.startswith("- **How to read the verdicts.**"):
+            head = line.split(TABLE2_N)[0].removesuffix(").")
+            lines[i] = head + TABLE2_N + table2_n(means) + ")."
+    return "\n".join(lines) + "\n"
 
 
 def main(argv=None) -> int:
