@@ -214,6 +214,22 @@ def test_with_fallbacks_instruct_runs_on_and_counts_them(checkpoint, tmp_path, c
     assert summary["sources"] and all(s["fallbacks"] == s["plans"] > 0 for s in summary["sources"])
 
 
+def _instruct_two_instructions(checkpoint, folder, tmp_path, capsys, *extra):
+    """``icco instruct "Go right; Spread out"``, 2 trials of 6 steps per instruction, into
+    ``folder``: the smallest run a language report reads."""
+    code = icco(
+        "instruct",
+        "Go right; Spread out",
+        f"eval.checkpoints=[{checkpoint}]",
+        "eval.trials=2",
+        "eval.steps=6",
+        *extra,
+        f"eval.out_dir={folder}",
+        f"hydra.run.dir={tmp_path / 'hydra'}",
+    )
+    assert code == 0, capsys.readouterr().err
+
+
 def test_language_report_without_table_two_runs_reports_fig5b_and_lists_qmix_tap_missing(
     checkpoint, tmp_path, capsys
 ):
@@ -227,16 +243,7 @@ def test_language_report_without_table_two_runs_reports_fig5b_and_lists_qmix_tap
     report = _load(ROOT / "experiments" / "language" / "report.py")
 
     out = tmp_path / "language"
-    code = icco(
-        "instruct",
-        "Go right; Spread out",
-        f"eval.checkpoints=[{checkpoint}]",
-        "eval.trials=2",
-        "eval.steps=6",
-        f"eval.out_dir={out / 'fig5b'}",
-        f"hydra.run.dir={tmp_path / 'hydra'}",
-    )
-    assert code == 0, capsys.readouterr().err
+    _instruct_two_instructions(checkpoint, out / "fig5b", tmp_path, capsys)
     (out / "run.json").write_text(
         json.dumps(
             {
@@ -281,17 +288,7 @@ def test_table_two_runs_join_a_page_that_has_fig5b_beside_its_icco_row(
     report = _load(ROOT / "experiments" / "language" / "report.py")
 
     def instruct(folder, *extra):
-        code = icco(
-            "instruct",
-            "Go right; Spread out",
-            f"eval.checkpoints=[{checkpoint}]",
-            "eval.trials=2",
-            "eval.steps=6",
-            *extra,
-            f"eval.out_dir={folder}",
-            f"hydra.run.dir={tmp_path / 'hydra'}",
-        )
-        assert code == 0, capsys.readouterr().err
+        _instruct_two_instructions(checkpoint, folder, tmp_path, capsys, *extra)
 
     page = tmp_path / "language"
     instruct(page / "fig5b")
