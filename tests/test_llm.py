@@ -623,7 +623,11 @@ def test_with_fallbacks_a_model_that_never_replies_falls_back_and_records_it(
         result = planner.plan("Go right", starts(0), previous=np.full((3, K, 2), 0.5))
         elapsed = time.monotonic() - begin
     assert elapsed < 3.0
-    assert not result.ok and result.fallback == "previous" and NO_REPLY[case] in result.error
+    # A hung provider ends in its request's timeout or, on a loaded machine where the retries
+    # eat the plan's time first, in the plan's deadline: either way recorded, and a fallback.
+    recorded = (NO_REPLY[case], "DeadlineExceeded") if case == "hang" else (NO_REPLY[case],)
+    assert not result.ok and result.fallback == "previous"
+    assert any(word in result.error for word in recorded), result.error
     assert np.allclose(result.waypoints, 0.5) and planner.stats["fallbacks"] == 1
 
 
