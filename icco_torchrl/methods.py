@@ -21,8 +21,8 @@ from icco_torchrl.paths import CONF_DIR
 # What a table label may carry after the method's label, with its results.json spelling: the
 # task-aligned prompt of ``icco instruct llm.prompt=tap`` ("QMIX-TAP"), agents trained on the
 # instruction reward alone ("QMIX-TAP w/o TR", ``experiment=inst_only``) and agents that learned
-# from a scripted team's data ("ICCO + teacher data", ``train.teacher``: never the paper's
-# method), in that order.
+# from a scripted team's data ("ICCO + teacher data": an option measured and removed, named on the
+# pages of its screens in experiments/best_team), in that order.
 TAP = "-TAP"
 WITHOUT_TASK_REWARD = " w/o TR"
 TEACHER = " + teacher data"

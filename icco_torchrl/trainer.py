@@ -287,8 +287,7 @@ class TrainingRun:
             return False
         run, t, p = self.run, self.cfg.train, self.progress
         collector = self._make_collector(remaining)
-        taught = run.teacher.rows if run.teacher is not None else 0  # the teacher's env rows
-        tracker = EpisodeTracker(self.cfg.env.num_envs - taught, run.env.device)
+        tracker = EpisodeTracker(self.cfg.env.num_envs, run.env.device)
         recent = []  # episodes since the last row
         episode_stats = {k: float("nan") for k in EPISODE_COLUMNS}
         last_eval = last_ckpt = p.frames
@@ -299,7 +298,7 @@ class TrainingRun:
             for batch in collector:
                 self.timers["collect"] += time.perf_counter() - tick
                 self.collector_torch = getattr(collector, "torch_rng", None)
-                recent.append(self._take_batch(batch, tracker, taught))
+                recent.append(self._take_batch(batch, tracker))
                 row = self._timed_learn()
                 if p.batches % self.cfg.logger.log_interval == 0:
                     episode_stats = self.log_train(row, recent) or episode_stats
@@ -342,18 +341,16 @@ class TrainingRun:
             streams=self.collector_torch,
         )
 
-    def _take_batch(self, batch, tracker: EpisodeTracker, taught: int) -> torch.Tensor:
+    def _take_batch(self, batch, tracker: EpisodeTracker) -> torch.Tensor:
         """Count a collected batch, advance the exploration schedule and replay what the loss
-        reads; returns the learner's episodes that ended in it."""
+        reads; returns the episodes that ended in it."""
         run, p = self.run, self.progress
         p.frames += batch.numel()
         p.batches += 1
         self.explore.eps.fill_(epsilon(p.frames, self.cfg.train))
-        finished = tracker.update(batch[taught:])  # the learner's episodes
+        finished = tracker.update(batch)
         # Only what the loss reads is replayed.
         replayed = batch.select(*run.loss.in_keys, strict=False)
-        if run.teacher is not None:
-            replayed = run.teacher.split(replayed)
         items = run.cutter(replayed)
         if items.shape[0]:  # items longer than a batch complete in a later one
             run.buffer.extend(items)
@@ -408,13 +405,8 @@ class TrainingRun:
         run, t = self.run, self.cfg.train
         if len(run.buffer) < max(t.warmup_segments, t.batch_segments):
             return {}
-        teacher = run.teacher.buffer if run.teacher is not None else None
-        if teacher is not None and len(teacher) < teacher.batch_size:
-            return {}
         for _ in range(t.updates_per_batch):
-            # train.teacher: a fixed share of every batch from the teacher's buffer
-            sample = run.buffer.sample() if teacher is None else run.teacher.sample(run.buffer)
-            metrics = run.update(sample)
+            metrics = run.update(run.buffer.sample())
             run.updater.step()
             self.progress.updates += 1
         return metrics_row(metrics)

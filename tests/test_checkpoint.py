@@ -656,6 +656,46 @@ def test_a_checkpoint_written_before_a_method_option_is_refused_then_converted_a
     assert set(restored) == set(state) and all(torch.equal(restored[k], state[k]) for k in state)
 
 
+def test_a_checkpoint_with_a_removed_train_option_is_refused_then_converted_when_it_was_off(
+    tmp_path, capsys
+):
+    """A file of today's format written while ``train.teacher`` existed (the demo policy's kind)
+    is refused in one line naming the converter; converted, the option's fields are dropped when
+    it was off, and a run that used it is refused naming the last commit that loads it."""
+    from icco_torchrl.training.build import build, compose_config
+    from icco_torchrl.training.restore import restore
+
+    tables = converter()
+    cfg = compose_config(["method=icco"])
+    run = build(cfg, num_envs=2)
+    state = {k: v.clone() for k, v in run.loss.state_dict().items()}
+    written = OmegaConf.to_container(cfg, resolve=True)
+    written["train"].update(teacher=None, teacher_envs=8, teacher_share=0.25)
+    old = tmp_path / "policy.pt"
+    payload = {"cfg": written, "layout": dict(run.layout.__dict__), "loss": state, "frames": 512}
+    save_checkpoint(old, payload)
+    for read in (load_checkpoint, lambda path: restore(path, num_envs=2)):
+        with pytest.raises(CheckpointError) as info:
+            read(old)
+        message = str(info.value)
+        assert "\n" not in message and f"{CONVERT} {old}" in message
+        assert "train.teacher, train.teacher_envs, train.teacher_share" in message
+    new = tmp_path / "new.pt"
+    assert tables.main([str(old), str(new)]) == 0
+    assert "train.teacher dropped (it was None, as today)" in capsys.readouterr().out
+    assert not set(tables.TRAIN_FIELDS_REMOVED) & set(load_checkpoint(new)["cfg"]["train"])
+    restored = restore(new, num_envs=2).loss.state_dict()
+    assert set(restored) == set(state) and all(torch.equal(restored[k], state[k]) for k in state)
+
+    written["train"]["teacher"] = "blend(defend=1.75)"
+    save_checkpoint(old, {**payload, "cfg": written})
+    assert tables.main([str(old), str(tmp_path / "taught.pt")]) == 2
+    err = capsys.readouterr().err.strip()
+    commit = tables.TRAIN_FIELDS_REMOVED["teacher"][1]
+    assert len(err.splitlines()) == 1 and "train.teacher='blend(defend=1.75)'" in err
+    assert f"evaluate it at commit {commit}" in err and not (tmp_path / "taught.pt").exists()
+
+
 @pytest.mark.parametrize(
     "option, value, commit",
     [("z_input", "mlp", "396580d"), ("reward_channels", "per_robot", "6ecb567")],
@@ -728,7 +768,12 @@ def test_a_run_converted_in_place_resumes_with_its_replay_dump(tmp_path):
 
 def test_nothing_in_the_package_mentions_the_upgrade_tables():
     """The upgrade of older checkpoints lives in tools/convert_checkpoint.py only."""
-    tables = ("METHOD_FIELDS_ADDED", "METHOD_FIELDS_REMOVED", "TRAIN_FIELDS_ADDED")
+    tables = (
+        "METHOD_FIELDS_ADDED",
+        "METHOD_FIELDS_REMOVED",
+        "TRAIN_FIELDS_ADDED",
+        "TRAIN_FIELDS_REMOVED",
+    )
     names = (*tables, "_upgrade", "legacy_numpy_globals", "safe_globals")
     found = [
         f"{path.relative_to(ROOT)}: {name}"

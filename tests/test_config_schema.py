@@ -157,14 +157,6 @@ def test_the_method_registry_is_the_presets_of_conf_method():
     assert len(set(labels)) == len(labels) and all(labels)
     assert [methods.result_name(text) for text in labels] == list(names)
     assert methods.result_name("QMIX-TAP w/o TR") == "qmix_tap_wo_tr"
-    assert methods.result_name("ICCO + teacher data") == "icco_teacher"
+    assert methods.result_name("ICCO + teacher data") == "icco_teacher"  # removed, still on pages
 
-
-def test_a_run_that_learned_from_a_scripted_team_has_a_label_of_its_own():
-    from icco_torchrl.evaluation.metrics import method_label
-
-    cfg = {"method": {"name": "qmix_full"}, "env": {"params": {}}, "train": {"teacher": None}}
-    assert method_label(cfg) == "QMIX (FULL)"
-    cfg["train"]["teacher"] = "blend(defend=1.75)"
-    assert method_label(cfg) == "QMIX (FULL) + teacher data"
     assert methods.result_name("not a method") is None

@@ -16,8 +16,9 @@ The upgrade of older files lives here, and only here:
   one call (:func:`legacy_numpy_globals`). A crafted file runs no code.
 - The config gets the fields added since it was written at the value it was trained with
   (:data:`METHOD_FIELDS_ADDED`, :data:`TRAIN_FIELDS_ADDED`); an option removed from the library
-  since (:data:`METHOD_FIELDS_REMOVED`) is dropped at its one remaining value, and any other value
-  is refused in one line naming the last commit that loads the file. The result must pass today's
+  since (:data:`METHOD_FIELDS_REMOVED`, :data:`TRAIN_FIELDS_REMOVED`) is dropped at its one
+  remaining value, and any other value is refused in one line naming the last commit that loads
+  the file. The result must pass today's
   config schema.
 - A training checkpoint gets what a resume now requires where it lacks it, at the values the older
   library assumed: the record of its final outputs (written when ``learning_curve.png`` lies beside
@@ -90,6 +91,14 @@ METHOD_FIELDS_REMOVED = {
     "z_input": ("head", "396580d"),
     "reward_channels": ("team", "6ecb567"),  # experiments/best_team: not kept
 }
+# Train fields of options measured and dropped, as METHOD_FIELDS_REMOVED (ANY: dropped at any
+# value, a setting of the removed option that did nothing while it was off).
+ANY = "any value"
+TRAIN_FIELDS_REMOVED = {
+    "teacher": (None, "LAST_TEACHER"),  # experiments/best_team: teacher data not kept
+    "teacher_envs": (ANY, "LAST_TEACHER"),
+    "teacher_share": (ANY, "LAST_TEACHER"),
+}
 # Train fields added after checkpoints had been written, with the value those runs trained with:
 # a resumed older run keeps its recipe (4-step items, no shaping) instead of today's defaults.
 TRAIN_FIELDS_ADDED = {
@@ -157,18 +166,22 @@ def upgrade(payload: dict, path: Path) -> list[str]:
             if key not in fields and key in schema.__dataclass_fields__:
                 fields[key] = copy.deepcopy(value)
                 changes.append(f"{section}.{key}={value!r}")
-    method = cfg.get("method") if isinstance(cfg, dict) else None
-    if isinstance(method, dict):
-        for key, (value, commit) in METHOD_FIELDS_REMOVED.items():  # only one value loads
-            if key not in method:
+    for section, removed in (("method", METHOD_FIELDS_REMOVED), ("train", TRAIN_FIELDS_REMOVED)):
+        fields = cfg.get(section) if isinstance(cfg, dict) else None
+        if not isinstance(fields, dict):
+            continue
+        for key, (value, commit) in removed.items():  # only one value loads
+            if key not in fields:
                 continue
-            if method[key] != value:
+            if value is not ANY and fields[key] != value:
                 raise CheckpointError(
-                    f"{path} was trained with method.{key}={method[key]!r}, an option removed "
+                    f"{path} was trained with {section}.{key}={fields[key]!r}, an option removed "
                     f"from icco-torchrl; evaluate it at commit {commit}"
                 )
-            del method[key]
-            changes.append(f"method.{key} dropped (it was {value!r}, as today)")
+            was = fields.pop(key)
+            changes.append(
+                f"{section}.{key} dropped (it was {was!r}{'' if value is ANY else ', as today'})"
+            )
     return changes
 
 

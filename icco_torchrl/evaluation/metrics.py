@@ -43,14 +43,11 @@ TASK_REWARDS = ("pick_reward", "collect_reward", "defense_reward", "invasion_pen
 def method_label(cfg: Mapping, suffix: str = "") -> str:
     """The table label of a trained configuration (its method's, :mod:`icco_torchrl.methods`),
     ``suffix`` appended (e.g. "-TAP"); agents trained on the instruction reward alone (every task
-    reward zero, ``experiment=inst_only``) get " w/o TR", as in "QMIX-TAP w/o TR", and agents that
-    learned from a scripted team's data (``train.teacher``) " + teacher data"."""
+    reward zero, ``experiment=inst_only``) get " w/o TR", as in "QMIX-TAP w/o TR"."""
     label = methods.label(cfg["method"]["name"]) + suffix
     params = cfg["env"]["params"]
     if all(float(params.get(key, 1.0)) == 0.0 for key in TASK_REWARDS):
         label += methods.WITHOUT_TASK_REWARD
-    if (cfg.get("train") or {}).get("teacher"):
-        label += methods.TEACHER
     return label
 
 

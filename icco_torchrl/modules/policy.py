@@ -9,7 +9,7 @@ coordinator emits its mean: that is the evaluation policy.
 from __future__ import annotations
 
 import torch
-from tensordict.nn import TensorDictModule, TensorDictModuleBase, TensorDictSequential
+from tensordict.nn import TensorDictModule, TensorDictSequential
 from torch import nn
 from torchrl.data import Categorical, Composite, Unbounded
 from torchrl.envs import Compose, InitTracker, StepCounter, TensorDictPrimer
@@ -87,32 +87,6 @@ class GuidedEGreedyModule(EGreedyModule):
         return tensordict
 
 
-class TeacherRows(TensorDictModuleBase):
-    """The first ``rows`` envs act as ``teacher`` says (a ``td -> td`` policy writing the same
-    action key, e.g. a scripted reference policy), after the learner's own modules ran on them:
-    their recurrent state, z and Q-values are the learner's, in shadow, and only the action is
-    replaced (``train.teacher``). Greedy (DETERMINISTIC) rollouts, every evaluation, never call
-    the teacher."""
-
-    def __init__(self, teacher, rows: int, action_key):
-        super().__init__()
-        self.__dict__["teacher"] = teacher  # not a submodule: no parameters, not in the state dict
-        self.rows, self.action_key = int(rows), action_key
-        self.in_keys, self.out_keys = [action_key], [action_key]
-
-    def forward(self, tensordict):
-        from torchrl.envs.utils import exploration_type  # the context's current type
-
-        if exploration_type() not in (ExplorationType.RANDOM, None):
-            return tensordict
-        action = tensordict.get(self.action_key)
-        taught = self.teacher(tensordict.exclude(self.action_key)).get(self.action_key)
-        row = torch.arange(action.shape[0], device=action.device) < self.rows
-        row = row.view(-1, *(1,) * (action.dim() - 1))
-        tensordict.set(self.action_key, torch.where(row, taught.to(action.dtype), action))
-        return tensordict
-
-
 def make_policy(
     agent: TensorDictModule,
     action_spec,
@@ -124,14 +98,11 @@ def make_policy(
     group: str = "agents",
     action_name: str = "action",
     guide=None,
-    teacher=None,
-    teacher_rows: int = 0,
 ) -> TensorDictSequential:
     """``action_spec``: the env's unbatched full action spec (``env.full_action_spec_unbatched``).
 
     Keys live under ``group``: ``action_value``, ``action_name``, ``chosen_action_value`` and the
-    next step's ``prev_action``. The agent must write ``(group, "action_value")``. ``teacher``
-    acts for the first ``teacher_rows`` envs in training (:class:`TeacherRows`).
+    next step's ``prev_action``. The agent must write ``(group, "action_value")``.
     """
     action_key = (group, action_name)
     q_value = QValueModule(
@@ -155,13 +126,12 @@ def make_policy(
     remember = TensorModule(
         nn.Identity(), in_keys=[action_key], out_keys=[("next", group, "prev_action")]
     )
-    taught = [TeacherRows(teacher, teacher_rows, action_key)] if teacher is not None else []
-    modules = (
-        ([coordinator] if coordinator is not None else [])
-        + [agent, q_value, explore]
-        + taught  # before `remember`: the next prev_action is the action taken
-        + [remember]
-    )
+    modules = ([coordinator] if coordinator is not None else []) + [
+        agent,
+        q_value,
+        explore,
+        remember,
+    ]
     return TensorDictSequential(*modules)
 
 

@@ -12,7 +12,6 @@ from dataclasses import dataclass
 
 import torch
 from omegaconf import DictConfig, OmegaConf
-from tensordict import TensorDictBase
 from torch import nn
 from torchrl.data import LazyTensorStorage, RandomSampler, TensorDictReplayBuffer
 from torchrl.envs import TransformedEnv
@@ -209,7 +208,6 @@ class Run:
     updater: object | None = None
     update: Update | None = None
     buffer: TensorDictReplayBuffer | None = None
-    teacher: TeacherReplay | None = None
     checkpoint: dict | None = None
 
     def __getitem__(self, name: str):
@@ -241,9 +239,7 @@ def build(
     )
     layout = env.base_env.layout
     mods = make_modules(cfg, layout, device, n_actions=action_count(env))
-    guide = teacher = None
-    if for_training and (t.get("explore_guide") or t.get("teacher")):  # scripted policies
-        guide, teacher = _scripted_policies(cfg, env)
+    guide = _explore_guide(cfg, env) if for_training and t.get("explore_guide") else None
     policy = make_policy(
         mods["agent"],
         env.full_action_spec_unbatched,
@@ -251,8 +247,6 @@ def build(
         eps_init=t.eps_init,
         eps_end=t.eps_end,
         guide=guide,
-        teacher=teacher,
-        teacher_rows=t.teacher_envs if teacher is not None else 0,
     )
     loss = make_loss(cfg, mods)
     run = Run(
@@ -266,7 +260,7 @@ def build(
         eval_env=eval_env,
     )
     if for_training:
-        _add_training_parts(run, device, with_teacher=teacher is not None)
+        _add_training_parts(run, device)
     return run
 
 
@@ -289,25 +283,20 @@ def _make_envs(cfg: DictConfig, *, num_envs, seed, device, for_training: bool, *
     return env, eval_env
 
 
-def _scripted_policies(cfg: DictConfig, env: TransformedEnv) -> tuple:
-    """``train.explore_guide`` and ``train.teacher``'s scripted policies (None where unset)."""
+def _explore_guide(cfg: DictConfig, env: TransformedEnv):
+    """``train.explore_guide``'s scripted policy."""
     from icco_torchrl.envs.reference_policies import make_reference_policy
 
-    t = cfg.train
-
-    def scripted(name, field):
-        try:
-            return make_reference_policy(name, env, radius=cfg.eval.blend_radius, seed=cfg.seed)
-        except (TypeError, ValueError) as err:
-            raise ConfigError(f"config field 'train.{field}': {err}") from None
-
-    guide = scripted(t.explore_guide, "explore_guide") if t.get("explore_guide") else None
-    teacher = scripted(t.teacher, "teacher") if t.get("teacher") else None
-    return guide, teacher
+    try:
+        return make_reference_policy(
+            cfg.train.explore_guide, env, radius=cfg.eval.blend_radius, seed=cfg.seed
+        )
+    except (TypeError, ValueError) as err:
+        raise ConfigError(f"config field 'train.explore_guide': {err}") from None
 
 
-def _add_training_parts(run: Run, device, *, with_teacher: bool) -> None:
-    """The optimiser, update, target updater and replay buffers (the teacher's too) of ``run``."""
+def _add_training_parts(run: Run, device) -> None:
+    """The optimiser, update, target updater and replay buffer of ``run``."""
     cfg, loss = run.cfg, run.loss
     t = cfg.train
     run.optim = make_optimizer(cfg, loss)
@@ -315,51 +304,11 @@ def _add_training_parts(run: Run, device, *, with_teacher: bool) -> None:
     run.updater = make_target_updater(
         loss, t.target_update, interval=t.target_update_interval, tau=t.tau
     )
-    taught = teacher_items(cfg)
     run.buffer = TensorDictReplayBuffer(
         storage=LazyTensorStorage(t.buffer_segments, device=device),
         sampler=RandomSampler(),
-        batch_size=t.batch_segments - taught,
+        batch_size=t.batch_segments,
     )
-    if with_teacher:
-        run.teacher = TeacherReplay(
-            rows=t.teacher_envs,
-            cutter=SegmentCutter(length=t.sequence_length),
-            buffer=TensorDictReplayBuffer(
-                storage=LazyTensorStorage(t.buffer_segments, device=device),
-                sampler=RandomSampler(),
-                batch_size=taught,
-            ),
-        )
-
-
-def teacher_items(cfg: DictConfig) -> int:
-    """Items of every replayed batch drawn from the teacher's buffer (``train.teacher_share``)."""
-    t = cfg.train
-    return round(t.batch_segments * t.teacher_share) if t.get("teacher") else 0
-
-
-@dataclass
-class TeacherReplay:
-    """``train.teacher``'s data: the first ``rows`` envs of every collector batch are the
-    teacher's; they are cut by their own ``cutter`` (it keeps a tail per env) into ``buffer``,
-    which serves a fixed share of every batch. Not checkpointed: a resumed run refills it before
-    learning again."""
-
-    rows: int
-    cutter: SegmentCutter
-    buffer: TensorDictReplayBuffer
-
-    def sample(self, learner: TensorDictReplayBuffer) -> TensorDictBase:
-        """One replayed batch: ``learner``'s items, then the teacher's fixed share."""
-        return torch.cat([learner.sample(), self.buffer.sample()])
-
-    def split(self, batch: TensorDictBase) -> TensorDictBase:
-        """Store the teacher's rows of ``batch [B, L]``; return the learner's rows."""
-        items = self.cutter(batch[: self.rows])
-        if items.shape[0]:
-            self.buffer.extend(items)
-        return batch[self.rows :]
 
 
 def build_components(

@@ -39,7 +39,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from icco_torchrl.training.config import MethodConfig, set_env_params, validate
+from icco_torchrl.training.config import MethodConfig, TrainConfig, set_env_params, validate
 from icco_torchrl.training.replay_dump import (
     dump_id_of,
     load_replay,
@@ -215,6 +215,11 @@ def load_checkpoint(
             f"{path} was written before {', '.join(f'method.{k}' for k in absent)} existed: "
             f"{_convert_it(path)}"
         )
+    if "cfg" in require and (removed := removed_fields(cfg)):
+        raise CheckpointError(
+            f"{path} was written with {', '.join(removed)}, since removed from icco-torchrl: "
+            f"{_convert_it(path)}"
+        )
     if "loss" in require and not isinstance(payload["loss"], dict):
         raise CheckpointError(f"{path} is not a complete icco-torchrl checkpoint: loss is no dict")
     return _from_plain(payload)
@@ -224,6 +229,19 @@ def missing_method_fields(method: dict) -> list[str]:
     """The fields of today's :class:`MethodConfig` that a checkpoint's ``method`` config lacks:
     options added after it was written, which the converter fills at the value it trained with."""
     return [f.name for f in fields(MethodConfig) if f.name not in method]
+
+
+def removed_fields(cfg: dict) -> list[str]:
+    """The ``method`` and ``train`` fields of a checkpoint's config that today's
+    :class:`MethodConfig` and :class:`TrainConfig` lack: options removed since it was written,
+    which the converter drops where the run never used them."""
+    return [
+        f"{section}.{key}"
+        for section, schema in (("method", MethodConfig), ("train", TrainConfig))
+        if isinstance(cfg.get(section), dict)
+        for key in cfg[section]
+        if key not in {f.name for f in fields(schema)}
+    ]
 
 
 def another_format(path: Path, version: int) -> CheckpointError:

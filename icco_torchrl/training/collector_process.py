@@ -8,7 +8,7 @@ cores (:class:`ProcessCollector`).
 
 - *Who does what.* The collector process builds the run from the same config and seed
   (:func:`~icco_torchrl.training.build.build`), so its env and policy (with any
-  ``train.explore_guide`` or ``train.teacher``) are the learner's, and steps the env with it. The
+  ``train.explore_guide``) are the learner's, and steps the env with it. The
   learner (the main process) cuts, stores and replays every batch, updates, evaluates and writes
   every file and checkpoint, exactly as inline.
 - *Pacing: the replay ratio is inline's.* The collector collects the next batch while the learner

@@ -249,17 +249,6 @@ class TrainConfig:
     cudagraphs: bool = False
     # Exploratory actions from this reference policy instead of uniform draws (experiments/recipe).
     explore_guide: Optional[str] = _field(None, choices=(None, *REFERENCE_POLICIES))
-    # Learning from a scripted teacher (RLPD-style; a named option, never the paper's method: its
-    # runs are reported under their own label). This reference policy (e.g. best_scripted) drives
-    # the first `teacher_envs` training envs while the learner's networks run in shadow on them
-    # (their recurrent state and z are recorded, their actions replaced); those envs' items fill
-    # a second replay buffer that serves `teacher_share` of every batch. The teacher's env steps
-    # count in total_frames; evaluations never call the teacher. null: off.
-    teacher: Optional[str] = None
-    # Training envs driven by the teacher (of env.num_envs).
-    teacher_envs: int = _field(8, gt=0)
-    # Share of every replayed batch drawn from the teacher's items, in [0, 1).
-    teacher_share: float = _field(0.25, ge=0)
     # env.params overrides for the training env only (e.g. train.env_params.collect_reward=3.5):
     # the evaluations during training, `icco eval` and every restore use env.params, so they never
     # change what is scored. May change at resume (a curriculum); replayed data keeps old rewards.
@@ -528,7 +517,6 @@ def validate(cfg: DictConfig | dict) -> DictConfig:
             parse_reference(name)
         except ValueError as err:
             raise ConfigError(f"config field 'eval.references': {err}") from None
-    _check_teacher(merged)
     _check_replay_ratio(merged)
     _check_training_env(merged)
     device = resolve_device(merged.device)
@@ -590,34 +578,6 @@ def _check_training_env(cfg) -> None:
             only=list(shaping),
         )
     _check_team_sizes(t.team_sizes, shaping.get("n_agents", cfg.env.params.n_agents))
-
-
-def _check_teacher(cfg) -> None:
-    """The scripted-teacher fields (``train.teacher*``), each error naming its field."""
-    t = cfg.train
-    if not 0 <= t.teacher_share < 1:
-        raise ConfigError(
-            f"config field 'train.teacher_share' must be in [0, 1), got {t.teacher_share}"
-        )
-    if t.teacher is None:
-        return
-    try:
-        kind, _ = parse_reference(t.teacher)
-    except ValueError as err:
-        raise ConfigError(f"config field 'train.teacher': {err}") from None
-    if kind == "random":
-        raise ConfigError("config field 'train.teacher': a random policy teaches nothing")
-    if t.teacher_envs >= cfg.env.num_envs:
-        raise ConfigError(
-            f"config field 'train.teacher_envs' ({t.teacher_envs}) must leave the learner some of "
-            f"'env.num_envs' ({cfg.env.num_envs})"
-        )
-    share = round(t.batch_segments * t.teacher_share)
-    if not 0 < share < t.batch_segments:
-        raise ConfigError(
-            f"config field 'train.teacher_share' ({t.teacher_share}) gives {share} of "
-            f"'train.batch_segments' ({t.batch_segments}) items: at least one from each buffer"
-        )
 
 
 def _check_replay_ratio(cfg) -> None:
