@@ -95,9 +95,9 @@ METHOD_FIELDS_REMOVED = {
 # value, a setting of the removed option that did nothing while it was off).
 ANY = "any value"
 TRAIN_FIELDS_REMOVED = {
-    "teacher": (None, "LAST_TEACHER"),  # experiments/best_team: teacher data not kept
-    "teacher_envs": (ANY, "LAST_TEACHER"),
-    "teacher_share": (ANY, "LAST_TEACHER"),
+    "teacher": (None, "6da9543"),  # experiments/best_team: teacher data not kept
+    "teacher_envs": (ANY, "6da9543"),
+    "teacher_share": (ANY, "6da9543"),
 }
 # Train fields added after checkpoints had been written, with the value those runs trained with:
 # a resumed older run keeps its recipe (4-step items, no shaping) instead of today's defaults.
