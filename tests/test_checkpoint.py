@@ -625,29 +625,39 @@ def test_the_converter_fills_added_fields_drops_a_removed_option_and_keeps_the_n
     assert set(restored) == set(state) and all(torch.equal(restored[k], state[k]) for k in state)
 
 
+def _policy_written_with(tmp_path, cfg, written: dict):
+    """A policy of today's format with ``cfg``'s networks and the config ``written``; returns its
+    path, its weights and, for each reader (load_checkpoint, restore), its one-line refusal."""
+    from icco_torchrl.training.build import build
+    from icco_torchrl.training.restore import restore
+
+    run = build(cfg, num_envs=2)
+    state = {k: v.clone() for k, v in run.loss.state_dict().items()}
+    old = tmp_path / "policy.pt"
+    payload = {"cfg": written, "layout": dict(run.layout.__dict__), "loss": state, "frames": 512}
+    save_checkpoint(old, payload)
+    messages = []
+    for read in (load_checkpoint, lambda path: restore(path, num_envs=2)):
+        with pytest.raises(CheckpointError) as info:
+            read(old)
+        messages.append(str(info.value))
+        assert "\n" not in messages[-1] and f"{CONVERT} {old}" in messages[-1]
+    return old, state, messages
+
+
 def test_a_checkpoint_written_before_a_method_option_is_refused_then_converted_as_it_is(tmp_path):
     """A new method option needs no new format: a file of today's format whose config lacks the
     option (written before it existed) is refused in one line naming the converter, never read at
     today's default; the converter fills it at the value it trained with (its table's row)."""
-    from icco_torchrl.training.build import build, compose_config
+    from icco_torchrl.training.build import compose_config
     from icco_torchrl.training.restore import restore
 
     cfg = compose_config(["method=icco", "method.layer_norm=false"])
-    run = build(cfg, num_envs=2)
     before = OmegaConf.to_container(cfg, resolve=True)
     del before["method"]["layer_norm"]  # as when layer_norm did not exist yet
-    state = {k: v.clone() for k, v in run.loss.state_dict().items()}
-    old = tmp_path / "policy.pt"
-    payload = {"cfg": before, "layout": dict(run.layout.__dict__), "loss": state, "frames": 512}
-    save_checkpoint(old, payload)
-    for read in (load_checkpoint, lambda path: restore(path, num_envs=2)):
-        with pytest.raises(CheckpointError) as info:
-            read(old)
-        message = str(info.value)
-        assert (
-            "\n" not in message and f"{old} was written before method.layer_norm existed" in message
-        )
-        assert f"{CONVERT} {old}" in message
+    old, state, messages = _policy_written_with(tmp_path, cfg, before)
+    for message in messages:
+        assert f"{old} was written before method.layer_norm existed" in message
     new = tmp_path / "new.pt"
     assert converter().main([str(old), str(new)]) == 0
     ckpt = load_checkpoint(new)
@@ -662,23 +672,15 @@ def test_a_checkpoint_with_a_removed_train_option_is_refused_then_converted_when
     """A file of today's format written while ``train.teacher`` existed (the demo policy's kind)
     is refused in one line naming the converter; converted, the option's fields are dropped when
     it was off, and a run that used it is refused naming the last commit that loads it."""
-    from icco_torchrl.training.build import build, compose_config
+    from icco_torchrl.training.build import compose_config
     from icco_torchrl.training.restore import restore
 
     tables = converter()
     cfg = compose_config(["method=icco"])
-    run = build(cfg, num_envs=2)
-    state = {k: v.clone() for k, v in run.loss.state_dict().items()}
     written = OmegaConf.to_container(cfg, resolve=True)
     written["train"].update(teacher=None, teacher_envs=8, teacher_share=0.25)
-    old = tmp_path / "policy.pt"
-    payload = {"cfg": written, "layout": dict(run.layout.__dict__), "loss": state, "frames": 512}
-    save_checkpoint(old, payload)
-    for read in (load_checkpoint, lambda path: restore(path, num_envs=2)):
-        with pytest.raises(CheckpointError) as info:
-            read(old)
-        message = str(info.value)
-        assert "\n" not in message and f"{CONVERT} {old}" in message
+    old, state, messages = _policy_written_with(tmp_path, cfg, written)
+    for message in messages:
         assert "train.teacher, train.teacher_envs, train.teacher_share" in message
     new = tmp_path / "new.pt"
     assert tables.main([str(old), str(new)]) == 0
@@ -688,7 +690,7 @@ def test_a_checkpoint_with_a_removed_train_option_is_refused_then_converted_when
     assert set(restored) == set(state) and all(torch.equal(restored[k], state[k]) for k in state)
 
     written["train"]["teacher"] = "blend(defend=1.75)"
-    save_checkpoint(old, {**payload, "cfg": written})
+    old, _, _ = _policy_written_with(tmp_path, cfg, written)
     assert tables.main([str(old), str(tmp_path / "taught.pt")]) == 2
     err = capsys.readouterr().err.strip()
     commit = tables.TRAIN_FIELDS_REMOVED["teacher"][1]

@@ -235,13 +235,12 @@ def removed_fields(cfg: dict) -> list[str]:
     """The ``method`` and ``train`` fields of a checkpoint's config that today's
     :class:`MethodConfig` and :class:`TrainConfig` lack: options removed since it was written,
     which the converter drops where the run never used them."""
-    return [
-        f"{section}.{key}"
-        for section, schema in (("method", MethodConfig), ("train", TrainConfig))
-        if isinstance(cfg.get(section), dict)
-        for key in cfg[section]
-        if key not in {f.name for f in fields(schema)}
-    ]
+    removed = []
+    for section, schema in (("method", MethodConfig), ("train", TrainConfig)):
+        if isinstance(cfg.get(section), dict):
+            known = {f.name for f in fields(schema)}
+            removed += [f"{section}.{key}" for key in cfg[section] if key not in known]
+    return removed
 
 
 def another_format(path: Path, version: int) -> CheckpointError:
