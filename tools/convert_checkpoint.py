@@ -25,6 +25,8 @@ The upgrade of older files lives here, and only here:
   it), its replay dump's id (none) and segment count (0).
 - It is written through the library's ``save_checkpoint`` (atomically: a stop leaves the old file)
   and read back with ``load_checkpoint``.
+- A file whose data nests deeper, or expands to more values, than any checkpoint (a crafted file
+  of shared lists) is refused in one line before it is walked (``check_structure``).
 
 ``--in-place`` converts the file where it is; for a run folder's ``checkpoint.pt`` it holds the
 run's lock and also converts the run's replay buffer dump (``replay/``, and ``.replay.old`` left
@@ -53,7 +55,12 @@ import numpy as np
 import torch
 from omegaconf import OmegaConf
 
-from icco_torchrl.training.checkpoint import FORMAT_VERSION, load_checkpoint, save_checkpoint
+from icco_torchrl.training.checkpoint import (
+    FORMAT_VERSION,
+    check_structure,
+    load_checkpoint,
+    save_checkpoint,
+)
 from icco_torchrl.training.config import ConfigError, MethodConfig, TrainConfig, validate
 from icco_torchrl.training.replay_dump import MANIFEST, REPLAY_FORMAT, previous_dump
 from icco_torchrl.training.run_folder import (
@@ -132,6 +139,7 @@ def read_old(path: Path) -> dict:
         raise CheckpointError(
             f"{path} is not a readable checkpoint ({type(err).__name__}: {one_line(err)})"
         ) from None
+    check_structure(payload, path)  # before anything walks it: a crafted file stops here
     version = payload.get("format_version") if isinstance(payload, dict) else None
     if type(version) is not int:
         raise CheckpointError(

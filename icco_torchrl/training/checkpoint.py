@@ -122,6 +122,66 @@ def save_checkpoint(path: str | Path, payload: dict[str, Any]) -> Path:
 
 
 # ---------------------------------------------------------------- reading files
+# A checkpoint's plain data (its config, the optimiser's and updater's state, the RNG streams) is
+# a few thousand values, nested a few levels: a file beyond these bounds is refused before anything
+# walks it (:func:`check_structure`).
+MAX_VALUES = 1_000_000  # counted as reading expands them: a list referenced twice counts twice
+MAX_DEPTH = 64
+
+
+class CheckpointNotFound(CheckpointError):
+    """No file at a checkpoint's path (the commands add where a checkpoint comes from)."""
+
+
+def check_structure(payload: Any, path: str | Path) -> None:
+    """Refuse, in one line, data that nests deeper than :data:`MAX_DEPTH` or holds more than
+    :data:`MAX_VALUES` values once its shared lists, tuples and dicts are expanded (what reading
+    it, converting it or its config does): a crafted file of a few hundred KB would otherwise take
+    every byte of memory, or the stack, of whatever walks it. Walked without recursion; a
+    structure that contains itself is too deep."""
+    stack, values = [(payload, 0)], 0
+    while stack:
+        obj, depth = stack.pop()
+        if isinstance(obj, dict):
+            items = [*obj.keys(), *obj.values()]
+        elif isinstance(obj, (list, tuple, set, frozenset)):
+            items = list(obj)
+        else:
+            continue
+        if depth >= MAX_DEPTH:
+            raise CheckpointError(
+                f"checkpoint {path} nests its data more than {MAX_DEPTH} levels deep, which no "
+                "checkpoint does: refusing to load it (a crafted or damaged file)"
+            )
+        values += len(items)
+        if values > MAX_VALUES:
+            raise CheckpointError(
+                f"checkpoint {path} holds more than {MAX_VALUES:,} values once its shared lists "
+                "and dicts are expanded, which no checkpoint does: refusing to load it (a crafted "
+                "or damaged file)"
+            )
+        stack.extend((item, depth + 1) for item in items)
+
+
+def check_finite(weights: dict, path: str | Path) -> None:
+    """Refuse, in one line, weights that are not finite numbers (NaN or inf): a policy acting with
+    them evaluates to numbers that look normal and mean nothing."""
+    bad = [
+        name
+        for name, value in weights.items()
+        if isinstance(value, torch.Tensor)
+        and value.is_floating_point()
+        and not bool(torch.isfinite(value).all())
+    ]
+    if bad:
+        more = f" and {len(bad) - 3} more" if len(bad) > 3 else ""
+        raise CheckpointError(
+            f"checkpoint {path} has weights that are not finite numbers (NaN or inf in "
+            f"{', '.join(bad[:3])}{more}): its training diverged or the file is damaged; use an "
+            "earlier checkpoint, or train again"
+        )
+
+
 def _load_weights_only(path: Path, map_location) -> Any:
     """``torch.load(weights_only=True)``. torch's warnings about a file's pickle protocol are not
     the user's business: the error, if any, is."""
@@ -178,16 +238,19 @@ def load_checkpoint(
 
     Anything else (a missing, empty, truncated, text, crafted or foreign file, another format, a
     dict without the ``require``d fields) is one :class:`CheckpointError` line naming ``path``;
-    an older format's names the command that converts it (:func:`another_format`)."""
+    an older format's names the command that converts it (:func:`another_format`). So is data
+    beyond a checkpoint's size and depth (:func:`check_structure`) and, with ``loss`` required,
+    weights that are NaN or inf (:func:`check_finite`)."""
     path = Path(path)
     if not path.is_file():
-        raise CheckpointError(f"checkpoint not found: {path}")
+        raise CheckpointNotFound(f"checkpoint not found: {path}")
     if path.stat().st_size == 0:
         raise CheckpointError(f"checkpoint {path} is empty (a write that never finished)")
     try:
         payload = _load_weights_only(path, map_location)
     except Exception as err:  # torch raises several types for truncated/corrupt/crafted files
         raise _read_error(path, err) from None
+    check_structure(payload, path)
     if not isinstance(payload, dict) or "format_version" not in payload:
         raise CheckpointError(f"{path} is not an icco-torchrl checkpoint")
     version = payload["format_version"]
@@ -222,6 +285,8 @@ def load_checkpoint(
         )
     if "loss" in require and not isinstance(payload["loss"], dict):
         raise CheckpointError(f"{path} is not a complete icco-torchrl checkpoint: loss is no dict")
+    if "loss" in require:
+        check_finite(payload["loss"], path)
     return _from_plain(payload)
 
 

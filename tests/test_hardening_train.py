@@ -1,0 +1,164 @@
+"""The training side and the command line against hostile input: a collector process that hangs,
+a converter run on a training's checkpoint, crafted checkpoints (shared lists that expand, deep
+nesting, NaN weights), the commands a run prints for pasting, a read-only run folder, and the
+one-line help of the command line (a misspelled field, a checkpoint that is not there)."""
+
+from __future__ import annotations
+
+import contextlib
+import importlib.util
+import io
+import math
+import os
+import resource
+import struct
+import sys
+import time
+import zipfile
+from pathlib import Path
+
+import pytest
+import torch
+from conftest import ROOT
+
+from icco_torchrl.cli import main
+from icco_torchrl.training.checkpoint import load_checkpoint
+from icco_torchrl.training.restore import restore
+from icco_torchrl.training.run_folder import CheckpointError
+
+pytestmark = pytest.mark.fault  # the fault suite: crafted files, hangs, signals
+
+torch.set_num_threads(1)
+DEMO = ROOT / "assets" / "demo_icco.pt"
+
+
+def icco(*args: str) -> int:
+    """``icco ARGS`` in this process (its imports paid once); returns the exit code."""
+    argv = sys.argv
+    try:
+        main(list(args))
+    except SystemExit as exit_info:
+        return exit_info.code
+    finally:
+        sys.argv = argv
+    return 0
+
+
+def converter():
+    """tools/convert_checkpoint.py as a module (a script outside the package)."""
+    spec = importlib.util.spec_from_file_location(
+        "convert_checkpoint", ROOT / "tools" / "convert_checkpoint.py"
+    )
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@contextlib.contextmanager
+def memory_cap(extra_gb: float = 2.0):
+    """This process may map ``extra_gb`` more than it has: a reader that expands a crafted file
+    without bound fails with MemoryError here instead of taking the machine's memory."""
+    mapped = int(Path("/proc/self/statm").read_text().split()[0]) * os.sysconf("SC_PAGE_SIZE")
+    soft, hard = resource.getrlimit(resource.RLIMIT_AS)
+    resource.setrlimit(resource.RLIMIT_AS, (mapped + int(extra_gb * 2**30), hard))
+    try:
+        yield
+    finally:
+        resource.setrlimit(resource.RLIMIT_AS, (soft, hard))
+
+
+# ---------------------------------------------------------------- crafted checkpoints
+def _demo() -> dict:
+    return torch.load(DEMO, weights_only=True)
+
+
+def _shared_lists(path: Path) -> Path:
+    """The demo policy with a config value of shared lists: under 1 MB on disk, 2**30 values once
+    expanded (each list holds the one below twice)."""
+    payload, lists = _demo(), [0]
+    for _ in range(30):
+        lists = [lists, lists]
+    payload["cfg"] = {**payload["cfg"], "notes": lists}
+    torch.save(payload, path)
+    assert path.stat().st_size < 1_000_000
+    return path
+
+
+def _deeply_nested(path: Path, depth: int = 200_000) -> Path:
+    """The demo policy with a config value nested ``depth`` lists deep, its pickle edited by hand
+    (pickling it would recurse as deep)."""
+    payload, marker = _demo(), "NESTED_HERE"
+    payload["cfg"] = {**payload["cfg"], "notes": marker}
+    saved = io.BytesIO()
+    torch.save(payload, saved)
+    pickled = b"X" + struct.pack("<I", len(marker)) + marker.encode()  # the string's opcode
+    nested = b"]" * depth + b"a" * (
+        depth - 1
+    )  # `depth` empty lists, each appended to the one below
+    with zipfile.ZipFile(saved) as zin, zipfile.ZipFile(path, "w") as zout:
+        for name in zin.namelist():
+            data = zin.read(name)
+            if name.endswith("data.pkl"):
+                assert data.count(pickled) == 1
+                data = data.replace(pickled, nested)
+            zout.writestr(name, data)
+    return path
+
+
+def _not_finite(value: float):
+    def make(path: Path) -> Path:
+        payload = _demo()
+        name = next(k for k, v in payload["loss"].items() if v.is_floating_point())
+        payload["loss"][name] = payload["loss"][name].clone().fill_(value)
+        torch.save(payload, path)
+        return path
+
+    return make
+
+
+CRAFTED = {
+    "shared lists": (_shared_lists, "more than 1,000,000 values"),
+    "deep nesting": (_deeply_nested, "more than 64 levels deep"),
+}
+
+
+@pytest.mark.parametrize("kind", list(CRAFTED))
+def test_a_crafted_checkpoint_is_refused_in_one_line_by_every_reader(tmp_path, capsys, kind):
+    """Restore (eval, live), resume and the converter read a file that expands without bound, or
+    nests without bound, as one line within seconds, in bounded memory, writing nothing."""
+    make, said = CRAFTED[kind]
+    path = make(tmp_path / "crafted.pt")
+    tools = converter()
+    with memory_cap():
+        for read in (load_checkpoint, lambda p: restore(p, num_envs=1)):
+            start = time.monotonic()
+            with pytest.raises(CheckpointError) as info:
+                read(path)
+            message = str(info.value)
+            assert "\n" not in message and str(path) in message and said in message
+            assert time.monotonic() - start < 30
+        assert tools.main([str(path), str(tmp_path / "new.pt")]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and said in err and "Traceback" not in err
+        assert icco("eval", f"checkpoint={path}", f"eval.out_dir={tmp_path / 'eval'}") == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and err.startswith("icco eval: ") and said in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["crafted.pt"]
+
+
+@pytest.mark.parametrize("value", [math.nan, math.inf])
+def test_weights_that_are_not_finite_are_refused_in_one_line(tmp_path, capsys, value):
+    """NaN or inf weights act and evaluate to normal-looking numbers: restore (eval, live) and the
+    commands refuse them, naming the weights."""
+    path = _not_finite(value)(tmp_path / "diverged.pt")
+    for read in (load_checkpoint, lambda p: restore(p, num_envs=1)):
+        with pytest.raises(CheckpointError) as info:
+            read(path)
+        message = str(info.value)
+        assert "\n" not in message and str(path) in message and "not finite" in message
+        assert "agent_params." in message
+    for command in ("eval", "live"):
+        assert icco(command, f"checkpoint={path}", f"eval.out_dir={tmp_path / 'eval'}") == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and err.startswith(f"icco {command}: ") and "NaN" in err
+    assert load_checkpoint(path, require=())["frames"] >= 0  # the converter may still read it
