@@ -24,7 +24,7 @@ from conftest import ROOT
 from icco_torchrl.cli import main
 from icco_torchrl.training.checkpoint import load_checkpoint
 from icco_torchrl.training.restore import restore
-from icco_torchrl.training.run_folder import CheckpointError
+from icco_torchrl.training.run_folder import CheckpointError, RunFolderLock
 
 pytestmark = pytest.mark.fault  # the fault suite: crafted files, hangs, signals
 
@@ -162,3 +162,25 @@ def test_weights_that_are_not_finite_are_refused_in_one_line(tmp_path, capsys, v
         err = capsys.readouterr().err
         assert err.count("\n") == 1 and err.startswith(f"icco {command}: ") and "NaN" in err
     assert load_checkpoint(path, require=())["frames"] >= 0  # the converter may still read it
+
+
+# ---------------------------------------------------------------- the converter and the run's lock
+def test_the_converter_refuses_a_checkpoint_a_training_holds_and_writes_nothing(tmp_path, capsys):
+    """Converting a run's checkpoint.pt while an ``icco train`` writes the run folder would remove
+    the training's temp file under it: refused in one line, the file left as it is."""
+    tools = converter()
+    run = tmp_path / "run"
+    run.mkdir()
+    target = run / "checkpoint.pt"
+    target.write_bytes(DEMO.read_bytes())
+    before = target.stat()
+    for args in ([str(target), str(target)], [str(DEMO), str(target)]):
+        with RunFolderLock(run):  # an icco train writing the folder
+            assert tools.main(args) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and "in use by another icco train" in err and str(run) in err
+        after = target.stat()
+        assert (after.st_ino, after.st_mtime_ns) == (before.st_ino, before.st_mtime_ns)
+        assert sorted(p.name for p in run.iterdir()) == [".train.lock", "checkpoint.pt"]
+    assert tools.main([str(target), str(target)]) == 0  # once the training is gone
+    assert load_checkpoint(target)["frames"] == _demo()["frames"]

@@ -24,7 +24,9 @@ The upgrade of older files lives here, and only here:
   library assumed: the record of its final outputs (written when ``learning_curve.png`` lies beside
   it), its replay dump's id (none) and segment count (0).
 - It is written through the library's ``save_checkpoint`` (atomically: a stop leaves the old file)
-  and read back with ``load_checkpoint``.
+  and read back with ``load_checkpoint``. A ``NEW.pt`` named ``checkpoint.pt`` is a run folder's:
+  it is written under the run's lock (``.train.lock``), so while an ``icco train`` writes that
+  folder the converter refuses in one line and writes nothing.
 - A file whose data nests deeper, or expands to more values, than any checkpoint (a crafted file
   of shared lists) is refused in one line before it is walked (``check_structure``).
 
@@ -275,6 +277,16 @@ def convert_dump(dump: Path) -> str | None:
     return f"replay dump {dump} (format {fmt}) -> format {REPLAY_FORMAT}"
 
 
+def convert_to(src: Path, dst: Path) -> list[str]:
+    """Convert ``src`` into ``dst``; a ``dst`` that is a run folder's checkpoint under that run's
+    lock, so a training writing the folder is refused in one line and left alone (two writers of
+    one checkpoint would remove each other's temp file)."""
+    if dst.name != CHECKPOINT:
+        return [convert_file(src, dst)]
+    with RunFolderLock(dst.parent):
+        return [convert_file(src, dst)]
+
+
 def convert_in_place(path: Path) -> list[str]:
     """Convert ``path`` where it is; a run folder's checkpoint with the run's replay dump, under
     the run's lock (a run training there is left alone)."""
@@ -309,7 +321,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.in_place == (args.dst is not None):
         parser.error("give OLD.pt NEW.pt, or --in-place RUN_DIR/checkpoint.pt")
     try:
-        said = convert_in_place(args.src) if args.in_place else [convert_file(args.src, args.dst)]
+        said = convert_in_place(args.src) if args.in_place else convert_to(args.src, args.dst)
     except (CheckpointError, OSError) as err:  # one line, never a traceback
         print(
             f"convert_checkpoint: {err if isinstance(err, CheckpointError) else one_line(err)}",
