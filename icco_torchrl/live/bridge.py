@@ -4,14 +4,22 @@ The messages (``state`` and ``instruct`` in, ``command`` out) and how each datag
 are :mod:`icco_torchrl.live.wire`'s. This module serves them:
 
 * in, on either message: with a ``token`` (``live.token``) every datagram must carry it; one
-  without it or with a wrong one is refused (kind ``token``), and wrong ones are limited
-  (:class:`~icco_torchrl.live.guard.TokenCheck`: beyond, refused unchecked).
+  without it or with a wrong one is refused (kind ``token``; one without the token's bytes
+  before it is parsed), and wrong ones are limited
+  (:class:`~icco_torchrl.live.guard.TokenCheck`: beyond, refused unchecked, but never from an
+  address that gave the right token). With a token a state must carry a ``time`` after that of
+  the last state taken for each robot it lists: a replayed one is refused (kind ``replay``).
 * out, to the robots' own addresses: a ``command`` at the control rate: the policy's next point
   for each robot and a unicycle velocity command toward it from the Dynamic Window Approach
-  (``dwa.py``) within the robot's limits. A robot's addresses are the senders of its pose (the
-  ``ROBOT_ADDRESSES`` most recent); each command goes to those of every robot it lists, so
-  robots reported from several addresses all hear it. A state that gives no robot's pose makes
-  its sender no robot's address: it gets the exit stop only, after the robots.
+  (``dwa.py``) within the robot's limits. A robot is bound to the first address that reported
+  its pose; its poses are taken from there only and each command goes to the address of every
+  robot it lists. Another sender that reports it displaces nothing: the robot is contested,
+  stopped (``"reason": "contested"``) until nobody else has reported it for ``timeout``
+  seconds, and logged; a robot whose address has been silent for ``timeout`` seconds (and that
+  nobody contested meanwhile) moves to the next address that reports it, said in a line. Other
+  addresses that reported a robot (the ``ROBOT_ADDRESSES`` most recent) get its stops, never
+  its drive commands. A state that gives no robot's pose makes its sender no robot's address:
+  it gets the exit stop only, after the robots.
 
 The team is the robots that report. A robot ``id`` is any integer in ``0..MAX_ROBOT_ID``; each
 one in the team holds one of the env's ``n_agents`` places (its own index when that is free, so
@@ -38,8 +46,9 @@ Safety contract (``docs/live.md``, "Bridge safety contract"):
 * However :meth:`Bridge.serve` ends (``stop`` set, ``max_seconds`` out, SIGINT, SIGTERM or
   SIGHUP when it runs in the main thread, an exception), and on :meth:`Bridge.close`, every robot
   is sent a stop command (``"reason": "bridge stopped"``, ``STOP_REPEATS`` times) before the
-  socket closes: in each round at the robots' own addresses first, then at the other senders of
-  states (the ``MAX_PEERS`` most recent), which can never displace the robots' addresses.
+  socket closes: in each round at the robots' own addresses first, then at the other addresses
+  that reported them, then at the other senders of states (the ``MAX_PEERS`` most recent),
+  none of which can displace the robots' addresses.
 * With a ``token``, a datagram without it is refused: nobody who lacks it can report poses or
   instruct the team (UDP is not encrypted: anyone who reads the network can read the token).
 * Joins, leaves, stale stops and refusals are each logged at most once per ``LOG_EVERY``
@@ -64,7 +73,7 @@ from icco_torchrl.live.loop import LiveLoop
 
 log = logging.getLogger("icco.bridge")
 MAX_PEERS = 32  # other senders of states (no robot's pose) remembered for the exit stop
-ROBOT_ADDRESSES = 4  # senders of one robot's pose remembered (the most recent ones)
+ROBOT_ADDRESSES = 8  # other addresses that reported one robot, kept for its stops (most recent)
 STOP_REPEATS = 3  # copies of the final stop command (UDP may drop one), 10 ms apart
 RATE_WINDOW = 2.0  # seconds over which the actual control rate is measured (or 3 periods)
 MAX_BATCH = 256  # datagrams read in one go between two control ticks
@@ -80,6 +89,14 @@ def _peer(sender) -> str:
         return one_line(f"{host}:{int(port)}", 60)
     except (TypeError, ValueError):
         return one_line(repr(sender), 60)
+
+
+def _source(sender) -> str:
+    """The IP address of ``sender`` (whose wrong tokens are limited together)."""
+    try:
+        return str(sender[0])
+    except (TypeError, IndexError):
+        return repr(sender)
 
 
 def _ids(ids) -> str:
@@ -110,6 +127,8 @@ def _new_stats() -> dict:
         "stale_stops": 0,
         "control_errors": 0,
         "stops_sent": 0,  # stop commands sent to all robots (control errors, the end)
+        "contested": 0,  # robots' poses from another address than theirs (not taken)
+        "moved": 0,  # robots bound to a new address after their own went silent
         "latency_ms": deque(maxlen=10_000),
     }
 
@@ -145,9 +164,15 @@ class Bridge:
         self.command = np.zeros((self.n, 2))  # last (v, w) sent
         self.resources = self.invader = None
         self.reply_to = None  # the latest sender of a robot's pose
-        # Each known robot's addresses: the senders of its pose (the most recent last). Commands
-        # and the exit stop go there first; no other sender can displace them.
-        self.robot_addresses: dict[int, OrderedDict] = {}
+        # Each known robot's address: the first that reported it, the only one its poses are
+        # taken from and its commands go to; no other sender displaces it while it reports.
+        self.bound: dict[int, tuple] = {}
+        self.posed_at: dict[int, float] = {}  # monotonic time of each robot's last pose taken
+        self.stamps: dict[int, float] = {}  # each robot's last pose's "time" (with a token)
+        self.contested: dict[int, float] = {}  # when another address last reported a robot
+        # Other addresses that reported a robot (contenders, its former address): they get its
+        # stops (halt), never its drive commands.
+        self.also_at: dict[int, OrderedDict] = {}
         self.peers: OrderedDict = OrderedDict()  # other senders of states (the exit stop too)
         self.stale_logged = np.zeros(self.n, bool)
         # The team: the robot id in each place (None: unclaimed), and robots outside it.
@@ -164,6 +189,7 @@ class Bridge:
         self._first_command_at = self._last_command_at = None
         self._refusals, self._failures, self._full = Throttle(), Throttle(), Throttle()
         self._joins, self._leaves, self._stale = Throttle(), Throttle(), Throttle()
+        self._contests, self._moves = Throttle(), Throttle()
         self._closed = False
         self.on_command = None  # called with each command message (e.g. the live page)
 
@@ -172,6 +198,8 @@ class Bridge:
         """One datagram: update the measured state, or pass an instruction to the live loop; a
         datagram that cannot be used is refused (counted and logged), never raised."""
         try:
+            if self.token is not None:
+                self._screen(data, sender)
             msg = wire.parse_message(data)
             if self.token is not None:
                 self._check_token(msg, sender)
@@ -187,34 +215,74 @@ class Bridge:
             return
         self.stats["messages"] += 1
 
+    def _screen(self, data, sender) -> None:
+        """With ``token``, refuse unparsed a datagram that does not hold the token's bytes (a
+        flood of wrong tokens costs a byte search each, not a JSON parse); one that holds none
+        at all counts as a wrong token (limited, :class:`~icco_torchrl.live.guard.TokenCheck`)."""
+        if not isinstance(data, (bytes, bytearray)) or len(data) > wire.MAX_MESSAGE:
+            return  # parse_message refuses it
+        if self.token.spelled_in(data):
+            return
+        if b"token" not in data:
+            raise wire.ProtocolError(
+                'no "token": live.token is set, so every state and instruct datagram must carry it',
+                "token",
+            )
+        refusal = self.token.check(None, _source(sender), peer=sender)
+        raise wire.ProtocolError(f"{refusal} (live.token)", "token")
+
     def _check_token(self, msg: dict, sender) -> None:
-        """With ``token``, a datagram must carry it (``"token"``); wrong ones are limited."""
+        """With ``token``, a datagram must carry it (``"token"``); wrong ones are limited, but
+        never for an address that gave the right one (its robots keep being heard)."""
         given = msg.get("token")
         if given is None:
             raise wire.ProtocolError(
                 'no "token": live.token is set, so every state and instruct datagram must carry it',
                 "token",
             )
-        try:
-            source = str(sender[0])
-        except (TypeError, IndexError):
-            source = repr(sender)
-        refusal = self.token.check(given, source)
+        refusal = self.token.check(given, _source(sender), peer=sender)
         if refusal is not None:
             raise wire.ProtocolError(f"{refusal} (live.token)", "token")
 
+    def _check_fresh(self, robots: list, stamp) -> None:
+        """With ``token``, a state's ``time`` must be after the last one taken for each robot it
+        lists: a replayed datagram is refused (kind ``replay``) before it changes anything."""
+        if stamp is None:
+            raise wire.ProtocolError(
+                "no 'time': live.token is set, so every state must carry a time that grows "
+                "(a replayed state could not be told apart)",
+                "replay",
+            )
+        for r in robots:
+            last = self.stamps.get(r["id"])
+            if last is not None and stamp <= last:
+                raise wire.ProtocolError(
+                    f"robot {r['id']}: time {stamp!r} is not after its last state's {last!r} "
+                    "(a replayed state?)",
+                    "replay",
+                )
+
     def _apply_state(self, msg: dict, sender) -> None:
+        robots, stamp = msg.get("robots", []), msg.get("time")
+        if self.token is not None:
+            self._check_fresh(robots, stamp)
         now = time.monotonic()
         if self._first_state_at is None:
             self._first_state_at = now
-        posed = False  # whether the sender gave the pose of a robot the bridge knows
-        for r in msg.get("robots", []):
+        posed = contested = False  # whether it gave a known robot's pose; named one not its own
+        for r in robots:
             rid, pose = r["id"], np.asarray(r["pose"], float)
+            if not self._from_its_address(rid, sender, now):
+                contested = True
+                continue
             i = self.slot_of.get(rid)
             if i is None:
                 i = self._join(rid, pose, now)
             if rid in self.slot_of or rid in self.outside:
-                self._address(rid, sender)
+                self.bound.setdefault(rid, sender)
+                self.posed_at[rid] = now
+                if stamp is not None:
+                    self.stamps[rid] = stamp
                 posed = True
             if i is None:
                 continue
@@ -222,35 +290,89 @@ class Bridge:
                 self.velocity[i] = (pose[:2] - self.poses[i, :2]) / (now - self.seen[i])
             self.poses[i], self.seen[i] = pose, now
             self.stale_logged[i] = False
-        if "resources" in msg:
-            self.resources = np.asarray(msg["resources"], float).reshape(-1, 2)
-        if "invader" in msg:
-            self.invader = np.asarray(msg["invader"], float).reshape(-1, 2)
-        if posed:
-            self.reply_to, self._received_at = sender, time.perf_counter()
+        if not contested:  # a contender's field is not taken either
+            if "resources" in msg:
+                self.resources = np.asarray(msg["resources"], float).reshape(-1, 2)
+            if "invader" in msg:
+                self.invader = np.asarray(msg["invader"], float).reshape(-1, 2)
+        if posed or contested:
             self.peers.pop(sender, None)
+            if posed:
+                self.reply_to, self._received_at = sender, time.perf_counter()
         else:  # a state with no robot: an address for the exit stop, after the robots'
             self.peers[sender] = now
             self.peers.move_to_end(sender)
             while len(self.peers) > MAX_PEERS:
                 self.peers.popitem(last=False)
 
-    def _address(self, rid: int, sender) -> None:
-        """``sender`` gave robot ``rid``'s pose: one of its addresses (``ROBOT_ADDRESSES`` at
-        most, the most recent)."""
-        addresses = self.robot_addresses.setdefault(rid, OrderedDict())
-        addresses[sender] = None
-        addresses.move_to_end(sender)
+    def _from_its_address(self, rid: int, sender, now: float) -> bool:
+        """Whether robot ``rid``'s pose from ``sender`` may be taken: from the address it is
+        bound to (or any, while it has none). From another one it is refused and the robot is
+        contested (stopped for ``timeout`` s, logged), unless the robot's own address has been
+        silent for ``timeout`` s and nobody contested it meanwhile: then it moved there (a
+        restarted sender), said in a line."""
+        bound = self.bound.get(rid)
+        if bound is None or bound == sender:
+            return True
+        silent = now - self.posed_at.get(rid, -np.inf)
+        if silent > self.timeout and now - self.contested.get(rid, -np.inf) > self.timeout:
+            self._also(rid, bound)
+            self.bound[rid] = sender
+            self.also_at[rid].pop(sender, None)
+            self.stats["moved"] += 1
+            due, n = self._moves.due()
+            if due:
+                log.warning(
+                    "bridge: robot %d is now reported from %s (was %s, silent for %.2f s): its "
+                    "commands go there%s",
+                    rid,
+                    _peer(sender),
+                    _peer(bound),
+                    silent,
+                    held(n),
+                )
+            return True
+        self.contested[rid] = now
+        self._also(rid, sender)
+        self.stats["contested"] += 1
+        due, n = self._contests.due()
+        if due:
+            log.warning(
+                "bridge: robot %d reported from %s, not from its address %s: its pose is not "
+                "taken and it is stopped (contested)%s",
+                rid,
+                _peer(sender),
+                _peer(bound),
+                held(n),
+            )
+        return False
+
+    def _also(self, rid: int, address) -> None:
+        """Another address that reported robot ``rid`` (``ROBOT_ADDRESSES`` at most, the most
+        recent): it gets the robot's stops."""
+        addresses = self.also_at.setdefault(rid, OrderedDict())
+        addresses[address] = None
+        addresses.move_to_end(address)
         while len(addresses) > ROBOT_ADDRESSES:
             addresses.popitem(last=False)
 
     def addresses(self) -> list:
-        """Where commands go: the addresses of the robots a command lists (the team's first,
-        each robot's latest first), without repeats."""
+        """Where commands go: the address of each robot a command lists (the team's first),
+        without repeats."""
         out: dict = {}
         for rid in [*self.team(), *self.outside]:
-            for sender in reversed(self.robot_addresses.get(rid, ())):
-                out.setdefault(sender, None)
+            address = self.bound.get(rid)
+            if address is not None:
+                out.setdefault(address, None)
+        return list(out)
+
+    def _other_addresses(self, own: list) -> list:
+        """The other addresses that reported the robots a command lists (not in ``own``)."""
+        mine, out = set(own), {}
+        for rid in [*self.team(), *self.outside]:
+            for address in reversed(self.also_at.get(rid, ())):
+                if address not in mine:
+                    out.setdefault(address, None)
         return list(out)
 
     # ------------------------------------------------------------------ the team
@@ -316,7 +438,8 @@ class Bridge:
         self.outside.move_to_end(rid)
         while len(self.outside) > MAX_KNOWN:
             forgotten, _ = self.outside.popitem(last=False)
-            self.robot_addresses.pop(forgotten, None)
+            for addresses in (self.bound, self.posed_at, self.stamps, self.contested, self.also_at):
+                addresses.pop(forgotten, None)
 
     def _leave(self, now: float) -> None:
         """Robots silent for ``timeout`` s leave the team (the last one stays); after ``timeout``
@@ -388,7 +511,7 @@ class Bridge:
     # ------------------------------------------------------------------ commands out
     def control(self) -> dict | None:
         """One control tick: the policy's targets and DWA commands; stale robots stopped."""
-        if not self.robot_addresses:
+        if not self.bound:
             return None
         now = time.monotonic()
         self._leave(now)
@@ -415,7 +538,7 @@ class Bridge:
 
     def _entries(self, now: float, targets: np.ndarray) -> tuple[list[dict], np.ndarray]:
         """Each listed robot's command entry toward its target (a DWA command, or a stop for a
-        stale robot or one outside the team), and the ``(v, w)`` of each place."""
+        stale or contested robot or one outside the team), and the ``(v, w)`` of each place."""
         robots, command = [], np.zeros_like(self.command)
         listed = self._listed()
         fresh = now - self.seen <= self.timeout
@@ -435,6 +558,8 @@ class Bridge:
             elif not fresh[i]:
                 self._stale_stop(rid, i, now)
                 robots.append(wire.stop(rid, targets[i].tolist(), "stale"))
+            elif now - self.contested.get(rid, -np.inf) <= self.timeout:
+                robots.append(wire.stop(rid, targets[i].tolist(), "contested"))
             else:
                 others = np.asarray([p for j, p in nearby if j != i], float).reshape(-1, 2)
                 v, w = dwa_command(
@@ -478,9 +603,9 @@ class Bridge:
 
     def halt(self, reason: str = "bridge stopped", repeats: int = STOP_REPEATS) -> dict:
         """Send every robot a stop command (``v = w = 0``, ``"stopped": true``, ``reason``) at its
-        own addresses first (the senders of the poses of the robots the bridge knows), then at
-        the other addresses that sent a state (``repeats`` copies, 10 ms apart); returns the
-        message."""
+        own address first (where each robot the bridge knows is bound), then at the other
+        addresses that reported them, then at the other senders of states (``repeats`` copies,
+        10 ms apart); returns the message."""
         robots = []
         for rid, i in self._listed():
             last = self.poses[i, :2].tolist() if i is not None else self.outside[rid]["pose"][:2]
@@ -489,9 +614,10 @@ class Bridge:
         message = wire.command_message(robots)
         data = wire.encode(message)
         own = self.addresses() if not self._closed else []
-        mine = set(own)
+        also = self._other_addresses(own) if not self._closed else []
+        mine = set(own) | set(also)
         others = [p for p in self.peers if p not in mine] if not self._closed else []
-        peers = own + others  # the robots' own addresses first, in every round
+        peers = own + also + others  # the robots' own addresses first, in every round
         delivered = 0
         for k in range(repeats if peers else 0):
             if k:
@@ -503,14 +629,24 @@ class Bridge:
                 except OSError as err:  # the next address still gets its copy
                     self._failed(f"stop command to {_peer(peer)}", err)
         if self.halted != reason and peers:
+            extra = []
+            if also:
+                extra.append(
+                    f"{len(also)} other address{'es' * (len(also) > 1)} that reported them"
+                )
+            if others:
+                extra.append(f"{len(others)} other sender{'s' * (len(others) > 1)} of states")
+            tail = (
+                ", " + " and ".join(extra)
+                if len(extra) == 2
+                else "".join(" and " + e for e in extra)
+            )
             log.warning(
                 "bridge: sent a stop command (v = w = 0) to all %d robots at %d address%s%s (%s)",
                 len(robots),
                 len(own),
                 "" if len(own) == 1 else "es",
-                f" and {len(others)} other sender{'' if len(others) == 1 else 's'} of states"
-                if others
-                else "",
+                tail,
                 reason,
             )
         self.command[:] = 0.0
@@ -570,6 +706,8 @@ class Bridge:
             "commands": s["commands"],
             "malformed": s["malformed"],
             "stale_stops": s["stale_stops"],
+            "contested": s["contested"],
+            "moved": s["moved"],
             "team": self.team(),
             "max_robots": self.n,
             "joined": s["joined"],
@@ -599,6 +737,7 @@ class Bridge:
             "stopped": True if last is None else bool(last["stopped"]),
             "reason": (self.halted or self.outside[rid]["reason"]) if last is None
             else last["reason"],
+            "address": None if rid not in self.bound else _peer(self.bound[rid]),
         }  # fmt: skip
 
     # ------------------------------------------------------------------ serving

@@ -5,6 +5,7 @@ the token kept out of the run folder's files."""
 from __future__ import annotations
 
 import hmac
+import json
 import math
 import os
 import re
@@ -19,6 +20,7 @@ GUESS_BURST = 10
 GUESS_RATE_ALL = 10.0  # wrong tokens a second all sources together may try, after GUESS_BURST_ALL
 GUESS_BURST_ALL = 20
 MAX_SOURCES = 1024  # sources (IP addresses) whose wrong tokens are counted (the most recent)
+MAX_TRUSTED = 256  # peers (full addresses) that gave the right token, exempt from the limit
 REDACTED = "<redacted>"
 
 
@@ -83,35 +85,68 @@ class TokenCheck:
     """Compare a given token with ``token`` in constant time, at most ``GUESS_RATE`` wrong ones a
     second from one source (after ``GUESS_BURST``) and ``GUESS_RATE_ALL`` from all of them (after
     ``GUESS_BURST_ALL``): beyond, a token is refused unchecked, so guessing it takes years, not
-    seconds. A right token spends nothing."""
+    seconds. A right token spends nothing.
+
+    A ``peer`` (a full address, e.g. ``(ip, port)``) that gave the right token is trusted (the
+    ``MAX_TRUSTED`` most recent): its tokens are always compared and its wrong ones spend
+    nothing, so guesses from other ports of its IP, or from anywhere, cannot lock it out. Its
+    trust tells a guesser nothing: what the token unlocks goes to the trusted address, not to
+    the guesser's."""
 
     def __init__(self, token: str):
-        self.token = token.encode()
+        self.token = token.encode("utf-8", "surrogatepass")
+        # The token as a datagram may spell it: plain UTF-8, or as json.dumps escapes it.
+        self.spellings = {
+            self.token,
+            json.dumps(token)[1:-1].encode("utf-8", "surrogatepass"),
+            json.dumps(token, ensure_ascii=False)[1:-1].encode("utf-8", "surrogatepass"),
+        }
         self.all = Bucket(GUESS_RATE_ALL, GUESS_BURST_ALL)
         self.sources: OrderedDict[str, Bucket] = OrderedDict()
+        self.trusted: OrderedDict = OrderedDict()  # peers that gave the right token
         self.guesses = 0  # wrong tokens compared
         self.unchecked = 0  # tokens refused unchecked (over the limit)
 
-    def check(self, given: str, source: str) -> str | None:
-        """None when ``given`` is the token, else why it is refused (one line)."""
+    def spelled_in(self, data: bytes) -> bool:
+        """Whether ``data`` holds the token's bytes at all (a cheap screen before parsing: a
+        datagram without them cannot carry the right token)."""
+        return any(spelling in data for spelling in self.spellings)
+
+    def check(self, given: str | None, source: str, peer=None) -> str | None:
+        """None when ``given`` is the token, else why it is refused (one line). ``given`` None:
+        a token already known wrong (a datagram without its bytes), counted as a guess."""
+        trusted = peer is not None and peer in self.trusted
+        bucket = None if trusted else self._bucket(source)
+        if bucket is not None and not (bucket.ready() and self.all.ready()):
+            self.unchecked += 1
+            return (
+                f"too many wrong tokens (at most {GUESS_RATE:g} a second from one address, "
+                f"{GUESS_RATE_ALL:g} from all): refused unchecked, try again in a few seconds"
+            )
+        if given is not None and hmac.compare_digest(
+            given.encode("utf-8", "surrogatepass"), self.token
+        ):
+            if peer is not None:
+                self.trusted[peer] = None
+                self.trusted.move_to_end(peer)
+                while len(self.trusted) > MAX_TRUSTED:
+                    self.trusted.popitem(last=False)
+            return None
+        self.guesses += 1
+        if bucket is not None:
+            bucket.spend()
+            self.all.spend()
+        return "wrong token"
+
+    def _bucket(self, source: str) -> Bucket:
+        """The guess allowance of ``source`` (the ``MAX_SOURCES`` most recent are kept)."""
         bucket = self.sources.get(source)
         if bucket is None:
             bucket = self.sources[source] = Bucket(GUESS_RATE, GUESS_BURST)
             while len(self.sources) > MAX_SOURCES:
                 self.sources.popitem(last=False)
         self.sources.move_to_end(source)
-        if not (bucket.ready() and self.all.ready()):
-            self.unchecked += 1
-            return (
-                f"too many wrong tokens (at most {GUESS_RATE:g} a second from one address, "
-                f"{GUESS_RATE_ALL:g} from all): refused unchecked, try again in a few seconds"
-            )
-        if hmac.compare_digest(given.encode("utf-8", "surrogatepass"), self.token):
-            return None
-        self.guesses += 1
-        bucket.spend()
-        self.all.spend()
-        return "wrong token"
+        return bucket
 
 
 # ------------------------------------------------------------------ the token in the run folder

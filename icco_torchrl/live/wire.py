@@ -10,10 +10,13 @@ angles in radians, field frame centred on home, +x right, +y up. The message typ
 * in, ``{"type": "instruct", "text": "Go right"}``: a language instruction for the team (at most
   ``MAX_INSTRUCTION`` characters).
 * in, on either: ``"token": "..."`` (1 to ``MAX_TOKEN`` characters), which the bridge checks
-  against ``live.token``.
+  against ``live.token``; with a token set, a state must also carry ``time`` (seconds, from a
+  clock that never goes back), after that of the last state taken for each robot it lists
+  (the bridge refuses others as replays).
 * out: ``{"type": "command", "time": t, "robots": [{"id": i, "target": [x, y], "v": v, "w": w,
-  "stopped": bool, "reason": null | "stale" | "team full" | "control error" | "bridge
-  stopped"}, ...]}`` (:func:`command_message`; :func:`drive` and :func:`stop` make its entries).
+  "stopped": bool, "reason": null | "stale" | "contested" | "team full" | "control error" |
+  "bridge stopped"}, ...]}`` (:func:`command_message`; :func:`drive` and :func:`stop` make its
+  entries), sent to the address each robot is bound to (the first that reported it).
 
 :func:`parse_message` checks a datagram before anything uses it, cheapest first: its byte length
 (at most ``MAX_MESSAGE``), then UTF-8 and JSON (no ``NaN`` or ``Infinity``, numbers of at most
