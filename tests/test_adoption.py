@@ -21,6 +21,7 @@ from torchrl.objectives import ValueEstimators
 from icco_torchrl.modules import RecurrentQNet, make_agent, make_coordinator, make_posterior
 from icco_torchrl.modules.policy import make_policy, make_primer
 from icco_torchrl.objectives import ICCOLoss, total_loss
+from icco_torchrl.objectives.defaults import LOSS_DEFAULTS
 
 torch.set_num_threads(1)
 
@@ -394,8 +395,11 @@ def test_make_value_estimator_td0_td1_tdlambda():
     loss.make_value_estimator(ValueEstimators.TDLambda, lmbda=0.7, gamma=0.8)
     torch.testing.assert_close(loss(td)["loss_td"], lam["lambda"])
     assert not torch.allclose(lam["td0"], lam["lambda"])
-    loss.make_value_estimator()  # the default: TD(0)
-    assert loss.td_lambda == 0.0 and loss.value_type == ValueEstimators.TD0
+    loss.make_value_estimator()  # the default: TD(lambda), at the loss's lambda
+    assert loss.td_lambda == 0.7 and loss.value_type == ValueEstimators.TDLambda
+    loss.make_value_estimator(ValueEstimators.TD0)
+    loss.make_value_estimator()  # ... or at the default lambda, icco train's
+    assert loss.td_lambda == LOSS_DEFAULTS.td_lambda > 0
     with pytest.raises(NotImplementedError, match="GAE"):
         loss.make_value_estimator(ValueEstimators.GAE)
     with pytest.raises(TypeError, match="bogus"):

@@ -744,3 +744,94 @@ def test_loss_rejects_bad_coefficients(icco):
         ICCOLoss(
             parts["agent"], parts["mixer"], parts["coordinator"], parts["posterior"], ce_coef=-1.0
         )
+
+
+# ======================================================================= defaults, COPA clamps
+def test_loss_defaults_are_icco_train():
+    """ICCOLoss with no keyword arguments is the method `icco train method=icco` builds: the same
+    settings, and the same losses on the same batch."""
+    parts = build_components(compose_config(["method=icco"]), num_envs=4)
+    _, seg = _rollout_segments(parts, steps=16, length=16)
+    trained = parts["loss"]
+    plain = ICCOLoss(parts["agent"], parts["mixer"], parts["coordinator"], parts["posterior"])
+    assert plain.settings == trained.settings
+    assert plain.settings["td_lambda"] > 0 and plain.settings["ce_coef"] > 0
+    torch.manual_seed(1)
+    a = trained(seg)
+    torch.manual_seed(1)
+    b = plain(seg)
+    assert set(a.keys()) == set(b.keys())
+    for key in a.keys():
+        torch.testing.assert_close(a[key], b[key], rtol=0, atol=0)
+    # TorchRL's default value estimator keeps that method: TD(lambda) at the loss's lambda
+    plain.make_value_estimator()
+    assert plain.td_lambda == trained.td_lambda
+
+
+def _sharp_icco(ce_clamp: bool, z_loc: float = 10.0):
+    """An ICCO loss whose coordinator draws z = z_loc + e^-5 * noise (logvar -10 in every
+    dimension) and whose posterior factors are N(0, e^-10) whatever they read: every dimension's
+    log q is below -1e6, and every dimension's entropy is 1.419 - 5 < 0."""
+    parts = build_components(method="icco", num_envs=4)
+    _, seg = _rollout_segments(parts, steps=16)
+    loss = ICCOLoss(
+        parts["agent"],
+        parts["mixer"],
+        parts["coordinator"],
+        parts["posterior"],
+        ce_coef=1e-3,
+        entropy_coef=1e-4,
+        ce_clamp=ce_clamp,
+    )
+    Z = parts["coordinator"].module.z_dim
+    with torch.no_grad():
+        for name, value in (("loc", z_loc), ("logvar", -10.0)):
+            linear = getattr(loss.coordinator.module, name)
+            linear.weight.zero_()
+            linear.bias.fill_(value)
+        for head in (loss.posterior.module.first, loss.posterior.module.later):
+            head[-1].weight.zero_()
+            head[-1].bias[:Z].fill_(0.0)
+            head[-1].bias[Z:].fill_(-10.0)
+    return loss, seg, Z
+
+
+def test_ce_clamp_caps_each_dimension_hand_computed():
+    """COPA's clamps: each dimension's log q at -1000 and each dimension's entropy at 0. With z
+    ten units from the mean of a posterior of std e^-5, -log q costs exactly 1000 per dimension,
+    and a narrow z (entropy 1.419 - 5 per dimension) costs nothing."""
+    clamped, seg, Z = _sharp_icco(ce_clamp=True)
+    out = clamped(seg)
+    assert out["log_q"].item() < -1e6 * Z  # the entry stays the unclamped log q
+    assert out["entropy"].item() == pytest.approx(Z * (1.4189385 - 5.0), abs=1e-3)
+    assert out["ce_nll"].item() == pytest.approx(1e-3 * 1000.0 * Z, rel=1e-6)
+    assert out["ce_neg_entropy"].item() == 0.0
+    free, seg, Z = _sharp_icco(ce_clamp=False)
+    out = free(seg)
+    assert out["ce_nll"].item() == pytest.approx(-1e-3 * out["log_q"].item(), rel=1e-6)
+    assert out["ce_neg_entropy"].item() == pytest.approx(-1e-4 * Z * (1.4189385 - 5.0), rel=1e-4)
+
+
+def test_ce_clamp_changes_nothing_inside_its_range():
+    """Where every dimension's log q is in [-1000, 0] and entropy in [0, 10] (a wide posterior
+    and z of std 1), the clamped loss is the plain one."""
+    parts = build_components(method="icco", num_envs=4)
+    _, seg = _rollout_segments(parts, steps=16)
+    with torch.no_grad():
+        parts["coordinator"].module.logvar.weight.zero_()
+        parts["coordinator"].module.logvar.bias.fill_(0.0)  # entropy 1.419 per dimension
+        for head in (parts["posterior"].first, parts["posterior"].later):
+            head[-1].bias[parts["coordinator"].module.z_dim :].fill_(0.0)
+            head[-1].weight[parts["coordinator"].module.z_dim :].zero_()  # factor std 1
+    args = (parts["agent"], parts["mixer"], parts["coordinator"], parts["posterior"])
+    torch.manual_seed(2)
+    a = ICCOLoss(*args, ce_clamp=True)(seg)
+    torch.manual_seed(2)
+    b = ICCOLoss(*args, ce_clamp=False)(seg)
+    for key in ("ce_nll", "ce_neg_entropy", "log_q", "entropy"):
+        torch.testing.assert_close(a[key], b[key])
+
+
+def test_ce_clamp_is_the_train_option():
+    on = build_components(compose_config(["method=icco", "train.ce_clamp=true"]), num_envs=2)
+    assert on["loss"].ce_clamp and not build_components(method="icco", num_envs=2)["loss"].ce_clamp

@@ -24,6 +24,7 @@ from icco_torchrl.modules import (
     make_mixer,
 )
 from icco_torchrl.modules.coordinator import Coordinator
+from icco_torchrl.modules.posterior import log_prob_terms
 from icco_torchrl.training.build import build_components, compose_config
 
 torch.set_num_threads(1)
@@ -116,6 +117,28 @@ def test_masked_factors_are_ignored(combine):
         torch.testing.assert_close(out[s], ref, atol=1e-4, rtol=1e-5)
 
 
+def test_log_prob_terms_are_the_clamped_terms_hand_computed():
+    """ce_clamp's terms: one per dimension of the product (its sum is the product's log q), one per
+    step and dimension of the sum (masked steps 0)."""
+    z, loc, scale, mask = _factors()
+    product = log_prob_terms(z, loc, scale, mask, "product")
+    assert product.shape == (1, 1, 1, 2)
+    d0, d1 = -0.25 - 0.5 * math.log(math.pi), -0.5 * math.log(2 * math.pi * 0.8)
+    torch.testing.assert_close(product.flatten(), torch.tensor([d0, d1]))
+    summed = log_prob_terms(z, loc, scale, mask, "sum")
+    c = 0.5 * LOG_2PI
+    hand = torch.tensor([[-0.125 - c, -c], [-1.125 - c, -math.log(2.0) - c], [0.0, 0.0]])
+    torch.testing.assert_close(summed[0, :, 0], hand)
+    for combine in ("product", "sum"):
+        torch.testing.assert_close(
+            log_prob_terms(z, loc, scale, mask, combine).sum((1, -1)),
+            combine_log_prob(z, loc, scale, mask, combine),
+        )
+    # a sharp factor's density exceeds 1: the term COPA's clamp sets to 0
+    sharp = log_prob_terms(z, loc, torch.full_like(scale, 0.05), mask, "sum")
+    assert sharp[0, 0, 0, 1] > 0
+
+
 def test_combine_rejects_unknown_mode():
     z, loc, scale, mask = _factors()
     with pytest.raises(ValueError, match="combine"):
@@ -142,6 +165,10 @@ def test_posterior_scores_its_own_factors():
     assert loc.shape == scale.shape == (S, T, N, 3)
     torch.testing.assert_close(
         post(z, state, action, obs, mask), combine_log_prob(z, loc, scale, mask, "product")
+    )
+    torch.testing.assert_close(
+        post.log_prob_terms(z, state, action, obs, mask).sum((1, -1)),
+        post(z, state, action, obs, mask),
     )
     # later factors read only their own step: changing a masked step's observation changes nothing
     obs2 = obs.clone()

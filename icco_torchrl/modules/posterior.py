@@ -54,7 +54,12 @@ def _split(out: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 
 def diag_normal_log_prob(x, loc, scale):
     """log N(x; loc, diag scale^2), summed over the last dim."""
-    return (-0.5 * ((x - loc) / scale) ** 2 - scale.log() - 0.5 * _LOG_2PI).sum(-1)
+    return _normal_log_density(x, loc, scale).sum(-1)
+
+
+def _normal_log_density(x, loc, scale):
+    """Each dimension's log N(x; loc, scale^2)."""
+    return -0.5 * ((x - loc) / scale) ** 2 - scale.log() - 0.5 * _LOG_2PI
 
 
 def combine_log_prob(z, loc, scale, mask, combine: str):
@@ -72,6 +77,21 @@ def combine_log_prob(z, loc, scale, mask, combine: str):
         return (
             mask.to(loc.dtype)[..., None] * diag_normal_log_prob(z.unsqueeze(1), loc, scale)
         ).sum(1)
+    raise ValueError(f"combine must be 'product' or 'sum', got {combine!r}")
+
+
+def log_prob_terms(z, loc, scale, mask, combine: str):
+    """The terms that add up to :func:`combine_log_prob` (over dims 1 and -1), each one
+    log-density COPA's clamp bounds: ``[S, 1, N, Z]``, each dimension of the combined Gaussian
+    (``"product"``), or ``[S, K, N, Z]``, each step's and dimension's factor (``"sum"``; masked
+    steps 0)."""
+    m = mask.to(loc.dtype)[..., None, None]  # [S, K, 1, 1]
+    if combine == "product":
+        precision = (m / scale**2).sum(1)
+        mean = (m * loc / scale**2).sum(1) / precision
+        return _normal_log_density(z, mean, precision.rsqrt()).unsqueeze(1)
+    if combine == "sum":
+        return m * _normal_log_density(z.unsqueeze(1), loc, scale)
     raise ValueError(f"combine must be 'product' or 'sum', got {combine!r}")
 
 
@@ -178,6 +198,14 @@ class Posterior(nn.Module):
             z = z[:, 0]
         loc, scale = self.factors(state, action, obs)
         return combine_log_prob(z, loc, scale, mask, self.combine)
+
+    def log_prob_terms(self, z, state, action, obs, mask):
+        """:meth:`forward`'s log q as the terms that add up to it (:func:`log_prob_terms`):
+        ``[S, 1, N, Z]`` (product) or ``[S, T, N, Z]`` (sum), what ``ce_clamp`` clamps."""
+        if z.dim() == 4:
+            z = z[:, 0]
+        loc, scale = self.factors(state, action, obs)
+        return log_prob_terms(z, loc, scale, mask, self.combine)
 
 
 def make_posterior(layout: ObsLayout | None = None, **kwargs) -> Posterior:

@@ -20,11 +20,17 @@ period ``T`` (``L = T``: one broadcast per item).
 - Targets: lambda-returns over the sequence (:func:`~icco_torchrl.objectives.lambda_returns`),
   the target networks bootstrapping at every step, double Q.
 - L_CE, averaged over every broadcast window of the batch:
-  ``ce_coef * (-log q_xi(z | zeta, s, v)) + entropy_coef * (-H(N(mu_phi(s), sigma_phi(s))))``.
+  ``ce_coef * (-log q_xi(z | zeta, s, v)) + entropy_coef * (-H(N(mu_phi(s), sigma_phi(s))))``;
+  with ``ce_clamp`` (COPA's) each dimension's log-density is clamped to [-1000, 0] (each step's
+  too, for a posterior that sums its factors' log-likelihoods) and each dimension's entropy to
+  [0, 10] before the sums, so a sharper posterior or a narrower z than that earns nothing.
+- Defaults: :data:`~icco_torchrl.objectives.defaults.LOSS_DEFAULTS`, the ones ``icco train
+  method=icco`` trains with (the config takes them from there).
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -39,6 +45,7 @@ from torchrl.objectives.utils import ValueEstimators
 
 from icco_torchrl.modules.coordinator import gaussian_entropy
 from icco_torchrl.modules.tdmodule import TensorModule
+from icco_torchrl.objectives.defaults import ENTROPY_CLAMP, LOG_Q_CLAMP, LOSS_DEFAULTS
 from icco_torchrl.objectives.inputs import (
     LossBatch,
     assemble,
@@ -98,9 +105,17 @@ class ICCOLoss(LossModule):
         double_q: bootstrap with the online argmax evaluated by the target networks.
         ce_coef: weight of ``-log q`` (COPA: 1e-3); 0 disables the CE term (ICCO w/o CE).
         entropy_coef: weight of ``-H`` (COPA: 1e-4).
+        ce_clamp: COPA's clamps in L_CE: each dimension's ``log q`` to [-1000, 0] (each step's
+            too with a posterior that sums log-likelihoods; needs a posterior with
+            ``log_prob_terms``, as :class:`~icco_torchrl.modules.Posterior` has), each dimension's
+            entropy to [0, 10]. The ``log_q`` and ``entropy`` entries stay the unclamped values.
         reward_reduction: how per-agent rewards ``[S, L, N, 1]`` (TorchRL multi-agent envs such as
             VMAS) become the team reward: ``"mean"`` (TorchRL's QMIX example) or ``"sum"``.
         check_finite: raise :class:`NonFiniteLossError` on a NaN/inf loss (one host sync a call).
+
+    Left out, each setting is :data:`~icco_torchrl.objectives.defaults.LOSS_DEFAULTS`', the one
+    ``icco train method=icco`` trains with: ``ICCOLoss(agent, mixer, coordinator, posterior)`` is
+    ICCO as the project trains it.
 
     Examples:
         >>> import torch
@@ -154,7 +169,7 @@ class ICCOLoss(LossModule):
 
     default_keys = _AcceptedKeys
     tensor_keys: _AcceptedKeys
-    default_value_estimator = ValueEstimators.TD0
+    default_value_estimator = ValueEstimators.TDLambda
 
     agent: TensorDictModule
     agent_params: TensorDictParams
@@ -173,12 +188,13 @@ class ICCOLoss(LossModule):
         coordinator: TensorDictModule | None = None,
         posterior: nn.Module | None = None,
         *,
-        gamma: float = 0.99,
-        td_lambda: float = 0.0,
-        burn_in: int = 0,
-        double_q: bool = True,
-        ce_coef: float = 1e-3,
-        entropy_coef: float = 1e-4,
+        gamma: float = LOSS_DEFAULTS.gamma,
+        td_lambda: float = LOSS_DEFAULTS.td_lambda,
+        burn_in: int = LOSS_DEFAULTS.burn_in,
+        double_q: bool = LOSS_DEFAULTS.double_q,
+        ce_coef: float = LOSS_DEFAULTS.ce_coef,
+        entropy_coef: float = LOSS_DEFAULTS.entropy_coef,
+        ce_clamp: bool = LOSS_DEFAULTS.ce_clamp,
         reward_reduction: str = "mean",
         check_finite: bool = True,
     ):
@@ -196,6 +212,7 @@ class ICCOLoss(LossModule):
         self.double_q, self.check_finite = double_q, check_finite
         self.use_ce = self.has_coordinator and (ce_coef > 0 or entropy_coef > 0)
         self.ce_coef, self.entropy_coef = float(ce_coef), float(entropy_coef)
+        self.ce_clamp = bool(ce_clamp)
         self.convert_to_functional(agent, "agent", create_target_params=True)
         self.convert_to_functional(mixer, "mixer", create_target_params=True)
         if self.has_coordinator:
@@ -207,6 +224,28 @@ class ICCOLoss(LossModule):
         if posterior is not None and not isinstance(posterior, TensorDictModule):
             posterior = _Holder(posterior)
         self.posterior = posterior if self.has_coordinator and ce_coef > 0 else None
+        if self.ce_clamp and self.posterior is not None:
+            if not hasattr(self.posterior.module, "log_prob_terms"):
+                raise ValueError(
+                    "ce_clamp clamps log q per dimension: it needs a posterior with "
+                    "log_prob_terms(z, state, action, obs, mask), as Posterior has"
+                )
+
+    @property
+    def settings(self) -> dict:
+        """The loss's hyperparameters, by keyword argument (what makes two losses over the same
+        networks the same method)."""
+        return dict(
+            gamma=self.gamma,
+            td_lambda=self.td_lambda,
+            burn_in=self.burn_in,
+            double_q=self.double_q,
+            ce_coef=self.ce_coef,
+            entropy_coef=self.entropy_coef,
+            ce_clamp=self.ce_clamp,
+            reward_reduction=self.reward_reduction,
+            check_finite=self.check_finite,
+        )
 
     def _set_agent_protocol(self, net: nn.Module, burn_in: int) -> None:
         """What the agent ``net`` can do (a sequence in one call, a step), checked against
@@ -232,16 +271,17 @@ class ICCOLoss(LossModule):
         self.gamma, self.td_lambda = float(gamma), float(td_lambda)
 
     def make_value_estimator(self, value_type: ValueEstimators | None = None, **hyperparams):
-        """TorchRL's way to choose the target: ``TD0`` (one-step, the default), ``TD1`` (the
-        return to the sequence's end) or ``TDLambda`` (``lmbda``), each with ``gamma``. Other
-        estimators (GAE, V-trace) are for actor-critic losses and are refused."""
+        """TorchRL's way to choose the target: ``TD0`` (one-step), ``TD1`` (the return to the
+        sequence's end) or ``TDLambda`` (``lmbda``; the default, at the loss's ``td_lambda``, or
+        at the default ``td_lambda`` where it is 0), each with ``gamma``. Other estimators (GAE,
+        V-trace) are for actor-critic losses and are refused."""
         value_type = self.default_value_estimator if value_type is None else value_type
         hp = dict(hyperparams)
         gamma = hp.pop("gamma", self.gamma)
         hp.pop("differentiable", None)  # TorchRL's default kwarg; targets never carry gradient
         lambdas = {ValueEstimators.TD0: 0.0, ValueEstimators.TD1: 1.0}
         if value_type == ValueEstimators.TDLambda:
-            lam = hp.pop("lmbda", self.td_lambda or 0.95)
+            lam = hp.pop("lmbda", self.td_lambda or LOSS_DEFAULTS.td_lambda)
         elif value_type in lambdas:
             lam = lambdas[value_type]
         else:
@@ -668,17 +708,26 @@ class ICCOLoss(LossModule):
         w = starts.to(z0.dtype)[:, None] * present  # scored windows x robots present at their start
         denom = w.sum().clamp_min(1.0)
         entropy = (w * gaussian_entropy(scale0)).sum() / denom
-        out = {"entropy": entropy.detach(), "ce_neg_entropy": -self.entropy_coef * entropy}
+        scored = entropy  # what the loss weighs: the entropy, or its clamped dimensions (COPA)
+        if self.ce_clamp:
+            scored = (w * _entropy_terms(scale0).clamp(*ENTROPY_CLAMP).sum(-1)).sum() / denom
+        out = {"entropy": entropy.detach(), "ce_neg_entropy": -self.entropy_coef * scored}
         loss = out["ce_neg_entropy"]
         if self.posterior is not None:
             # Windows that are not scored keep one (dummy) factor so the product stays defined.
             first = torch.arange(held.shape[1], device=held.device) == 0
             factor_mask = held | (~starts[:, None] & first)
-            log_q = self.posterior.module(
-                z0, windows(batch.state), windows(batch.action), windows(batch.obs), factor_mask
-            )  # [S * W, N]
+            inputs = (z0, windows(batch.state), windows(batch.action), windows(batch.obs))
+            scored = None
+            if self.ce_clamp:  # COPA: each dimension's (and step's) log-density in [-1000, 0]
+                terms = self.posterior.module.log_prob_terms(*inputs, factor_mask)
+                log_q = terms.sum((1, -1))
+                scored = (w * terms.clamp(*LOG_Q_CLAMP).sum((1, -1))).sum() / denom
+            else:
+                log_q = self.posterior.module(*inputs, factor_mask)  # [S * W, N]
             mean_log_q = (w * log_q).sum() / denom
-            out.update(log_q=mean_log_q.detach(), ce_nll=-self.ce_coef * mean_log_q)
+            scored = mean_log_q if scored is None else scored
+            out.update(log_q=mean_log_q.detach(), ce_nll=-self.ce_coef * scored)
             loss = loss + out["ce_nll"]
         out["loss_ce"] = loss
         return out
@@ -703,6 +752,11 @@ def _is_plain(module, out_key) -> bool:
         and module._forward_pre_hooks == {}
         and [unravel_key(key) for key in module.out_keys] == [unravel_key(out_key)]
     )
+
+
+def _entropy_terms(scale: torch.Tensor) -> torch.Tensor:
+    """Each dimension's entropy of a diagonal Gaussian (their sum: ``gaussian_entropy``)."""
+    return 0.5 * math.log(2 * math.pi * math.e) + scale.log()
 
 
 def _taken(q: torch.Tensor, index: torch.Tensor) -> torch.Tensor:

@@ -155,6 +155,7 @@ def make_loss(cfg: DictConfig, mods: dict) -> ICCOLoss:
         double_q=t.double_q,
         ce_coef=m.ce_coef if m.coordinator else 0.0,
         entropy_coef=m.entropy_coef if m.coordinator else 0.0,
+        ce_clamp=t.ce_clamp,
     )
 
 
