@@ -11,8 +11,10 @@ import io
 import math
 import os
 import resource
+import signal
 import struct
 import sys
+import threading
 import time
 import zipfile
 from pathlib import Path
@@ -22,7 +24,11 @@ import torch
 from conftest import ROOT
 
 from icco_torchrl.cli import main
+from icco_torchrl.trainer import train
+from icco_torchrl.training import collector_process
 from icco_torchrl.training.checkpoint import load_checkpoint
+from icco_torchrl.training.collector_process import CollectorError, ProcessCollector
+from icco_torchrl.training.config import compose_config
 from icco_torchrl.training.restore import restore
 from icco_torchrl.training.run_folder import CheckpointError, RunFolderLock
 
@@ -184,3 +190,125 @@ def test_the_converter_refuses_a_checkpoint_a_training_holds_and_writes_nothing(
         assert sorted(p.name for p in run.iterdir()) == [".train.lock", "checkpoint.pt"]
     assert tools.main([str(target), str(target)]) == 0  # once the training is gone
     assert load_checkpoint(target)["frames"] == _demo()["frames"]
+
+
+# ---------------------------------------------------------------- a collector process that hangs
+# Seconds-long runs: 8 envs x 16 steps = 128 frames a batch, nothing evaluated or checkpointed on
+# the way.
+FAST = (
+    "experiment=smoke",
+    "logger.progress=false",
+    "eval.references=[]",
+    "train.eval_interval=0",
+    "train.checkpoint_interval=0",
+    "device=cpu",
+    "train.collector=process",
+    "train.total_frames=1024",
+)
+PER_BATCH = 8 * 16
+
+
+class _HangsAtTheThirdBatch:
+    """A collector whose third batch never comes: an env step that never returns."""
+
+    def __init__(self, collector):
+        self.collector = collector
+
+    def __iter__(self):
+        for k, batch in enumerate(self.collector):
+            if k == 2:
+                time.sleep(3600)
+            yield batch
+
+    def shutdown(self):
+        self.collector.shutdown()
+
+
+def _hanging_collect(*args, **kwargs):
+    """The collector process's entry, with its collector hanging in its third batch."""
+    made = collector_process.inline_collector
+    collector_process.inline_collector = lambda *a, **k: _HangsAtTheThirdBatch(made(*a, **k))
+    collector_process._collect(*args, **kwargs)
+
+
+def _children() -> list[int]:
+    """This process's live children (multiprocessing's resource tracker left out)."""
+    found = []
+    for entry in Path("/proc").iterdir():
+        try:
+            stat = (entry / "stat").read_text()
+            cmdline = (entry / "cmdline").read_bytes()
+        except (OSError, ValueError):
+            continue
+        state, ppid = stat.rsplit(")", 1)[1].split()[:2]
+        if int(ppid) == os.getpid() and state != "Z" and b"resource_tracker" not in cmdline:
+            found.append(int(entry.name))
+    return found
+
+
+@contextlib.contextmanager
+def _signals_after(*delays: float, start: threading.Event | None = None):
+    """SIGTERM to this process ``delays`` seconds after ``start`` is set (at once without one);
+    those not sent when the block ends are not sent."""
+    done = threading.Event()
+    if start is None:
+        start = threading.Event()
+        start.set()
+
+    def send():
+        start.wait()
+        begun = time.monotonic()
+        for delay in delays:
+            if done.wait(max(0.0, begun + delay - time.monotonic())):
+                return
+            os.kill(os.getpid(), signal.SIGTERM)
+
+    thread = threading.Thread(target=send, daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        done.set()
+        start.set()
+        thread.join()
+
+
+def test_a_collector_that_hangs_is_one_line_killed_and_the_learner_saves(tmp_path, monkeypatch):
+    """The learner waits a bounded time for a batch: then one line names the stuck process, which
+    is killed, and the checkpoint holds every batch the learner took."""
+    monkeypatch.setattr(collector_process, "_collect", _hanging_collect)
+    monkeypatch.setattr(collector_process, "BATCH_WAIT_S", 3.0)
+    monkeypatch.setattr(collector_process, "BATCH_WAIT_FACTOR", 1.0)
+    start = time.monotonic()
+    with _signals_after(90, 95), pytest.raises(CollectorError) as err:  # else it never ends
+        train(compose_config(list(FAST)), tmp_path)
+    message = str(err.value)
+    assert "\n" not in message and "icco-collector (pid " in message and "stuck" in message
+    assert "batch 3" in message and "killed it" in message
+    assert time.monotonic() - start < 60 and not _children()
+    assert load_checkpoint(tmp_path / "checkpoint.pt")["frames"] == 2 * PER_BATCH
+    assert len((tmp_path / "timing.csv").read_text().splitlines()) == 1 + 2
+
+
+def test_a_sigterm_stops_the_run_at_once_while_its_collector_hangs(tmp_path, monkeypatch, capsys):
+    """A supervisor's SIGTERM (10-30 s before its SIGKILL) while the learner waits on a hung
+    collector: the run stops within seconds, with a checkpoint of every batch it took."""
+    monkeypatch.setattr(collector_process, "_collect", _hanging_collect)
+    waiting, began = threading.Event(), []  # the learner waits for the batch that never comes
+    receive = ProcessCollector._receive
+
+    def receive_and_say(self):
+        if self.released == 3:
+            began.append(time.monotonic())
+            waiting.set()
+        return receive(self)
+
+    monkeypatch.setattr(ProcessCollector, "_receive", receive_and_say)
+    with _signals_after(1.0, 45.0, start=waiting):  # the second: else it never ends
+        train(compose_config(list(FAST)), tmp_path)
+        stopped = time.monotonic()
+    took = stopped - began[0]
+    assert took < 1.0 + 10.0, f"stopped {took:.1f} s after the wait began"
+    assert "interrupted by SIGTERM at 256 frames: saving a checkpoint" in capsys.readouterr().out
+    assert load_checkpoint(tmp_path / "checkpoint.pt")["frames"] == 2 * PER_BATCH
+    assert not _children()

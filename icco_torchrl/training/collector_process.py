@@ -33,6 +33,14 @@ cores (:class:`ProcessCollector`).
   trainer saves a checkpoint, then re-raises it); an error in the learner stops the collector on
   the way out. The collector also exits once the learner is gone (its pipe closed, or its parent
   changed).
+- *A collector that hangs* (an env step that never returns) is not waited for without end: a batch
+  that has not come :data:`FIRST_BATCH_WAIT_S` after the start (the process imports and builds the
+  run), or later :data:`BATCH_WAIT_S` or :data:`BATCH_WAIT_FACTOR` times the slowest batch it
+  collected (whichever is longer), is one :class:`CollectorError` line naming the process: the
+  process is killed and the trainer saves a checkpoint of what the learner has. A stop (Ctrl-C,
+  SIGTERM) while the learner waits for a batch is honoured at once: the wait changes nothing a
+  checkpoint holds (:func:`~icco_torchrl.training.interrupt.abandonable`), and a collector still
+  busy :data:`STOP_WAIT_S` after "stop" is killed (its batch would be dropped anyway).
 """
 
 from __future__ import annotations
@@ -43,6 +51,7 @@ import itertools
 import logging
 import os
 import signal
+import time
 import traceback
 
 import numpy as np
@@ -55,10 +64,15 @@ from torchrl.collectors import Collector
 from icco_torchrl.modules.policy import exploration_module
 from icco_torchrl.training.build import build
 from icco_torchrl.training.config import validate
+from icco_torchrl.training.interrupt import abandonable
 
 # The collector process's torch stream: cfg.seed + this (see build.VALIDATION_SEED_OFFSET).
 COLLECTOR_SEED_OFFSET = 30_000
-STOP_WAIT_S = 10.0  # a collector that has not exited this long after "stop" is killed
+STOP_WAIT_S = 2.0  # a collector that has not exited this long after "stop" is killed
+# How long the learner waits for a batch before it calls the collector stuck (see the module doc).
+FIRST_BATCH_WAIT_S = 300.0  # the first: the process starts, imports torch and builds the run
+BATCH_WAIT_S = 60.0  # any later one, at least
+BATCH_WAIT_FACTOR = 20.0  # and at least this many times the slowest batch collected so far
 _SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
 
@@ -133,6 +147,7 @@ class ProcessCollector:
             torch_rng = torch.Generator().manual_seed(cfg.seed + COLLECTOR_SEED_OFFSET).get_state()
         self.torch_rng = torch_rng
         self.process = self.conn = self.weights = self.slot = None
+        self.slowest = 0.0  # the longest a batch took the collector to collect, in seconds
 
     def __iter__(self):
         self._start()
@@ -173,12 +188,39 @@ class ProcessCollector:
         except OSError:  # it is gone; _receive says why
             pass
 
+    def _wait_limit(self) -> float:
+        """How long the batch asked for may take before the collector is called stuck."""
+        if self.slot is None:
+            return FIRST_BATCH_WAIT_S
+        return max(BATCH_WAIT_S, BATCH_WAIT_FACTOR * self.slowest)
+
+    def _wait_for_batch(self) -> None:
+        """Until the collector's next message is there (or it has exited). A stop signal cuts
+        the wait short (nothing a checkpoint holds changes in it); a collector that sends nothing
+        within :meth:`_wait_limit` is killed, and said in one line."""
+        limit = self._wait_limit()
+        deadline = time.monotonic() + limit
+        with abandonable():
+            while not self.conn.poll(0.2):
+                if not self.process.is_alive():
+                    return
+                if time.monotonic() > deadline:
+                    break
+            else:
+                return
+        pid = self.process.pid
+        self._kill()
+        took = f"; its batches took at most {self.slowest:.1f} s" if self.slot is not None else ""
+        raise CollectorError(
+            f"the collector process icco-collector (pid {pid}) sent no batch for {limit:.0f} s "
+            f"(batch {self.released}{took}): it is stuck, as in an env step that never returns; "
+            "killed it"
+        )
+
     def _receive(self) -> TensorDictBase:
         """The next batch (a copy), its random streams taken over."""
         try:
-            while not self.conn.poll(0.2):
-                if not self.process.is_alive():
-                    break
+            self._wait_for_batch()
             message = self.conn.recv()
         except (EOFError, OSError):
             raise CollectorError(
@@ -187,7 +229,8 @@ class ProcessCollector:
             ) from None
         if message[0] == "error":
             raise CollectorError(f"collector process failed: {message[1]}")
-        _, slot, env_rng, torch_rng = message
+        _, slot, env_rng, torch_rng, seconds = message
+        self.slowest = max(self.slowest, seconds)
         if slot is not None:
             self.slot = slot
         self.run.env.base_env._rng.set_state(torch.from_numpy(env_rng))
@@ -210,6 +253,14 @@ class ProcessCollector:
                 process.kill()
                 process.join()
             self.conn.close()
+
+    def _kill(self) -> None:
+        """End the collector process now (a stuck one: its batch never comes)."""
+        atexit.unregister(self.shutdown)
+        process, self.process = self.process, None
+        process.kill()
+        process.join()
+        self.conn.close()
 
 
 # ---------------------------------------------------------------- the collector process
@@ -247,7 +298,9 @@ def _serve(config, weights, total_frames, streams, conn, parent) -> None:
     collector = inline_collector(run.env, run.policy, per_batch, total_frames)
     slot = None
     try:
+        tick = time.perf_counter()
         for batch in collector:  # collected while the learner updates on the previous one
+            seconds = time.perf_counter() - tick
             rng = (run.env.base_env._rng.get_state().numpy(), torch.get_rng_state().numpy())
             word, *eps = _wait(conn, parent)
             if word != "go":
@@ -256,7 +309,8 @@ def _serve(config, weights, total_frames, streams, conn, parent) -> None:
             explore.eps.fill_(eps[0])  # for the next batch
             first = slot is None
             slot = batch.clone().share_memory_() if first else slot.update_(batch)
-            conn.send(("batch", slot if first else None, *rng))
+            conn.send(("batch", slot if first else None, *rng, seconds))
+            tick = time.perf_counter()
     finally:
         collector.shutdown()
 
