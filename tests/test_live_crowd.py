@@ -10,6 +10,7 @@ import asyncio
 import contextlib
 import json
 import logging
+import select
 import socket
 import time
 
@@ -24,7 +25,7 @@ from icco_torchrl.live import LiveLoop
 from icco_torchrl.live.bridge import Bridge
 from icco_torchrl.live.cli import _warn_if_exposed
 from icco_torchrl.live.guard import GUESS_BURST, GUESS_RATE, LOG_EVERY, redact_run_folder
-from icco_torchrl.live.web import CHANGE_BURST, CHANGE_RATE, SPARE_CONNECTIONS
+from icco_torchrl.live.web import CHANGE_BURST, CHANGE_RATE, MAX_IDLE_PER_IP
 
 TOKEN = "udp-s3cret"
 
@@ -133,7 +134,7 @@ def _port(url: str) -> int:
     return int(url.rsplit(":", 1)[1])
 
 
-def test_tabs_beyond_the_cap_and_idle_connections_beyond_it_are_refused(served):  # noqa: F811
+def test_tabs_beyond_the_cap_are_refused_and_idle_connections_make_room(served):  # noqa: F811
     server, url = served(smoke_team(), max_clients=3)
     port = _port(url)
 
@@ -149,18 +150,21 @@ def test_tabs_beyond_the_cap_and_idle_connections_beyond_it_are_refused(served):
                 assert (await asyncio.to_thread(_upgrade, port))[0] == 101
 
     asyncio.run(scenario())
-    # Idle connections (no request at all) beyond the cap are closed at once.
-    cap = 3 + SPARE_CONNECTIONS
+    # Idle connections (no request at all) beyond what one IP may keep: its oldest are closed.
     idle = []
     try:
-        for _ in range(cap + 5):
+        for _ in range(MAX_IDLE_PER_IP + 5):
             idle.append(socket.create_connection(("127.0.0.1", port), timeout=2.0))
+        assert _wait(lambda: server.stats["evicted"] == 5)
         closed = 0
-        for sock in idle[-5:]:
+        for sock in idle[:5]:
             sock.settimeout(2.0)
             with contextlib.suppress(ConnectionError):
                 closed += sock.recv(1) == b""
-        assert closed == 5 and server.stats["full"] >= 6
+        assert closed == 5 and server._open == MAX_IDLE_PER_IP
+        # The newest stay open, and a new connection still gets the page (the oldest made room).
+        assert not select.select(idle[5:], [], [], 0.2)[0]
+        assert _answered(port) and server.stats["evicted"] == 6
     finally:
         for sock in idle:
             sock.close()

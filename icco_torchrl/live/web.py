@@ -59,8 +59,15 @@ from one address after 10, ten a second from all): beyond, a request is refused 
 the right token included, until the allowance refills.
 
 No crowd stalls the server. At most ``max_clients`` tabs (``MAX_CLIENTS``) are served at once:
-one more is refused (503, one line) until one closes, and a connection beyond ``max_clients +
-SPARE_CONNECTIONS`` (idle ones included) is closed at once. Work a request asks of the loop is
+one more is refused (503, one line) until one closes. A connection that waits for a request (its
+first one included, however slowly its head arrives) is closed after ``idle_timeout`` seconds
+(``IDLE_TIMEOUT``); one IP may keep at most ``MAX_IDLE_PER_IP`` of them, and all connections
+together are at most ``max_clients + SPARE_CONNECTIONS``: beyond either bound the oldest waiting
+connection of the IP that keeps the most is closed to make room (the new one only when none
+waits), so a crowd of slow or idle connections cannot lock a new tab out. A request aiohttp
+itself refuses (no ``Host``, two of them, a broken request line) is answered 400 in one line,
+counted (``stats["malformed"]``) and logged in one line a second at most, never a traceback.
+Work a request asks of the loop is
 bounded: team changes are at most ``CHANGE_RATE`` a second from all tabs together (after
 ``CHANGE_BURST``; beyond, an error reply), and they and instructions wait for the loop's lock in
 the tick thread (a worker thread in bridge mode), never in the event loop; a reset or a redraw
@@ -88,6 +95,7 @@ from dataclasses import asdict
 from pathlib import Path
 
 from aiohttp import WSMsgType, web
+from aiohttp.http_exceptions import HttpProcessingError
 
 from icco_torchrl.live.guard import Bucket, Throttle, TokenCheck, held, one_line
 from icco_torchrl.live.loop import MAX_INSTRUCTION, LiveLoop
@@ -105,7 +113,9 @@ MAX_STEPS = 10  # single steps queued while paused
 MAX_STATUS_CHARS = 400  # each text of a planner-status message is cut to this length
 RATE_WINDOW_S = 2.0  # the measured tick rate is over the ticks of the last 2 s
 MAX_CLIENTS = 256  # tabs (WebSockets) at once; one more is refused (503) until one closes
-SPARE_CONNECTIONS = 64  # HTTP connections beyond the tabs (page loads); more are closed at once
+SPARE_CONNECTIONS = 64  # HTTP connections beyond the tabs (page loads); beyond, the idlest goes
+MAX_IDLE_PER_IP = SPARE_CONNECTIONS  # connections one IP keeps waiting for a request
+IDLE_TIMEOUT = 10.0  # seconds a connection may wait for a request (its head included)
 CHANGE_RATE = 10.0  # team changes (add/remove a robot) a second, all tabs together, after
 CHANGE_BURST = 20  # a burst of CHANGE_BURST
 MAX_DIGITS = 40  # characters of one number in a request (longer ones are refused, not converted)
@@ -156,6 +166,53 @@ def _parse(text: str) -> dict | str:
     if not isinstance(msg, dict):
         return "a request must be a JSON object"
     return msg
+
+
+def _ip_of(transport) -> str:
+    """The IP address a connection comes from ("?" when the socket does not say)."""
+    peer = transport.get_extra_info("peername")
+    return str(peer[0]) if isinstance(peer, (tuple, list)) and peer else "?"
+
+
+def _waiting(handler) -> bool:
+    """Whether an aiohttp connection waits for a request: none in progress (a tab's socket is
+    one, for as long as it is open) and none queued. Unknown to aiohttp: never."""
+    return not getattr(handler, "_request_in_progress", True) and not getattr(
+        handler, "_messages", True
+    )
+
+
+class _ServerLog:
+    """aiohttp's server logger for one :class:`LiveServer`: a request that aiohttp refuses
+    itself is counted and said in one throttled line (``LiveServer._bad_request``); any other
+    failure is one line too (at most one a second), never a traceback."""
+
+    def __init__(self, server: LiveServer):
+        self.server = server
+
+    def exception(self, msg, *args, exc_info=None, **_) -> None:
+        if isinstance(exc_info, HttpProcessingError):
+            self.server._bad_request(args[0] if args else "?", exc_info)
+        elif isinstance(exc_info, BaseException):
+            self.server._failed("the HTTP server", exc_info)
+        else:
+            self.warning(msg, *args)
+
+    error = exception
+
+    def warning(self, msg, *args, **_) -> None:
+        due, n = self.server._failures.due()
+        if due:
+            try:
+                text = str(msg) % args if args else str(msg)
+            except (TypeError, ValueError):
+                text = str(msg)
+            log.warning("live: %s%s", one_line(text), held(n))
+
+    def debug(self, *args, **kwargs) -> None:
+        pass
+
+    info = debug
 
 
 def _is_ip(name: str) -> bool:
@@ -238,6 +295,8 @@ def _new_stats() -> dict:
         "busy": 0,  # team changes over the server's CHANGE_RATE
         "forbidden": 0,  # HTTP requests and upgrades refused (Host, Origin, token)
         "full": 0,  # connections refused: max_clients tabs or all connections in use
+        "evicted": 0,  # waiting connections closed to make room for a new one
+        "malformed": 0,  # requests aiohttp refused (no Host, two, a broken request line): 400
         "failed": 0,  # requests whose handling raised (answered with an error)
         "latency_ms": [],
     }
@@ -260,8 +319,12 @@ class LiveServer:
         token: str | None = None,
         max_clients: int = MAX_CLIENTS,
         reference: dict | None = None,
+        idle_timeout: float = IDLE_TIMEOUT,
     ):
         _check_settings(rate_hz, token, max_clients)
+        if not idle_timeout > 0:
+            raise ValueError(f"idle_timeout must be > 0, got {idle_timeout!r}")
+        self.idle_timeout = float(idle_timeout)
         # The yardstick beside the running mean (loop.scripted_yardstick).
         self.reference = reference
         self.max_clients = max_clients
@@ -277,6 +340,10 @@ class LiveServer:
         self._tokens = None if token is None else TokenCheck(self.token)
         self._changes = Bucket(CHANGE_RATE, CHANGE_BURST)  # team changes, all tabs together
         self._refusals, self._failures = Throttle(), Throttle()  # log lines
+        self._evictions, self._malformed = Throttle(), Throttle()
+        # Open connections by IP (aiohttp's handler -> its transport, oldest first).
+        self._by_ip: dict[str, dict] = {}
+        self._open = 0
         self.paused, self.speed = False, 1.0
         self.clients: set[_Client] = set()
         self.stats = _new_stats()
@@ -304,7 +371,13 @@ class LiveServer:
         app = web.Application(middlewares=[self._guard])
         app.router.add_get("/", self._page)
         app.router.add_get("/ws", self._socket)
-        self._runner = web.AppRunner(app, access_log=None, handle_signals=False)
+        self._runner = web.AppRunner(
+            app,
+            access_log=None,
+            handle_signals=False,
+            keepalive_timeout=self.idle_timeout,  # also bounds the wait for the first request
+            logger=_ServerLog(self),
+        )
         await self._runner.setup()
         self._cap_connections(self._runner.server)
         site = web.TCPSite(self._runner, self.host, self.port)
@@ -333,18 +406,88 @@ class LiveServer:
         return self.address
 
     def _cap_connections(self, server) -> None:
-        """Close a new connection at once while ``max_clients + SPARE_CONNECTIONS`` are open
-        (idle ones included), so a crowd cannot hold every file descriptor."""
-        cap, made = self.max_clients + SPARE_CONNECTIONS, server.connection_made
+        """Bound the connections (module docstring): beyond ``MAX_IDLE_PER_IP`` waiting for a
+        request from one IP, or ``max_clients + SPARE_CONNECTIONS`` in all, the oldest waiting
+        connection of the IP that keeps the most is closed (the new one when none waits), so a
+        crowd can hold neither every file descriptor nor the room a new tab needs."""
+        cap, made, lost = (
+            self.max_clients + SPARE_CONNECTIONS,
+            server.connection_made,
+            server.connection_lost,
+        )
 
         def connection_made(handler, transport) -> None:
             made(handler, transport)
-            if len(server.connections) > cap:
-                self.stats["full"] += 1
-                self._log_refusal(f"a connection: {cap} are open (the most this server keeps)")
-                asyncio.get_running_loop().call_soon(transport.close)  # once its handler started
+            ip = _ip_of(transport)
+            self._by_ip.setdefault(ip, {})[handler] = transport
+            self._open += 1
+            mine = [h for h in self._by_ip[ip] if _waiting(h)]
+            if len(mine) > MAX_IDLE_PER_IP:
+                self._make_room(mine[0], handler, f"{ip} keeps {MAX_IDLE_PER_IP} waiting")
+            elif self._open > cap:
+                self._make_room(self._idlest(), handler, f"{cap} are open")
 
-        server.connection_made = connection_made
+        def connection_lost(handler, exc=None) -> None:
+            lost(handler, exc)
+            self._forget(handler)
+
+        server.connection_made, server.connection_lost = connection_made, connection_lost
+
+    def _idlest(self):
+        """The oldest connection waiting for a request of the IP that keeps the most, or None."""
+        most: list = []
+        for connections in self._by_ip.values():
+            waiting = [h for h in connections if _waiting(h)]
+            if len(waiting) > len(most):
+                most = waiting
+        return most[0] if most else None
+
+    def _make_room(self, victim, new, why: str) -> None:
+        """Close ``victim`` (a waiting connection) for ``new``; ``new`` itself when it is the
+        victim or there is none."""
+        if victim is None or victim is new:
+            transport = self._forget(new)
+            self.stats["full"] += 1
+            self._log_refusal(f"a connection: {why} (the most this server keeps)")
+            if transport is not None:  # once its handler started
+                asyncio.get_running_loop().call_soon(transport.close)
+            return
+        transport = self._forget(victim)
+        self.stats["evicted"] += 1
+        due, n = self._evictions.due()
+        if due:
+            log.warning(
+                "live: closed a connection waiting for a request to make room: %s%s",
+                one_line(why, 120),
+                held(n),
+            )
+        if transport is not None:
+            transport.close()
+
+    def _forget(self, handler):
+        """Stop counting ``handler``'s connection (closed, or about to be); its transport."""
+        for ip, connections in self._by_ip.items():
+            transport = connections.pop(handler, None)
+            if transport is not None:
+                self._open -= 1
+                if not connections:
+                    del self._by_ip[ip]
+                return transport
+        return None
+
+    def _bad_request(self, remote, exc) -> None:
+        """aiohttp refused a request before this server saw it (no ``Host``, two of them, a
+        broken request line): counted and said in one line a second at most, no traceback."""
+        self.stats["malformed"] += 1
+        due, n = self._malformed.due()
+        if due:
+            reason = getattr(exc, "message", None) or exc or "a malformed request"
+            log.warning(
+                "live: refused a malformed HTTP request from %s (400): %s%s",
+                one_line(remote, 60),
+                one_line(reason, 120),
+                held(n),
+            )
 
     async def stop(self) -> None:
         """Stop ticking, tell every tab the run ended (``end_reason``) and close the connections."""
