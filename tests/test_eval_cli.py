@@ -395,3 +395,34 @@ def test_the_env_difference_note_says_which_differences_change_the_scores():
     # both lists name env parameters (a renamed one would silently count as score-changing)
     params = inspect.signature(ResourceCollectionEnv.__init__).parameters
     assert set(UNUSED_IN_EVAL + REWARD_WEIGHTS) <= set(params)
+
+
+def test_eval_measures_a_coordinator_and_leaves_qmix_na(checkpoints, tmp_path):
+    """The coordination columns (docs/consistency.md): per checkpoint with a coordinator, in the
+    JSON summary rows, the summary CSV and a table of their own; none for QMIX; none at all with
+    eval.coordination.enabled=false."""
+    args = [
+        f"eval.checkpoints=[{checkpoints['icco']},{checkpoints['qmix']}]",
+        "eval.trials=2",
+        "eval.steps=6",
+        "eval.references=[]",
+        "eval.coordination.episodes=4",
+        "eval.coordination.fit_steps=5",
+    ]
+    out = tmp_path / "measured"
+    assert icco("eval", *args, f"eval.out_dir={out}", f"hydra.run.dir={out}") == 0
+    report = json.loads((out / "random_walk.json").read_text())
+    rows = {r["method"]: r for r in report["summary"] if r["segment"] == "episode"}
+    for column in ("mi_bound", "mi_null", "consistency", "swap_agreement", "own_agreement"):
+        assert isinstance(rows["ICCO"][column], float), column
+        assert rows["QMIX"][column] is None, column  # n/a: no coordinator
+    icco_entry, qmix_entry = report["checkpoints"]
+    assert icco_entry["coordination"]["mi"]["windows"] == [3 * 36, 36]
+    assert "coordination" not in qmix_entry
+    assert "## Coordinator: information and consistency" in (out / "random_walk.md").read_text()
+    assert "mi_bound" in (out / "random_walk_summary.csv").read_text().splitlines()[0]
+    skipped = tmp_path / "skipped"
+    flag = "eval.coordination.enabled=false"
+    assert icco("eval", *args, flag, f"eval.out_dir={skipped}", f"hydra.run.dir={skipped}") == 0
+    report = json.loads((skipped / "random_walk.json").read_text())
+    assert all("mi_bound" not in r for r in report["summary"])

@@ -14,6 +14,11 @@ and coordinator read any team, and is refused in one line otherwise.
 ``eval.broadcast_threshold`` replaces the coordinators' beta (no retraining); the tables then
 report ``broadcast_rate``, the share of robot-steps on which a robot received a z.
 
+A checkpoint with a coordinator is also measured for what the consistency term is for
+(``eval.coordination``: the mutual-information lower bound with a posterior fitted after
+training, and swap consistency; docs/consistency.md), about 5 s each;
+``eval.coordination.enabled=false`` skips it.
+
 Outputs go to ``eval.out_dir`` or to ``eval_<protocol>/`` next to the checkpoint(s) (for the
 demo policy and other checkpoints that ship with the project, to
 ``runs/<checkpoint name>/eval_<protocol>/``: :func:`~icco_torchrl.commands.results_dir`); what
@@ -50,7 +55,11 @@ def run_eval(cfg: DictConfig, run_dir: str | Path) -> float:
         name = cfg.eval.protocol
         out_dir = results_dir(cfg.eval.out_dir, paths, f"eval_{name}")
         result = evaluate_checkpoints(
-            cfg, paths, schedules, gif_stem=out_dir / name if cfg.eval.gif else None
+            cfg,
+            paths,
+            schedules,
+            gif_stem=out_dir / name if cfg.eval.gif else None,
+            coordination=cfg.eval.coordination.enabled,
         )
         return write_report(
             result, cfg, name=name, out_dir=out_dir, title=PROTOCOL_TITLES[name], traj_segments=[0]

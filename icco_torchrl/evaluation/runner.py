@@ -32,6 +32,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from icco_torchrl.envs import ResourceCollectionEnv
 from icco_torchrl.envs.reference_policies import make_reference_policy, reference_label
+from icco_torchrl.evaluation import consistency
 from icco_torchrl.evaluation.metrics import (
     EPISODE,
     SHARE,
@@ -181,6 +182,8 @@ class Evaluation:
     sources: list = field(default_factory=list)  # per-segment counters of the LLM sources
     gifs: list = field(default_factory=list)
     team_size: int | None = None  # the robots of every evaluated team
+    # per method: the coordination measures of each checkpoint (evaluation/consistency.py)
+    coordination: dict = field(default_factory=dict)
 
 
 def team_size(cfg: DictConfig, paths: Sequence[Path]) -> int:
@@ -266,14 +269,26 @@ def _evaluate_checkpoint(
     out: Evaluation,
     gif_stem: Path | None,
     label_suffix: str,
+    coordination: bool = False,
 ) -> None:
-    """Play every episode with the checkpoint at ``path`` into ``out`` (and record its GIF)."""
+    """Play every episode with the checkpoint at ``path`` into ``out`` (and record its GIF); with
+    ``coordination``, measure a coordinator's information and consistency too."""
     restored = _restore(cfg, path, total, eval_params)
     trained = OmegaConf.to_container(restored["cfg"], resolve=True)
     label, seed = method_label(trained, label_suffix), trained["seed"]
     diffs = _differences(eval_params, trained["env"]["params"])
     _note_differences(path, diffs)
     out.checkpoints.append(_checkpoint_entry(path, restored, trained, label, diffs, out.team_size))
+    if coordination and restored["coordinator"] is not None:
+        measured = consistency.for_eval(
+            path,
+            cfg.eval.coordination,
+            seed=cfg.seed + EVAL_SEED_OFFSET,
+            broadcast_threshold=cfg.eval.broadcast_threshold,
+            **eval_params,
+        )
+        out.checkpoints[-1]["coordination"] = measured
+        out.coordination.setdefault(label, []).append(measured)
     for episode in range(cfg.eval.episodes):
         record = gif_stem is not None and episode == 0 and label not in out.runs
         on_step, frames = _gif_recorder(total) if record else (None, None)
@@ -335,11 +350,14 @@ def evaluate_checkpoints(
     *,
     gif_stem: Path | None = None,
     label_suffix: str = "",
+    coordination: bool = False,
 ) -> Evaluation:
     """Run ``make_schedule(episode)`` (fresh sources per checkpoint and episode) on every
     checkpoint, ``eval.episodes`` times ``eval.trials`` trials. ``label_suffix`` is appended to
     the method names (e.g. "-TAP"); with ``gif_stem`` trial 0 of each method's first checkpoint
-    is recorded to ``<gif_stem>_<method>.gif``."""
+    is recorded to ``<gif_stem>_<method>.gif``. With ``coordination`` each checkpoint with a
+    coordinator is also measured (:mod:`~icco_torchrl.evaluation.consistency`, at the budget of
+    ``eval.coordination``)."""
     # tiny networks: extra threads only contend on shared CPUs
     torch.set_num_threads(cfg.train.threads)
     size = team_size(cfg, paths)
@@ -348,7 +366,7 @@ def evaluate_checkpoints(
     total = check_schedule(make_schedule(0), cfg.eval.trials)
     for path in paths:
         _evaluate_checkpoint(
-            cfg, path, make_schedule, total, eval_params, out, gif_stem, label_suffix
+            cfg, path, make_schedule, total, eval_params, out, gif_stem, label_suffix, coordination
         )
     for name in cfg.eval.references:  # scripted yardsticks on the same initial configurations
         _evaluate_reference(cfg, name, make_schedule, total, eval_params, out)
@@ -418,9 +436,12 @@ def write_report(
     segments drawn (default: all)."""
     rows, e = result.rows, cfg.eval
     summary = summarize(rows, by=("method", "segment"))
+    if result.coordination:  # the coordination columns (NaN where not measured)
+        consistency.add_columns(summary, result.coordination)
     steps = {r["segment"]: r["steps"] for r in rows}
     segments = [s for s in steps if s != EPISODE]
     markdown = _report_markdown(result, e, title, summary, steps, segments)
+    markdown += consistency.coordination_table(summary)
     out_dir.mkdir(parents=True, exist_ok=True)
     write_csv(rows, out_dir / f"{name}_trials.csv")
     write_csv(summary, out_dir / f"{name}_summary.csv")
