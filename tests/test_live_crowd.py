@@ -10,12 +10,16 @@ import asyncio
 import contextlib
 import json
 import logging
+import os
 import select
 import socket
+import subprocess
+import sys
 import time
 
 import aiohttp
 import numpy as np
+from conftest import ROOT
 from test_bridge_safety import _bridge, _moving, _Planner, _Robots, _serving, _wait
 from test_live_web import Tab, _get, _upgrade, served, smoke_team  # noqa: F401
 
@@ -24,7 +28,14 @@ from icco_torchrl.envs.reference_policies import make_reference_policy
 from icco_torchrl.live import LiveLoop
 from icco_torchrl.live.bridge import Bridge
 from icco_torchrl.live.cli import _warn_if_exposed
-from icco_torchrl.live.guard import GUESS_BURST, GUESS_RATE, LOG_EVERY, redact_run_folder
+from icco_torchrl.live.guard import (
+    GUESS_BURST,
+    GUESS_RATE,
+    LOG_EVERY,
+    TOKEN_VARIABLE,
+    redact_run_folder,
+    token_through_environment,
+)
 from icco_torchrl.live.web import CHANGE_BURST, CHANGE_RATE, MAX_IDLE_PER_IP
 
 TOKEN = "udp-s3cret"
@@ -293,3 +304,67 @@ def test_the_token_is_redacted_from_the_files_hydra_wrote(tmp_path):
     assert "token: <redacted>" in (hydra / "config.yaml").read_text()
     assert "live.web=true" in (hydra / "hydra.yaml").read_text()
     assert "- live.token=<redacted>" in (hydra / "overrides.yaml").read_text()
+
+
+PROBE = """
+import json, sys
+from pathlib import Path
+import icco_torchrl.live.cli as live_cli
+from icco_torchrl.cli import main
+
+folder, token = Path(sys.argv[1]), sys.argv[2]
+
+def probe(cfg):  # at the command's start: what Hydra has written by then
+    files = []
+    for path in [run, *run.rglob("*")]:
+        text = path.read_text(errors="replace") if path.is_file() else ""
+        files.append([str(path.relative_to(run)), path.stat().st_mode & 0o777, token in text])
+    print(json.dumps({"files": files, "token": cfg.live.token == token}), flush=True)
+    return 0.0
+
+live_cli.run_live = live_cli.run_bridge = probe
+for command in ("live", "bridge"):
+    run = folder / command
+    main([command, f"live.token={token}", f"hydra.run.dir={run}"])
+"""
+
+
+def test_the_token_is_never_in_a_file_others_can_read(tmp_path):
+    """What Hydra wrote by the time ``icco live`` and ``icco bridge`` start (before any
+    redaction): files of their owner only, none holding the token, and the command still gets
+    the token (0644 files held it for about 0.3 s before)."""
+    token = "tok-" + "9f3a" * 4
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    env.pop(TOKEN_VARIABLE, None)
+    proc = subprocess.run(
+        [sys.executable, "-c", PROBE, str(tmp_path), token],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    runs = [json.loads(line) for line in proc.stdout.splitlines() if line.startswith("{")]
+    assert len(runs) == 2 and all(seen["token"] for seen in runs)
+    for seen in runs:
+        names = [name for name, _, _ in seen["files"]]
+        assert ".hydra/config.yaml" in names and ".hydra/overrides.yaml" in names
+        for name, mode, holds in seen["files"]:
+            assert mode & 0o077 == 0, (name, oct(mode))
+            assert not holds, name
+
+
+def test_a_token_override_reaches_the_command_through_the_environment(monkeypatch):
+    monkeypatch.setenv(TOKEN_VARIABLE, "before")  # put back after the test
+    moved = token_through_environment(
+        ["live.web=true", "++live.token='a b=c'", f"hydra.run.dir=/x/{TOKEN_VARIABLE}"]
+    )
+    assert moved == [
+        "live.web=true",
+        "++live.token=${oc.env:" + TOKEN_VARIABLE + "}",
+        f"hydra.run.dir=/x/{TOKEN_VARIABLE}",
+    ]
+    assert os.environ[TOKEN_VARIABLE] == "a b=c"
+    left = ["live.token=${oc.env:MY_TOKEN}", "live.token=null", "live.token=a,b", "~live.token"]
+    assert token_through_environment(left) == left

@@ -11,7 +11,7 @@ from pathlib import Path
 
 from omegaconf import DictConfig
 
-from icco_torchrl.commands import Command
+from icco_torchrl.commands import Command, results_beside_checkpoint
 
 
 def _run(command: str, cfg: DictConfig) -> float:
@@ -34,5 +34,14 @@ def run_bridge(cfg: DictConfig, run_dir: str | Path) -> float:
     return _run("bridge", cfg)
 
 
-LIVE = Command(run=run_live)
-BRIDGE = Command(run=run_bridge)
+def prepare(command: str, args: list[str]) -> tuple[list[str], dict]:
+    """Hydra's overrides, as every command's, with the token kept out of the files Hydra writes
+    (:func:`icco_torchrl.live.guard.keep_token_out`)."""
+    from icco_torchrl.live.guard import keep_token_out
+
+    overrides, options = results_beside_checkpoint(command, args)
+    return keep_token_out(overrides), options
+
+
+LIVE = Command(run=run_live, prepare=prepare)
+BRIDGE = Command(run=run_bridge, prepare=prepare)

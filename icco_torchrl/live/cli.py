@@ -72,8 +72,9 @@ def _warn_if_exposed(host: str, token: str | None = None, command: str = "live")
 
 
 def _keep_token_private(token: str | None) -> None:
-    """With a token, the run folder Hydra wrote (``.hydra/``, ``cli.log``): the token redacted
-    from its files, which only their owner may read (``guard.redact_run_folder``)."""
+    """With a token, the run folder Hydra wrote (``.hydra/``, ``cli.log``): the token's place
+    redacted in its files, which only their owner may read (``guard.redact_run_folder``). They
+    never held the token itself (``guard.keep_token_out`` ran before Hydra wrote them)."""
     if token is None:
         return
     try:

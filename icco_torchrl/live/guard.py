@@ -151,6 +151,41 @@ class TokenCheck:
 
 # ------------------------------------------------------------------ the token in the run folder
 _OVERRIDE = re.compile(r"^[+~]{0,2}live\.token=")
+TOKEN_VARIABLE = "ICCO_LIVE_TOKEN"  # the environment variable a live.token= override moves to
+
+
+def keep_token_out(overrides: list[str]) -> list[str]:
+    """Before Hydra writes its files (``.hydra/*.yaml``, ``cli.log``) for ``icco live`` or
+    ``icco bridge``: this process's new files and folders become its owner's only (umask 077),
+    and a ``live.token=SECRET`` override is passed on through the environment
+    (:func:`token_through_environment`), so that no file ever holds the token, not even for
+    the moment before :func:`redact_run_folder` runs. Returns the overrides for Hydra."""
+    os.umask(0o077)
+    return token_through_environment(overrides)
+
+
+def token_through_environment(overrides: list[str]) -> list[str]:
+    """``overrides`` with a ``live.token=SECRET`` override (``+`` and ``++`` ones too) read as
+    Hydra reads it and replaced by ``live.token=${oc.env:ICCO_LIVE_TOKEN}``, SECRET set in this
+    process's environment (``TOKEN_VARIABLE``). An interpolation (``${oc.env:...}``), ``null``,
+    a sweep or a deletion is left as given, and so is an override Hydra cannot parse (Hydra
+    then says why)."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    out = []
+    for item in overrides:
+        if isinstance(item, str) and _OVERRIDE.match(item) and not item.startswith("~"):
+            try:
+                value = OverridesParser.create().parse_overrides([item])[0].value()
+            except Exception:  # Hydra's own error, in one line, when it composes
+                value = None
+            if isinstance(value, (str, int, float)) and not isinstance(value, bool):
+                value = str(value)
+                if value and "${" not in value:
+                    os.environ[TOKEN_VARIABLE] = value
+                    item = item[: item.index("=") + 1] + "${oc.env:" + TOKEN_VARIABLE + "}"
+        out.append(item)
+    return out
 
 
 def redact_run_folder(folder, token: str | None) -> list[Path]:
