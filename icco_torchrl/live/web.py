@@ -343,6 +343,7 @@ class LiveServer:
         self._evictions, self._malformed = Throttle(), Throttle()
         # Open connections by IP (aiohttp's handler -> its transport, oldest first).
         self._by_ip: dict[str, dict] = {}
+        self._ip_of: dict = {}  # aiohttp's handler -> its IP
         self._open = 0
         self.paused, self.speed = False, 1.0
         self.clients: set[_Client] = set()
@@ -420,6 +421,7 @@ class LiveServer:
             made(handler, transport)
             ip = _ip_of(transport)
             self._by_ip.setdefault(ip, {})[handler] = transport
+            self._ip_of[handler] = ip
             self._open += 1
             mine = [h for h in self._by_ip[ip] if _waiting(h)]
             if len(mine) > MAX_IDLE_PER_IP:
@@ -466,14 +468,15 @@ class LiveServer:
 
     def _forget(self, handler):
         """Stop counting ``handler``'s connection (closed, or about to be); its transport."""
-        for ip, connections in self._by_ip.items():
-            transport = connections.pop(handler, None)
-            if transport is not None:
-                self._open -= 1
-                if not connections:
-                    del self._by_ip[ip]
-                return transport
-        return None
+        ip = self._ip_of.pop(handler, None)
+        connections = self._by_ip.get(ip)
+        if connections is None or handler not in connections:
+            return None
+        transport = connections.pop(handler)
+        self._open -= 1
+        if not connections:
+            del self._by_ip[ip]
+        return transport
 
     def _bad_request(self, remote, exc) -> None:
         """aiohttp refused a request before this server saw it (no ``Host``, two of them, a
