@@ -11,6 +11,7 @@ import contextlib
 import json
 import logging
 import math
+import shlex
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -127,7 +128,11 @@ def train(cfg: DictConfig, run_dir: str | Path, on_start: Callable[[], None] | N
                 with stop.held():
                     on_start()
         except Interrupted as err:
-            again = f"continue: icco train resume={cfg.resume}" if cfg.resume else "start it again"
+            again = (
+                f"continue: {shlex.join(['icco', 'train', f'resume={cfg.resume}'])}"
+                if cfg.resume
+                else "start it again"
+            )
             print(f"stopped by {err.signal_name} before training began: {again}", flush=True)
             return {}
         try:
@@ -562,7 +567,8 @@ def finish_message(
             if pending and not (outputs or {}).get(key)
         ]
         todo = f" (writes {' and '.join(missing)})" if missing else ""
-        lines.append(f"  continue: icco train resume={checkpoint}{todo}")
+        lines.append(f"  continue: {shlex.join(['icco', 'train', f'resume={checkpoint}'])}{todo}")
     else:
-        lines.append(f"  next: icco eval checkpoint={checkpoint} eval.protocol=quadrants")
+        next_ = ["icco", "eval", f"checkpoint={checkpoint}", "eval.protocol=quadrants"]
+        lines.append(f"  next: {shlex.join(next_)}")
     return "\n".join(lines)

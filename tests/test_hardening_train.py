@@ -13,6 +13,7 @@ import os
 import resource
 import signal
 import struct
+import subprocess
 import sys
 import threading
 import time
@@ -24,7 +25,7 @@ import torch
 from conftest import ROOT
 
 from icco_torchrl.cli import main
-from icco_torchrl.trainer import train
+from icco_torchrl.trainer import finish_message, train
 from icco_torchrl.training import collector_process
 from icco_torchrl.training.checkpoint import load_checkpoint
 from icco_torchrl.training.collector_process import CollectorError, ProcessCollector
@@ -312,3 +313,30 @@ def test_a_sigterm_stops_the_run_at_once_while_its_collector_hangs(tmp_path, mon
     assert "interrupted by SIGTERM at 256 frames: saving a checkpoint" in capsys.readouterr().out
     assert load_checkpoint(tmp_path / "checkpoint.pt")["frames"] == 2 * PER_BATCH
     assert not _children()
+
+
+# ---------------------------------------------------------------- the commands a run prints
+HOSTILE = ("run $(touch PWNED1) `touch PWNED2`; touch PWNED3", "Bob's run")
+
+
+@pytest.mark.parametrize("interrupted", [False, True])
+@pytest.mark.parametrize("name", HOSTILE)
+def test_the_printed_next_and_continue_commands_are_shell_quoted(tmp_path, name, interrupted):
+    """The ``next:`` and ``continue:`` lines are pasted into a shell: a run folder's name is one
+    argument there, and nothing in it runs."""
+    run = tmp_path / name
+    run.mkdir()
+    ckpt = run / "checkpoint.pt"
+    ckpt.write_bytes(b"")
+    message = finish_message(run, ckpt, 128, interrupted, {})
+    word = "continue: " if interrupted else "next: "
+    (line,) = [line.strip() for line in message.splitlines() if line.strip().startswith(word)]
+    pasted = f'icco() {{ printf "%s\\n" "$@"; }}; {line[len(word) :]}'
+    said = subprocess.run(["bash", "-c", pasted], cwd=tmp_path, capture_output=True, text=True)
+    expected = (
+        ["train", f"resume={ckpt}"]
+        if interrupted
+        else ["eval", f"checkpoint={ckpt}", "eval.protocol=quadrants"]
+    )
+    assert said.stdout.splitlines() == expected, said.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == [name]
