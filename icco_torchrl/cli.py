@@ -3,12 +3,15 @@
 The commands live in :mod:`icco_torchrl.commands`; this module only dispatches. Hydra composes
 ``conf/`` once per run (``--help``, ``-m`` multirun and launcher overrides all work) and the
 result is validated against the typed schema before any work starts; a bad value ends the
-command with one line naming the field and exit code 2.
+command with one line naming the field and exit code 2 (a misspelled field with the one it most
+likely meant: :func:`did_you_mean`).
 """
 
 from __future__ import annotations
 
+import difflib
 import os
+import re
 import sys
 from typing import NoReturn
 
@@ -69,7 +72,7 @@ def main(argv: list[str] | None = None) -> None:
     if not bad and any(a in ("-m", "--multirun") for a in overrides):
         bad = check_command_line(overrides)
     if bad:
-        _fail(name, bad)
+        _fail(name, did_you_mean(bad, overrides))
     _run_hydra(name, overrides, lambda cfg, run_dir: command.run(cfg, run_dir, **options))
 
 
@@ -88,6 +91,7 @@ def _run_hydra(name: str, overrides: list[str], task) -> None:
     from omegaconf import DictConfig
     from omegaconf.errors import OmegaConfBaseException
 
+    from icco_torchrl.commands import error_line
     from icco_torchrl.paths import CONF_DIR
     from icco_torchrl.training.collector_process import CollectorError
     from icco_torchrl.training.config import ConfigError, compose_error, validate
@@ -104,7 +108,7 @@ def _run_hydra(name: str, overrides: list[str], task) -> None:
             _fail(name, str(err))
         except (ConfigError, CheckpointError) as err:  # user errors: one clear line
             _remove_if_only_hydra(output_dir)
-            _fail(name, str(err))
+            _fail(name, error_line(name, err))
         except OSError as err:
             if err.filename is None:
                 raise
@@ -117,7 +121,7 @@ def _run_hydra(name: str, overrides: list[str], task) -> None:
     try:
         main()
     except (HydraException, OmegaConfBaseException) as err:
-        _fail(name, compose_error(err))
+        _fail(name, did_you_mean(compose_error(err), overrides))
     except OSError as err:  # Hydra writing its own files (.hydra/) into a full or read-only folder
         if err.filename is None:
             raise
@@ -127,6 +131,52 @@ def _run_hydra(name: str, overrides: list[str], task) -> None:
 def os_error_line(err: OSError) -> str:
     """One line for a file the command could not write or read: the path and the reason."""
     return f"cannot access {err.filename}: {err.strerror or err}"
+
+
+def did_you_mean(message: str, overrides: list[str]) -> str:
+    """``message`` with the field most likely meant when it names an unknown field (Hydra's
+    "Key 'protocl' not in 'EvalConfig'"): each unknown part of the key typed is matched against
+    the fields of the typed config (:class:`~icco_torchrl.training.config.Config`) at its place,
+    so ``eval.protocl=quadrants`` gets "did you mean eval.protocol?". Unchanged when nothing is
+    close."""
+    found = re.match(r"config field '([^']+)': Key '[^']+' not in '\w+'", message)
+    if not found:
+        return message
+    parts = found.group(1).split(".")
+    typed = next(  # the whole key typed (Hydra names its first unknown part)
+        (
+            key
+            for item in overrides
+            if (key := item.partition("=")[0].lstrip("+~").split("."))[: len(parts)] == parts
+        ),
+        parts,
+    )
+    guess = _closest_field(typed)
+    return f"{message}; did you mean {guess}?" if guess and guess != ".".join(typed) else message
+
+
+def _closest_field(parts: list[str]) -> str | None:
+    """The field path of the typed config nearest ``parts`` (each unknown part replaced by the
+    closest field at its place), or None when one has no close match."""
+    import dataclasses
+
+    from icco_torchrl.training.config import Config
+
+    schema, path = Config, []
+    for part in parts:
+        if schema is None:  # below a leaf field: not a field at all
+            return None
+        fields = {f.name: f for f in dataclasses.fields(schema)}
+        if part not in fields:
+            close = difflib.get_close_matches(part, list(fields), n=1, cutoff=0.6)
+            if not close:
+                return None
+            part = close[0]
+        factory = fields[part].default_factory
+        nested = factory is not dataclasses.MISSING and dataclasses.is_dataclass(factory)
+        schema = factory if nested else None
+        path.append(part)
+    return ".".join(path)
 
 
 def _remove_if_only_hydra(folder: str) -> None:

@@ -340,3 +340,57 @@ def test_the_printed_next_and_continue_commands_are_shell_quoted(tmp_path, name,
     )
     assert said.stdout.splitlines() == expected, said.stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == [name]
+
+
+# ---------------------------------------------------------------- the command line's one line
+@pytest.mark.parametrize(
+    "typed, meant",
+    [
+        (["eval", "eval.protocl=quadrants"], "eval.protocol"),
+        (["eval", "-m", "eval.protocl=quadrants,random_walk"], "eval.protocol"),
+        (["train", "trian.totl_frames=3"], "train.total_frames"),
+        (["eval", "env.params.n_agnets=3"], "env.params.n_agents"),
+        (["eval", "sede=1"], "seed"),
+    ],
+)
+def test_a_misspelled_field_is_one_line_with_the_field_meant(
+    tmp_path, monkeypatch, capsys, typed, meant
+):
+    monkeypatch.chdir(tmp_path)
+    assert icco(*typed) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith(f"icco {typed[0]}: config field ")
+    assert err.rstrip().endswith(f"; did you mean {meant}?")
+    assert not list(tmp_path.iterdir())
+
+
+def test_a_field_nothing_like_any_other_gets_no_guess(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    assert icco("eval", "eval.zzzzqqq=1") == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "zzzzqqq" in err and "did you mean" not in err
+
+
+MISSING = {
+    "eval": ("icco eval checkpoint=assets/demo_icco.pt",),
+    "live": ("icco live checkpoint=assets/demo_icco.pt",),
+    "bridge": ("icco bridge checkpoint=assets/demo_icco.pt",),
+    "instruct": ('icco instruct "Go right" checkpoint=assets/demo_icco.pt',),
+    "train": ("icco eval checkpoint=assets/demo_icco.pt", "resume="),
+}
+
+
+@pytest.mark.parametrize("command", list(MISSING))
+def test_every_missing_checkpoint_names_the_demo_policy(tmp_path, monkeypatch, capsys, command):
+    """A checkpoint that is not there is one line naming what the command can run instead: the
+    demo policy, as ``icco eval`` names it when it finds no checkpoint."""
+    monkeypatch.chdir(ROOT)  # the checkout, as `make` runs the commands
+    missing = tmp_path / "run" / "missing.pt"
+    key = "resume" if command == "train" else "checkpoint"
+    args = [command, *(["Go right"] if command == "instruct" else [])]
+    args += [f"{key}={missing}", "live.seconds=1", f"eval.out_dir={tmp_path / 'out'}"]
+    assert icco(*args) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith(f"icco {command}: checkpoint not found: ")
+    assert str(missing) in err and "(assets/README.md)" in err
+    assert all(said in err for said in MISSING[command]), err

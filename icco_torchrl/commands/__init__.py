@@ -5,12 +5,14 @@ on the validated config (``run``). ``icco train`` (:mod:`.train`) runs the train
 (:mod:`.evaluate`) and ``icco instruct`` (:mod:`.instruct`) sit above both
 :mod:`icco_torchrl.evaluation` and :mod:`icco_torchrl.instructions`, which do not import each
 other; ``icco live`` and ``icco bridge`` (:mod:`.live`) start :mod:`icco_torchrl.live`.
-:func:`clean_errors` turns bad input into one line and exit code 2.
+:func:`clean_errors` turns bad input into one line and exit code 2 (:func:`error_line`: a
+checkpoint that is not there is said with the demo policy each command can run instead).
 """
 
 from __future__ import annotations
 
 import os
+import shlex
 import sys
 import tempfile
 from collections.abc import Callable
@@ -42,6 +44,43 @@ def results_beside_checkpoint(command: str, args: list[str]) -> tuple[list[str],
 PACKAGE_DIR = Path(__file__).resolve().parents[1]
 # Folders that ship with the project (the demo policy in assets/, the package): never written.
 SHIPPED_DIRS = (PACKAGE_DIR, PACKAGE_DIR.parent / "assets")
+# The small trained policy of a source checkout (assets/README.md says how it was made).
+DEMO_POLICY = PACKAGE_DIR.parent / "assets" / "demo_icco.pt"
+# What each command can do with the demo policy instead of a checkpoint that is not there.
+DEMO_USES = {
+    "eval": "give a run's checkpoint.pt, or evaluate the demo policy: icco eval checkpoint={demo}",
+    "instruct": (
+        "give a run's checkpoint.pt, or instruct the demo policy: "
+        'icco instruct "Go right" checkpoint={demo}'
+    ),
+    "live": (
+        "give a run's checkpoint.pt, or run the demo policy (the default without checkpoint=): "
+        "icco live checkpoint={demo}"
+    ),
+    "bridge": "give a run's checkpoint.pt, or run the demo policy: icco bridge checkpoint={demo}",
+    "train": (
+        "resume= continues a run from its own checkpoint.pt; the demo policy is evaluated, not "
+        "resumed: icco eval checkpoint={demo}"
+    ),
+}
+
+
+def demo_hint(command: str) -> str:
+    """What ``command`` can run instead of a checkpoint that is not there: the demo policy, as
+    ``icco eval`` names it when no checkpoint is found; empty without one (an installed wheel)."""
+    if not DEMO_POLICY.is_file():
+        return ""
+    shown = os.path.relpath(DEMO_POLICY) if DEMO_POLICY.is_relative_to(Path.cwd()) else DEMO_POLICY
+    use = DEMO_USES.get(command, DEMO_USES["eval"]).format(demo=shlex.quote(str(shown)))
+    return f": {use} (assets/README.md)"
+
+
+def error_line(command: str, err: Exception) -> str:
+    """The one line of a user error of ``command``; a checkpoint that is not there gets
+    :func:`demo_hint`."""
+    from icco_torchrl.training.checkpoint import CheckpointNotFound
+
+    return f"{err}{demo_hint(command)}" if isinstance(err, CheckpointNotFound) else str(err)
 
 
 def results_dir(out_dir: str | None, paths: list[Path], name: str) -> Path:
@@ -87,5 +126,5 @@ def clean_errors(command: str):
     try:
         yield
     except (CheckpointError, ConfigError, ValueError) as err:
-        print(f"icco {command}: {err}", file=sys.stderr)
+        print(f"icco {command}: {error_line(command, err)}", file=sys.stderr)
         raise SystemExit(2) from None
