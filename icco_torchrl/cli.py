@@ -10,6 +10,7 @@ likely meant: :func:`did_you_mean`).
 from __future__ import annotations
 
 import difflib
+import errno
 import os
 import re
 import sys
@@ -125,12 +126,30 @@ def _run_hydra(name: str, overrides: list[str], task) -> None:
     except OSError as err:  # Hydra writing its own files (.hydra/) into a full or read-only folder
         if err.filename is None:
             raise
-        _fail(name, os_error_line(err))
+        _fail(name, os_error_line(err) + _unwritable_hint(name, overrides, err))
+    except ValueError as err:  # Hydra's log file (cli.log) in a read-only folder, said by logging
+        cause = err.__cause__ or err.__context__
+        if not isinstance(cause, OSError) or cause.filename is None:
+            raise
+        _fail(name, os_error_line(cause) + _unwritable_hint(name, overrides, cause))
 
 
 def os_error_line(err: OSError) -> str:
     """One line for a file the command could not write or read: the path and the reason."""
     return f"cannot access {err.filename}: {err.strerror or err}"
+
+
+def _unwritable_hint(command: str, overrides: list[str], err: OSError) -> str:
+    """What to do when ``icco train`` cannot write its run folder: a resume writes in the
+    checkpoint's own folder, so it is resumed from a writable copy."""
+    if command != "train" or err.errno not in (errno.EROFS, errno.EACCES, errno.EPERM):
+        return ""
+    if any(o.startswith("resume=") and o != "resume=null" for o in overrides):
+        return (
+            "; resume= continues a run in its checkpoint's folder, which must be writable: copy "
+            "the run folder to a writable place and resume the copy"
+        )
+    return "; give hydra.run.dir= a writable folder"
 
 
 def did_you_mean(message: str, overrides: list[str]) -> str:

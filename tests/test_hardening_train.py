@@ -342,6 +342,52 @@ def test_the_printed_next_and_continue_commands_are_shell_quoted(tmp_path, name,
     assert sorted(p.name for p in tmp_path.iterdir()) == [name]
 
 
+# ---------------------------------------------------------------- a read-only run folder
+def _read_only(folder: Path) -> list[str]:
+    """The command prefix under which ``folder`` is read-only: its modes for a user, a read-only
+    bind mount for root (whom modes do not stop); skipped where neither is possible."""
+    if os.geteuid() != 0:
+        for path in [folder, *folder.rglob("*")]:
+            path.chmod(path.stat().st_mode & ~0o222)
+        return []
+    mount = 'mount --bind "$0" "$0" && mount -o remount,bind,ro "$0" && exec "$@"'
+    prefix = ["unshare", "-m", "sh", "-c", mount, str(folder)]
+    try:
+        probe = subprocess.run([*prefix, "sh", "-c", f"! touch '{folder}/probe'"], timeout=30)
+    except (OSError, subprocess.TimeoutExpired):
+        pytest.skip("no way to make a folder read-only here (root, no unshare)")
+    if probe.returncode != 0:
+        pytest.skip("no way to make a folder read-only here (root, no mount namespace)")
+    return prefix
+
+
+def test_resuming_in_a_read_only_run_folder_is_one_line(tmp_path):
+    run = tmp_path / "run"
+    fast = [*FAST[:-2], "train.total_frames=256"]  # inline: a seconds-long run
+    train(compose_config(fast), run)
+    before = {p.name: p.stat().st_mtime_ns for p in run.iterdir()}
+    prefix = _read_only(run)
+    try:
+        proc = subprocess.run(
+            [*prefix, sys.executable, "-m", "icco_torchrl", "train", *fast]
+            + ["train.total_frames=512", f"resume={run / 'checkpoint.pt'}"],
+            cwd=ROOT,
+            env={**os.environ, "OMP_NUM_THREADS": "1", "WANDB_MODE": "disabled"},
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
+    finally:
+        for path in [run, *run.rglob("*")]:
+            path.chmod(path.stat().st_mode | 0o200)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr[-3000:]
+    line = proc.stderr.strip()
+    assert "\n" not in line and line.startswith("icco train: ") and str(run) in line, line
+    assert "Read-only file system" in line or "Permission denied" in line
+    assert "resume" in line and "writable" in line
+    assert {p.name: p.stat().st_mtime_ns for p in run.iterdir()} == before
+
+
 # ---------------------------------------------------------------- the command line's one line
 @pytest.mark.parametrize(
     "typed, meant",
