@@ -685,3 +685,25 @@ def test_records_of_two_recipes_are_not_pooled_into_one_table(tmp_path):
     )
     with pytest.raises(SystemExit, match=r"\(train.lr: 0.001 vs 0.0003\)"):
         jobs.check_one_recipe(runs)
+
+
+def test_every_consistency_screen_composes_with_its_weights_and_the_control_is_the_default():
+    run = _load(ROOT / "experiments" / "consistency" / "run.py")
+    for name, s in run.SCREENS.items():
+        cfg = compose_config([f"method={s.method}", *run.BUDGET, *s.overrides])
+        m, t = cfg.method, cfg.train
+        assert (m.ce_coef, m.entropy_coef, t.ce_clamp) == (s.ce_coef, s.entropy_coef, s.clamp), name
+        assert (t.total_frames, t.collector, t.threads) == (2_000_000, "inline", 1), name
+    assert {s.ce_coef for s in run.SCREENS.values()} == {0.0, 1e-4, 1e-3, 1e-2, 1e-1, 1.0}
+    weighted = [s for s in run.SCREENS.values() if s.ce_coef > 0 and s.entropy_coef == s.ce_coef]
+    assert {(s.ce_coef, s.clamp) for s in weighted} == {
+        (w, c) for w in (1e-4, 1e-3, 1e-2, 1e-1, 1.0) for c in (False, True)
+    }
+    default = compose_config(["method=icco"])
+    control = run.SCREENS[run.CONTROL]
+    assert (control.method, control.ce_coef, control.entropy_coef, control.clamp) == (
+        "icco",
+        default.method.ce_coef,
+        default.method.entropy_coef,
+        default.train.ce_clamp,
+    )
