@@ -209,10 +209,12 @@ class _ServerLog:
                 text = str(msg)
             log.warning("live: %s%s", one_line(text), held(n))
 
-    def debug(self, *args, **kwargs) -> None:
-        pass
+    def debug(self, msg, *args, exc_info=None, **_) -> None:
+        if isinstance(exc_info, HttpProcessingError):  # not HTTP at all (TLS, junk): counted too
+            self.server._bad_request(args[0] if args else "?", exc_info)
 
-    info = debug
+    def info(self, *args, **kwargs) -> None:
+        pass
 
 
 def _is_ip(name: str) -> bool:
@@ -343,7 +345,7 @@ class LiveServer:
         self._evictions, self._malformed = Throttle(), Throttle()
         # Open connections by IP (aiohttp's handler -> its transport, oldest first).
         self._by_ip: dict[str, dict] = {}
-        self._ip_of: dict = {}  # aiohttp's handler -> its IP
+        self._ips: dict = {}  # aiohttp's handler -> its IP
         self._open = 0
         self.paused, self.speed = False, 1.0
         self.clients: set[_Client] = set()
@@ -421,7 +423,7 @@ class LiveServer:
             made(handler, transport)
             ip = _ip_of(transport)
             self._by_ip.setdefault(ip, {})[handler] = transport
-            self._ip_of[handler] = ip
+            self._ips[handler] = ip
             self._open += 1
             mine = [h for h in self._by_ip[ip] if _waiting(h)]
             if len(mine) > MAX_IDLE_PER_IP:
@@ -468,7 +470,7 @@ class LiveServer:
 
     def _forget(self, handler):
         """Stop counting ``handler``'s connection (closed, or about to be); its transport."""
-        ip = self._ip_of.pop(handler, None)
+        ip = self._ips.pop(handler, None)
         connections = self._by_ip.get(ip)
         if connections is None or handler not in connections:
             return None
