@@ -25,14 +25,9 @@ from icco_torchrl.envs import EVENT_KEYS
 from icco_torchrl.envs.reference_policies import make_reference_policy, reference_label
 from icco_torchrl.evaluation.rollout import evaluate
 from icco_torchrl.modules.policy import exploration_module
+from icco_torchrl.training import checkpoint
 from icco_torchrl.training.build import VALIDATION_SEED_OFFSET, Run, build
-from icco_torchrl.training.checkpoint import (
-    check_resumable,
-    load_checkpoint,
-    load_weights,
-    restore_replay,
-    save_run,
-)
+from icco_torchrl.training.checkpoint import RunState, load_weights
 from icco_torchrl.training.collector_process import CollectorError, make_collector
 from icco_torchrl.training.config import check_collector
 from icco_torchrl.training.interrupt import (
@@ -41,15 +36,12 @@ from icco_torchrl.training.interrupt import (
     StopAtOnce,
     UpdateAbandoned,
 )
-from icco_torchrl.training.logger import RunLogger
-from icco_torchrl.training.rng import rng_state, set_rng_state
+from icco_torchrl.training.logger import RunLogger, last_evaluation
 from icco_torchrl.training.run_folder import (
     CHECKPOINT,
     REFERENCES_FILE,
     RunFolderLock,
     fresh_outputs,
-    last_evaluation,
-    outputs_of,
 )
 from icco_torchrl.training.update import metrics_row
 
@@ -107,12 +99,18 @@ class Progress:
     batches: int = 0
 
 
-def train(cfg: DictConfig, run_dir: str | Path, on_start: Callable[[], None] | None = None) -> dict:
+def train(
+    cfg: DictConfig,
+    run_dir: str | Path,
+    on_start: Callable[[], None] | None = None,
+    saved: RunState | None = None,
+) -> dict:
     """Train ``cfg.method`` (a config :func:`~icco_torchrl.training.config.validate` checked) and
     return the final evaluation metrics; writes CSVs, checkpoints and ``learning_curve.png`` to
-    ``run_dir`` (with ``resume=``, to the checkpoint's folder). ``on_start`` runs once the folder
-    is locked and the run started or its resume checked (the command's record of the run), so a
-    refused run writes nothing."""
+    ``run_dir`` (with ``resume=``, to the checkpoint's folder; ``saved``: its state, when the
+    command line has read it already). ``on_start`` runs once the folder is locked and the run
+    started or its resume checked (the command's record of the run), so a refused run writes
+    nothing."""
     check_collector(cfg)  # what train.collector needs of this machine, before any work
     run_dir = Path(cfg.resume).resolve().parent if cfg.resume else Path(run_dir)
     # One writer per run folder; a signal before the loop stops at once (nothing to save yet).
@@ -121,7 +119,7 @@ def train(cfg: DictConfig, run_dir: str | Path, on_start: Callable[[], None] | N
             seed_process(cfg)
             training = TrainingRun(build(cfg, for_training=True), cfg, run_dir)
             if cfg.resume:
-                training.resume(cfg.resume)
+                training.resume(cfg.resume, saved)
             else:
                 training.start()
             if on_start is not None:
@@ -156,6 +154,32 @@ def seed_process(cfg: DictConfig) -> None:
     logging.getLogger("torchrl").setLevel(logging.WARNING)  # its INFO lines break the bar
 
 
+def _rng_state(env, collector_torch=None) -> dict:
+    """The random streams a run draws from (``RunState.rng``): torch (and CUDA), numpy, the
+    env's own generator (``env.base_env._rng``) and, with ``train.collector=process``, the
+    collector process's torch stream ``collector_torch``: a resumed run continues them exactly."""
+    state = {
+        "torch": torch.get_rng_state(),
+        "env": env.base_env._rng.get_state(),
+        "numpy": np.random.get_state(),
+    }
+    if torch.cuda.is_available():
+        state["cuda"] = torch.cuda.get_rng_state_all()
+    if collector_torch is not None:
+        state["collector_torch"] = collector_torch
+    return state
+
+
+def _set_rng_state(state: dict, env):
+    """Put back the streams of :func:`_rng_state`; returns the collector process's (or None)."""
+    torch.set_rng_state(state["torch"])
+    env.base_env._rng.set_state(state["env"])
+    np.random.set_state(state["numpy"])
+    if "cuda" in state and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(state["cuda"])
+    return state.get("collector_torch")
+
+
 def _remaining_frames(cfg: DictConfig, frames: int) -> int:
     """The budget left after ``frames``, rounded up to whole collector batches."""
     per_batch = cfg.env.num_envs * cfg.train.steps_per_batch
@@ -170,8 +194,9 @@ class TrainingRun:
     def __init__(self, run: Run, cfg: DictConfig, run_dir: Path):
         self.run, self.cfg, self.run_dir = run, cfg, run_dir
         self.progress = Progress()
+        eps = epsilon(0, cfg.train)
         self.explore = exploration_module(run.policy)
-        self.explore.eps.fill_(epsilon(0, cfg.train))
+        self.explore.eps.fill_(eps)
         # Every evaluation faces the same initial configurations.
         self.eval_seed = cfg.seed + VALIDATION_SEED_OFFSET
         self.timers = {"collect": 0.0, "train": 0.0, "eval": 0.0}
@@ -204,24 +229,22 @@ class TrainingRun:
                 f"task={m['task_reward']:.2f} pick={m['pick']:.2f} defense={m['defense']:.2f}"
             )
 
-    def resume(self, path: str | Path) -> None:
-        """Continue the run saved at ``path``, in one step: load the checkpoint, check that this
-        config can continue it (:func:`check_resumable`), restore everything it holds. The run
-        keeps its ``config.yaml``."""
-        ckpt = load_checkpoint(path)
-        check_resumable(ckpt, self.cfg, self.run.layout, path)
-        self._open_logs(ckpt["frames"], resumed=True)
-        self._restore(ckpt, path)
-        # A run with frames left writes its final outputs anew; one at its budget writes only
-        # those its checkpoint says are missing (a stop in the final evaluation).
-        self.outputs = outputs_of(ckpt) if self.remaining == 0 else fresh_outputs()
-        logged = last_evaluation(self.run_dir, ckpt["frames"])
-        if logged is not None:  # the evaluation of its last frame, already in eval.csv
-            self.evaluated.append((ckpt["frames"], logged))
+    def resume(self, path: str | Path, state: RunState | None = None) -> None:
+        """Continue the run saved at ``path`` (``state``: its state, when the command line has
+        read it already): :func:`checkpoint.resume <icco_torchrl.training.checkpoint.resume>`
+        reads and checks it and refills the replay buffer, in one call; :meth:`load_state_dict`
+        takes it. The run keeps its ``config.yaml``."""
+        state = checkpoint.resume(
+            path, self.cfg, layout=self.run.layout, buffer=self.run.buffer, state=state
+        )
+        self.load_state_dict(state, origin=path)
+        self.replay_segments = len(self.run.buffer)  # 0 when its dump was missing
+        self._open_logs(state.frames, resumed=True)
 
     def _open_logs(self, start: int, resumed: bool) -> None:
         """The logger, its bar ending where the collector will; a resumed run's CSVs lose the rows
-        written after its checkpoint, so no frame is logged twice."""
+        written after its checkpoint, so no frame is logged twice, and the evaluation of its last
+        frame, when ``eval.csv`` has it, counts as done."""
         self.remaining = _remaining_frames(self.cfg, start)
         self.logger = RunLogger(
             self.run_dir,
@@ -230,60 +253,47 @@ class TrainingRun:
             initial_frames=start,
             truncate=resumed,
         )
-
-    def _restore(self, ckpt: dict, path: str | Path) -> None:
-        """The state of a checked checkpoint (:meth:`load_state_dict`) and the replay buffer
-        dumped beside it."""
-        self.load_state_dict(ckpt, origin=path)
-        said = restore_replay(self.run.buffer, self.run_dir, ckpt, path)
-        if said:
-            self.logger.print(said)
-        self.replay_segments = len(self.run.buffer)
+        logged = last_evaluation(self.run_dir, start) if resumed else None
+        if logged is not None:
+            self.evaluated.append((start, logged))
 
     # ------------------------------------------------------------------ state
-    def state_dict(self) -> dict:
-        """Everything a resume needs, as the checkpoint holds it: the config and env layout the
-        state fits, the counters, the weights (targets included), the optimiser, the target
-        updater, the RNG streams, the final outputs written, and the replay dump it names. The
-        replay buffer itself is dumped beside the checkpoint (``save_run``), and the exploration
-        rate follows from the frames. The tensors are the run's own, not copies."""
+    def state_dict(self) -> RunState:
+        """Everything a resume needs, as the checkpoint holds it (:class:`RunState`): the config
+        and env layout the state fits, the counters, the weights (targets included), the
+        optimiser, the target updater, the RNG streams, the final outputs written, and the replay
+        dump it names (none without ``train.checkpoint_buffer``). The tensors are the run's own,
+        not copies."""
         run, p = self.run, self.progress
-        return {
-            "cfg": OmegaConf.to_container(self.cfg, resolve=True),
-            "layout": run.layout.__dict__,
-            "frames": p.frames,
-            "updates": p.updates,
-            "batches": p.batches,
-            "loss": run.loss.state_dict(),
-            "optimizer": run.optim.state_dict(),
-            "updater": run.updater.state_dict(),
-            "rng": {**rng_state(run.env), **self._collector_rng()},
-            "outputs": dict(self.outputs),
-            "replay_id": self.replay_id,
-            "replay_segments": self.replay_segments,
-        }
+        return RunState(
+            cfg=OmegaConf.to_container(self.cfg, resolve=True),
+            layout=dict(vars(run.layout)),
+            frames=p.frames,
+            updates=p.updates,
+            batches=p.batches,
+            loss=run.loss.state_dict(),
+            optimizer=run.optim.state_dict(),
+            updater=run.updater.state_dict(),
+            rng=_rng_state(run.env, self.collector_torch),
+            outputs=dict(self.outputs),
+            replay_id=self.replay_id,
+            replay_segments=self.replay_segments if self.cfg.train.checkpoint_buffer else 0,
+        )
 
-    def _collector_rng(self) -> dict:
-        """The collector process's torch stream (``train.collector=process``), if there is one;
-        the env's generator, in ``rng_state``, is the collector's (taken over with each batch)."""
-        return {} if self.collector_torch is None else {"collector_torch": self.collector_torch}
-
-    def load_state_dict(self, state: dict, *, origin: str | Path = "the state dict") -> None:
-        """Restore a :meth:`state_dict` (or a checkpoint's, which holds the same fields; its
-        ``cfg`` and ``layout`` are checked by ``check_resumable``, not restored). Networks that do
-        not match are one line naming ``origin``. The replay buffer is not touched."""
+    def load_state_dict(self, state: RunState, *, origin: str | Path = "the state dict") -> None:
+        """Restore a :meth:`state_dict` (its ``cfg`` and ``layout`` are checked by
+        ``checkpoint.resume``, not restored). Networks that do not match are one line naming
+        ``origin``. The replay buffer is not touched."""
         run = self.run
-        load_weights(run.loss, state["loss"], origin, self.cfg.method.name)
-        run.optim.load_state_dict(state["optimizer"])
-        run.updater.load_state_dict(state["updater"])
-        self.progress = Progress(state["frames"], state["updates"], state["batches"])
+        load_weights(run.loss, state.loss, origin, self.cfg.method.name)
+        self.collector_torch = _set_rng_state(state.rng, run.env)
+        run.optim.load_state_dict(state.optimizer)
+        run.updater.load_state_dict(state.updater)
+        self.progress = Progress(state.frames, state.updates, state.batches)
         # The schedule continues.
         self.explore.eps.fill_(epsilon(self.progress.frames, self.cfg.train))
-        set_rng_state(state["rng"], run.env)
-        self.collector_torch = state["rng"].get("collector_torch")
-        self.outputs = outputs_of(state)
-        self.replay_id = state["replay_id"]
-        self.replay_segments = state["replay_segments"]
+        self.outputs = dict(state.outputs)
+        self.replay_id, self.replay_segments = state.replay_id, state.replay_segments
 
     # ------------------------------------------------------------------ loop
     def loop(self, remaining: int) -> bool:
@@ -512,18 +522,12 @@ class TrainingRun:
         self.outputs.update(outputs)
         self.save(dump=False)
 
-    def save(self, dump: bool = True) -> Path:
+    def save(self, dump: bool = True) -> None:
         """The checkpoint (with ``train.checkpoint_buffer`` and ``dump``, the replay dump it names,
         first; without ``dump`` it names the dump on disk)."""
-        run, t = self.run, self.cfg.train
-        state = self.state_dict()
-        if t.checkpoint_buffer and dump:
-            path, self.replay_id = save_run(self.run_dir, state, run.buffer)
-            self.replay_segments = len(run.buffer)
-        else:
-            state["replay_segments"] = self.replay_segments if t.checkpoint_buffer else 0
-            path, _ = save_run(self.run_dir, state, replay_id=self.replay_id)
-        return path
+        buffer = self.run.buffer if self.cfg.train.checkpoint_buffer and dump else None
+        saved = checkpoint.save(self.run_dir, self.state_dict(), buffer)
+        self.replay_id, self.replay_segments = saved.replay_id, saved.replay_segments
 
 
 def finish_message(

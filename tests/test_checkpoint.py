@@ -21,14 +21,13 @@ from omegaconf import OmegaConf
 from tensordict import TensorDict
 from torchrl.data import LazyTensorStorage, RandomSampler, TensorDictReplayBuffer
 
-from icco_torchrl.training import replay_dump, run_folder
+from icco_torchrl.training import checkpoint, replay_dump, run_folder
 from icco_torchrl.training.checkpoint import (
     FORMAT_VERSION,
-    check_resumable,
+    RunState,
     load_checkpoint,
     restore_replay,
     save_checkpoint,
-    save_run,
 )
 from icco_torchrl.training.config import MethodConfig
 from icco_torchrl.training.replay_dump import load_replay, save_replay
@@ -37,7 +36,7 @@ from icco_torchrl.training.run_folder import (
     CheckpointError,
     RunFolderBusy,
     RunFolderLock,
-    outputs_of,
+    fresh_outputs,
 )
 
 pytestmark = pytest.mark.fault  # the fault suite: crafted, damaged and stale files
@@ -413,9 +412,9 @@ def test_a_full_disk_in_the_replay_dump_is_one_line_and_leaves_no_temp(tmp_path,
     buffer = make_buffer(64)
     buffer.extend(segments(40))
     if how == "checked first":  # too little room for the dump: nothing is written
-        monkeypatch.setattr(replay_dump, "_free_bytes", lambda folder: 1000)
+        monkeypatch.setattr(run_folder, "free_bytes", lambda folder: 1000)
     else:  # the disk fills up under the dump (plain writes: ENOSPC, never a SIGBUS)
-        monkeypatch.setattr(replay_dump, "write_all", _enospc_after(1))
+        monkeypatch.setattr(run_folder, "write_all", _enospc_after(1))
     with pytest.raises(CheckpointError) as info:
         save_replay(buffer, path, dump_id="b")
     message = str(info.value)
@@ -466,33 +465,50 @@ def test_a_lock_file_that_is_a_link_is_refused_and_its_target_left_untouched(tmp
             pass
 
 
-def _run_payload(frames):
-    method = dataclasses.asdict(MethodConfig())  # every field of today's format
-    return {"cfg": {"method": method, "env": {}}, "layout": {}, "loss": {}, "frames": frames}
+def _run_state(frames) -> RunState:
+    """A run's state with a config of every method field of today's format, and no networks."""
+    method = dataclasses.asdict(MethodConfig())
+    return RunState(
+        cfg={"method": method, "env": {}},
+        layout={},
+        frames=frames,
+        updates=0,
+        batches=1,
+        loss={},
+        optimizer={},
+        updater={},
+        rng={},
+        outputs=fresh_outputs(),
+        replay_id=None,
+        replay_segments=0,
+    )
 
 
 def test_the_checkpoint_and_its_replay_dump_share_an_id(tmp_path):
     buffer = make_buffer(16)
     buffer.extend(segments(4))
-    path, dump_id = save_run(tmp_path, _run_payload(1), buffer)
-    ckpt = load_checkpoint(path)
+    saved = checkpoint.save(tmp_path, _run_state(1), buffer)
+    path = tmp_path / "checkpoint.pt"
+    state = checkpoint.read(path)
+    assert state == saved  # the state as written, field for field
     manifest = json.loads((tmp_path / "replay" / "manifest.json").read_text())
-    assert ckpt["replay_id"] == manifest["id"] == dump_id and ckpt["replay_segments"] == 4
+    assert state.replay_id == manifest["id"] and state.replay_segments == 4
     assert sorted(os.listdir(tmp_path)) == ["checkpoint.pt", "replay"]  # the previous dump dropped
     restored = make_buffer(16)
-    said = restore_replay(restored, tmp_path, ckpt, path)
+    said = restore_replay(restored, tmp_path, state, path)
     assert said == "replay buffer restored: 4 segments" and len(restored) == 4
 
 
 def test_a_dump_newer_than_its_checkpoint_is_set_aside_for_the_matching_one(tmp_path):
     buffer = make_buffer(16)
     buffer.extend(segments(4))
-    path, _ = save_run(tmp_path, _run_payload(1), buffer)
+    checkpoint.save(tmp_path, _run_state(1), buffer)
+    path = tmp_path / "checkpoint.pt"
     buffer.extend(segments(6, 100))
-    # What save_run writes before the checkpoint, then a kill before the checkpoint.
+    # What save writes before the checkpoint, then a kill before the checkpoint.
     save_replay(buffer, tmp_path / "replay", dump_id="newer", keep_previous=True)
     restored = make_buffer(16)
-    said = restore_replay(restored, tmp_path, load_checkpoint(path), path)
+    said = restore_replay(restored, tmp_path, checkpoint.read(path), path)
     assert "\n" not in said and "replay buffer restored: 4 segments" in said
     assert "newer than" in said and "matches" in said
     assert len(restored) == 4 and restored.storage._storage["step_count"][:4, 0, 0].tolist() == [
@@ -505,31 +521,42 @@ def test_a_dump_newer_than_its_checkpoint_is_set_aside_for_the_matching_one(tmp_
     assert sorted(os.listdir(tmp_path)) == ["checkpoint.pt", "replay"]
     assert (
         json.loads((tmp_path / "replay" / "manifest.json").read_text())["id"]
-        == load_checkpoint(path)["replay_id"]
+        == checkpoint.read(path).replay_id
     )
 
 
 def test_a_dump_of_another_checkpoint_is_refused_in_one_line(tmp_path):
     buffer = make_buffer(16)
     buffer.extend(segments(4))
-    path, _ = save_run(tmp_path, _run_payload(1), buffer)
+    checkpoint.save(tmp_path, _run_state(1), buffer)
+    path = tmp_path / "checkpoint.pt"
     save_replay(buffer, tmp_path / "replay", dump_id="someone-else")  # e.g. copied from a run
     with pytest.raises(CheckpointError) as info:
-        restore_replay(make_buffer(16), tmp_path, load_checkpoint(path), path)
+        restore_replay(make_buffer(16), tmp_path, checkpoint.read(path), path)
     message = str(info.value)
     assert "\n" not in message and "someone-else" in message and str(path) in message
     assert f"delete {tmp_path / 'replay'}" in message
 
 
-def test_final_outputs_are_recorded_and_a_checkpoint_without_the_record_is_not_resumed(tmp_path):
-    assert outputs_of({"outputs": {"final_evaluation": True}})["learning_curve"] is False
-    state = {key: {} for key in ("optimizer", "updater", "rng", "outputs")}
-    state.update(batches=1, replay_id=None, replay_segments=0)
-    for broken, said in (({"outputs": None}, "outputs record is no dict"), ({}, "lacks")):
-        ckpt = {**state, **broken} if broken else {k: v for k, v in state.items() if k != "outputs"}
+def test_a_checkpoint_without_a_field_of_the_run_state_is_refused_naming_the_converter(tmp_path):
+    """A run's state is read whole: the record of its final outputs completes with what was not
+    written; a file without a field of :class:`RunState` (written before it existed) is one line
+    naming the converter, one without a training state (or an exported policy) one line too."""
+    path, fields = tmp_path / "checkpoint.pt", _run_state(1).checkpoint()
+    save_checkpoint(path, {**fields, "outputs": {"final_evaluation": True}})
+    assert checkpoint.read(path).outputs == {**fresh_outputs(), "final_evaluation": True}
+    without = {key: {k: v for k, v in fields.items() if k != key} for key in fields}
+    for payload, said in (
+        ({**fields, "outputs": None}, "its outputs record is no dict"),
+        (without["outputs"], "before the run state's outputs existed: convert it with"),
+        (without["replay_id"], f"{CONVERT} --in-place {path}"),
+        (without["optimizer"], "cannot be resumed: it lacks the training state optimizer"),
+        ({**fields, "policy_only": True}, "is an exported policy"),
+    ):
+        save_checkpoint(path, payload)
         with pytest.raises(CheckpointError, match=said) as info:
-            check_resumable(ckpt, None, None, tmp_path / "checkpoint.pt")
-        assert "\n" not in str(info.value) and str(tmp_path) in str(info.value)
+            checkpoint.read(path)
+        assert "\n" not in str(info.value) and str(path) in str(info.value)
 
 
 # ---------------------------------------------------------------- older formats: the converter
@@ -737,8 +764,8 @@ def test_a_run_converted_in_place_resumes_with_its_replay_dump(tmp_path):
     checkpoint records its outputs (its learning curve exists) and the dump restores."""
     buffer = make_buffer(16)
     buffer.extend(segments(4))
-    training = {"optimizer": {}, "updater": {}, "batches": 1, "rng": {}}
-    path, dump_id = save_run(tmp_path, {**_run_payload(8), **training}, buffer)
+    dump_id = checkpoint.save(tmp_path, _run_state(8), buffer).replay_id
+    path = tmp_path / "checkpoint.pt"
     raw = torch.load(path, weights_only=True)
     raw.pop("outputs", None)
     torch.save({**raw, "format_version": 2}, path)
@@ -755,11 +782,11 @@ def test_a_run_converted_in_place_resumes_with_its_replay_dump(tmp_path):
     assert f"delete {tmp_path / 'replay'}" in message
 
     assert converter().main(["--in-place", str(tmp_path)]) == 0
-    ckpt = load_checkpoint(path)
-    assert ckpt["outputs"]["learning_curve"] is True and ckpt["replay_id"] == dump_id
+    state = checkpoint.read(path)
+    assert state.outputs["learning_curve"] is True and state.replay_id == dump_id
     assert json.loads(manifest.read_text())["format"] == replay_dump.REPLAY_FORMAT
     restored = make_buffer(16)
-    assert restore_replay(restored, tmp_path, ckpt, path) == "replay buffer restored: 4 segments"
+    assert restore_replay(restored, tmp_path, state, path) == "replay buffer restored: 4 segments"
     assert sorted(p.name for p in tmp_path.iterdir()) == [
         LOCK_FILE,
         "checkpoint.pt",

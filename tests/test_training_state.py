@@ -1,18 +1,21 @@
-"""A training run's state in one place, as BenchMARL's ``Experiment`` has it: ``state_dict()`` holds
-everything a resume needs (the checkpoint is written from it), and ``load_state_dict()`` into a
-fresh run gives the same state and the same next update."""
+"""A training run's state in one place, as BenchMARL's ``Experiment`` has it: ``state_dict()`` is
+a :class:`RunState`, everything a resume needs and exactly the checkpoint's fields (the checkpoint
+is written from it), and ``load_state_dict()`` into a fresh run gives the same state and the same
+next update."""
 
 from __future__ import annotations
 
 import copy
+import dataclasses
 
 import numpy as np
 import pytest
 import torch
 
 from icco_torchrl.trainer import TrainingRun
+from icco_torchrl.training import checkpoint
 from icco_torchrl.training.build import build
-from icco_torchrl.training.checkpoint import FORMAT_VERSION, load_checkpoint
+from icco_torchrl.training.checkpoint import FORMAT_VERSION, RunState, load_checkpoint
 from icco_torchrl.training.config import compose_config
 from icco_torchrl.training.logger import RunLogger
 from icco_torchrl.training.replay_dump import load_replay
@@ -39,6 +42,9 @@ def assert_same(a, b, where="state"):
         assert torch.equal(a, b), where
     elif isinstance(a, np.ndarray):
         assert isinstance(b, np.ndarray) and np.array_equal(a, b), where
+    elif isinstance(a, RunState):
+        assert isinstance(b, RunState), where
+        assert_same(a.checkpoint(), b.checkpoint(), where)
     elif isinstance(a, dict):
         assert isinstance(b, dict) and sorted(a, key=str) == sorted(b, key=str), where
         for key in a:
@@ -56,25 +62,15 @@ def test_a_state_dict_loaded_into_a_fresh_run_gives_its_state_and_its_next_updat
     assert not first.loop(512)  # collected, stored and learned: every part of the state moved
     first.save()  # the checkpoint and the replay dump it names
     state = copy.deepcopy(first.state_dict())
-    assert state["frames"] == 512 and state["updates"] > 0 and state["replay_segments"] > 0
-    assert set(state) == {
-        "cfg",
-        "layout",
-        "frames",
-        "updates",
-        "batches",
-        "loss",
-        "optimizer",
-        "updater",
-        "rng",
-        "outputs",
-        "replay_id",
-        "replay_segments",
-    }
-    # The checkpoint on disk is the state, field for field (and the format's version).
+    assert state.frames == 512 and state.updates > 0 and state.replay_segments > 0
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        state.frames = 0
+    # The checkpoint on disk is the state, field for field (and the format's version), and
+    # reads back as it.
     ckpt = load_checkpoint(tmp_path / "first" / "checkpoint.pt")
     assert ckpt.pop("format_version") == FORMAT_VERSION
-    assert_same(ckpt, state, "checkpoint")
+    assert_same(ckpt, state.checkpoint(), "checkpoint")
+    assert_same(checkpoint.read(tmp_path / "first" / "checkpoint.pt"), state, "read")
     row = first.learn()  # the next update from the saved state
     after = copy.deepcopy(first.run.loss.state_dict())
 
@@ -91,7 +87,9 @@ def test_a_state_dict_loaded_into_a_fresh_run_gives_its_state_and_its_next_updat
 def test_a_state_of_other_networks_is_refused_in_one_line_naming_its_origin(tmp_path):
     training = _training(tmp_path, torch_seed=0)
     state = training.state_dict()
-    state["loss"] = {k: v for k, v in state["loss"].items() if "mixer" not in k}
+    state = dataclasses.replace(
+        state, loss={k: v for k, v in state.loss.items() if "mixer" not in k}
+    )
     with pytest.raises(CheckpointError) as info:
         training.load_state_dict(state, origin="run A's state")
     message = str(info.value)

@@ -6,7 +6,8 @@
     icco train resume=runs/icco/.../checkpoint.pt
 
 ``resume=PATH`` continues the run as it was last saved, in the checkpoint's folder
-(:func:`prepare_train`); the trainer then refuses what a resumed run cannot honour.
+(:func:`prepare_train`); the run's state is read once, here, and handed to the trainer, which
+refuses what a resumed run cannot honour.
 
 Hydra's record of the run (``.hydra/``: the config, Hydra's own, the overrides) is written by
 this command once the trainer holds the run folder's lock and the run has started or its resume
@@ -31,18 +32,23 @@ def prepare_train(command: str, args: list[str]) -> tuple[list[str], dict]:
     run's own method, seed, env and ``train`` settings come first (:func:`saved_run_overrides`;
     this command line's overrides win; a ``method=`` given picks that method's own fields), and
     Hydra's run folder is set to the checkpoint's (unless given), so a resume never leaves an
-    empty ``runs/<method>/seed*_<time>/`` behind."""
+    empty ``runs/<method>/seed*_<time>/`` behind. The state read (a
+    :class:`~icco_torchrl.training.checkpoint.RunState`) goes to :func:`run_train` as ``saved``:
+    a resume reads its checkpoint once."""
     args, options = _record_after_the_lock(args)
     resume = next((a.split("=", 1)[1] for a in args if a.startswith("resume=")), None)
     if not resume or resume == "null" or any(a.startswith(("-m", "--multirun")) for a in args):
         return args, options
-    from icco_torchrl.training.checkpoint import load_checkpoint
+    from icco_torchrl.training import checkpoint
     from icco_torchrl.training.run_folder import CheckpointError
 
     try:
-        saved = saved_run_overrides(load_checkpoint(resume)["cfg"], args)
+        options["saved"] = checkpoint.read(resume)
+        saved = saved_run_overrides(options["saved"].cfg, args)
     except (CheckpointError, KeyError, TypeError):
-        saved = []  # the trainer reports a missing or damaged checkpoint in one line
+        # the trainer reads it again and reports a missing or damaged checkpoint in one line
+        options.pop("saved", None)
+        saved = []
     if any(a.startswith("hydra.run.dir=") for a in args):
         return [*saved, *args], options
     return [*saved, *args, f"hydra.run.dir={Path(resume).resolve().parent}"], options
@@ -112,14 +118,17 @@ def _override_value(value) -> str:
     return repr(value)
 
 
-def run_train(cfg: DictConfig, run_dir: str | Path, record: str | None = None) -> float | None:
+def run_train(
+    cfg: DictConfig, run_dir: str | Path, record: str | None = None, saved=None
+) -> float | None:
     """The final greedy evaluation's team reward (a sweep's objective); None when the run was
     stopped early or had nothing left to train. With ``record``, Hydra's record of the run goes
-    to ``run_dir/record`` once the trainer holds the lock (:func:`write_hydra_record`)."""
+    to ``run_dir/record`` once the trainer holds the lock (:func:`write_hydra_record`); ``saved``
+    is the state of the run ``resume=`` continues, as :func:`prepare_train` read it."""
     from icco_torchrl.trainer import train
 
     on_start = (lambda: write_hydra_record(cfg, Path(run_dir) / record)) if record else None
-    return train(cfg, run_dir, on_start=on_start).get("reward")
+    return train(cfg, run_dir, on_start=on_start, saved=saved).get("reward")
 
 
 def write_hydra_record(cfg: DictConfig, folder: Path) -> None:

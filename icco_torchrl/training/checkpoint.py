@@ -1,14 +1,19 @@
-"""A checkpoint: its file format, the rules of a resume, and the pair of a run's checkpoint and
-its replay dump. The run folder's files and lock are :mod:`.run_folder`'s; the replay dump's format
-is :mod:`.replay_dump`'s.
+"""A run's saved state: its type, its file format, the rules of a resume, and the pair of a run's
+checkpoint and its replay dump. The run folder's files and lock are :mod:`.run_folder`'s; the
+replay dump's format is :mod:`.replay_dump`'s.
+
+- **The state.** :class:`RunState` holds exactly a checkpoint's fields, typed and frozen.
+  ``TrainingRun.state_dict()`` builds it and ``load_state_dict()`` takes it
+  (:mod:`icco_torchrl.trainer`); :func:`save` writes it (and the replay dump it names) and
+  :func:`resume` reads it back, checked, with the replay buffer refilled: one call each way.
+  Adding a field: ``docs/extending.md`` ("Add a field to a run's saved state").
 
 - **Format.** A checkpoint holds only tensors and plain Python data and is read with
   ``torch.load(weights_only=True)``: a crafted file cannot run code. It is written atomically
   (:func:`~icco_torchrl.training.run_folder.write_atomically`). Any file that is not a readable
   checkpoint (empty, text, a crafted or foreign pickle, a dict without the fields a checkpoint has)
   is one :class:`~icco_torchrl.training.run_folder.CheckpointError` line naming the path; so is a
-  write that fails (a full disk, a read-only folder), which leaves no temp file. What a training
-  run puts in it is ``TrainingRun.state_dict()`` (:mod:`icco_torchrl.trainer`).
+  write that fails (a full disk, a read-only folder), which leaves no temp file.
 - **One format.** Only :data:`FORMAT_VERSION` is read; a file of another format is one line
   naming the command that converts it (``tools/convert_checkpoint.py``, outside the package, which
   holds the upgrades of older files). So is a file whose config lacks a field of today's
@@ -16,7 +21,7 @@ is :mod:`.replay_dump`'s.
   converter, not a new format, and is never read at today's default by mistake.
 - **Resume rules.** :func:`check_resumable`: what a resumed run cannot change, and whether the
   networks and env layout fit (:func:`check_compatible`, :func:`load_weights`).
-- **Checkpoint and dump.** :func:`save_run` writes the dump, then the checkpoint naming the dump's
+- **Checkpoint and dump.** :func:`save` writes the dump, then the checkpoint naming the dump's
   id, and only then drops the previous dump, so a stop between the two writes leaves a dump that
   matches the checkpoint; :func:`restore_replay` picks it (and says so) or refuses a foreign one.
 """
@@ -31,7 +36,7 @@ import shlex
 import shutil
 import uuid
 import warnings
-from dataclasses import fields
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -39,7 +44,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from icco_torchrl.training.config import MethodConfig, TrainConfig, set_env_params, validate
+from icco_torchrl.training.config import MethodConfig, TrainConfig
 from icco_torchrl.training.replay_dump import (
     dump_id_of,
     load_replay,
@@ -50,6 +55,7 @@ from icco_torchrl.training.run_folder import (
     CHECKPOINT,
     REPLAY_DIR,
     CheckpointError,
+    fresh_outputs,
     one_line,
     remove_stale_temps,
     write_atomically,
@@ -62,18 +68,33 @@ FORMAT_VERSION = 3
 CONVERTER = "tools/convert_checkpoint.py"
 
 
-# What an exported policy keeps (:func:`export_policy`); with ``loss``, what every checkpoint has.
-POLICY_KEYS = ("format_version", "cfg", "layout", "frames", "updates")
-# What a resume needs beyond that.
-TRAINING_KEYS = (
-    "optimizer",
-    "updater",
-    "batches",
-    "rng",
-    "outputs",
-    "replay_id",
-    "replay_segments",
-)
+# ---------------------------------------------------------------- the state
+@dataclass(frozen=True)
+class RunState:
+    """A training run's saved state: exactly the fields of its checkpoint (the file adds its
+    ``format_version``). The replay buffer is dumped beside the checkpoint, which names the dump;
+    the exploration rate follows from ``frames``. The tensors are the run's own, not copies."""
+
+    cfg: dict  # the run's config, resolved (the networks fit its method fields)
+    layout: dict  # the ObsLayout fields of the env the networks were built for
+    frames: int  # env steps collected
+    updates: int  # gradient updates
+    batches: int  # collector batches
+    loss: dict  # ICCOLoss.state_dict(): every network, the target copies too
+    optimizer: dict
+    updater: dict  # the target updater's
+    rng: dict  # the random streams: torch, numpy, the env's (and the collector process's)
+    outputs: dict  # which final outputs of the last frame were written (run_folder.fresh_outputs)
+    replay_id: str | None  # the replay dump saved with it (None: none)
+    replay_segments: int  # the segments that dump holds (0: nothing to restore)
+
+    def checkpoint(self) -> dict:
+        """The fields as the checkpoint holds them."""
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+
+# What an exported policy keeps of a run's state (:func:`export_policy`): enough to act.
+POLICY_FIELDS = ("cfg", "layout", "frames", "updates", "loss")
 
 # numpy arrays (the RNG state of ``np.random.get_state()``) are stored as tensors under this tag.
 _NDARRAY = "__ndarray__"
@@ -116,9 +137,14 @@ def save_checkpoint(path: str | Path, payload: dict[str, Any]) -> Path:
     The file is serialised in memory first and written with plain writes, so a full disk or a
     read-only folder is one :class:`CheckpointError` line naming ``path``, and no temp file is
     left behind."""
+    return write_atomically(Path(path), _serialised(payload), "checkpoint")
+
+
+def _serialised(payload: dict[str, Any]) -> memoryview:
+    """The bytes of the checkpoint holding ``payload``."""
     buffer = io.BytesIO()
     torch.save(_to_plain({"format_version": FORMAT_VERSION, **payload}), buffer)
-    return write_atomically(Path(path), buffer.getbuffer(), "checkpoint")
+    return buffer.getbuffer()
 
 
 # ---------------------------------------------------------------- reading files
@@ -376,29 +402,29 @@ def export_policy(src: str | Path, dst: str | Path) -> Path:
     size). :func:`~icco_torchrl.training.restore.restore` loads it like any checkpoint;
     ``resume=`` cannot continue from it."""
     ckpt = load_checkpoint(src)
-    slim = {k: ckpt[k] for k in POLICY_KEYS if k in ckpt}
+    slim = {k: ckpt[k] for k in POLICY_FIELDS if k in ckpt}
     slim["loss"] = {k: v for k, v in ckpt["loss"].items() if not k.startswith("target_")}
     slim["policy_only"] = True
     return save_checkpoint(dst, slim)
 
 
-def check_compatible(ckpt: dict[str, Any], cfg, layout, path: str | Path) -> None:
-    """The one check that a checkpoint's weights fit what ``cfg`` builds for an env of ``layout``:
-    the method's fields (its name and label aside: sizes, encoders, coordinator) and the observation
-    layout (robot, resource, invader and waypoint counts) must be the checkpoint's. Used by
-    ``resume=`` and by :func:`~icco_torchrl.training.restore.restore`; raises one
-    ``CheckpointError`` naming every difference."""
+def check_compatible(saved_cfg: dict, saved_layout: dict, cfg, layout, path: str | Path) -> None:
+    """The one check that weights saved with ``saved_cfg`` for an env of ``saved_layout`` fit what
+    ``cfg`` builds for an env of ``layout``: the method's fields (its name and label aside: sizes,
+    encoders, coordinator) and the observation layout (robot, resource, invader and waypoint
+    counts) must be the saved ones. Used by :func:`resume` and by
+    :func:`~icco_torchrl.training.restore.restore`; raises one ``CheckpointError`` naming every
+    difference."""
     cfg = cfg if isinstance(cfg, dict) else OmegaConf.to_container(cfg, resolve=True)
-    saved_m, m = ckpt["cfg"]["method"], cfg["method"]
+    saved_m, m = saved_cfg["method"], cfg["method"]
     method = [
         f"method.{key}: checkpoint {saved_m.get(key)!r} vs config {m.get(key)!r}"
         for key in sorted(set(saved_m) | set(m))
         if key not in ("name", "label") and saved_m.get(key) != m.get(key)
     ]
-    saved_layout = ckpt.get("layout") or {}
     shape = [
         f"{key}: checkpoint {value} vs env {getattr(layout, key)}"
-        for key, value in saved_layout.items()
+        for key, value in (saved_layout or {}).items()
         if value != getattr(layout, key)
     ]
     problems = (
@@ -408,29 +434,67 @@ def check_compatible(ckpt: dict[str, Any], cfg, layout, path: str | Path) -> Non
         raise CheckpointError(f"checkpoint {path} " + ", and ".join(problems))
 
 
-def check_resumable(ckpt: dict, cfg: DictConfig, layout, path: str | Path) -> None:
-    """Refuse, in one line, a checkpoint this config cannot continue: an exported policy, one
-    without the training state, a command line that changes what a resumed run cannot honour
-    (:func:`check_resume_overrides`) or networks and env layout that differ
-    (:func:`check_compatible`). A new ``train.env_params`` is allowed (a shaping curriculum), and
-    said: the replayed data keeps the old rewards."""
+def read(path: str | Path) -> RunState:
+    """The run's state saved at ``path``: its checkpoint read once (:func:`load_checkpoint`), as a
+    :class:`RunState`. An exported policy (no optimiser, targets or RNG state), a file without a
+    training state, or one written before a field of the state existed is one
+    ``CheckpointError`` line (the last names the converter)."""
+    path = Path(path)
+    ckpt = load_checkpoint(path)
     if ckpt.get("policy_only"):
         raise CheckpointError(
             f"{path} is an exported policy (no optimiser, targets or RNG state): "
             f"resume from the run's own checkpoint.pt"
         )
-    missing = [key for key in TRAINING_KEYS if key not in ckpt]
-    if missing:
+    missing = [f.name for f in fields(RunState) if f.name not in ckpt]
+    if "optimizer" in missing:
         raise CheckpointError(
             f"{path} cannot be resumed: it lacks the training state {', '.join(missing)}"
         )
+    if missing:
+        raise CheckpointError(
+            f"{path} cannot be resumed: it was written before the run state's "
+            f"{', '.join(missing)} existed: {_convert_it(path)}"
+        )
     if not isinstance(ckpt["outputs"], dict):
         raise CheckpointError(f"{path} cannot be resumed: its outputs record is no dict")
-    # The saved config through today's schema (its types and defaults), as the run's own.
-    saved = OmegaConf.to_container(validate(OmegaConf.create(ckpt["cfg"])), resolve=True)
-    check_resume_overrides(saved, OmegaConf.to_container(cfg, resolve=True), path)
-    check_compatible(ckpt, cfg, layout, path)
-    before, now = set_env_params(saved["train"]["env_params"]), set_env_params(cfg.train.env_params)
+    state = RunState(**{f.name: ckpt[f.name] for f in fields(RunState)})
+    return replace(state, outputs={**fresh_outputs(), **state.outputs})
+
+
+def resume(
+    path: str | Path, cfg: DictConfig, *, layout, buffer, state: RunState | None = None
+) -> RunState:
+    """Continue the run saved at ``path`` with ``cfg``, in one call: its state (:func:`read`; or
+    ``state``, when the command line has read it already to compose ``cfg``), checked against
+    what ``cfg`` builds for an env of ``layout`` (:func:`check_resumable`), and ``buffer``
+    refilled from the replay dump it names (:func:`restore_replay`, said in one line). Returns
+    the state to continue from, for ``TrainingRun.load_state_dict``: a run with frames left
+    writes its final outputs anew; one at its budget only those its checkpoint says are missing
+    (a stop in the final evaluation)."""
+    path = Path(path)
+    state = read(path) if state is None else state
+    check_resumable(state, cfg, layout, path)
+    said = restore_replay(buffer, path.resolve().parent, state, path)
+    if said:
+        print(said, flush=True)
+    if cfg.train.total_frames > state.frames:
+        state = replace(state, outputs=fresh_outputs())
+    return state
+
+
+def check_resumable(state: RunState, cfg: DictConfig, layout, path: str | Path) -> None:
+    """Refuse, in one line, a run state this config cannot continue: a command line that changes
+    what a resumed run cannot honour (:func:`check_resume_overrides`) or networks and env layout
+    that differ (:func:`check_compatible`). A new ``train.env_params`` is allowed (a shaping
+    curriculum), and said: the replayed data keeps the old rewards."""
+    config = OmegaConf.to_container(cfg, resolve=True)
+    check_resume_overrides(state.cfg, config, path)
+    check_compatible(state.cfg, state.layout, config, layout, path)
+    before, now = (  # the fields of train.env_params that are set
+        {k: v for k, v in (c["train"].get("env_params") or {}).items() if v is not None}
+        for c in (state.cfg, config)
+    )
     if before != now:
         print(
             f"note: resume={path} trains on train.env_params {now} instead of {before}; "
@@ -443,7 +507,8 @@ def check_resume_overrides(saved: dict, cfg: dict, path) -> None:
     """Refuse, by name, overrides that a resumed run cannot honour: its seed (the restored RNG
     streams belong to the old one), its env (the replay data came from it) and its exploration
     schedule (epsilon continues exactly). The budget, evaluation settings and the training-only
-    ``train.env_params`` (a shaping curriculum) may change."""
+    ``train.env_params`` (a shaping curriculum) may change. A field the saved config lacks (an
+    option added since it was written) is today's default on both sides."""
     fixed = [
         ("seed",),
         ("env",),
@@ -457,7 +522,7 @@ def check_resume_overrides(saved: dict, cfg: dict, path) -> None:
         a, b = saved, cfg
         for k in keys:
             a, b = (a or {}).get(k), (b or {}).get(k)
-        if a != b:
+        if not _kept(a, b):
             diffs.append(f"{'.'.join(keys)} (checkpoint {a!r}, now {b!r})")
     if diffs:
         raise CheckpointError(
@@ -467,49 +532,51 @@ def check_resume_overrides(saved: dict, cfg: dict, path) -> None:
         )
 
 
+def _kept(saved, now) -> bool:
+    """Whether ``now`` keeps every value of ``saved`` (nested dicts key by key)."""
+    if isinstance(saved, dict):
+        return isinstance(now, dict) and all(_kept(v, now.get(k)) for k, v in saved.items())
+    return saved == now
+
+
 # ---------------------------------------------------------------- a run's checkpoint and its dump
-def save_run(
-    run_dir: str | Path, payload: dict, buffer=None, *, replay_id: str | None = None
-) -> tuple[Path, str | None]:
-    """The run's checkpoint, and with ``buffer`` a new replay dump first; returns the checkpoint's
-    path and the dump's id. Without ``buffer`` the checkpoint names ``replay_id`` (the dump on
-    disk, unchanged).
+def save(run_dir: str | Path, state: RunState, buffer=None) -> RunState:
+    """Write ``state`` as the run's checkpoint, and with ``buffer`` a new replay dump first;
+    returns the state as written (with ``buffer``, naming the new dump). Without ``buffer`` the
+    checkpoint names the dump ``state`` names (the one on disk, unchanged).
 
     The dump replaces the previous one but keeps it (``.replay.old``) until the checkpoint naming
     the new one is written: a stop between the two writes leaves the previous dump, which matches
     the checkpoint on disk (:func:`restore_replay`)."""
     run_dir = Path(run_dir)
     dump = run_dir / REPLAY_DIR
-    segments = None
     if buffer is not None:
-        replay_id = uuid.uuid4().hex[:16]
-        save_replay(buffer, dump, dump_id=replay_id, keep_previous=True)
-        segments = len(buffer)
-    payload = {**payload, "replay_id": replay_id}
-    if segments is not None:
-        payload["replay_segments"] = segments
-    payload.setdefault("replay_segments", 0)
-    path = save_checkpoint(run_dir / CHECKPOINT, payload)
+        state = replace(state, replay_id=uuid.uuid4().hex[:16], replay_segments=len(buffer))
+    data = _serialised(state.checkpoint())
+    if buffer is not None:
+        save_replay(buffer, dump, dump_id=state.replay_id, keep_previous=True)
+    write_atomically(run_dir / CHECKPOINT, data, "checkpoint")
     if buffer is not None:
         shutil.rmtree(previous_dump(dump), ignore_errors=True)  # no checkpoint names it any more
-    return path, replay_id
+    return state
 
 
-def restore_replay(buffer, run_dir: str | Path, ckpt: dict, path: str | Path) -> str | None:
-    """Refill ``buffer`` from the dump that checkpoint ``ckpt`` (read from ``path``) was saved
+def restore_replay(buffer, run_dir: str | Path, state: RunState, path: str | Path) -> str | None:
+    """Refill ``buffer`` from the dump that the run's ``state`` (read from ``path``) was saved
     with, and return the line that says what happened (None when it saved no buffer).
 
     The dump and the checkpoint share an id. A dump written after the checkpoint (a stop between
     the two writes) is set aside for the previous one, which matches, and said; a dump matching
     neither is refused in one line."""
-    if not ckpt.get("replay_segments"):
+    if not state.replay_segments:
         return None
     dump = Path(run_dir) / REPLAY_DIR
     remove_stale_temps(dump)
-    expected = ckpt.get("replay_id")
+    expected = state.replay_id
     previous = previous_dump(dump)
     if dump_id_of(dump) == expected:
-        return _restored(buffer, dump, load_replay(buffer, dump), run_dir)
+        load_replay(buffer, dump)
+        return f"replay buffer restored: {len(buffer)} segments"
     if dump_id_of(previous) == expected:
         newer = dump.is_dir()
         shutil.rmtree(dump, ignore_errors=True)
@@ -528,10 +595,4 @@ def restore_replay(buffer, run_dir: str | Path, ckpt: dict, path: str | Path) ->
             f"replay buffer dump {found} (id {dump_id_of(found)}) is not the one {path} was saved "
             f"with (id {expected}): delete {found} to resume with an empty buffer"
         )
-    return _restored(buffer, dump, None, run_dir)
-
-
-def _restored(buffer, dump: Path, loaded: Path | None, run_dir) -> str:
-    if loaded is None:
-        return f"no replay buffer dump in {run_dir}: resuming with an empty buffer (warm-up again)"
-    return f"replay buffer restored: {len(buffer)} segments"
+    return f"no replay buffer dump in {run_dir}: resuming with an empty buffer (warm-up again)"

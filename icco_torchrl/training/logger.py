@@ -156,6 +156,26 @@ def read_column(
     return frames, values
 
 
+def last_evaluation(run_dir: str | Path, frames: int) -> dict | None:
+    """The metrics of ``eval.csv``'s last row when it is at ``frames`` (a stopped run's evaluation
+    of its last frame), else None."""
+    path = Path(run_dir) / "eval.csv"
+    if not path.is_file():
+        return None
+    with path.open(newline="") as handle:
+        rows = list(csv.DictReader(handle))
+    if not rows or not rows[-1].get("frames") or float(rows[-1]["frames"]) != frames:
+        return None
+    out = {}
+    for key, value in rows[-1].items():
+        try:
+            out[key] = float(value)
+        except (TypeError, ValueError):
+            out[key] = math.nan
+    out.pop("frames", None)
+    return out
+
+
 def clock_seconds(timing_row: dict) -> float:
     """A ``timing.csv`` row's run clock in seconds: the sum of its ``time_*`` timers (collection,
     updates, evaluations), so waits outside the run (a paused job, a resume) do not count."""

@@ -4,28 +4,25 @@ manifest, so a damaged dump is refused instead of resuming on garbage.
 
 A dump is swapped in whole (:func:`save_replay`): an interrupted write leaves the previous dump
 (or :func:`previous_dump` during the swap). Which dump a checkpoint names, and which one a
-resume takes, is :mod:`.checkpoint`'s (``save_run``, ``restore_replay``).
+resume takes, is :mod:`.checkpoint`'s (``save``, ``restore_replay``).
 """
 
 from __future__ import annotations
 
-import errno
 import json
-import os
 import shlex
-import shutil
-import tempfile
 import zlib
+from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import torch
 
 from icco_torchrl.training.run_folder import (
     CheckpointError,
-    cannot_write,
     one_line,
     remove_stale_temps,
-    write_all,
+    write_folder_atomically,
 )
 
 # ---------------------------------------------------------------- replay buffer dumps
@@ -70,93 +67,60 @@ def _leaves(data) -> list[tuple[str, torch.Tensor]]:
     return sorted(out)
 
 
-def _free_bytes(folder: Path) -> int:
-    """Free space in ``folder`` for this user."""
-    return shutil.disk_usage(folder).free
-
-
-def _dump_buffer(buffer, folder: Path, dump_id: str | None) -> None:
-    """Write the filled part of ``buffer``'s storage and its writer position into ``folder``:
-    plain writes of every key's bytes (a full disk raises ENOSPC there, never a SIGBUS of a memory
-    map), after checking that the folder's disk has room for them."""
-    storage, writer = buffer.storage, buffer.writer
-    if storage.ndim != 1:
-        raise ValueError(f"save_replay supports storages with ndim=1, got ndim={storage.ndim}")
-    n = len(storage)
-    data = storage._storage[:n] if n else None
-    leaves = _leaves(data) if n else []
-    needed = sum(t.numel() * t.element_size() for _, t in leaves)
-    free = _free_bytes(folder)
-    if needed + (1 << 20) > free:
-        raise OSError(
-            errno.ENOSPC,
-            f"No space left on device (the dump needs {needed / 1e6:.1f} MB, "
-            f"{free / 1e6:.1f} MB are free)",
-        )
+def _dump_files(storage, data, leaves, writer, dump_id: str | None) -> Iterator[tuple[str, Any]]:
+    """The files of a dump, in the order they are written: one raw C-order file of every key's
+    filled slots (no pickle; a dump is sized by what it holds), then the manifest with their
+    checksums and the writer's position."""
     tensors, files = {}, {}
-    for name, tensor in leaves:  # only the filled slots: a dump is sized by what it holds
+    for name, tensor in leaves:
         rel = f"{STORAGE_DIR}/{name}.memmap"
-        file = folder / rel
-        file.parent.mkdir(parents=True, exist_ok=True)
         raw = tensor.detach().cpu().contiguous().reshape(-1).view(torch.uint8).numpy()
-        fd = os.open(file, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
-        try:
-            write_all(fd, raw)
-        finally:
-            os.close(fd)
         tensors[name] = {"dtype": str(tensor.dtype), "shape": list(tensor.shape)}
         files[rel] = {"bytes": raw.nbytes, "crc32": zlib.crc32(raw)}
+        yield rel, raw
     manifest = {
         "format": REPLAY_FORMAT,
         "id": dump_id,
-        "segments": n,
-        "batch_size": list(data.batch_size) if n else [0],
+        "segments": len(storage),
+        "batch_size": list(data.batch_size) if leaves else [0],
         "capacity": storage.max_size,
         "cursor": int(writer._cursor),
         "write_count": int(writer._write_count),
         "tensors": tensors,
         "files": files,
     }
-    fd = os.open(folder / MANIFEST, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
-    try:
-        write_all(fd, json.dumps(manifest, indent=1).encode())
-        os.fsync(fd)
-    finally:
-        os.close(fd)
+    yield MANIFEST, json.dumps(manifest, indent=1).encode()
 
 
 def save_replay(
     buffer, path: str | Path, *, dump_id: str | None = None, keep_previous: bool = False
 ) -> Path:
     """Dump a TorchRL replay buffer (its filled segments and writer position) into the directory
-    ``path``, tagged with ``dump_id``.
+    ``path``, tagged with ``dump_id``: its files (:func:`_dump_files`) written through
+    :func:`~icco_torchrl.training.run_folder.write_folder_atomically`.
 
     Written to a temporary directory first and swapped in, so an interrupted write leaves the
     previous dump (or ``.<name>.old`` during the swap) intact; temp directories of a writer that
     was killed are removed first. With ``keep_previous`` the previous dump stays as
-    ``.<name>.old`` (:func:`~icco_torchrl.training.checkpoint.save_run` drops it once the
-    checkpoint names the new one). A full disk or a read-only folder is one
+    ``.<name>.old`` (:func:`~icco_torchrl.training.checkpoint.save` drops it once the
+    checkpoint names the new one). A full disk (checked first, or met while writing: plain
+    writes, never a SIGBUS of a memory map) or a read-only folder is one
     :class:`CheckpointError` line naming ``path``, and leaves no temp folder."""
+    storage = buffer.storage
+    if storage.ndim != 1:
+        raise ValueError(f"save_replay supports storages with ndim=1, got ndim={storage.ndim}")
+    data = storage._storage[: len(storage)] if len(storage) else None
+    leaves = _leaves(data) if data is not None else []
+    files = _dump_files(storage, data, leaves, buffer.writer, dump_id)  # written as they come
     path = Path(path)
-    old = previous_dump(path)
-    tmp = None
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        remove_stale_temps(path)
-        tmp = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp"))
-        _dump_buffer(buffer, tmp, dump_id)
-        shutil.rmtree(old, ignore_errors=True)
-        if path.exists():
-            os.replace(path, old)
-        os.replace(tmp, path)
-        if not keep_previous:
-            shutil.rmtree(old, ignore_errors=True)
-    except OSError as err:
-        raise cannot_write("the replay buffer dump", path, err) from None
-    finally:
-        if tmp is not None:
-            shutil.rmtree(tmp, ignore_errors=True)
-    return path
+    return write_folder_atomically(
+        path,
+        files,
+        "the replay buffer dump",
+        size=sum(t.numel() * t.element_size() for _, t in leaves),
+        old=previous_dump(path),
+        keep_old=keep_previous,
+    )
 
 
 def _damaged(path: Path, what: str) -> CheckpointError:

@@ -108,13 +108,11 @@ def restore(
         seed=cfg.seed + EVAL_SEED_OFFSET if seed is None else seed,
         **env_overrides,
     )
+    layout = ckpt["layout"] if team == trained else resized_layout(ckpt["layout"], team)
+    check_compatible(ckpt["cfg"], layout, cfg, run.layout, path)
     if team == trained:
-        check_compatible(ckpt, cfg, run.layout, path)
         weights = policy_weights(ckpt, run.loss)
     else:
-        check_compatible(
-            {**ckpt, "layout": resized_layout(ckpt["layout"], team)}, cfg, run.layout, path
-        )
         weights = acting_weights(ckpt, run, path, trained)
     load_weights(run.loss, weights, path, cfg.method.name)
     if broadcast_threshold is not None:

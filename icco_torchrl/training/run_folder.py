@@ -8,22 +8,22 @@ written through here.
 - **The lock.** ``icco train`` holds a lock on its folder (:class:`RunFolderLock`, a file opened
   without following links): a second writer is refused in one line (:class:`RunFolderBusy`).
 - **The record.** Whether the final evaluation and the learning curve of the last frame were
-  written (:func:`outputs_of`), and the evaluation of that frame already in ``eval.csv``
-  (:func:`last_evaluation`), so a resume writes what a stopped run left out.
+  written (:func:`fresh_outputs`: nothing yet; a run's state records it), so a resume writes what
+  a stopped run left out.
 """
 
 from __future__ import annotations
 
-import csv
 import errno
 import fcntl
-import math
 import os
 import re
 import shutil
 import stat
 import tempfile
+from collections.abc import Iterable
 from pathlib import Path
+from typing import Any
 
 CHECKPOINT = "checkpoint.pt"  # a run's checkpoint, in its run folder
 REPLAY_DIR = "replay"  # the replay buffer dump beside it (train.checkpoint_buffer)
@@ -90,6 +90,62 @@ def write_all(fd: int, data) -> None:
     view = memoryview(data).cast("B")
     while view:
         view = view[os.write(fd, view[: 1 << 24]) :]
+
+
+def free_bytes(folder: Path) -> int:
+    """Free space in ``folder`` for this user."""
+    return shutil.disk_usage(folder).free
+
+
+def write_folder_atomically(
+    path: Path,
+    files: Iterable[tuple[str, Any]],
+    what: str,
+    *,
+    size: int,
+    old: Path,
+    keep_old: bool = False,
+) -> Path:
+    """Write ``files`` (``(name in the folder, bytes)`` pairs, about ``size`` bytes in all) as the
+    folder ``path``: into a temp folder beside it with plain writes, then swapped in, so a crash
+    never leaves a half-written folder there; the folder it replaces is kept as ``old`` (with
+    ``keep_old``, until the caller drops it). Temp folders of a writer that was killed are removed
+    first, and a disk without room for ``size`` is refused before anything is written. A full
+    disk or a read-only folder is one :class:`CheckpointError` line naming ``what`` and ``path``,
+    and leaves no temp folder."""
+    tmp = None
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        remove_stale_temps(path)
+        free = free_bytes(path.parent)
+        if size + (1 << 20) > free:
+            raise OSError(
+                errno.ENOSPC,
+                f"No space left on device ({what} needs {size / 1e6:.1f} MB, "
+                f"{free / 1e6:.1f} MB are free)",
+            )
+        tmp = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp"))
+        for name, data in files:
+            file = tmp / name
+            file.parent.mkdir(parents=True, exist_ok=True)
+            fd = os.open(file, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+            try:
+                write_all(fd, data)
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+        shutil.rmtree(old, ignore_errors=True)
+        if path.exists():
+            os.replace(path, old)
+        os.replace(tmp, path)
+        if not keep_old:
+            shutil.rmtree(old, ignore_errors=True)
+    except OSError as err:
+        raise cannot_write(what, path, err) from None
+    finally:
+        if tmp is not None:
+            shutil.rmtree(tmp, ignore_errors=True)
+    return path
 
 
 def write_atomically(path: Path, data, what: str) -> Path:
@@ -171,31 +227,6 @@ class RunFolderLock:
 
 # ---------------------------------------------------------------- the record of what was written
 def fresh_outputs() -> dict:
-    """What a run has written after its last frame: nothing yet."""
+    """What a run has written after its last frame: nothing yet (the ``outputs`` field of
+    :class:`~icco_torchrl.training.checkpoint.RunState`)."""
     return {"final_evaluation": False, "final_metrics": {}, "learning_curve": False}
-
-
-def outputs_of(ckpt: dict) -> dict:
-    """Whether the final evaluation (and its metrics) and the learning curve of the checkpoint's
-    last frame were written (its ``outputs`` record, which ``check_resumable`` requires)."""
-    return {**fresh_outputs(), **ckpt["outputs"]}
-
-
-def last_evaluation(run_dir: str | Path, frames: int) -> dict | None:
-    """The metrics of ``eval.csv``'s last row when it is at ``frames`` (a stopped run's evaluation
-    of its last frame), else None."""
-    path = Path(run_dir) / "eval.csv"
-    if not path.is_file():
-        return None
-    with path.open(newline="") as handle:
-        rows = list(csv.DictReader(handle))
-    if not rows or not rows[-1].get("frames") or float(rows[-1]["frames"]) != frames:
-        return None
-    out = {}
-    for key, value in rows[-1].items():
-        try:
-            out[key] = float(value)
-        except (TypeError, ValueError):
-            out[key] = math.nan
-    out.pop("frames", None)
-    return out
