@@ -1,13 +1,18 @@
 """docs/extending.md is true: a new method preset is one YAML file (the guide's own example,
-composed, built and trained for one loss step), the files and names its worked examples cite
-exist, and network sizes are declared once (required keyword arguments, MethodConfig's values)."""
+composed, built and trained for one loss step), a new method option is three library files, a
+preset and a converter row (the guide's own blocks, applied to a copy of the package, trained end
+to end), the files and names its worked examples cite exist, and network sizes are declared once
+(required keyword arguments, MethodConfig's values)."""
 
 from __future__ import annotations
 
 import importlib.util
 import inspect
+import os
 import re
 import shutil
+import subprocess
+import sys
 
 import pytest
 import torch
@@ -108,19 +113,11 @@ def test_the_files_the_guide_names_exist():
     assert not missing, missing
 
 
-def test_the_worked_option_and_network_are_as_the_guide_says():
+def test_the_worked_network_is_as_the_guide_says():
     text = guide()
     build_src = (ROOT / "icco_torchrl" / "training" / "build.py").read_text()
     fields = MethodConfig.__dataclass_fields__
-    # the option: its field and range, where it is read, its value for older checkpoints
-    assert "broadcast_threshold: float = _field(0.0, ge=0)" in text
-    assert fields["broadcast_threshold"].default == 0.0
-    assert dict(fields["broadcast_threshold"].metadata) == {"ge": 0}
-    assert (
-        "threshold=m.broadcast_threshold" in build_src and "threshold=m.broadcast_threshold" in text
-    )
     added = converter_tables()  # the value older checkpoints get when they are converted
-    assert added["broadcast_threshold"] == 0.0
     # the network: its choice list declared once, read in build.py, the old value for checkpoints
     assert MIXERS == ("qmix", "attention") and fields["mixer"].metadata["choices"] is MIXERS
     assert "kind=m.mixer" in build_src and added["mixer"] == "qmix"
@@ -128,19 +125,71 @@ def test_the_worked_option_and_network_are_as_the_guide_says():
     assert "hidden=m.hidden" in build_src and make_mixer.__module__ == TokenMixer.__module__
 
 
-def test_a_new_method_option_is_three_library_files_and_a_converter_row():
-    """The guide's file list for an option: three library files (the field, where it is read, its
-    implementation), no new checkpoint format (a file without the field is refused and converted:
-    tests/test_checkpoint.py), one row in the converter outside the package."""
-    section = guide().split("## Add a method option", 1)[1].split("\n## ", 1)[0]
-    files = re.search(r"\nFiles: (.*?)\n\n", section, re.S)
-    assert files, "the option section opens with its list of files"
-    named = set(re.findall(r"`((?:icco_torchrl|tools|conf)/[\w/.]*)`", files.group(1)))
-    library = {p for p in named if p.startswith("icco_torchrl/")}
-    assert library == {"icco_torchrl/training/config.py", "icco_torchrl/training/build.py"}
-    assert "the module or loss that implements it, three in the library" in files.group(1)
-    assert named - library == {"conf/method/", "tools/convert_checkpoint.py"}
-    assert "No checkpoint format changes" in files.group(1) and "FORMAT_VERSION" not in section
+# A block of the option's section: ``# PATH, after: LINE``, then the lines that go after LINE.
+EDIT = re.compile(r"```python\n# ((?:icco_torchrl|tools)/[\w/.]+), after: (.+?)\n(.*?)```", re.S)
+
+
+def option_section() -> str:
+    return guide().split("## Add a method option", 1)[1].split("\n## ", 1)[0]
+
+
+def apply_edit(root, path: str, after: str, lines: str) -> None:
+    """Put ``lines`` after the one line of ``root/path`` that reads ``after``."""
+    file = root / path
+    text = file.read_text().splitlines(keepends=True)
+    at = [i for i, line in enumerate(text) if line.strip() == after.strip()]
+    assert len(at) == 1, f"{path}: {len(at)} lines read {after!r}, where the guide needs one"
+    text[at[0] + 1 : at[0] + 1] = [lines]
+    file.write_text("".join(text))
+
+
+def test_a_new_method_option_is_three_library_files_a_preset_and_a_converter_row(tmp_path):
+    """The guide's worked option, applied block by block to a copy of the package (the field, where
+    it is read, the module that implements it: three library files), with its preset and its row
+    in the converter: a smoke training of the preset runs end to end, its checkpoint records the
+    option and holds the option's weights, and the converter converts the demo policy (written
+    before the option existed) at the value the row gives."""
+    section = option_section()
+    edits = EDIT.findall(section)
+    library = {path for path, _, _ in edits if path.startswith("icco_torchrl/")}
+    assert len(library) <= 3, library
+    assert {path for path, _, _ in edits} - library == {"tools/convert_checkpoint.py"}
+    listed = section.split("\nFiles: ", 1)[1].split("\n\n", 1)[0]
+    assert set(re.findall(r"`(icco_torchrl/[\w/.]+)`", listed)) == library
+    assert "three in the" in listed and "No checkpoint format changes" in listed
+    preset_path, preset_text = re.search(
+        r"```yaml\n# (conf/method/\S+\.yaml)\n(.*?)```", section, re.S
+    ).groups()
+    preset = yaml.safe_load(preset_text)
+    [option] = set(preset) - {"defaults", "name", "label"}
+    assert option not in MethodConfig.__dataclass_fields__  # the example is not shipped
+
+    copy = tmp_path / "copy"
+    for folder in ("icco_torchrl", "conf", "tools", "assets"):
+        shutil.copytree(ROOT / folder, copy / folder, ignore=shutil.ignore_patterns("__pycache__"))
+    for path, after, lines in edits:
+        apply_edit(copy, path, after, lines)
+    (copy / preset_path).write_text(preset_text)
+
+    # python in the copy: its package, not the checkout's
+    env = {**os.environ, "PYTHONPATH": str(copy), "OMP_NUM_THREADS": "1", "WANDB_MODE": "disabled"}
+    python = dict(cwd=copy, env=env, capture_output=True, text=True, timeout=900)
+    run = tmp_path / "run"
+    smoke = [f"method={preset['name']}", "experiment=smoke", "logger.progress=false"]
+    train = subprocess.run(
+        [sys.executable, "-m", "icco_torchrl", "train", *smoke, f"hydra.run.dir={run}"], **python
+    )
+    assert train.returncode == 0, train.stderr[-3000:]
+    assert "done: 2,048 env steps" in train.stdout, train.stdout[-2000:]
+    ckpt = torch.load(run / "checkpoint.pt", weights_only=True)
+    assert ckpt["cfg"]["method"][option] == preset[option]
+    parent = build(compose_config(["method=icco", "device=cpu"]), num_envs=2).loss.state_dict()
+    assert set(ckpt["loss"]) > set(parent), "the option's module adds no weights"
+
+    demo = ["tools/convert_checkpoint.py", "assets/demo_icco.pt", str(tmp_path / "demo.pt")]
+    convert = subprocess.run([sys.executable, *demo], **python)
+    assert convert.returncode == 0, convert.stderr
+    assert f"method.{option}=" in convert.stdout, convert.stdout
 
 
 REQUIRED = inspect.Parameter.empty
