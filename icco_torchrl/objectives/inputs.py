@@ -85,7 +85,8 @@ def episode_mask(done: torch.Tensor, is_init: torch.Tensor | None) -> torch.Tens
 class LossBatch:
     """A batch of replayed sequences ``[S, L]`` as :class:`~icco_torchrl.objectives.ICCOLoss`
     reads it: checked tensors (views of the batch), the argument of the loss's tensor part
-    (:meth:`~icco_torchrl.objectives.ICCOLoss.losses`, what ``compile`` traces).
+    (:meth:`~icco_torchrl.objectives.ICCOLoss.losses`, what
+    :meth:`~icco_torchrl.objectives.ICCOLoss.compile_losses` traces).
 
     Built by :meth:`ICCOLoss.read_batch <icco_torchrl.objectives.ICCOLoss.read_batch>`; the
     fields after ``next_mixer_inputs`` are None until :func:`assemble` sets them. ``N`` robots,

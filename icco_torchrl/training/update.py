@@ -1,7 +1,7 @@
 """One gradient update as one function: the loss, its backward, the grad-norm clip and the
 optimiser step, on a replayed batch; eager, compiled, or captured in a CUDA graph.
 
-``train.compile`` compiles the loss's tensor part (:meth:`ICCOLoss.compile`): every network,
+``train.compile`` compiles the loss's tensor part (:meth:`ICCOLoss.compile_losses`): every network,
 the targets and both terms in one graph with no break, and the backward AOTAutograd derives
 from it, so the ~7,000 small ops of an eager forward and backward become a few hundred
 matrix products and fused kernels. ``train.cudagraphs`` (CUDA only) captures the whole update
