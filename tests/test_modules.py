@@ -225,7 +225,7 @@ def _encoder_input(g, B=6, own=3, E=4, F=5):
 def test_entity_attention_ignores_invisible_tokens():
     torch.manual_seed(0)
     g = torch.Generator().manual_seed(3)
-    enc = EntityAttentionEncoder(own_dim=3, n_entities=4, entity_dim=5, hidden=16)
+    enc = EntityAttentionEncoder(own_dim=3, n_entities=4, entity_dim=5, hidden=16, flag_column=4)
     x = _encoder_input(g)
     out = enc(x)
     tokens = x[:, 3:].view(6, 4, 5)
@@ -252,7 +252,7 @@ def test_entity_attention_ignores_invisible_tokens():
 def test_entity_attention_is_permutation_invariant():
     torch.manual_seed(1)
     g = torch.Generator().manual_seed(4)
-    enc = EntityAttentionEncoder(own_dim=3, n_entities=4, entity_dim=5, hidden=16)
+    enc = EntityAttentionEncoder(own_dim=3, n_entities=4, entity_dim=5, hidden=16, flag_column=4)
     x = _encoder_input(g)
     perm = torch.tensor([2, 0, 3, 1])
     xp = x.clone()

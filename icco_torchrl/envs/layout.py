@@ -7,6 +7,18 @@ record of sizes (no env code), with the columns of a state token and the rule th
 robots are present, so networks can be built for any env that describes itself this way, and a
 flat observation needs no layout at all (see ``make_agent(obs_dim=...)``).
 
+A robot's observation is its own features (``own_dim``), then ``n_entities`` entity tokens of
+``entity_dim`` features each, the others it sees (other robots, resources, invaders, home; a token
+out of its vision radius is all zeros)::
+
+    position  [dx, dy] relative to the robot   ENTITY_POSITION  (0:2)
+    velocity  [dvx, dvy] relative to the robot ENTITY_VELOCITY  (2:4)
+    type      one-hot (robot, resource, invader, home)
+                                               ENTITY_TYPE      (4:8)
+    flag      carry (robots), active (invaders)
+                                               ENTITY_FLAG      (8)
+    visible   1 within the vision radius       ENTITY_VISIBLE   (9)
+
 The global state is ``state_tokens`` tokens (robots, then resources, then invaders) of
 ``state_token_dim`` features each::
 
@@ -73,6 +85,13 @@ class ObsLayout:
     WAYPOINTS_START: ClassVar[int] = 9  # then 2K absolute waypoint coordinates (robots)
     # Columns of a robot's own observation: [x, y, vx, vy, carry], then its relative waypoints.
     OWN_WAYPOINTS_START: ClassVar[int] = 5
+    # Columns of an entity token of a robot's observation (see the module doc).
+    ENTITY_POSITION: ClassVar[slice] = slice(0, 2)  # relative to the observing robot
+    ENTITY_VELOCITY: ClassVar[slice] = slice(2, 4)  # relative to the observing robot
+    ENTITY_TYPE: ClassVar[slice] = slice(4, 8)  # one-hot: robot, resource, invader, home
+    ENTITY_FLAG: ClassVar[int] = 8  # a robot's carry flag, an invader's active flag
+    ENTITY_VISIBLE: ClassVar[int] = 9  # 1 within the vision radius; 0: an all-zero token
+    ENTITY_DIM: ClassVar[int] = 10
 
     @classmethod
     def for_env(
@@ -87,7 +106,7 @@ class ObsLayout:
             n_waypoints=n_waypoints,
             own_dim=cls.OWN_WAYPOINTS_START + K2,
             n_entities=(n_agents - 1) + n_resources + n_invaders + 1,
-            entity_dim=10,
+            entity_dim=cls.ENTITY_DIM,
             state_tokens=n_agents + n_resources + n_invaders,
             state_token_dim=cls.WAYPOINTS_START + K2,
         )
@@ -120,6 +139,13 @@ class ObsLayout:
     def waypoints(self) -> slice:
         """The state-token columns of a robot's absolute waypoints (``2 * n_waypoints``)."""
         return slice(self.WAYPOINTS_START, self.WAYPOINTS_START + 2 * self.n_waypoints)
+
+    @property
+    def visible_column(self) -> int:
+        """The column of an entity token's visibility flag, which the networks' attention masks
+        by: the token's last (:attr:`ENTITY_VISIBLE` in this env's tokens of :attr:`ENTITY_DIM`
+        features; a layout of other entity tokens keeps its flag last too)."""
+        return self.entity_dim - 1
 
     @property
     def own_waypoints(self) -> slice:

@@ -20,10 +20,11 @@ Keys (``B = num_envs``, ``N = n_agents``, ``K = n_waypoints``)::
 
 Observation layout (per robot; see :class:`ObsLayout`): ``own`` = [x, y, vx, vy, carry,
 waypoints relative to the robot (K*2)], then ``n_entities`` tokens of ``entity_dim`` features
-[dx, dy, dvx, dvy, one-hot type (agent, resource, invader, home), flag, visible]; tokens
-outside ``vision_radius`` are all zeros. The global state is ``N + R + I`` tokens of
-``state_token_dim`` features [x, y, vx, vy, one-hot type (agent, resource, invader), flag,
-defended, absolute waypoints (K*2, agents only)], each column named by :class:`ObsLayout`.
+[dx, dy, dvx, dvy, one-hot type (agent, resource, invader, home), flag, visible] (the
+``ObsLayout.ENTITY_*`` columns); tokens outside ``vision_radius`` are all zeros. The global
+state is ``N + R + I`` tokens of ``state_token_dim`` features [x, y, vx, vy, one-hot type
+(agent, resource, invader), flag, defended, absolute waypoints (K*2, agents only)], each column
+named by :class:`ObsLayout`.
 
 Team sizes. ``n_agents`` is the most robots an env holds; ``present`` ``[B, N]`` says which are
 in its team. With ``team_sizes`` each env draws its team size k at reset, uniformly from that
@@ -74,7 +75,6 @@ N_ACTIONS = 5
 _ACTION_DIRS = ((0.0, 0.0), (-1.0, 0.0), (1.0, 0.0), (0.0, -1.0), (0.0, 1.0))
 EVENTS = ("pick", "collect", "defense", "invasion")  # the counted events, under ("events", name)
 EVENT_KEYS = (*EVENTS, "inst_reward")  # every ("events", ...) entry of a step
-_EVENTS = EVENTS
 _FAR = 1e9  # where inactive invaders are "seen" from: beyond any vision radius
 
 
@@ -194,7 +194,7 @@ class ResourceCollectionEnv(EnvBase):
         B, N, K, L = self.num_envs, self.n_agents, self.n_waypoints, self.layout
         dev = self.device
         events = Composite(
-            {name: Unbounded((B,), dtype=torch.int64, device=dev) for name in _EVENTS},
+            {name: Unbounded((B,), dtype=torch.int64, device=dev) for name in EVENTS},
             inst_reward=Unbounded((B,), device=dev),
             shape=(B,),
             device=dev,
@@ -304,9 +304,10 @@ class ResourceCollectionEnv(EnvBase):
         )
         self._set_present(torch.ones(N, B, dtype=torch.bool, device=dev), all_present=True)
         # Scratch entity table for _write_visible_entities: one-hot types and "visible" are fixed.
-        table = torch.zeros(N + R + I + 1, 10, B, device=dev)
-        table[:, 4:8] = self._entity_type.unsqueeze(-1)
-        table[:, 9] = 1.0
+        L = self.layout
+        table = torch.zeros(N + R + I + 1, L.entity_dim, B, device=dev)
+        table[:, L.ENTITY_TYPE] = self._entity_type.unsqueeze(-1)
+        table[:, L.ENTITY_VISIBLE] = 1.0
         self._put(_entity_table=table)
 
     def _waypoints_bl(self) -> torch.Tensor:
@@ -484,7 +485,7 @@ class ResourceCollectionEnv(EnvBase):
         zeros = torch.zeros(B, dtype=torch.int64, device=dev)
         false = torch.zeros(B, 1, dtype=torch.bool, device=dev)
         return self._output(
-            events={**{k: zeros for k in _EVENTS}, "inst_reward": torch.zeros(B, device=dev)},
+            events={**{k: zeros for k in EVENTS}, "inst_reward": torch.zeros(B, device=dev)},
             done=false,
             terminated=false,
             truncated=false,
@@ -576,7 +577,7 @@ class ResourceCollectionEnv(EnvBase):
         return self._output(
             agent_reward=d.agent_reward,
             reward=d.agent_reward.sum(0).unsqueeze(-1),
-            events=dict(zip(_EVENTS, d.counts), inst_reward=d.r_inst.sum(0)),
+            events=dict(zip(EVENTS, d.counts), inst_reward=d.r_inst.sum(0)),
             done=truncated,
             terminated=torch.zeros_like(truncated),
             truncated=truncated,
@@ -682,17 +683,21 @@ class ResourceCollectionEnv(EnvBase):
         return obs, state
 
     def _write_visible_entities(self, ent: torch.Tensor) -> None:
-        """Fill the tokens [B, N, E, 10] of the entities each robot sees (the rest stay zero)."""
-        N, R, I = self.n_agents, self.n_resources, self.n_invaders
+        """Fill the tokens [B, N, E, entity_dim] of the entities each robot sees (the rest stay
+        zero), column by column as :class:`ObsLayout` names them."""
+        N, R, I, L = self.n_agents, self.n_resources, self.n_invaders, self.layout
+        POS, VEL, FLAG = L.ENTITY_POSITION, L.ENTITY_VELOCITY, L.ENTITY_FLAG
+        MOTION = slice(POS.start, VEL.stop)  # adjacent columns: position, velocity
         on = self._inv_on
-        # Every entity as a full token, batch-last [E_all, 10, B]; only the moving parts are
-        # rewritten (types, the visible flag and zeros stay). Inactive invaders are put far away.
+        # Every entity as a full token, batch-last [E_all, entity_dim, B]; only the moving parts
+        # are rewritten (types, the visible flag and zeros stay). Inactive invaders are put far
+        # away.
         table, inv = self._entity_table, slice(N + R, N + R + I)
-        table[:N, 0:2], table[:N, 2:4], table[:N, 8] = self._pos, self._vel, self._carry
-        table[N : N + R, 0:2] = self._res
-        table[inv, 0:2] = torch.where(on.unsqueeze(1), self._inv, _FAR)
-        table[inv, 2:4], table[inv, 8] = self._inv_vel, on
-        visible = pair_sq_dist(self._pos, table[:, 0:2]) <= self.vision_radius**2  # [N, E_all, B]
+        table[:N, POS], table[:N, VEL], table[:N, FLAG] = self._pos, self._vel, self._carry
+        table[N : N + R, POS] = self._res
+        table[inv, POS] = torch.where(on.unsqueeze(1), self._inv, _FAR)
+        table[inv, VEL], table[inv, FLAG] = self._inv_vel, on
+        visible = pair_sq_dist(self._pos, table[:, POS]) <= self.vision_radius**2  # [N, E_all, B]
         visible[:, :N].diagonal(0, 0, 1).fill_(False)  # a robot is not its own entity
         if not self._all_present:  # absent robots see nothing and nobody sees them
             visible &= self._present.unsqueeze(1)
@@ -705,8 +710,8 @@ class ResourceCollectionEnv(EnvBase):
         E_all, B = visible.shape[1:]
         n, rest = flat.div(E_all * B, rounding_mode="floor"), flat % (E_all * B)
         j, b = rest.div(B, rounding_mode="floor"), rest % B
-        tokens = table[j, :, b]  # [V, 10]
-        tokens[:, :4] -= table[n, :4, b]  # relative position and velocity
+        tokens = table[j, :, b]  # [V, entity_dim]
+        tokens[:, MOTION] -= table[n, MOTION, b]  # relative to the observing robot
         slot = j - (j > n).long()  # entity j's place in robot n's list (itself removed)
         ent.index_put_((b, n, slot), tokens)
 

@@ -174,6 +174,7 @@ class RecurrentQNet(nn.Module):
                 n_entities=layout.n_entities,
                 entity_dim=layout.entity_dim,
                 hidden=hidden,
+                flag_column=layout.visible_column,
             )
             self._own_dim = layout.own_dim
 

@@ -61,9 +61,7 @@ class StateTokenEncoder(nn.Module):
         self.layout = layout
         if kind == "attention":
             self.n_tokens, self.token_dim = layout.state_tokens, layout.state_token_dim
-            self.net = EntityAttentionEncoder(
-                self.token_dim, self.n_tokens, self.token_dim, hidden, masked=False
-            )
+            self.net = EntityAttentionEncoder(self.token_dim, self.n_tokens, self.token_dim, hidden)
         elif kind == "mlp":
             width = layout.state_dim if layout is not None else state_dim
             self.net = nn.Sequential(
@@ -141,7 +139,7 @@ class Coordinator(nn.Module):
                 "state_encoder='relative' reads the resource-collection state: it needs a layout"
             )
         self.z_dim, self.period, self.threshold = z_dim, period, float(threshold)
-        self.layout = layout  # the loss reads which robots are present off the state with it
+        self.layout = layout
         encoder = encoder or ("attention" if layout is not None else "mlp")
         # relative: entities seen from each robot (modules/relative.py); flat: absolute state tokens
         self.encoder = (

@@ -18,10 +18,11 @@ from icco_torchrl.modules.activations import ReLU, relu
 class EntityAttentionEncoder(nn.Module):
     """One "self" token attends over entity tokens; returns ``[..., hidden]``.
 
-    Input ``x = [own (own_dim), tokens (n_entities * entity_dim)]``. With ``masked=True`` a token
-    whose last feature (the visibility flag) is 0 is left out; ``visible [..., n_entities]``
-    (bool) gives the mask instead, for tokens that carry no flag. With nothing visible the
-    attention read-out is 0.
+    Input ``x = [own (own_dim), tokens (n_entities * entity_dim)]``. With ``flag_column`` a token
+    whose feature in that column (its visibility flag, as the caller's layout names it:
+    ``ObsLayout.visible_column`` for an observation's entities) is 0 is left out;
+    ``visible [..., n_entities]`` (bool) gives the mask instead, for tokens that carry no flag.
+    With nothing visible the attention read-out is 0.
 
     Keys and values are linear in the raw tokens, so the attention is evaluated in token space:
     ``q . (W_k t) = (W_k^T q) . t`` and ``sum_e w_e (W_v t_e + b_v) = W_v (sum_e w_e t_e) +
@@ -31,14 +32,19 @@ class EntityAttentionEncoder(nn.Module):
     """
 
     def __init__(
-        self, own_dim: int, n_entities: int, entity_dim: int, hidden: int, masked: bool = True
+        self,
+        own_dim: int,
+        n_entities: int,
+        entity_dim: int,
+        hidden: int,
+        flag_column: int | None = None,
     ):
         super().__init__()
-        self.own_dim, self.n_entities, self.entity_dim, self.masked = (
+        self.own_dim, self.n_entities, self.entity_dim, self.flag_column = (
             own_dim,
             n_entities,
             entity_dim,
-            masked,
+            flag_column,
         )
         self.own = nn.Linear(own_dim, hidden)
         self.key = nn.Linear(entity_dim, hidden, bias=False)
@@ -53,9 +59,9 @@ class EntityAttentionEncoder(nn.Module):
         h = relu(self.own(own))
         q = self.query(h) @ self.key.weight * self.scale  # the query in token space
         logits = (tokens @ q.unsqueeze(-1)).squeeze(-1)
-        if self.masked or visible is not None:
+        if self.flag_column is not None or visible is not None:
             if visible is None:
-                visible = tokens[..., -1] > 0
+                visible = tokens[..., self.flag_column] > 0
             # The mask as a float: a compiled update then saves no bool tensor for the backward
             # (Inductor writes bools slowly); hidden tokens get -1e9, as masked_fill gave them.
             seen = visible.to(logits.dtype)
@@ -81,11 +87,18 @@ class MLPEncoder(nn.Module):
 
 
 def make_encoder(
-    kind: str, *, own_dim: int, n_entities: int, entity_dim: int, hidden: int
+    kind: str,
+    *,
+    own_dim: int,
+    n_entities: int,
+    entity_dim: int,
+    hidden: int,
+    flag_column: int | None = None,
 ) -> nn.Module:
-    """``kind``: ``"attention"`` or ``"mlp"``; input width ``own_dim + n_entities*entity_dim``."""
+    """``kind``: ``"attention"`` (its tokens' visibility flag in ``flag_column``) or ``"mlp"``;
+    input width ``own_dim + n_entities*entity_dim``."""
     if kind == "attention":
-        return EntityAttentionEncoder(own_dim, n_entities, entity_dim, hidden)
+        return EntityAttentionEncoder(own_dim, n_entities, entity_dim, hidden, flag_column)
     if kind == "mlp":
         return MLPEncoder(own_dim + n_entities * entity_dim, hidden)
     raise ValueError(f"encoder must be 'attention' or 'mlp', got {kind!r}")

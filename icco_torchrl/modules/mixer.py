@@ -53,7 +53,7 @@ class TokenMixer(nn.Module):
             raise ValueError(f"embed_dim and hidden must be >= 1, got {embed_dim}, {hidden}")
         self.layout, self.embed_dim = layout, embed_dim
         D, T = layout.state_token_dim, layout.state_tokens
-        self.encoder = EntityAttentionEncoder(D, T, D, hidden, masked=False)
+        self.encoder = EntityAttentionEncoder(D, T, D, hidden)
         self.hyper_w_1 = nn.Linear(hidden, embed_dim)
         self.hyper_b_1 = nn.Linear(hidden, embed_dim)
         self.hyper_w_final = nn.Linear(hidden, embed_dim)

@@ -26,7 +26,7 @@ from torch import nn
 from icco_torchrl.modules.activations import ReLU
 from icco_torchrl.modules.coordinator import LOGVAR_MAX, LOGVAR_MIN
 from icco_torchrl.modules.encoders import EntityAttentionEncoder
-from icco_torchrl.modules.relative import relative_dims, relative_tokens
+from icco_torchrl.modules.relative import relative_dims, relative_present, relative_tokens
 
 if TYPE_CHECKING:
     from icco_torchrl.envs.layout import ObsLayout
@@ -138,10 +138,14 @@ class Posterior(nn.Module):
             own_dim, n_entities, entity_dim = relative_dims(layout)
             A = n_actions
             self.first_encoder = EntityAttentionEncoder(
-                own_dim + A, n_entities, entity_dim + A, hidden, masked=True
+                own_dim + A, n_entities, entity_dim + A, hidden, relative_present(layout) + A
             )
             self.later_encoder = EntityAttentionEncoder(
-                layout.own_dim + A, layout.n_entities, layout.entity_dim, hidden, masked=True
+                layout.own_dim + A,
+                layout.n_entities,
+                layout.entity_dim,
+                hidden,
+                layout.visible_column,
             )
             self.first = _gaussian_head(hidden, hidden, z_dim)
             self.later = _gaussian_head(hidden, hidden, z_dim)
@@ -177,10 +181,12 @@ class Posterior(nn.Module):
         own_dim, E, entity_dim = relative_dims(L)
         rel = relative_tokens(state[:, 0], L)  # [S, N, own_dim + E * entity_dim]
         own, ents = rel[..., :own_dim], rel[..., own_dim:].unflatten(-1, (E, entity_dim))
-        # every robot token carries its robot's action, the other entities none (the mask last)
+        # every robot token carries its robot's action (before its present flag, the mask), the
+        # other entities none
         acted = torch.cat([onehot[:, 0], onehot.new_zeros(S, E - N, A)], 1)  # [S, E, A]
         acted = acted.unsqueeze(1).expand(S, N, E, A)
-        ents = torch.cat([ents[..., :-1], acted, ents[..., -1:]], -1)
+        P = relative_present(L)
+        ents = torch.cat([ents[..., :P], acted, ents[..., P:]], -1)
         first = self.first_encoder(torch.cat([own, onehot[:, 0], ents.flatten(-2)], -1))
         later_obs = obs[:, 1:]
         later = self.later_encoder(

@@ -5,7 +5,8 @@ network that must answer "where is the resource nearest to robot i" from absolut
 has to learn a subtraction and a norm before anything else; single-head attention cannot even
 express "nearest" (its logits are linear in the token). Here each robot gets the same entities
 as tokens ``[dx, dy, distance, vx, vy, type (robot, resource, invader, home), flag, defended,
-present, waypoints relative to robot i (robots only, 2K)]``, plus home as an entity, and its own
+waypoints relative to robot i (robots only, 2K), present]`` (present: :func:`relative_present`),
+plus home as an entity, and its own
 features ``[x, y, vx, vy, carry, defended, own waypoints relative to itself (2K)]``. The
 distance feature lets the attention logit prefer near entities. Same information as the flat
 state, a representation the networks learn from quickly (measured in
@@ -40,6 +41,12 @@ def relative_dims(layout: ObsLayout) -> tuple[int, int, int]:
     """``(own_dim, n_entities, entity_dim)`` of :func:`relative_tokens`."""
     K2 = 2 * layout.n_waypoints
     return 6 + K2, layout.state_tokens + 1, 12 + K2
+
+
+def relative_present(layout: ObsLayout) -> int:
+    """The column of a relative token's present flag (the robot attends to the entity): after its
+    waypoints, the token's last."""
+    return relative_dims(layout)[2] - 1
 
 
 def relative_tokens(state: torch.Tensor, layout: ObsLayout) -> torch.Tensor:
@@ -80,7 +87,7 @@ def relative_tokens(state: torch.Tensor, layout: ObsLayout) -> torch.Tensor:
             present,
         ],
         -1,
-    )  # present last (the mask)
+    )  # present at relative_present(layout)
     own_wp = me[..., WP].unflatten(-1, (-1, 2)) - my_pos.unsqueeze(-2)
     own = torch.cat([me[..., POS], me[..., VEL], me[..., FLAG_DEFENDED], own_wp.flatten(-2)], -1)
     return torch.cat([own, tokens.flatten(-2)], -1)  # own: [..., N, own_dim]
@@ -94,7 +101,7 @@ class RelativeStateEncoder(nn.Module):
         self.layout = layout
         own_dim, n_entities, entity_dim = relative_dims(layout)
         self.net = EntityAttentionEncoder(
-            own_dim + extra_own, n_entities, entity_dim, hidden, masked=True
+            own_dim + extra_own, n_entities, entity_dim, hidden, relative_present(layout)
         )
         self.own_dim = own_dim
 
