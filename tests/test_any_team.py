@@ -79,7 +79,7 @@ def pad_batch(items: TensorDict, layout, n_agents: int) -> TensorDict:
 
 def networks(cfg, layout):
     mods = make_modules(cfg, layout, "cpu", n_actions=N_ACTIONS)
-    return mods, make_loss(cfg, mods)
+    return mods, make_loss(cfg, mods, layout)
 
 
 @pytest.fixture(scope="module", params=["icco", "icco_flat_state", "qmix_full"])

@@ -112,6 +112,10 @@ class ICCOLoss(LossModule):
         reward_reduction: how per-agent rewards ``[S, L, N, 1]`` (TorchRL multi-agent envs such as
             VMAS) become the team reward: ``"mean"`` (TorchRL's QMIX example) or ``"sum"``.
         check_finite: raise :class:`NonFiniteLossError` on a NaN/inf loss (one host sync a call).
+        layout: the env's :class:`~icco_torchrl.envs.layout.ObsLayout`, with which the loss reads
+            who is present off the state (:meth:`~icco_torchrl.envs.layout.ObsLayout.robot_mask`;
+            a team of any size: absent robots are left out of L_CE and of the per-robot metrics);
+            None: every robot is (a fixed team, or an env without a layout).
 
     Left out, each setting is :data:`~icco_torchrl.objectives.defaults.LOSS_DEFAULTS`', the one
     ``icco train method=icco`` trains with: ``ICCOLoss(agent, mixer, coordinator, posterior)`` is
@@ -197,8 +201,10 @@ class ICCOLoss(LossModule):
         ce_clamp: bool = LOSS_DEFAULTS.ce_clamp,
         reward_reduction: str = "mean",
         check_finite: bool = True,
+        layout: ObsLayout | None = None,
     ):
         super().__init__()
+        self.layout = layout
         self._set_discount(gamma, td_lambda)
         _check_weights(ce_coef, entropy_coef, reward_reduction)
         net = agent.module
@@ -365,18 +371,6 @@ class ICCOLoss(LossModule):
             or getattr(self.agent.module, "full_state", False)
             or (not self._sequence_agent and self._reads_own_state())
         )
-
-    @property
-    def layout(self) -> ObsLayout | None:
-        """The env's :class:`~icco_torchrl.envs.layout.ObsLayout` as the coordinator, mixer or
-        posterior holds it (the first that does), or None: who is present is read off the state
-        with it (:meth:`~icco_torchrl.envs.layout.ObsLayout.robot_mask`); without one every robot
-        is (a fixed team, or an env without a layout)."""
-        for name in ("coordinator", "mixer", "posterior"):
-            layout = getattr(getattr(getattr(self, name, None), "module", None), "layout", None)
-            if layout is not None:
-                return layout
-        return None
 
     def _reads_own_state(self) -> bool:
         """Whether the (non-sequence) agent reads the state under its own key (not as its

@@ -142,7 +142,8 @@ def _make_coordination(m: DictConfig, layout, n_actions: int) -> tuple:
     return coordinator, posterior
 
 
-def make_loss(cfg: DictConfig, mods: dict) -> ICCOLoss:
+def make_loss(cfg: DictConfig, mods: dict, layout: ObsLayout) -> ICCOLoss:
+    """The loss of ``mods`` (:func:`make_modules`) for an env of ``layout``."""
     m, t = cfg.method, cfg.train
     return ICCOLoss(
         mods["agent"],
@@ -156,6 +157,7 @@ def make_loss(cfg: DictConfig, mods: dict) -> ICCOLoss:
         ce_coef=m.ce_coef if m.coordinator else 0.0,
         entropy_coef=m.entropy_coef if m.coordinator else 0.0,
         ce_clamp=t.ce_clamp,
+        layout=layout,
     )
 
 
@@ -249,7 +251,7 @@ def build(
         eps_end=t.eps_end,
         guide=guide,
     )
-    loss = make_loss(cfg, mods)
+    loss = make_loss(cfg, mods, layout)
     run = Run(
         cfg=cfg,
         env=env,
