@@ -1,6 +1,6 @@
 """Language layer: offline rule planner, prompts, litellm path, validation, fallbacks, cache.
 
-No test touches a network: replies come from litellm's ``mock_response``, from
+No test touches a network: replies come from litellm's ``mock_response`` (:func:`replying`), from
 custom providers registered in ``litellm.custom_provider_map``, or from a fake
 OpenAI-compatible server on 127.0.0.1 (``fake_openai.py``).
 """
@@ -15,11 +15,13 @@ import threading
 import time
 from pathlib import Path
 from typing import Any
+from unittest import mock
 
 import numpy as np
 import pytest
 from fake_openai import FakeOpenAI, closed_port
 
+from icco_torchrl.instructions import llm
 from icco_torchrl.instructions.llm import (
     LLMPlanner,
     LLMUnavailable,
@@ -81,6 +83,38 @@ def scripted(litellm: Any, monkeypatch: pytest.MonkeyPatch) -> Scripted:
     entry = {"provider": "scripted", "custom_handler": script.handler}
     monkeypatch.setattr(litellm, "custom_provider_map", [*litellm.custom_provider_map, entry])
     return script
+
+
+class Replying:
+    """litellm with the replies a test sets: its own ``mock_response``, one a request, the last
+    repeating (an exception is raised as the provider's error)."""
+
+    def __init__(self, module: Any, replies: Any):
+        self.module, self.requests = module, 0
+        self.replies = list(replies) if isinstance(replies, (list, tuple)) else [replies]
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.module, name)
+
+    def completion(self, **kwargs: Any) -> Any:
+        reply = self.replies[min(self.requests, len(self.replies) - 1)]
+        self.requests += 1
+        return self.module.completion(**kwargs, mock_response=reply)
+
+
+@contextlib.contextmanager
+def replying(replies: Any):
+    """Every planner's provider answers with ``replies`` (:class:`Replying`) in this block."""
+    import litellm as module
+
+    with mock.patch.object(llm, "_litellm", lambda: Replying(module, replies)):
+        yield
+
+
+def ask(planner: LLMPlanner, *args: Any, replies: Any, **kwargs: Any) -> Any:
+    """``planner.plan(*args, **kwargs)``, its provider answering ``replies``."""
+    with replying(replies):
+        return planner.plan(*args, **kwargs)
 
 
 def mocked(**settings: Any) -> LLMPlanner:
@@ -349,13 +383,13 @@ def test_mock_string_with_prose_is_parsed(litellm: Any) -> None:
     reply = valid_reply(
         value=1.5, prose="Movement Strategy: everyone to (1.5, -1.5).\nTrajectory Generation:\n"
     )
-    result = planner.plan("Go right", starts(0), mock_response=reply)
+    result = ask(planner, "Go right", starts(0), replies=reply)
     assert result.ok and result.attempts == 1 and result.raw == reply and result.fallback is None
     assert np.allclose(result.waypoints, [1.5, -1.5])
 
 
 def test_out_of_field_coordinates_are_clipped(litellm: Any) -> None:
-    result = mocked().plan("Go right", starts(0), mock_response=valid_reply(value=7.0))
+    result = ask(mocked(), "Go right", starts(0), replies=valid_reply(value=7.0))
     assert result.ok and np.allclose(result.waypoints, [HALF, -HALF])
 
 
@@ -403,7 +437,7 @@ def test_bad_output_is_retried_then_falls_back(
         max_retries=2, fallback_on_error=case not in BAD_REPLIES
     )  # no reply at all: opt in
     with caplog.at_level(logging.WARNING, logger="icco_torchrl.instructions.llm"):
-        result = planner.plan("Go right", pos, previous, mock_response=mock)
+        result = ask(planner, "Go right", pos, previous, replies=mock)
     assert not result.ok and result.attempts == 3 and result.error
     assert planner.stats == {
         "calls": 1,
@@ -432,7 +466,7 @@ def test_bad_output_is_retried_then_falls_back(
 def test_a_bad_reply_is_retried_until_a_good_one(litellm: Any) -> None:
     planner = mocked(max_retries=2)
     timeout = _errors(litellm)["timeout"]
-    result = planner.plan("Go right", starts(0), mock_response=["not json", timeout, valid_reply()])
+    result = ask(planner, "Go right", starts(0), replies=["not json", timeout, valid_reply()])
     assert result.ok and result.attempts == 3 and np.allclose(result.waypoints, [1.0, -1.0])
     assert planner.stats["failures"] == 2 and planner.stats["fallbacks"] == 0
 
@@ -440,7 +474,7 @@ def test_a_bad_reply_is_retried_until_a_good_one(litellm: Any) -> None:
 def test_mismatched_previous_falls_back_to_positions(litellm: Any) -> None:
     planner = mocked(max_retries=0)
     pos = starts(0)
-    result = planner.plan("Go right", pos, previous=np.zeros((2, K, 2)), mock_response="nope")
+    result = ask(planner, "Go right", pos, previous=np.zeros((2, K, 2)), replies="nope")
     assert result.fallback == "positions" and np.allclose(
         result.waypoints, pos[:, None].repeat(K, 1)
     )
@@ -465,14 +499,10 @@ def test_retry_shows_the_model_its_mistake(scripted: Scripted) -> None:
 
 def test_other_backends_never_raise_on_bad_output(litellm: Any) -> None:
     pos = starts(0)
-    waypoints = plan_waypoints(
-        "Go right",
-        pos,
-        backend="openai",
-        api_base="http://127.0.0.1:9",
-        max_retries=0,
-        mock_response="garbage",
-    )
+    with replying("garbage"):
+        waypoints = plan_waypoints(
+            "Go right", pos, backend="openai", api_base="http://127.0.0.1:9", max_retries=0
+        )
     assert np.allclose(waypoints, pos[:, None].repeat(K, 1))
 
 
@@ -509,7 +539,7 @@ def test_failures_are_not_cached_and_cache_can_be_disabled(
     offline_handler: Any, tmp_path: Path
 ) -> None:
     planner = mocked(cache_dir=tmp_path, max_retries=0)
-    assert not planner.plan("Go right", starts(0), mock_response="garbage").ok
+    assert not ask(planner, "Go right", starts(0), replies="garbage").ok
     assert list(tmp_path.glob("*.json")) == []
     uncached, before = LLMPlanner(cache_dir=None), offline_handler.invocations
     uncached.plan("Go right", starts(0))
@@ -675,7 +705,7 @@ def test_a_fake_openai_server_that_answers_gives_a_plan(litellm: Any, openai_key
 def test_a_bad_reply_still_falls_back_without_fallback_on_error(litellm: Any) -> None:
     planner = mocked(max_retries=1)
     assert not planner.fallback_on_error
-    result = planner.plan("Go right", starts(0), mock_response="no plan here")
+    result = ask(planner, "Go right", starts(0), replies="no plan here")
     assert (
         not result.ok
         and result.fallback == "positions"
@@ -694,7 +724,7 @@ def test_a_huge_reply_costs_one_short_error_a_few_log_lines_and_no_time(
     planner = mocked(max_retries=2, deadline_s=1.0)
     with caplog.at_level(logging.WARNING, logger="icco_torchrl.instructions.llm"):
         begin = time.monotonic()
-        result = planner.plan("Go right", starts(0), mock_response=huge)
+        result = ask(planner, "Go right", starts(0), replies=huge)
         elapsed = time.monotonic() - begin
     assert not result.ok and result.attempts == 3 and elapsed < 1.5
     assert result.error.startswith("reply too long: ") and len(result.error) < 100

@@ -40,7 +40,7 @@ import re
 import reprlib
 import threading
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
@@ -469,18 +469,15 @@ class LLMPlanner:
         *,
         resources: Any = None,
         invader: Any = None,
-        mock_response: str | BaseException | Sequence[str | BaseException] | None = None,
         cancel: threading.Event | None = None,
     ) -> PlanResult:
         """Waypoints for ``instruction`` given agent ``positions`` [N, 2] (metres).
 
         ``resources`` [R, 2] and ``invader`` [I, 2] fill the task-aligned prompt.
         ``previous`` [N, K, 2] is the fallback when every attempt fails (else the
-        current positions, i.e. "stay"). ``mock_response`` is passed to litellm
-        (tests); a sequence gives one entry per attempt, the last one repeating.
-        ``cancel``, once set, ends the plan with :class:`PlanCancelled` at its next wait (a
-        request still running is abandoned to its timeout, and counts in ``MAX_REQUESTS``).
-        """
+        current positions, i.e. "stay"). ``cancel``, once set, ends the plan with
+        :class:`PlanCancelled` at its next wait (a request still running is abandoned to its
+        timeout, and counts in ``MAX_REQUESTS``)."""
         pos = _points(positions, "positions")
         messages, fmt, key = self._request(instruction, pos, resources, invader)
         self.stats["calls"] += 1
@@ -491,7 +488,7 @@ class LLMPlanner:
         start = time.monotonic()
         deadline = start + self.deadline_s
         waypoints, raw, error, attempts, answered = self._ask(
-            litellm, instruction, messages, fmt, len(pos), mock_response, cancel, deadline
+            litellm, instruction, messages, fmt, len(pos), cancel, deadline
         )
         if waypoints is not None:
             self.cache.put(key, raw, model=self.model, messages=messages)
@@ -548,7 +545,6 @@ class LLMPlanner:
         messages: list[dict[str, str]],
         fmt: dict[str, Any],
         n_agents: int,
-        mock_response: Any,
         cancel: threading.Event | None,
         deadline: float,
     ) -> tuple[np.ndarray | None, str | None, str, int, bool]:
@@ -563,9 +559,7 @@ class LLMPlanner:
                 raise PlanCancelled(f"planning {instruction!r} was cancelled")
             raw, attempts, stop = None, attempt, False
             try:
-                raw = self._complete(
-                    litellm, conversation, fmt, _nth(mock_response, attempt - 1), remaining, cancel
-                )
+                raw = self._complete(litellm, conversation, fmt, remaining, cancel)
                 answered = True
                 waypoints = parse_reply(raw, n_agents, self.n_waypoints, self.field_size)
             except PlanCancelled:
@@ -616,11 +610,9 @@ class LLMPlanner:
         litellm: Any,
         messages: list[dict[str, str]],
         fmt: dict[str, Any],
-        mock: Any,
         remaining: float,
         cancel: threading.Event | None = None,
     ) -> str | None:
-        extra = {} if mock is None else {"mock_response": mock}
         self.stats["backend_calls"] += 1
         # max_retries=0: plan()'s loop owns the retry budget, not the OpenAI client inside litellm.
         # drop_params: a provider without JSON-schema support gets the prompt alone (we validate
@@ -636,7 +628,6 @@ class LLMPlanner:
                 api_base=self.api_base,
                 max_retries=0,
                 drop_params=True,
-                **extra,
             ),
             cancel,
             self._requests,
@@ -744,12 +735,6 @@ def _wait_for_slot(
             )
 
 
-def _nth(mock: Any, index: int) -> Any:
-    if isinstance(mock, (list, tuple)):
-        return mock[min(index, len(mock) - 1)]
-    return mock
-
-
 def _shown(raw: str | None) -> str | None:
     return None if raw is None else raw[:_SHOWN_CHARS]
 
@@ -781,16 +766,14 @@ def plan_waypoints(
 
     ``backend`` is "offline" (the rule planner), "openai", "ollama" or any
     litellm model string; ``context`` carries ``resources``, ``invader``,
-    ``previous``, ``mock_response`` and the :class:`LLMPlanner` settings
+    ``previous`` and the :class:`LLMPlanner` settings
     (``model`` overrides the backend's default model). With the offline
     backend an instruction it does not understand raises ``ValueError`` naming
     it; other backends return the planner's (possibly fallback) waypoints, and
     raise :class:`LLMUnavailable` when the provider never replies (unless
     ``fallback_on_error=True``).
     """
-    unknown = (
-        set(context) - set(_PLANNER_ARGS) - {"resources", "invader", "previous", "mock_response"}
-    )
+    unknown = set(context) - set(_PLANNER_ARGS) - {"resources", "invader", "previous"}
     if unknown:
         raise TypeError(f"plan_waypoints() got unexpected context {sorted(unknown)}")
     settings = {k: context.pop(k) for k in _PLANNER_ARGS if k in context}
