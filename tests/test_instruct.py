@@ -4,12 +4,14 @@ import json
 
 import pytest
 import torch
+from torchrl.envs.utils import step_mdp
 from fake_openai import closed_port
 from test_eval_cli import icco, smoke_checkpoints
 
 from icco_torchrl.commands.instruct import out_dir_name
 from icco_torchrl.envs import ResourceCollectionEnv
 from icco_torchrl.instructions import LLMPlanner, LLMSource
+from icco_torchrl.instructions.serving import DEFAULT_STEP
 from icco_torchrl.instructions.sources import split_instructions
 
 
@@ -67,23 +69,23 @@ def test_instruct_runs_a_schedule_of_instructions_and_writes_its_outputs(
         assert (out / name).stat().st_size > 0, name
 
 
-def test_offline_go_right_is_a_line_on_the_right_side():
+def test_offline_go_right_is_a_line_on_the_right_side_served_from_each_robot():
     env, td = scene()
     source = LLMSource(LLMPlanner(), "Go right")
     source.reset(env, td)
+    slots = source.slots
+    assert slots.shape == (4, 3, 2)
+    assert torch.allclose(slots[..., 0], torch.full((4, 3), 0.7 * env.half), atol=1e-2)
+    gaps = slots[..., 1].sort(-1).values.diff(dim=-1)
+    assert (gaps > 0.5).all()  # spread along y
     waypoints = source(env, td, 0)
     assert waypoints.shape == (4, 3, 4, 2)
-    final = waypoints[:, :, -1]
-    assert torch.allclose(
-        final[..., 0], torch.full((4, 3), 0.7 * env.half), atol=1e-2
-    )  # x on the right
-    gaps = final[..., 1].sort(-1).values.diff(dim=-1)
-    assert (gaps > 0.5).all()  # spread along y
-    assert (
-        (waypoints[:, :, 0] - env.pos).norm(dim=-1) < (final - env.pos).norm(dim=-1) + 1e-6
-    ).all()
+    # Served: the first waypoint a step from the robot, then a step apart, toward the slot.
+    steps = torch.cat([env.pos.unsqueeze(-2), waypoints], -2).diff(dim=-2).norm(dim=-1)
+    far = (slots - env.pos).norm(dim=-1) > 1.0 + 1e-3
+    assert torch.allclose(steps[far], torch.full_like(steps[far], DEFAULT_STEP), atol=1e-5)
     assert source.stats == {"plans": 4, "failures": 0, "fallbacks": 0, "cache_hits": 0}
-    assert source(env, td, 1) is None  # planned once per instruction
+    assert source.reading == "line at the right side"
 
 
 def test_task_aligned_prompt_sends_the_task_and_keeps_the_given_planner():
@@ -92,21 +94,34 @@ def test_task_aligned_prompt_sends_the_task_and_keeps_the_given_planner():
     source = LLMSource(planner, "Collect the resources and defend home", prompt="tap")
     assert planner.prompt == "plain" and source.prompt == "tap"
     source.reset(env, td)
-    final = source(env, td, 0)[:, :, -1]
+    final = source.slots
     to_resource = (final[:, :, None] - env.res_pos[:, None]).norm(dim=-1).min(-1).values
     assert (to_resource < 1e-2).any(-1).all()  # some robot is sent to a resource in every env
 
 
-def test_replanning_and_fallbacks_are_counted():
+def test_plans_are_asked_once_and_served_on_the_env_clock_and_fallbacks_counted():
     env, td = scene(num_envs=2)
-    source = LLMSource(LLMPlanner(), "Spread out", replan_every=3)
+    source = LLMSource(LLMPlanner(), "Spread out")
     source.reset(env, td)
-    planned = [step for step in range(7) if source(env, td, step) is not None]
-    assert planned == [0, 3, 6] and source.stats["plans"] == 6
+    served = []
+    for step in range(9):
+        waypoints = source(env, td, step)
+        if waypoints is not None:
+            served.append(int(env.t[0]))
+            env.write_waypoints(td, waypoints)
+        td = step_mdp(env.step(td.set(("agents", "action"), torch.zeros(2, 3, dtype=torch.long))))
+    assert served == [0, 4, 8]  # the env's waypoint interval, as in training
+    assert source.stats["plans"] == 2  # one request per env, for the whole instruction
+    fixed = LLMSource(LLMPlanner(), "Spread out", plan="fixed")
+    fixed.reset(env, td)
+    assert torch.equal(fixed(env, td, 0), fixed.server.routes[..., 1:, :])
+    assert fixed(env, td, 4) is None  # written once and kept
     lost = LLMSource(LLMPlanner(max_retries=0), "Dance please")
     lost.reset(env, td)
     assert lost.stats["fallbacks"] == 2 and "Dance please" in lost.errors[0]
-    assert torch.equal(lost(env, td, 0), env.waypoints)  # the previous waypoints are kept
+    assert torch.equal(lost.slots, env.waypoints[..., -1, :])  # the previous waypoints' ends
+    with pytest.raises(ValueError, match="plan must be one of"):
+        LLMSource(LLMPlanner(), "Go right", plan="sometimes")
 
 
 def test_unknown_instruction_is_a_clear_error_naming_it(checkpoint, tmp_path, capsys):

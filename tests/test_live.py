@@ -80,30 +80,41 @@ def test_ticks_step_the_team_and_report_it():
     assert isinstance(s.to_dict()["positions"], list)  # JSON-ready
 
 
-def test_the_plan_in_use_outlasts_the_episode_and_a_reset_keeps_it():
-    loop = team(planner=SlowPlanner(delay=0.0))
-    assert loop.snapshot().plan is None  # no instruction yet
+def test_the_instruction_outlasts_the_episode_and_is_planned_once_per_episode():
+    planner = SlowPlanner(delay=0.0)
+    loop = team(planner=planner)
+    assert loop.snapshot().plan is None and loop.snapshot().slots is None  # no instruction yet
     loop.instruct("Go right")
     assert loop.wait_for_plan(5).state == "used"
-    states = [loop.tick() for _ in range(45)]
+    states = []
+    for _ in range(45):
+        states.append(loop.tick())
+        loop.wait_for_plan(5)  # a new episode asks the planner again: let it answer
     assert states[39].episode == 1 and states[40].episode == 2
-    assert all(np.allclose(x.waypoints, 1.5) for x in states[1:])  # a new episode keeps it
+    assert all(np.allclose(x.slots, 1.5) for x in states)  # every plan's slots: (1.5, 1.5)
     assert all(x.plan == "Go right" for x in states)
-    assert loop.status.state == "used"
-    state = loop.reset()  # a reset is a new episode too: the instruction stays
-    assert state.episode == 3 and state.plan == "Go right" and np.allclose(state.waypoints, 1.5)
-    assert np.allclose(loop.tick().waypoints, 1.5) and loop.status.instruction == "Go right"
+    assert planner.calls == 2  # one request per instruction and episode
+    # The waypoints are served from where the robots are, toward their slots: never the plan's
+    # points as given (all at (1.5, 1.5)), except for a robot within a step of its slot.
+    far = [x for x in states if (x.slot_distance > 1.0).all()]
+    assert far and all(not np.allclose(x.waypoints, 1.5) for x in far)
+    state = loop.reset()  # a reset is a new episode too: the instruction stays, planned again
+    loop.wait_for_plan(5)
+    assert state.episode == 3 and state.plan == "Go right" and np.allclose(state.slots, 1.5)
+    assert planner.calls == 3 and loop.status.instruction == "Go right"
     assert state.totals["reward"] == 0.0 and loop.status.state == "used"
 
 
-def test_each_state_says_how_far_each_robot_is_from_its_plan():
+def test_each_state_says_how_far_each_robot_is_from_its_slot():
     loop = team(planner=SlowPlanner(delay=0.0))
     loop.instruct("Go right")
     loop.wait_for_plan(5)
-    for s in (loop.tick(), loop.snapshot()):  # every waypoint at (1.5, 1.5): the distance to it
+    for s in (loop.tick(), loop.snapshot()):  # every slot at (1.5, 1.5): the distance to it
         want = np.linalg.norm(s.positions - 1.5, axis=1)
-        assert np.allclose(s.plan_distance, want, atol=2e-3) and (want > 0.01).any()
-    assert isinstance(s.to_dict()["plan_distance"], list)
+        assert np.allclose(s.slot_distance, want, atol=2e-3) and (want > 0.01).any()
+        assert np.array_equal(s.at_slot, want <= 0.5)
+    assert isinstance(s.to_dict()["slot_distance"], list)
+    assert isinstance(s.to_dict()["formation"], bool)
 
 
 def test_the_mean_over_finished_episodes_leaves_out_one_cut_short():
@@ -139,14 +150,21 @@ def test_an_instruction_is_planned_beside_the_loop_and_applied_on_the_next_tick(
     assert np.allclose(during[-1].waypoints, before)
     assert loop.wait_for_plan(5).state == "used"
     after = loop.tick()
-    assert np.allclose(after.waypoints, 1.5) and after.planner["instruction"] == "Go right"
+    assert np.allclose(after.slots, 1.5) and after.planner["instruction"] == "Go right"
+    # Served from where each robot was: its first waypoint one step toward (1.5, 1.5).
+    first = after.waypoints[:, 0] - during[-1].positions
+    toward = 1.5 - during[-1].positions
+    cos = (
+        (first * toward).sum(-1) / np.linalg.norm(first, axis=-1) / np.linalg.norm(toward, axis=-1)
+    )
+    assert (cos > 0.99).all()
 
 
 def test_an_unknown_instruction_is_reported_and_the_last_plan_kept():
     loop = team(planner=LLMPlanner(fallback_on_error=True))  # the offline rule planner
     loop.instruct("Go right")
     assert loop.wait_for_plan(30).state == "used"
-    planned = loop.tick().waypoints
+    planned = loop.tick().slots
     loop.instruct("make me a sandwich")
     status = loop.wait_for_plan(30)
     assert status.state == "fell back" and status.error
@@ -154,7 +172,7 @@ def test_an_unknown_instruction_is_reported_and_the_last_plan_kept():
     assert status.understood == understood_phrases("anything else", 3.25)
     assert "spread out" in status.understood and "quadrant 1-4" in status.understood
     assert status.unused is None and status.hint is None
-    assert np.allclose(loop.tick().waypoints, planned)
+    assert np.allclose(loop.tick().slots, planned)  # the plan in use stays
     with pytest.raises(ValueError, match="non-empty"):
         loop.instruct("   ")
     with pytest.raises(ValueError, match=f"too long: {MAX_INSTRUCTION + 1} characters"):
@@ -165,15 +183,20 @@ def test_an_unknown_instruction_is_reported_and_the_last_plan_kept():
     loop.instruct("flank the intruder")
     assert loop.wait_for_plan(30).reading == "defend home"
     assert [s.state for s in seen] == ["thinking", "used"] and seen[-1] is loop.status
-    # Words a keyword match did not use are named: "right" did not make it into the reading.
+    # Words the reading did not rest on are named, and never silently another intent: the
+    # invader is the object of "avoiding", which the planner cannot do.
     loop.instruct("Go right avoiding the invader")
     status = loop.wait_for_plan(30)
-    assert status.reading == "defend home" and status.unused == ["right", "avoiding"]
+    assert status.reading == "line at the right side" and status.unused == ["avoiding", "invader"]
+    loop.instruct("Gather center")
+    assert loop.wait_for_plan(30).unused == []  # "gather" is read: a cluster, not a line
+    loop.instruct("Defend home")
+    assert loop.wait_for_plan(30).unused == []  # "home" is what is defended
     loop.instruct("Go right")
     assert loop.wait_for_plan(30).unused == [] and loop.status.understood is None
 
 
-def test_words_are_unused_only_when_the_reading_holds_without_them():
+def test_words_are_unused_when_the_reading_does_not_rest_on_them():
     assert unused_words("flank the intruder", 3.25) == ["flank"]
     assert unused_words("gather at the top, quickly!", 3.25) == ["quickly"]
     assert unused_words("collect the resources", 3.25) == []  # either word alone would do
@@ -223,7 +246,7 @@ def test_a_newer_instruction_supersedes_one_still_being_planned():
     time.sleep(0.4)  # the first answer arrives late and is dropped
     # "Go right" was planned, or replaced before the planner thread took it.
     assert loop.status.instruction == "Move top" and planner.calls in (1, 2)
-    assert loop.status.state == "used" and np.allclose(loop.tick().waypoints, 1.5)
+    assert loop.status.state == "used" and np.allclose(loop.tick().slots, 1.5)
 
 
 @pytest.fixture
@@ -323,7 +346,7 @@ def test_robots_join_and_leave_between_ticks_and_the_team_keeps_acting():
     assert not loop.td["agents", "z"][0, 3].any() and loop.td["agents", "present"][0, 3, 0]
     assert loop.wait_for_plan(5).state == "used" and planner.teams == [3, 4]  # planned again
     start = loop.tick()
-    assert np.allclose(start.waypoints[:4], 2.0) and start.present[3]
+    assert np.allclose(start.slots[:4], 2.0) and start.present[3]
     for _ in range(15):
         state = loop.tick()
     moved = np.linalg.norm(state.positions - start.positions, axis=-1)

@@ -7,7 +7,9 @@
 
 Instructions separated by ``;`` are given one after the other, ``eval.steps`` (145) steps
 each, in one episode per trial; the planner (``cfg.llm``) is prompted once per instruction
-with the robots' positions at that moment (``eval.replan_every`` re-prompts more often). The
+with the robots' positions at that moment, and its plan is served to the robots as the walks
+they trained on (``eval.plan``; :mod:`icco_torchrl.instructions.serving`). How the planner read
+each instruction is printed, with the words it did not understand. The
 metrics, tables and figures are those of ``icco eval`` (one segment per instruction), written
 to ``eval.out_dir`` or ``instruct_<instructions>_<hash>/`` next to the checkpoint(s) (under
 ``runs/<checkpoint name>/`` for checkpoints that ship with the project). A remote
@@ -33,7 +35,7 @@ from icco_torchrl.evaluation.runner import (
     write_report,
 )
 from icco_torchrl.instructions.llm import LLMPlanner, LLMUnavailable
-from icco_torchrl.instructions.planner import check_understood, is_offline
+from icco_torchrl.instructions.planner import check_understood, how_read, is_offline
 from icco_torchrl.instructions.sources import language_schedule, split_instructions
 
 
@@ -70,6 +72,8 @@ def run_instruct(cfg: DictConfig, run_dir: str | Path, instruction: str) -> floa
         offline = is_offline(planner.model)
         if offline:
             check_understood(instructions, field_size / 2)
+            for text in instructions:
+                print(how_read(text, field_size / 2), flush=True)
         paths = find_checkpoints(cfg)
         name = out_dir_name(instructions)
         out_dir = results_dir(cfg.eval.out_dir, paths, name)
@@ -84,8 +88,8 @@ def run_instruct(cfg: DictConfig, run_dir: str | Path, instruction: str) -> floa
                 planner,
                 instructions,
                 cfg.eval.steps,
-                replan_every=cfg.eval.replan_every,
                 strict=offline,
+                plan=cfg.eval.plan,
             ),
             gif_stem=out_dir / "instruct" if cfg.eval.gif else None,
             label_suffix=methods.TAP if planner.prompt == "tap" else "",
@@ -101,7 +105,7 @@ def run_instruct(cfg: DictConfig, run_dir: str | Path, instruction: str) -> floa
                 model=planner.model,
                 prompt=planner.prompt,
                 instructions=instructions,
-                replan_every=cfg.eval.replan_every,
+                plan=cfg.eval.plan,
             ),
         )
 

@@ -6,6 +6,11 @@ over one) through its public state, batched over envs in pure torch:
 * ``random``: uniform random actions (its own seeded generator).
 * ``follower``: greedy on the instruction reward: each robot takes the action whose predicted
   ``r_inst`` (the env's own kernel, one step ahead) is largest. Ignores the task.
+* ``pursuit``: a perfect path follower: each robot steers to the waypoint after its nearest one
+  (the next point of its route; the last one once it is at the end), at full speed. The
+  ``follower`` can stall where this one cannot: ``r_inst``'s cosine does not see speed, so on a
+  diagonal path coasting to a halt along the path's direction scores more than any of the axis
+  moves (experiments/language/serving/README.md). Ignores the task.
 * ``heuristic``: full-information task policy: for each active invader the robot that can
   intercept it soonest goes to the interception point (the invader walks straight home, so its
   future positions are known); robots carrying a resource go home; the others take the nearest
@@ -54,7 +59,7 @@ from tensordict import TensorDictBase
 from icco_torchrl.envs._kernels import batch_last, motion
 from icco_torchrl.envs.resource_collection import N_ACTIONS, ResourceCollectionEnv
 
-REFERENCE_POLICIES = ("random", "follower", "heuristic", "blend", "best_scripted")
+REFERENCE_POLICIES = ("random", "follower", "pursuit", "heuristic", "blend", "best_scripted")
 ROLES = ("defend", "collect", "deliver")  # a role blend's radii, in this order
 DEFEND, COLLECT, DELIVER = range(len(ROLES))
 ACTION_KEY = ("agents", "action")
@@ -162,6 +167,18 @@ class FollowerPolicy(ReferencePolicy):
 
     def act(self) -> torch.Tensor:
         return lookahead(self.env)[1].argmax(-1)
+
+
+class PursuitPolicy(ReferencePolicy):
+    name = "pursuit"
+
+    def act(self) -> torch.Tensor:
+        env = self.env
+        wp = env.waypoints  # [B, N, K, 2]
+        nearest = (wp - env.pos.unsqueeze(-2)).norm(dim=-1).argmin(-1, keepdim=True)  # [B, N, 1]
+        ahead = (nearest + 1).clamp_max(wp.shape[-2] - 1)
+        target = wp.gather(-2, ahead.unsqueeze(-1).expand(*ahead.shape, 2)).squeeze(-2)
+        return steer(lookahead(env)[0], target)
 
 
 class HeuristicPolicy(ReferencePolicy):
@@ -373,6 +390,8 @@ def make_reference_policy(
         return RandomPolicy(env, seed=seed)
     if kind == "follower":
         return FollowerPolicy(env)
+    if kind == "pursuit":
+        return PursuitPolicy(env)
     if kind == "heuristic":
         return HeuristicPolicy(env)
     if radii is None and radius is None:

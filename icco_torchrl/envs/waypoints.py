@@ -35,7 +35,7 @@ def base_env(env) -> ResourceCollectionEnv:
     return getattr(env, "base_env", env)
 
 
-def _refresh_mask(env: ResourceCollectionEnv, step: int, interval: int) -> torch.Tensor:
+def refresh_mask(env: ResourceCollectionEnv, step: int, interval: int) -> torch.Tensor:
     """Envs whose waypoints are due: at the instruction's first step, then whenever the
     env's own step count is a multiple of ``interval``.
 
@@ -53,6 +53,12 @@ class InstructionSource(ABC):
     """
 
     quadrant: int | None = None
+    instruction: str | None = None  # the words a person gave, for sources that carry them
+
+    @property
+    def slots(self) -> torch.Tensor | None:
+        """``[B, N, 2]``: where each robot is meant to end up, for sources that say (plans)."""
+        return None
 
     def reset(self, env, td: TensorDictBase) -> None:  # noqa: B027 (an optional hook)
         """The instruction starts now (episode or segment start); ``env`` is in its start state."""
@@ -90,7 +96,7 @@ class _NoisySource(InstructionSource):
         """``(raw env, sigma, due mask [B])`` when some env refreshes at this step, else None."""
         env = base_env(env)
         sigma, interval = self.settings(env)
-        due = _refresh_mask(env, step, interval)
+        due = refresh_mask(env, step, interval)
         return (env, sigma, due) if bool(due.any()) else None
 
 

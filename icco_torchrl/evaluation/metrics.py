@@ -22,6 +22,7 @@ from icco_torchrl import methods
 from icco_torchrl.envs.reference_policies import BEST_SCRIPTED_LABEL, reference_key
 from icco_torchrl.envs.resource_collection import EVENTS
 from icco_torchrl.envs.waypoints import QUADRANT_SIGNS
+from icco_torchrl.evaluation import placement
 from icco_torchrl.training.logger import read_column
 
 # Summed over steps: team reward, its instruction part, its task part, and the event counts.
@@ -31,7 +32,15 @@ ADDITIVE = ("reward", "task_reward", "inst_reward", *EVENTS)
 # broadcast rate, the share of present robots that received a coordinator's z (NaN without one;
 # over a whole segment: the share of robot-steps, 1/T when every robot gets z every T steps).
 AVERAGED = ("waypoint_dist", "in_quadrant", "broadcast_rate")
-METRICS = ADDITIVE + AVERAGED
+# Averaged over each segment's second half, when the team has had time to get there
+# (:mod:`icco_torchrl.evaluation.placement`; NaN where the source has no plan or the instruction
+# no region): the share of robots at their own slot, of steps with every robot that is not
+# intercepting at its slot, and of steps with at least n - 1 of n robots where the instruction
+# says ("in place").
+SECOND_HALF = ("at_slot", "formation", "in_place")
+# Steps from the segment's start until the formation first holds (its length when it never does).
+TIME_TO_SLOT = "time_to_slot"
+METRICS = ADDITIVE + AVERAGED + SECOND_HALF + (TIME_TO_SLOT,)
 EPISODE = "episode"  # the segment name of a whole-episode row
 # Every report states a team's reward as a share of the best scripted team's on the same episodes
 # (reference_policies.BEST_SCRIPTED): this column in tables, this key in results.json.
@@ -58,10 +67,13 @@ def step_values(
     quadrant: int | None,
     sent: torch.Tensor | None = None,
     present: torch.Tensor | None = None,
+    slots: torch.Tensor | None = None,
+    judge: placement.Judge | None = None,
 ) -> dict[str, torch.Tensor]:
     """This step's ``[B]`` values from the raw env (after the step) and its ``"next"`` td;
     ``sent [B, N, 1]`` marks the robots a coordinator sent z to, among ``present [B, N]`` (default:
-    every robot)."""
+    every robot); ``slots [B, N, 2]`` are the plan's slots and ``judge`` the instruction's region
+    (:func:`~icco_torchrl.evaluation.placement.region`), when there are."""
     reward = nxt.get("reward").reshape(-1).float()
     inst = nxt.get(("events", "inst_reward")).float()
     out = {"reward": reward, "task_reward": reward - inst, "inst_reward": inst}
@@ -73,6 +85,7 @@ def step_values(
     else:
         signs = torch.tensor(QUADRANT_SIGNS[quadrant], device=env.pos.device)
         out["in_quadrant"] = (env.pos * signs > 0).all(-1).float().mean(-1)
+    out.update(_placement(env, reward, present, slots, judge))
     if sent is None:
         out["broadcast_rate"] = torch.full_like(reward, math.nan)
     else:
@@ -80,6 +93,31 @@ def step_values(
         team = torch.ones_like(sent) if present is None else present.reshape(sent.shape).float()
         out["broadcast_rate"] = (sent * team).sum(-1) / team.sum(-1).clamp_min(1.0)
     return out
+
+
+def _placement(env, reward, present, slots, judge) -> dict[str, torch.Tensor]:
+    """The :data:`SECOND_HALF` step values (NaN without slots, or without a region)."""
+    nan = torch.full_like(reward, math.nan)
+    team = torch.ones(env.pos.shape[:-1], dtype=torch.bool, device=env.pos.device)
+    team = team if present is None else present.reshape(team.shape).bool()
+    out = {"at_slot": nan, "formation": nan, "in_place": nan}
+    if slots is not None:
+        at = placement.at_slot(env.pos, slots)
+        out["at_slot"] = (at & team).sum(-1) / team.sum(-1).clamp_min(1)
+        excused = placement.intercepting(env.pos, team, env.inv_pos, env.inv_active)
+        out["formation"] = placement.formation(at, team, excused).float()
+    if judge is not None:
+        out["in_place"] = placement.in_place(judge(env.pos, team), team).float()
+    return out
+
+
+def time_to_slot(formation: np.ndarray) -> float:
+    """Steps until ``formation`` (a segment's per-step values) first holds; its length when it
+    never does; NaN without a plan."""
+    if not np.isfinite(formation).any():
+        return math.nan
+    held = np.flatnonzero(formation > 0)
+    return float(held[0] + 1) if len(held) else float(len(formation))
 
 
 def trial_rows(
@@ -101,10 +139,21 @@ def trial_rows(
             for key in ADDITIVE:
                 row[key] = float(per_step[key][start:stop, b].sum())
             for key in AVERAGED:
-                values = per_step[key][start:stop, b]
-                row[key] = float(np.nanmean(values)) if np.isfinite(values).any() else math.nan
+                row[key] = _mean(per_step[key][start:stop, b])
+            parts = list(zip(names, bounds)) if name == EPISODE else [(name, (start, stop))]
+            for key in SECOND_HALF:
+                row[key] = _mean(np.concatenate(
+                    [per_step[key][(a + z) // 2 : z, b] for _, (a, z) in parts]
+                ))  # fmt: skip
+            row[TIME_TO_SLOT] = _mean(
+                np.array([time_to_slot(per_step["formation"][a:z, b]) for _, (a, z) in parts])
+            )
             rows.append(row)
     return rows
+
+
+def _mean(values: np.ndarray) -> float:
+    return float(np.nanmean(values)) if np.isfinite(values).any() else math.nan
 
 
 def _stats(values: np.ndarray) -> tuple[float, float]:
@@ -160,7 +209,8 @@ def markdown_table(
     in ``missing`` get a row saying so, so a comparison never silently loses one. Metrics
     without a value in any row (``in_quadrant`` without quadrants) are left out. With a best
     scripted row, a column gives each team reward as a share of its (:data:`SHARE`)."""
-    digits = {"waypoint_dist": 2, "in_quadrant": 2, "broadcast_rate": 3}
+    digits = {"waypoint_dist": 2, "in_quadrant": 2, "broadcast_rate": 3, TIME_TO_SLOT: 0}
+    digits.update(dict.fromkeys(SECOND_HALF, 2))
     rows = [row for row in summary if row["segment"] == segment]
     metrics = (
         [m for m in metrics if any(math.isfinite(row[m]) for row in rows)]
@@ -231,6 +281,8 @@ RESULT_METRICS = (
     "defense",
     "invasion",
     "in_quadrant",
+    *SECOND_HALF,
+    TIME_TO_SLOT,
 )
 
 

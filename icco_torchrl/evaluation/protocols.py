@@ -25,6 +25,7 @@ from icco_torchrl.envs.waypoints import (
     base_env,
 )
 from icco_torchrl.evaluation.metrics import step_values, trial_rows
+from icco_torchrl.evaluation.placement import region
 
 Schedule = Sequence[tuple[str, InstructionSource, int]]
 # Raw-env state recorded before the first step and after every step: [T + 1, B, ...].
@@ -148,6 +149,7 @@ def _play(
         record_state()
         for _, source, steps in schedule:
             source.reset(env, td)
+            judge = region(source.instruction, raw.half) if source.instruction else None
             for step in range(steps):
                 new = source(env, td, step)
                 if new is not None:
@@ -158,7 +160,16 @@ def _play(
                 sent = td.get(("agents", "z_sent"), None)  # a coordinator's broadcast this step
                 record_state()
                 values.append(
-                    step_values(raw, td.get("next"), waypoints[-1], source.quadrant, sent, present)
+                    step_values(
+                        raw,
+                        td.get("next"),
+                        waypoints[-1],
+                        source.quadrant,
+                        sent,
+                        present,
+                        slots=source.slots,
+                        judge=judge,
+                    )  # fmt: skip
                 )
                 td = step_mdp(td)
     return states, waypoints, values

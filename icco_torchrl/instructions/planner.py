@@ -31,6 +31,7 @@ provider turns that into a machine-readable ``{"error": ...}`` reply.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
 import re
@@ -44,9 +45,10 @@ DEFAULT_MODEL = f"{PROVIDER}/rule-planner"
 
 # Formation geometry, as fractions of the half field width h.
 SIDE_OFFSET = 0.7  # a line "on the right" sits at x = 0.7 h
-DIAGONAL_OFFSET = 0.6  # a line "top right" is centred at (0.6 h, 0.6 h)
+DIAGONAL_OFFSET = 0.75  # "top right" is centred at (0.75 h, 0.75 h), inside the corner
 LINE_SPACING = 0.5  # at most 0.5 h between neighbours on a line ...
 LINE_EXTENT = 1.4  # ... and the whole line at most 1.4 h long
+CORNER_SPACING = 0.6  # metres between neighbours on a diagonal line (it sits in a corner)
 SPREAD_RADIUS = 0.85  # "spread out": circle of radius 0.85 h around home
 CIRCLE_RADIUS = 0.5  # "form a circle" around home
 LOCAL_RADIUS = 0.25  # a circle at a quadrant or off-centre place
@@ -89,6 +91,14 @@ _CIRCLE = _words(r"circle|ring|encircle|surround")
 _HORIZONTAL = _words(r"horizontal(?:ly)?")
 _VERTICAL = _words(r"vertical(?:ly)?")
 _HOLD = _words(r"stop|stay|halt|hold|freeze|wait|remain|stand still")
+# Words that only name a formation or a place's shape: read when a formation or a place is.
+_FORMATION_VERB = _words(r"form|make|create|arrange|take|get|position|place|line up")
+_PLACE_NOUN = _words(r"side|edge|corner|border|end|part|half|area|region|zone|wall")
+# Verbs that make a task order of a sentence even beside a place ("defend home"); the task's
+# nouns alone ("the invader") make one only when no formation or place is named.
+_TASK_VERB = _words(
+    r"collect|pick|grab|fetch|harvest|defend|protect|guard|intercept|chase|attack|catch"
+)
 _NEGATION = _words(r"don't|dont|do not|never|avoid|not|no longer")
 _COLLECT = _words(r"collect|pick|grab|fetch|harvest|resources?")
 _DEFEND = _words(r"defend|protect|guard|intercept|invaders?|intruders?|enemy|enemies")
@@ -138,6 +148,8 @@ class Intent:
     collect: bool = False
     defend: bool = False
     description: str = ""
+    direction: tuple[float, float] = (0.0, 0.0)  # the side or corner named, if any
+    words: frozenset[str] = frozenset()  # the instruction's words this reading rests on
 
 
 def _quadrant(text: str) -> int | None:
@@ -169,14 +181,24 @@ def _side_anchor(direction: tuple[float, float], half: float) -> tuple[float, fl
     return dx * offset, dy * offset
 
 
-def _task_intent(text: str) -> Intent | None:
+def _hits(pattern: re.Pattern[str], text: str) -> set[str]:
+    """The words of ``text`` that ``pattern`` matched."""
+    return {word for match in pattern.finditer(text) for word in match.group(0).split()}
+
+
+def _task_intent(text: str, words: set[str]) -> Intent | None:
     whole = bool(_WHOLE_TASK.search(text))
     collect = whole or bool(_COLLECT.search(text))
     defend = whole or bool(_DEFEND.search(text))
     if not (collect or defend):
         return None
     parts = [p for p, on in (("collect resources", collect), ("defend home", defend)) if on]
-    return Intent("task", collect=collect, defend=defend, description=" and ".join(parts))
+    used = set(words) | _hits(_WHOLE_TASK, text) | _hits(_COLLECT, text) | _hits(_DEFEND, text)
+    used |= _hits(_CENTRE, text) if defend else set()  # "defend home": home is what is defended
+    return Intent(
+        "task", collect=collect, defend=defend, description=" and ".join(parts),
+        words=frozenset(used),
+    )  # fmt: skip
 
 
 def _line_axis(text: str, direction: tuple[float, float]) -> tuple[float, float]:
@@ -232,28 +254,64 @@ def parse(instruction: str, half: float) -> Intent:
 
     The place (point > quadrant > direction > centre) and the formation words
     are found independently and then combined, so "gather at the top" and
-    "line up in quadrant 2" work without listing every combination.
+    "line up in quadrant 2" work without listing every combination. A task verb
+    ("defend", "collect") makes a task order; the task's nouns alone ("the
+    invader") make one only when no formation or place is named, so "form a
+    line at the bottom while avoiding the invader" is a line (with "avoiding"
+    and "invader" left unread: :attr:`Intent.words` says what was read).
     """
     text = _normalise(instruction)
     if _NEGATION.search(text):
         raise UnknownInstruction(f"negated instruction {instruction!r} is not supported")
-    task = _task_intent(text)
-    if task is not None:
-        return task
-
     point, quadrant = _point(text), _quadrant(text)
     direction = _direction(text, instruction)
     anchor, place = _place(text, point, quadrant, direction, half)
+    shaped = any(p.search(text) for p in (_LINE, _SPREAD, _CIRCLE, _GATHER, _HOLD))
+    named = point is not None or quadrant is not None or direction != (0.0, 0.0)
+    words = _place_words(text, point, quadrant, direction, anchor)
+    task = _task_intent(text, words)
+    if task is not None and (_TASK_VERB.search(text) or _WHOLE_TASK.search(text) or not (
+            shaped or named)):  # fmt: skip
+        return task
+    intent = _formation(text, anchor, place, direction, point, quadrant, half)
+    if intent is None:
+        raise UnknownInstruction(f"unknown instruction: {instruction!r}; understood: {_SUPPORTED}")
+    used = words | _hits(_FORMATION_VERB, text) | (_hits(_PLACE_NOUN, text) if named else set())
+    for pattern in (_LINE, _SPREAD, _CIRCLE, _GATHER, _HOLD, _HORIZONTAL, _VERTICAL):
+        used |= _hits(pattern, text)
+    said = instruction.lower().replace("\u2019", "'")  # phrases the normalisation folded
+    used |= _hits(_PARTICLE, said)
+    used |= _hits(_HOLD_NEGATED, said) if intent.kind == "hold" else set()
+    return dataclasses.replace(intent, direction=direction, words=frozenset(used))
+
+
+def _place_words(text, point, quadrant, direction, anchor) -> set[str]:
+    """The words that named the place :func:`_place` chose."""
+    if point is not None:
+        return {w for m in _POINT.finditer(text) for w in m.group(0).split()}
+    if quadrant is not None:
+        return {w for p in _QUADRANT for m in p.finditer(text) for w in m.group(0).split()}
+    if direction != (0.0, 0.0):
+        return set().union(*(_hits(p, text) for p in _DIRECTION.values()))
+    return _hits(_CENTRE, text) if anchor is not None else set()
+
+
+def _formation(text, anchor, place, direction, point, quadrant, half) -> Intent | None:
+    """The formation the instruction's words ask for at its place."""
     centred = anchor is None or anchor == (0.0, 0.0)
     spread = bool(_SPREAD.search(text))
     sided = direction != (0.0, 0.0) and point is None and quadrant is None
+    corner = sided and direction[0] != 0.0 and direction[1] != 0.0
 
-    if _LINE.search(text) or (spread and sided):
+    if _LINE.search(text) or (spread and sided) or (sided and not corner and not (
+            _GATHER.search(text) or _CIRCLE.search(text))):  # fmt: skip
         return Intent("line", anchor or (0.0, 0.0), _line_axis(text, direction),
                       description=f"line at {place or 'the centre'}")  # fmt: skip
     if spread and centred:
         return Intent("spread", (0.0, 0.0), radius=SPREAD_RADIUS * half,
                       description="spread radially away from the centre")  # fmt: skip
+    if corner and not _CIRCLE.search(text):
+        return Intent("cluster", anchor, description=f"gather in {place.replace('side', 'corner')}")
     if _CIRCLE.search(text) or spread:
         radius = (CIRCLE_RADIUS if centred else LOCAL_RADIUS) * half
         return Intent("circle", anchor or (0.0, 0.0), radius=radius,
@@ -264,11 +322,9 @@ def parse(instruction: str, half: float) -> Intent:
         return Intent(
             "circle", anchor, radius=LOCAL_RADIUS * half, description=f"move into {place}"
         )
-    if sided:
-        return Intent("line", anchor, _line_axis(text, direction), description=f"line at {place}")
     if _HOLD.search(text):
         return Intent("hold", description="hold the current positions")
-    raise UnknownInstruction(f"unknown instruction: {instruction!r}; understood: {_SUPPORTED}")
+    return None
 
 
 def _ring_slots(positions: np.ndarray, centre: np.ndarray, radius: float) -> np.ndarray:
@@ -295,6 +351,8 @@ def _line_slots(
     """Evenly spaced points along ``axis`` through ``anchor``; agents keep their order along it."""
     n = len(positions)
     spacing = min(LINE_SPACING * half, LINE_EXTENT * half / max(n - 1, 1))
+    if axis[0] and axis[1]:  # a diagonal line sits in a corner: keep it there
+        spacing = min(spacing, CORNER_SPACING)
     offsets = (np.arange(n) - (n - 1) / 2.0) * spacing
     order = np.argsort(positions @ axis, kind="stable")
     targets = np.empty_like(positions)
@@ -521,6 +579,62 @@ def register_offline_provider(litellm: Any) -> Any:
 def is_offline(model: str) -> bool:
     """Whether a litellm model name is this offline rule planner."""
     return model.startswith(f"{PROVIDER}/")
+
+
+FILLER = frozenset(
+    "a an the to and at in on of for do with into onto toward towards please go move head now "
+    "then out all you your team robots robot everyone everybody".split()
+)  # words nobody expects a formation from: never named as not understood
+_PUNCTUATION = "\"'.,;:!?()[]{}\u201c\u201d\u2018\u2019"
+
+
+def unread_words(instruction: str, half: float, limit: int = 12) -> list[str]:
+    """The words of ``instruction`` its reading (:func:`parse`) did not rest on, at most
+    ``limit`` different ones (not :data:`FILLER`); empty when it is not understood at all.
+
+    "Go right avoiding the invader" is a line at the right side: "avoiding" and "invader" are
+    named, since the planner cannot avoid anything and a person must not think it does.
+
+    >>> unread_words("Form a line along the bottom edge while avoiding the invader", 3.25)
+    ['along', 'while', 'avoiding', 'invader']
+    """
+    try:
+        read = {_bare(word) for word in parse(instruction, half).words}
+    except UnknownInstruction:
+        return []
+    unread, seen = [], set()
+    for token in instruction.split():
+        word = token.strip(_PUNCTUATION)
+        key = _bare(word)
+        if not key or key in FILLER | seen | read:
+            continue
+        seen.add(key)  # a word said twice is named once
+        unread.append(word)
+        if len(unread) == limit:
+            break
+    return unread
+
+
+def _bare(word: str) -> str:
+    return word.lower().replace("\u2019", "'").strip(_PUNCTUATION)
+
+
+def how_read(instruction: str, half: float) -> str:
+    """One line: how the rule planner reads ``instruction``, and a warning naming the words it
+    did not understand (:func:`unread_words`).
+
+    >>> how_read("Gather center", 3.25)
+    '"Gather center": gather at the centre'
+    >>> how_read("Go right quickly", 3.25)
+    '"Go right quickly": line at the right side (warning: not understood: quickly)'
+    """
+    try:
+        reading = parse(instruction, half).description
+    except UnknownInstruction as err:
+        return f"{json.dumps(instruction)}: not understood ({str(err).split('; ')[0]})"
+    unread = unread_words(instruction, half)
+    warning = f" (warning: not understood: {', '.join(unread)})" if unread else ""
+    return f"{json.dumps(instruction)}: {reading}{warning}"
 
 
 def check_understood(instructions: list[str], half: float) -> None:

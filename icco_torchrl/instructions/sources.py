@@ -1,5 +1,5 @@
 """Language instructions as a waypoint source: :class:`LLMSource` plans an instruction into
-waypoints.
+routes and serves them (:mod:`icco_torchrl.instructions.serving`).
 
 The other sources (random walk, quadrant reference, fixed waypoints) and their base class live
 in :mod:`icco_torchrl.envs.waypoints` and are exported from :mod:`icco_torchrl.envs`.
@@ -8,25 +8,35 @@ in :mod:`icco_torchrl.envs.waypoints` and are exported from :mod:`icco_torchrl.e
 from __future__ import annotations
 
 import copy
+import re
 
 import numpy as np
 import torch
 
-from icco_torchrl.envs.waypoints import InstructionSource, base_env
-from icco_torchrl.instructions.llm import PROMPTS, LLMPlanner
+from icco_torchrl.envs.waypoints import InstructionSource, base_env, refresh_mask
+from icco_torchrl.instructions.llm import PROMPTS, LLMPlanner, last_json_object
+from icco_torchrl.instructions.serving import DEFAULT_STEP, PLAN_INTERFACES, PlanServer, check_step
 
 
 class LLMSource(InstructionSource):
-    """A language instruction, planned into waypoints by :class:`LLMPlanner` for each env.
+    """A language instruction, planned into routes by :class:`LLMPlanner` and served to the team.
 
-    As in the paper, the LLM is prompted once when the instruction is given (``reset``), with
-    the robots' current positions; ``replan_every`` re-prompts every that many steps instead.
+    The planner is asked once per env when the instruction is given (``reset``), with the
+    robots' positions then: one request per instruction and episode, as in the paper ("each time
+    a language instruction was given, the prompt was re-fed to the LLM"). Its waypoints are each
+    robot's route, the last one its slot (:attr:`slots`); at every waypoint refresh, on the env's
+    clock, :class:`~icco_torchrl.instructions.serving.PlanServer` turns them into K waypoints from
+    where each robot is now (``plan="served"``, ``step`` metres apart). ``plan="fixed"`` writes
+    the planner's waypoints once and keeps them (a comparison only).
+
     ``prompt`` picks the paper's plain prompt or the task-aligned one of QMIX-TAP ("tap"), which
     also shows the resources and the active invaders. Bad replies are the planner's business
-    (retry, then fall back); ``stats`` counts ``plans``, ``failures`` (rejected attempts),
-    ``fallbacks`` and ``cache_hits``, and ``errors`` keeps the fallback reasons. With
-    ``strict=True`` a fallback raises ``ValueError`` naming the instruction instead: for a
-    deterministic planner, a refusal means the instruction is not understood, not noise.
+    (retry, then fall back); ``stats`` counts ``plans`` (requests), ``failures`` (rejected
+    attempts), ``fallbacks`` and ``cache_hits``, and ``errors`` keeps the fallback reasons; a
+    fallback keeps each robot's previous waypoints as its route. ``reading`` is the planner's
+    reading of the instruction (its first reply's movement strategy). With ``strict=True`` a
+    fallback raises ``ValueError`` naming the instruction instead: for a deterministic planner,
+    a refusal means the instruction is not understood, not noise.
     """
 
     def __init__(
@@ -34,44 +44,48 @@ class LLMSource(InstructionSource):
         planner: LLMPlanner,
         instruction: str,
         prompt: str | None = None,
-        replan_every: int | None = None,
         strict: bool = False,
+        plan: str = "served",
+        step: float = DEFAULT_STEP,
     ):
         if not isinstance(instruction, str) or not instruction.strip():
             raise ValueError(f"instruction must be a non-empty string, got {instruction!r}")
         if prompt is not None and prompt not in PROMPTS:
             raise ValueError(f"prompt must be one of {PROMPTS}, got {prompt!r}")
-        if replan_every is not None and (not isinstance(replan_every, int) or replan_every < 1):
-            raise ValueError(
-                f"replan_every must be a positive integer or None, got {replan_every!r}"
-            )
+        if plan not in PLAN_INTERFACES:
+            raise ValueError(f"plan must be one of {PLAN_INTERFACES}, got {plan!r}")
         if prompt is not None and prompt != planner.prompt:
             planner = copy.copy(planner)  # shares the cache and counters; only the prompt differs
             planner.prompt = prompt
-        self.planner, self.instruction, self.replan_every, self.strict = (
-            planner,
-            instruction.strip(),
-            replan_every,
-            strict,
-        )
+        self.planner, self.instruction, self.strict = planner, instruction.strip(), strict
+        self.interface, self.step = plan, check_step(step)
         self.stats = {"plans": 0, "failures": 0, "fallbacks": 0, "cache_hits": 0}
         self.errors: list[str] = []
-        self._pending: torch.Tensor | None = None
+        self.reading: str | None = None
+        self.server: PlanServer | None = None
 
     @property
     def prompt(self) -> str:
         return self.planner.prompt
 
+    @property
+    def slots(self) -> torch.Tensor | None:
+        """``[B, N, 2]``: each robot's slot under the plan in force (None before a plan)."""
+        return None if self.server is None else self.server.slots
+
     def reset(self, env, td):
-        self._pending = self.plan(env)
+        raw = base_env(env)
+        self.server = PlanServer(raw.n_waypoints, self.step)
+        self.server.set_plan(raw.pos, self.plan(env))
 
     def __call__(self, env, td, step):
-        if step == 0 and self._pending is not None:
-            waypoints, self._pending = self._pending, None
-            return waypoints
-        if step == 0 or (self.replan_every and step % self.replan_every == 0):
-            return self.plan(env)
-        return None
+        raw = base_env(env)
+        if self.interface == "fixed":
+            return self.server.routes[..., 1:, :] if step == 0 else None
+        due = refresh_mask(raw, step, raw.waypoint_interval)
+        if not bool(due.any()):
+            return None
+        return torch.where(due[:, None, None, None], self.server.serve(raw.pos), raw.waypoints)
 
     def plan(self, env) -> torch.Tensor:
         """Ask the planner once per env; ``[B, N, K, 2]`` waypoints on the env's device."""
@@ -98,6 +112,8 @@ class LLMSource(InstructionSource):
                 invader=inv[b][active[b]],
             )
             self._count(result)
+            if self.reading is None and result.ok:
+                self.reading = planner_reading(getattr(result, "raw", None))
             plans.append(result.waypoints)
         return torch.as_tensor(np.stack(plans), device=env.device)
 
@@ -123,18 +139,35 @@ def split_instructions(text: str) -> list[str]:
     return parts
 
 
+MAX_READING = 300  # characters of a planner's reading kept (a page shows it)
+# The offline rule planner labels its strategy; the reading is what follows the label.
+_RULE_LABEL = re.compile(r"^Rule planner \(not an LLM\):\s*")
+
+
+def planner_reading(raw: str | None) -> str | None:
+    """The planner's reading of an instruction: the ``movement_strategy`` of its JSON reply
+    (without the offline rule planner's label), or None when the reply has none."""
+    reply = last_json_object(raw) if raw else None
+    strategy = reply.get("movement_strategy") if reply else None
+    if not isinstance(strategy, str) or not strategy.strip():
+        return None
+    reading = _RULE_LABEL.sub("", " ".join(strategy.split())).rstrip(".")
+    return reading if len(reading) <= MAX_READING else reading[: MAX_READING - 3] + "..."
+
+
 def language_schedule(
     planner: LLMPlanner,
     instructions: list[str],
     steps: int,
     *,
-    replan_every: int | None = None,
     strict: bool = False,
+    plan: str = "served",
+    step: float = DEFAULT_STEP,
 ) -> list:
     """One segment of ``steps`` steps per instruction, each an :class:`LLMSource` (a fresh one per
     call: sources keep counters). The schedule format of
     :func:`~icco_torchrl.evaluation.protocols.run_schedule`."""
     return [
-        (text, LLMSource(planner, text, replan_every=replan_every, strict=strict), steps)
+        (text, LLMSource(planner, text, strict=strict, plan=plan, step=step), steps)
         for text in instructions
     ]

@@ -36,6 +36,8 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 from icco_torchrl.envs import EVENTS  # the env owns the event names
 from icco_torchrl.envs.resource_collection import _ACTION_DIRS
 from icco_torchrl.envs.waypoints import base_env
+from icco_torchrl.evaluation import placement
+from icco_torchrl.instructions.serving import PlanServer
 from icco_torchrl.live.reading import explain, planner_reading, short_reason
 
 MAX_INSTRUCTION = 200  # characters: longer instructions are refused with a message
@@ -154,7 +156,11 @@ class TickState:
     episode: int = 1  # episodes started since the loop was made (a reset starts one)
     episode_steps: int = 0  # the episode's length (the env's max_steps)
     plan: str | None = None  # the instruction whose plan drives the team (None: none yet)
-    plan_distance: np.ndarray | None = None  # [N] m: each robot to its nearest waypoint
+    slots: np.ndarray | None = None  # [N, 2]: where the plan in use sends each robot
+    slot_distance: np.ndarray | None = None  # [N] m: each robot to its own slot
+    at_slot: np.ndarray | None = None  # [N] bool: within placement.SLOT_RADIUS of it
+    intercepting: np.ndarray | None = None  # [N] bool: excused from the formation
+    formation: bool | None = None  # every present robot not intercepting is at its slot
     finished: int = 0  # episodes that ran to their end (a reset's cut-short one is not)
     finished_mean: dict = field(default_factory=dict)  # their totals' mean (empty: none yet)
 
@@ -196,8 +202,10 @@ class LiveLoop:
         self._finished_sums = dict.fromkeys(self.totals, 0.0)  # over the finished episodes
         self._lock = threading.Lock()  # one tick or plan hand-over at a time
         self._idle = threading.Condition(self._lock)  # the planner thread ended
-        self._pending: np.ndarray | None = None  # a plan that arrived, for the next tick
-        self._plan_in_use: np.ndarray | None = None  # kept over an episode's end
+        # A plan that arrived, for the next tick: the robots' positions it was made from [N, 2]
+        # and the planner's waypoints [N, K, 2] (each robot's route; the last point its slot).
+        self._pending: tuple[np.ndarray, np.ndarray] | None = None
+        self.server = PlanServer(raw.n_waypoints)  # the plan in use, served every refresh
         self._job: tuple | None = None  # the newest instruction, waiting for the planner thread
         self._cancel: threading.Event | None = None  # cancels the plan being computed
         self._worker: threading.Thread | None = None  # the planner thread, while it has work
@@ -303,7 +311,7 @@ class LiveLoop:
 
     def _plan(self, job: tuple, cancel: threading.Event) -> None:
         """Plan one instruction (the planner thread) and hand the plan to the next tick."""
-        generation, instruction, team, _, previous, _, _ = job
+        generation, instruction, team, positions, previous, _, _ = job
         start = time.perf_counter()
         answer = self._ask(job, cancel)
         if answer is None:
@@ -317,7 +325,8 @@ class LiveLoop:
             if ok:
                 full = previous.astype(np.float32)  # absent robots keep theirs (ignored)
                 full[team] = np.asarray(waypoints, dtype=np.float32).reshape(full[team].shape)
-                self._pending, self._plan_instruction = full, instruction
+                self._pending = (positions.astype(np.float32), full)
+                self._plan_instruction = instruction
                 status = PlannerStatus("used", instruction, None, latency, requests, reading)
             else:
                 reason = short_reason(error, instruction) or "no plan"
@@ -362,8 +371,7 @@ class LiveLoop:
         """One env step of the team under the current plan; applies a plan that arrived since."""
         start = time.perf_counter()
         with self._lock, torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
-            if self._pending is not None:
-                self._write_plan(self._use_pending())
+            self._serve(self._pending is not None and self._use_pending())
             td = self.env.step(self.policy(self.td))
             nxt = td.get("next")
             events = {k: float(nxt.get(("events", k))[0]) for k in (*EVENTS, "inst_reward")}
@@ -383,29 +391,44 @@ class LiveLoop:
 
     def _new_episode(self) -> None:
         """Start the next episode (call under the lock): new resources, invader and positions,
-        the totals at zero; the team and the plan in use (the instruction) kept."""
+        the totals at zero; the team and the instruction kept. The robots start elsewhere, so
+        the instruction is planned again from their new positions (one request per instruction
+        and episode); until that plan arrives the old routes are served from where they are."""
         self.td = self.env.reset()
         self._keep_team()
         self.episode += 1
         self.totals = {k: 0.0 for k in self.totals}
-        if self._plan_in_use is not None:  # the instruction still stands
-            self._write_plan(self._plan_in_use)
+        if self.server.routes is not None:  # the instruction still stands
+            self._serve(True)
+            self._replan()
 
-    def _use_pending(self) -> np.ndarray:
-        """The plan that arrived becomes the plan in use (call under the lock); returns it."""
-        self._plan_in_use, self._pending = self._pending, None
+    def _use_pending(self) -> bool:
+        """The plan that arrived becomes the plan in use (call under the lock)."""
+        (start, planned), self._pending = self._pending, None
+        device = self.raw.device
+        self.server.set_plan(torch.as_tensor(start, device=device)[None],
+                             torch.as_tensor(planned, device=device)[None])  # fmt: skip
+        if self._plan_for != self._plan_instruction:  # a new instruction: a new running mean
+            self.finished, self._finished_sums = 0, dict.fromkeys(self._finished_sums, 0.0)
         self._plan_for = self._plan_instruction
-        return self._plan_in_use
+        return True
 
-    def _write_plan(self, waypoints: np.ndarray) -> None:
-        """Drive the team by ``waypoints`` [N, K, 2] from now on (call under the lock)."""
-        self.raw.write_waypoints(self.td, torch.as_tensor(waypoints, device=self.raw.device)[None])
+    def _serve(self, now: bool = False) -> None:
+        """Write the plan in use as waypoints from where the robots are, when the env's clock
+        says they are due (every ``waypoint_interval`` steps, as in training) or ``now`` (call
+        under the lock)."""
+        raw = self.raw
+        if self.server.routes is None:
+            return
+        if now or bool((raw.t % raw.waypoint_interval == 0).any()):
+            raw.write_waypoints(self.td, self.server.serve(raw.pos))
 
     def _state(self, z, events: dict) -> TickState:
         """The team as it is now (call under the lock)."""
         raw = self.raw
         positions, waypoints = _np(raw.pos[0]), _np(raw.waypoints[0])
-        distance = np.linalg.norm(waypoints - positions[:, None], axis=-1).min(axis=1)
+        slots = self.server.slots
+        arrival = None if slots is None else self._arrival(slots)
         n = self.finished
         return TickState(
             tick=self.ticks,
@@ -424,10 +447,25 @@ class LiveLoop:
             episode=self.episode,
             episode_steps=int(raw.max_steps),
             plan=self._plan_for,
-            plan_distance=np.round(distance, 3),
+            slots=None if slots is None else _np(slots[0]),
+            **(arrival or {}),
             finished=n,
             finished_mean={k: v / n for k, v in self._finished_sums.items()} if n else {},
         )
+
+    def _arrival(self, slots: torch.Tensor) -> dict:
+        """Each robot's distance to its slot and the person's judgements of it
+        (:mod:`~icco_torchrl.evaluation.placement`; call under the lock)."""
+        raw = self.raw
+        present = raw.present
+        at = placement.at_slot(raw.pos, slots)
+        excused = placement.intercepting(raw.pos, present, raw.inv_pos, raw.inv_active)
+        return {
+            "slot_distance": np.round(_np((raw.pos - slots).norm(dim=-1)[0]), 3),
+            "at_slot": _np(at[0]),
+            "intercepting": _np(excused[0]),
+            "formation": bool(placement.formation(at, present, excused)[0]),
+        }
 
     def snapshot(self) -> TickState:
         """The team's current state without stepping it (what a display shows between ticks, or
@@ -477,9 +515,10 @@ class LiveLoop:
                     value = value.clone()
                     value[0, r] = 0
                     self.td.set(key, value)
-            if self._plan_in_use is not None:  # until the new plan: it holds where it appeared
-                self._plan_in_use = self._plan_in_use.copy()
-                self._plan_in_use[r] = _np(self.raw.waypoints[0, r])
+            if self.server.routes is not None:  # until the new plan: it holds where it appeared
+                routes = self.server.routes.clone()
+                routes[0, r] = self.raw.pos[0, r]
+                self.server.routes = routes
             self._replan()
         return r
 
@@ -547,10 +586,9 @@ class LiveLoop:
         raw = self.raw
         with self._lock, torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
             self._measure(positions, velocities, resources, invader)
-            waypoints = raw.waypoints
-            if self._pending is not None:
-                waypoints = torch.as_tensor(self._use_pending(), device=raw.device)[None]
-            raw.write_waypoints(self.td, waypoints)  # rebuilds the observation and the state
+            fresh = self._pending is not None and self._use_pending()
+            self._serve(fresh)
+            raw.write_waypoints(self.td, raw.waypoints)  # rebuilds the observation and the state
             td = self.policy(self.td)
             action = td.get(("agents", "action"))[0]
             self._carry_memory(td)

@@ -4,38 +4,29 @@
 * :func:`planner_reading`: the planner's reading (its reply's ``movement_strategy``);
 * :func:`explain`: what a newcomer needs beside them: with the offline rule planner, the phrases
   it understands when it did not understand an instruction (``understood``) and the words of an
-  instruction it understood that changed nothing in its reading (``unused``: "go right avoiding
-  the invader" is read as "defend home", and "right" and "avoiding" are not used); with any
-  planner, a hint when its reason names a setting (``hint``).
+  instruction it understood that its reading did not rest on (``unused``: "go right avoiding
+  the invader" is a line at the right side, and "avoiding" and "invader" are not understood);
+  with any planner, a hint when its reason names a setting (``hint``).
 
-The rule planner is a word matcher (:mod:`icco_torchrl.instructions.planner`): a word is unused
-when the instruction without it reads the same (:func:`~icco_torchrl.instructions.planner.parse`
-gives the same intent), so the answer is the planner's own, whatever its word lists hold.
+The rule planner is a word matcher (:mod:`icco_torchrl.instructions.planner`): its reading
+(:func:`~icco_torchrl.instructions.planner.parse`) lists the words it rests on, so the answer is
+the planner's own, whatever its word lists hold.
 """
 
 from __future__ import annotations
 
-import re
+from icco_torchrl.instructions.planner import UnknownInstruction, is_offline, parse, unread_words
+from icco_torchrl.instructions.sources import planner_reading
 
-from icco_torchrl.instructions.llm import last_json_object
-from icco_torchrl.instructions.planner import UnknownInstruction, is_offline, parse
+__all__ = ["explain", "planner_reading", "short_reason", "unused_words", "understood_phrases"]
 
-MAX_READING = 300  # characters of the planner's reading kept for display
 MAX_REASON = 120  # characters of a fall-back's reason kept for display (its first clause)
 MAX_UNUSED = 12  # unused different words listed at most
-# Words nobody expects a formation from: never listed as unused.
-FILLER = frozenset(
-    "a an the to and at in on of for do with into onto toward towards please go move head now "
-    "then out all you your team robots robot everyone everybody".split()
-)
 TAP_HINT = (
     "the task-aligned prompt gives the planner the resources and the invader: start the "
     "command with llm.prompt=tap"
 )
-# The offline rule planner labels its strategy; the reading is what follows the label.
-_RULE_LABEL = re.compile(r"^Rule planner \(not an LLM\):\s*")
 _UNDERSTOOD = "; understood: "  # how the rule planner lists what it understands
-_PUNCTUATION = "\"'.,;:!?()[]{}\u201c\u201d\u2018\u2019"
 
 
 def short_reason(error: str | None, instruction: str | None = None) -> str | None:
@@ -50,59 +41,15 @@ def short_reason(error: str | None, instruction: str | None = None) -> str | Non
     return text if len(text) <= MAX_REASON else text[: MAX_REASON - 3] + "..."
 
 
-def planner_reading(raw: str | None) -> str | None:
-    """The planner's reading of an instruction: the ``movement_strategy`` of its JSON reply
-    (without the offline rule planner's label), or None when the reply has none."""
-    reply = last_json_object(raw) if raw else None
-    strategy = reply.get("movement_strategy") if reply else None
-    if not isinstance(strategy, str) or not strategy.strip():
-        return None
-    reading = _RULE_LABEL.sub("", " ".join(strategy.split())).rstrip(".")
-    return reading if len(reading) <= MAX_READING else reading[: MAX_READING - 3] + "..."
-
-
 def is_rule_planner(planner) -> bool:
     """Whether ``planner`` (an ``LLMPlanner``) answers with the offline rule planner."""
     return is_offline(str(getattr(planner, "model", "")))
 
 
-def _intent(text: str, half: float):
-    try:
-        return parse(text, half)
-    except UnknownInstruction:
-        return None
-
-
-def _without(tokens: list[str], *drop: int) -> str:
-    return " ".join(t for k, t in enumerate(tokens) if k not in drop)
-
-
 def unused_words(instruction: str, half: float) -> list[str]:
-    """The words of ``instruction`` the rule planner's reading does not use, at most
-    ``MAX_UNUSED`` (``FILLER`` words are not listed); empty when it does not understand it.
-
-    A word is unused when the instruction reads the same without it, and it is no stand-in for
-    another: a word that takes over when another goes ("collect the resources": either word
-    alone reads as collecting) is used."""
-    tokens = instruction.split()
-    reading = _intent(instruction, half)
-    if reading is None:
-        return []
-    same = [k for k in range(len(tokens)) if _intent(_without(tokens, k), half) == reading]
-    together = _intent(_without(tokens, *same), half) == reading  # none stands in for another
-    unused, seen = [], set()
-    for k in same:
-        word = tokens[k].strip(_PUNCTUATION)
-        if not word or word.lower() in FILLER | seen:
-            continue
-        seen.add(word.lower())  # a word said twice is judged (and listed) once
-        if together or all(
-            _intent(_without(tokens, j, k), half) == reading for j in same if j != k
-        ):
-            unused.append(word)
-        if len(unused) == MAX_UNUSED:
-            break
-    return unused
+    """The words of ``instruction`` the rule planner's reading did not rest on, at most
+    ``MAX_UNUSED`` (:func:`~icco_torchrl.instructions.planner.unread_words`)."""
+    return unread_words(instruction, half, MAX_UNUSED)
 
 
 def understood_phrases(instruction: str, half: float) -> str | None:

@@ -20,7 +20,7 @@ WebSocket protocol (JSON text frames):
   (:meth:`~icco_torchrl.live.bridge.Bridge.fleet`); ``totals`` are this episode's (``episode``,
   ``step`` of ``episode_steps``), ``finished_mean`` the mean totals of the ``finished`` episodes
   (those that ran to their end), ``plan`` the instruction whose plan drives the team and
-  ``plan_distance`` each robot's distance to its nearest waypoint (metres); a slow tab gets the
+  ``slot_distance`` each robot's distance to its slot in the plan (metres); a slow tab gets the
   latest tick only (older ones are dropped for it, never queued), so it can neither fall behind
   nor slow the others;
 * server -> page, on connect and each time it changes (never repeated in ticks):

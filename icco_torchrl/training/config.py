@@ -31,6 +31,7 @@ from icco_torchrl.envs.reference_policies import REFERENCE_POLICIES, parse_refer
 from icco_torchrl.envs.resource_collection import check_team_sizes
 from icco_torchrl.envs.shaping import POTENTIALS, missing_for
 from icco_torchrl.evaluation import consistency
+from icco_torchrl.instructions.serving import PLAN_INTERFACES
 from icco_torchrl.modules.mixer import MIXERS
 from icco_torchrl.modules.posterior import COMBINES, POSTERIOR_INPUTS
 from icco_torchrl.modules.relative import STATE_ENCODERS
@@ -331,8 +332,11 @@ class EvalConfig:
     checkpoints: list[str] = _field([])
     # Steps per segment (each quadrant, each `;`-separated instruction).
     steps: int = _field(145, gt=0)
-    # `icco instruct`: re-prompt every this many steps; null: once per instruction.
-    replan_every: Optional[int] = None
+    # `icco instruct`: how each robot's plan reaches it: served (a training-like walk from where
+    # it is along its route, at every waypoint refresh; icco_torchrl/instructions/serving.py) or
+    # fixed (the planner's waypoints written once: a comparison only). The planner is asked once
+    # per instruction and episode either way.
+    plan: str = _field("served", choices=PLAN_INTERFACES)
     # Scripted reference rows beside the checkpoints ([]: none).
     references: list[str] = _field(list(REFERENCE_POLICIES))
     # Radius (m) of the blend reference: task within r, follow otherwise.
@@ -519,10 +523,26 @@ def _check_shaping(shaping, params) -> None:
             )
 
 
+# ``eval`` fields that left the schema. A saved config (a checkpoint's, a run's) may still hold
+# them; they chose how a command evaluated, never what a run trained, so they are dropped.
+EVAL_FIELDS_REMOVED = ("replan_every",)  # served plans replaced re-prompting (eval.plan)
+
+
+def _without_removed(cfg: DictConfig | dict) -> DictConfig | dict:
+    evaluation = cfg.get("eval") if hasattr(cfg, "get") else None
+    if not hasattr(evaluation, "keys") or not set(EVAL_FIELDS_REMOVED) & set(evaluation.keys()):
+        return cfg
+    plain = OmegaConf.to_container(cfg) if isinstance(cfg, DictConfig) else dict(cfg)
+    plain["eval"] = {k: v for k, v in plain["eval"].items() if k not in EVAL_FIELDS_REMOVED}
+    return plain
+
+
 def validate(cfg: DictConfig | dict) -> DictConfig:
     """Merge ``cfg`` into the schema and check every field and the rules between fields; raises
     ``ConfigError`` naming the field. A config Hydra composed is already typed; a saved one (a
-    checkpoint's) gets the current defaults for fields it lacks."""
+    checkpoint's) gets the current defaults for fields it lacks, and loses the evaluation fields
+    that left the schema (:data:`EVAL_FIELDS_REMOVED`)."""
+    cfg = _without_removed(cfg)
     try:
         merged = OmegaConf.merge(OmegaConf.structured(Config), cfg)
     except OmegaConfBaseException as err:
