@@ -139,7 +139,10 @@ def main(argv=None) -> None:
     parser.add_argument("--trials", type=int, default=20, help="trials per checkpoint (paper: 20)")
     parser.add_argument("--steps", type=int, default=145, help="steps per instruction (paper: 145)")
     parser.add_argument(
-        "--replan-every", type=int, help="re-prompt every N steps (paper: once per instruction)"
+        "--plan",
+        choices=("served", "fixed"),
+        default="served",
+        help="how each plan reaches the robots (eval.plan; fixed: the old interface, a comparison)",
     )
     parser.add_argument(
         "--smoke", action="store_true", help="tiny budget, 4 trials, 20 steps: a pipeline check"
@@ -165,7 +168,7 @@ def main(argv=None) -> None:
             [*(args.budget or ([] if args.smoke else ["experiment=default"])), *NO_TASK_REWARD],
             args.smoke,
         )
-    replan = [f"eval.replan_every={args.replan_every}"] if args.replan_every else []
+    plan = [f"eval.plan={args.plan}"]
     fig5b = [m for m in FIG5B if m in agents]
     if fig5b:
         instruct(
@@ -174,7 +177,7 @@ def main(argv=None) -> None:
             trials,
             steps,
             args.llm,
-            replan,
+            plan,
         )
     if table2:
         instruct(
@@ -183,7 +186,7 @@ def main(argv=None) -> None:
             trials,
             steps,
             args.llm,
-            ["llm.prompt=tap", *replan],
+            ["llm.prompt=tap", *plan],
         )
     # What the report cannot read from the checkpoints: the command line that reproduces this
     # folder (agents and folders only where they were given).
