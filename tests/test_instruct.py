@@ -4,9 +4,9 @@ import json
 
 import pytest
 import torch
-from torchrl.envs.utils import step_mdp
 from fake_openai import closed_port
 from test_eval_cli import icco, smoke_checkpoints
+from torchrl.envs.utils import step_mdp
 
 from icco_torchrl.commands.instruct import out_dir_name
 from icco_torchrl.envs import ResourceCollectionEnv
