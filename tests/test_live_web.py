@@ -122,8 +122,8 @@ def test_two_tabs_watch_one_loop_and_either_can_instruct(served):
                 for tab in (a, b):  # both tabs see the plan arrive, and the waypoints move right
                     await tab.until(lambda t=tab: t.planner[-1]["state"] == "used")
                     await tab.applied()
-                wp = np.asarray(a.ticks[-1]["waypoints"])
-                assert (wp[:, -1, 0] > 1).all()  # paths end right
+                slots = np.asarray(a.ticks[-1]["slots"])
+                assert (slots[:, 0] > 1).all()  # the robots' slots are on the right
                 assert a.planner[-1]["instruction"] == "Go right" and b.oks == 1 and a.oks == 0
                 assert a.planner[-1]["reading"].startswith("line at the right side")
                 ticks = [t["tick"] for t in a.ticks]
@@ -151,7 +151,7 @@ def test_bad_requests_get_one_line_errors_and_the_team_keeps_its_plan(served):
                 await a.send(type="instruct", text="Go right")
                 await a.until(lambda: a.planner and a.planner[-1]["state"] == "used")
                 await a.applied()
-                planned = np.asarray(a.ticks[-1]["waypoints"])
+                planned = np.asarray(a.ticks[-1]["slots"])
                 await a.send(type="instruct", text="   ")
                 await a.ws.send_str("not json")
                 await a.send(type="dance")
@@ -175,7 +175,7 @@ def test_bad_requests_get_one_line_errors_and_the_team_keeps_its_plan(served):
                 await a.until(lambda: a.planner[-1]["state"] == "fell back")
                 assert a.planner[-1]["error"] and a.planner[-1]["reading"] is None
                 assert "spread out" in a.planner[-1]["understood"]  # what it does understand
-                assert np.allclose(a.ticks[-1]["waypoints"], planned)
+                assert np.allclose(a.ticks[-1]["slots"], planned)  # the plan in use stays
                 # The planner's reading of an instruction it maps to something else.
                 await a.send(type="instruct", text="flank the intruder")
                 await a.until(lambda: a.planner[-1]["state"] == "used")
@@ -210,9 +210,11 @@ def test_pause_step_speed_reset_and_a_vanished_tab_never_stop_the_loop(served):
                 await a.until(
                     lambda: a.ticks[-1]["totals"]["reward"] == 0.0 and a.ticks[-1]["step"] == 0
                 )
-                # A reset keeps the instruction: its plan goes on driving the team.
-                assert a.ticks[-1]["plan"] == "Go right" and a.planner[-1]["state"] == "used"
-                assert (np.asarray(a.ticks[-1]["waypoints"])[:, -1, 0] > 1).all()
+                # A reset keeps the instruction: it is planned again for the new positions (one
+                # request per episode) and goes on driving the team.
+                await a.until(lambda: a.planner[-1]["state"] == "used")
+                assert a.ticks[-1]["plan"] == "Go right"
+                assert (np.asarray(a.ticks[-1]["slots"])[:, 0] > 1).all()
                 await a.send(type="speed", value=2.0)
                 await a.send(type="resume")
                 gone._response.connection.transport.abort()  # the other tab drops off the network
@@ -775,13 +777,16 @@ def test_the_page_in_a_real_browser_go_right_moves_waypoints_and_robots(served, 
             await _type_and_send(tools, "flank the intruder")
             await tools.until("icco.planner && icco.planner.state === 'used'")
             assert await tools.js(_text("reading")) == "read as: defend home"
-            assert await tools.js(_text("unused")) == "not used by the planner: flank"
-            # A sentence matched by one keyword says which words it left out.
+            assert await tools.js(_text("unused")) == "not understood (ignored): flank"
+            # A sentence it reads in part is read as what it understood, never as another intent,
+            # with a warning (amber, not green) naming the words it did not understand.
             await _type_and_send(tools, "Go right avoiding the invader")
             await tools.until("icco.planner.instruction === 'Go right avoiding the invader'")
             await tools.until("icco.planner.state === 'used'")
-            assert await tools.js(_text("reading")) == "read as: defend home"
-            assert await tools.js(_text("unused")) == "not used by the planner: right, avoiding"
+            assert await tools.js(_text("reading")) == "read as: line at the right side"
+            assert await tools.js(_text("unused")) == "not understood (ignored): avoiding, invader"
+            assert await tools.js("document.getElementById('planner').className") == "warned"
+            assert "warning" in await tools.js(_text("planner"))
             assert await tools.js("icco.ws === icco.wsBefore && icco.connected")
             assert await tools.js(_text("message")) == ""  # the success cleared the error
             # A server-side error is shown, then cleared by the next request that succeeds.
@@ -1002,8 +1007,8 @@ def test_the_page_in_a_real_browser_shows_its_totals_at_800_by_600_and_a_reset_k
             await tools.js("document.getElementById('reset').click()")
             await tools.until(f"icco.state.episode === {episode + 1} && icco.state.step === 0")
             assert "Go right" in await tools.js(_text("plan"))
-            assert await tools.js("icco.planner.state") == "used"
-            assert await tools.js("icco.state.waypoints.every(p => p[p.length - 1][0] > 1)")
+            await tools.until("icco.planner.state === 'used'")  # planned again for the episode
+            assert await tools.js("icco.state.slots.every(s => s[0] > 1)")
 
     asyncio.run(scenario())
 

@@ -26,6 +26,11 @@ if TYPE_CHECKING:  # annotations only
 
     from icco_torchrl.envs.resource_collection import ResourceCollectionEnv
 
+# How a plan reaches the robots (``eval.plan``): "served" (the default: a training-like walk from
+# each robot along its route at every refresh, icco_torchrl/instructions/serving.py) or "fixed"
+# (the planner's waypoints written once and kept: the interface the team never trained on, kept
+# only so that the comparison on experiments/language/serving can be rerun).
+PLAN_INTERFACES = ("served", "fixed")
 # Standard maths numbering, counter-clockwise from (+, +): the sign of x and y in each quadrant.
 QUADRANT_SIGNS = {1: (1.0, 1.0), 2: (-1.0, 1.0), 3: (-1.0, -1.0), 4: (1.0, -1.0)}
 

@@ -51,12 +51,14 @@ from torchrl.modules import EGreedyModule
 
 from icco_torchrl.modules.coordinator import gaussian_entropy
 from icco_torchrl.modules.posterior import combine_log_prob, make_posterior
+from icco_torchrl.training.config import CoordinationConfig
 
 # The default budget of an ``icco eval`` measurement (``eval.coordination``): about 20 s a
 # checkpoint on one core for the default task.
-EPISODES = 32  # rollouts (one episode each)
-HELDOUT = 0.25  # share of the episodes the posterior never sees while it is fitted
-FIT_STEPS = 300  # Adam steps of the fresh posterior
+# The defaults are ``eval.coordination``'s (its fields say what each is): one home.
+EPISODES = CoordinationConfig.episodes  # rollouts (one episode each)
+HELDOUT = CoordinationConfig.heldout  # share of the episodes the posterior never fits on
+FIT_STEPS = CoordinationConfig.fit_steps  # Adam steps of the fresh posterior
 BATCH = 128  # broadcast windows per step
 LR = 1e-3
 

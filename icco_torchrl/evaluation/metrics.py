@@ -172,7 +172,7 @@ def summarize(rows: Iterable[Mapping], by: Sequence[str] = ("method", "segment")
         summary = dict(zip(by, key), n=len(members), seeds=len({m.get("seed") for m in members}))
         for metric in METRICS:
             summary[metric], summary[f"{metric}_std"] = _stats(
-                np.array([m[metric] for m in members], float)
+                np.array([m.get(metric, math.nan) for m in members], float)  # older rows lack some
             )
         out.append(summary)
     return out

@@ -43,10 +43,6 @@ import torch
 # the instruction reward's direction never points back. Measured against 0.19, 0.35 and 0.5 m:
 # experiments/language/serving/README.md.
 DEFAULT_STEP = 0.25
-# How a plan reaches the robots (``eval.plan``): "served" (the default: this module) or "fixed"
-# (the planner's waypoints written once and kept: the interface the team never trained on, kept
-# only so that the comparison on experiments/language/serving can be rerun).
-PLAN_INTERFACES = ("served", "fixed")
 
 
 def check_step(step: float) -> float:

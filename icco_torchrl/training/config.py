@@ -27,11 +27,14 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from icco_torchrl.envs.params import SPAWN_MODES, ResourceCollectionParams
-from icco_torchrl.envs.reference_policies import REFERENCE_POLICIES, parse_reference
+from icco_torchrl.envs.reference_policies import (
+    EVAL_REFERENCES,
+    REFERENCE_POLICIES,
+    parse_reference,
+)
 from icco_torchrl.envs.resource_collection import check_team_sizes
 from icco_torchrl.envs.shaping import POTENTIALS, missing_for
-from icco_torchrl.evaluation import consistency
-from icco_torchrl.instructions.serving import PLAN_INTERFACES
+from icco_torchrl.envs.waypoints import PLAN_INTERFACES
 from icco_torchrl.modules.mixer import MIXERS
 from icco_torchrl.modules.posterior import COMBINES, POSTERIOR_INPUTS
 from icco_torchrl.modules.relative import STATE_ENCODERS
@@ -307,11 +310,11 @@ class CoordinationConfig:
     enabled: bool = True
     # Rollouts of one episode each on the training distribution (random-walk instructions): z
     # sampled from the coordinator's Gaussian, actions greedy.
-    episodes: int = _field(consistency.EPISODES, gt=1)
+    episodes: int = _field(32, gt=1)
     # Share of those episodes held out from the posterior's fit; the bound is scored on them.
-    heldout: float = _field(consistency.HELDOUT, gt=0, le=0.9)
+    heldout: float = _field(0.25, gt=0, le=0.9)
     # Adam steps of the fresh posterior (minibatches of 128 broadcast windows, lr 1e-3).
-    fit_steps: int = _field(consistency.FIT_STEPS, ge=0)
+    fit_steps: int = _field(300, ge=0)
 
 
 @dataclass
@@ -338,7 +341,7 @@ class EvalConfig:
     # per instruction and episode either way.
     plan: str = _field("served", choices=PLAN_INTERFACES)
     # Scripted reference rows beside the checkpoints ([]: none).
-    references: list[str] = _field(list(REFERENCE_POLICIES))
+    references: list[str] = _field(list(EVAL_REFERENCES))
     # Radius (m) of the blend reference: task within r, follow otherwise.
     blend_radius: float = _field(1.75, ge=0)
     # Robots in the evaluation env (references too); null: the checkpoints' n_agents. Another size
