@@ -433,7 +433,7 @@ class ICCOLoss(LossModule):
     def losses(self, batch: LossBatch, fresh: torch.Tensor | None) -> dict[str, torch.Tensor]:
         """The loss terms and summaries from the checked ``batch`` (:meth:`read_batch`) and the
         bootstrap noise ``fresh``: tensors in, tensors out, fixed shapes, no host sync (what
-        :meth:`compile` traces)."""
+        :meth:`compile_losses` traces)."""
         batch = assemble(batch, self.reads_state)
         z_on = z_tgt = None
         if self.has_coordinator:
