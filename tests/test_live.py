@@ -441,3 +441,21 @@ def test_the_yardstick_is_the_best_scripted_team_on_the_policys_training_episode
     for bad in (-1, 2.5, True):
         with pytest.raises(ValueError, match="live.reference_episodes must be an integer >= 0"):
             scripted_yardstick(DEMO, bad)
+
+
+def test_the_running_mean_starts_again_with_a_new_instruction():
+    planner = SlowPlanner(delay=0.0)
+    loop = team(planner=planner)  # episodes of 40 steps
+    loop.instruct("Go right")
+    loop.wait_for_plan(5)
+    for _ in range(41):
+        state = loop.tick()
+        loop.wait_for_plan(5)
+    assert state.finished == 1 and state.finished_mean  # one episode under "Go right"
+    loop.instruct("Go right")  # the same instruction again: the mean goes on
+    loop.wait_for_plan(5)
+    assert loop.tick().finished == 1
+    loop.instruct("Move top")
+    loop.wait_for_plan(5)
+    state = loop.tick()
+    assert state.plan == "Move top" and state.finished == 0 and state.finished_mean == {}
