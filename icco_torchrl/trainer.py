@@ -22,7 +22,11 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from icco_torchrl.envs import EVENT_KEYS
-from icco_torchrl.envs.reference_policies import make_reference_policy, reference_label
+from icco_torchrl.envs.reference_policies import (
+    BEST_SCRIPTED_LABEL,
+    make_reference_policy,
+    reference_label,
+)
 from icco_torchrl.evaluation.rollout import evaluate
 from icco_torchrl.modules.policy import exploration_module
 from icco_torchrl.training import checkpoint
@@ -530,6 +534,20 @@ class TrainingRun:
         self.replay_id, self.replay_segments = saved.replay_id, saved.replay_segments
 
 
+def best_scripted_share(run_dir: Path, reward: float) -> tuple[float, float] | None:
+    """``(share, its reward)``: ``reward`` over the best scripted team's on the run's evaluation
+    episodes (its ``references.json``); None without that row or with a reward <= 0."""
+    path = Path(run_dir) / REFERENCES_FILE
+    try:
+        rows = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    best = next((v for k, v in rows.items() if k.startswith(BEST_SCRIPTED_LABEL)), None)
+    if not isinstance(best, dict) or not best.get("reward", 0) > 0:
+        return None
+    return reward / best["reward"], float(best["reward"])
+
+
 def finish_message(
     run_dir: Path,
     checkpoint: Path,
@@ -550,6 +568,12 @@ def finish_message(
             f"{final['task_reward']:.1f}, picks {final['pick']:.1f}, defenses "
             f"{final['defense']:.1f} (reference policies: {REFERENCES_FILE})"
         )
+        share = best_scripted_share(run_dir, final["reward"])
+        if share is not None:
+            lines.append(
+                f"  {100 * share[0]:.0f} % of the best scripted team's reward on the same episodes "
+                f"({share[1]:.1f}); the reports' yardstick is four quadrants: run next:"
+            )
     metrics = [n for n in ("train.csv", "eval.csv", "timing.csv") if (run_dir / n).is_file()]
     curve = (outputs or {}).get("learning_curve", True) and (
         run_dir / "learning_curve.png"

@@ -629,6 +629,18 @@ def test_the_finish_message_names_only_files_that_exist(tmp_path):
     (tmp_path / "checkpoint.pt").write_bytes(b"x")
     done = finish_message(tmp_path, tmp_path / "checkpoint.pt", 1024, False, {}, {})
     assert "figure: learning_curve.png" in done and "checkpoint:" in done
+    # The share of the best scripted team it reached, from its references.json.
+    (tmp_path / "references.json").write_text(
+        '{"follower": {"reward": 70.0}, "best scripted (defend=inf, collect=1, deliver=2 m)": '
+        '{"reward": 100.0}}'
+    )
+    final = dict(reward=90.0, task_reward=1.0, pick=1.0, defense=1.0)
+    done = finish_message(tmp_path, tmp_path / "checkpoint.pt", 1024, False, final, {})
+    assert "  90 % of the best scripted team's reward on the same episodes (100.0)" in done
+    (tmp_path / "references.json").write_text("not json")
+    assert "best scripted" not in finish_message(
+        tmp_path, tmp_path / "checkpoint.pt", 1024, False, final, {}
+    )
 
 
 def test_a_signal_before_the_loop_stops_at_once_but_never_inside_a_checkpoint_write():
