@@ -173,3 +173,24 @@ def test_a_path_follower_is_in_place_on_every_protocol_instruction_under_served_
 
     served = shares("served")
     assert all(v == 1.0 for v in served.values()), served
+
+
+def test_a_kept_reproduction_policy_is_evaluated_without_retraining():
+    """Every 5M reproduction run keeps its policy beside its records, so a new protocol needs
+    no retraining: one of them restores and drives a team under a served plan."""
+    from pathlib import Path
+
+    from icco_torchrl.evaluation.protocols import schedule_env
+    from icco_torchrl.training.checkpoint import load_checkpoint
+
+    records = Path(__file__).resolve().parents[1] / "experiments/four_quadrants/5m/records"
+    kept = sorted(records.glob("icco_seed*/policy.pt"))
+    assert [p.parent.name for p in kept] == ["icco_seed0", "icco_seed1", "icco_seed2"]
+    saved = load_checkpoint(kept[0])
+    assert saved["policy_only"] and saved["frames"] >= 5_000_000
+    run = schedule_env(kept[0], 40, 2, seed=0)
+    schedule = language_schedule(LLMPlanner(), ["Go right"], 40)
+    result = run_schedule(run["env"], run["policy"], schedule, 2, method="ICCO")
+    start, end = result.trajectory["pos"][0], result.trajectory["pos"][-1]
+    assert (np.abs(end - start).sum(-1) > 0.1).all()  # every robot moved
+    assert sum(s["plans"] for s in result.sources) == 2  # one request per episode

@@ -169,12 +169,35 @@ def findings(results: dict) -> list[str]:
         "so on a diagonal route coasting to a halt along it scores more than any axis move. That "
         "is the reward's doing, not the interface's: the path follower arrives in about "
         f"{rows[f'pursuit | {served}'][EPISODE]['time_to_slot']:.0f} steps.",
+        *_learned(rows, served, reward("best_scripted", served)),
         "- **The step length** trades following against reward: longer steps lift the follower's "
         "in-place share and lower every team's reward (the rows above). "
         f"{DEFAULT_STEP:g} m, the training walk's mean increment, is the default.",
         "",
     ]
     return out
+
+
+def _learned(rows: dict, served: str, best: float) -> list[str]:
+    """The bullet on the 5M ICCO runs (seeds pooled), when the page has their rows."""
+    key = "ICCO, 5M (seeds 0, 1, 2)"
+    if f"{key} | {served}" not in rows or f"{key} | fixed" not in rows:
+        return []
+    on, once = rows[f"{key} | {served}"], rows[f"{key} | fixed"]
+
+    def place(row):
+        return "/".join(
+            f"{100 * row[i]['in_place']:.0f} ± {100 * row[i]['in_place_seed_std']:.0f}"
+            for i in INSTRUCTIONS
+        )
+
+    return [
+        f"- **ICCO at 5M, 3 seeds** (the reproduction's policies, kept beside its records in "
+        "experiments/four_quadrants/5m/records): in place "
+        f"{place(once)} % given once, {place(on)} % served (mean ± std over seeds); reward "
+        f"{once[EPISODE]['reward']:.1f} -> {on[EPISODE]['reward']:.1f}, "
+        f"{100 * on[EPISODE]['reward'] / best:.0f} % of the best scripted team served.",
+    ]
 
 
 def main(argv=None) -> None:
