@@ -44,7 +44,7 @@ COMPILE_RECIPE = ["experiment=smoke", "train.sequence_length=4", "method.hidden=
 
 @pytest.fixture(scope="module")
 def inductor_env(tmp_path_factory):
-    """This session's Inductor cache (shared by the xdist workers), given to this process and to
+    """This test run's Inductor cache (shared by the xdist workers), given to this process and to
     the CLI runs it starts, with AOTAutograd's cache on for the loss's custom autograd.Function
     (the CLI run then loads the compiled forward and backward instead of tracing them again)."""
     import torch._functorch.config as functorch_config
