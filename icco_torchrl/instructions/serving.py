@@ -113,7 +113,7 @@ class PlanServer:
     def set_plan(self, start: torch.Tensor, planned: torch.Tensor) -> None:
         """The plan in force from now: robots at ``start`` ``[B, N, 2]`` got ``planned``
         ``[B, N, K', 2]`` (any K' >= 1; the last point is the slot)."""
-        self.routes = routes_from_plan(start, planned)
+        self.routes = routes_from_plan(start, planned.to(start))  # the robots' dtype, once
 
     @property
     def slots(self) -> torch.Tensor | None:
@@ -123,4 +123,4 @@ class PlanServer:
         """Waypoints ``[B, N, K, 2]`` for robots at ``pos`` ``[B, N, 2]``."""
         if self.routes is None:
             raise RuntimeError("no plan to serve yet: call set_plan first")
-        return serve_routes(pos, self.routes.to(pos), self.n_waypoints, self.step)
+        return serve_routes(pos, self.routes, self.n_waypoints, self.step)

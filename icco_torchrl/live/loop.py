@@ -371,7 +371,10 @@ class LiveLoop:
         """One env step of the team under the current plan; applies a plan that arrived since."""
         start = time.perf_counter()
         with self._lock, torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
-            self._serve(self._pending is not None and self._use_pending())
+            fresh = self._pending is not None
+            if fresh:
+                self._use_pending()
+            self._serve(fresh)
             td = self.env.step(self.policy(self.td))
             nxt = td.get("next")
             events = {k: float(nxt.get(("events", k))[0]) for k in (*EVENTS, "inst_reward")}
@@ -402,7 +405,7 @@ class LiveLoop:
             self._serve(True)
             self._replan()
 
-    def _use_pending(self) -> bool:
+    def _use_pending(self) -> None:
         """The plan that arrived becomes the plan in use (call under the lock)."""
         (start, planned), self._pending = self._pending, None
         device = self.raw.device
@@ -411,7 +414,6 @@ class LiveLoop:
         if self._plan_for != self._plan_instruction:  # a new instruction: a new running mean
             self.finished, self._finished_sums = 0, dict.fromkeys(self._finished_sums, 0.0)
         self._plan_for = self._plan_instruction
-        return True
 
     def _serve(self, now: bool = False) -> None:
         """Write the plan in use as waypoints from where the robots are, when the env's clock
@@ -586,7 +588,9 @@ class LiveLoop:
         raw = self.raw
         with self._lock, torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
             self._measure(positions, velocities, resources, invader)
-            fresh = self._pending is not None and self._use_pending()
+            fresh = self._pending is not None
+            if fresh:
+                self._use_pending()
             self._serve(fresh)
             raw.write_waypoints(self.td, raw.waypoints)  # rebuilds the observation and the state
             td = self.policy(self.td)
