@@ -208,7 +208,7 @@ def test_a_crowd_of_tabs_adding_and_removing_robots_does_not_stall_the_loop(serv
             async with Tab(session, url + "/ws") as watcher:
                 await watcher.until(lambda: len(watcher.ticks) > 5)
                 crowd = [await session.ws_connect(url + "/ws") for _ in range(100)]
-                begin = time.monotonic()
+                begin, shown = time.monotonic(), time.perf_counter()
                 for k in range(40):
                     for j, ws in enumerate(crowd):
                         robot = 3 + (j + k) % 3
@@ -216,8 +216,11 @@ def test_a_crowd_of_tabs_adding_and_removing_robots_does_not_stall_the_loop(serv
                         await ws.send_str(json.dumps({"type": kind, "robot": robot}))
                 n = len(watcher.ticks)
                 await watcher.until(lambda: len(watcher.ticks) >= n + 25, timeout=15)
-                gaps = np.diff([begin, *[t for t in watcher.arrivals if t >= begin]])
-                assert gaps.max() < 1.0, gaps.max()  # it kept ticking
+                # It kept ticking: the server's own tick times (this client's burst of 4000 sends
+                # holds its event loop, so the watcher's arrival times would count the client).
+                ticked = [t for t in list(server._tick_times) if t >= shown]
+                gaps = np.diff([shown, *ticked])
+                assert len(ticked) >= 10 and gaps.max() < 1.0, gaps.max()
                 elapsed = time.monotonic() - begin
                 assert len(changes) <= CHANGE_BURST + CHANGE_RATE * elapsed + 1
                 assert server.stats["busy"] > 1000
