@@ -44,6 +44,7 @@ from icco_torchrl.training.logger import RunLogger, last_evaluation
 from icco_torchrl.training.run_folder import (
     CHECKPOINT,
     REFERENCES_FILE,
+    SNAPSHOTS,
     RunFolderLock,
     fresh_outputs,
 )
@@ -461,6 +462,11 @@ class TrainingRun:
         metrics = evaluate(self.run.eval_env, self.run.policy, seed=self.eval_seed)
         self.timers["eval"] += time.perf_counter() - start
         with stop.held() if stop is not None else contextlib.nullcontext():
+            if self.cfg.train.policy_snapshots:  # before its row: a logged mark has its weights
+                checkpoint.save_checkpoint(
+                    self.run_dir / SNAPSHOTS / f"{frames:09d}.pt",
+                    checkpoint.policy_of(self.state_dict()),
+                )
             self.logger.log("eval", {"frames": frames, **metrics})
             self.evaluated.append((frames, metrics))
             if stop is not None:  # the final evaluation: recorded with its row

@@ -658,3 +658,22 @@ def test_a_signal_before_the_loop_stops_at_once_but_never_inside_a_checkpoint_wr
         with pytest.raises(Interrupted):
             os.kill(os.getpid(), signal.SIGTERM)
             time.sleep(1)
+
+
+def test_policy_snapshots_keep_the_weights_of_every_evaluation(tmp_path, trained):
+    """train.policy_snapshots: one weights-only file per eval.csv row, named by its frames; the
+    last is the exported policy of the final checkpoint, and an earlier one differs from it."""
+    from icco_torchrl.training.checkpoint import export_policy, load_checkpoint
+    from icco_torchrl.training.logger import read_column
+
+    run = trained(*QUICK, "train.policy_snapshots=true", "train.eval_interval=1024")
+    frames = [int(f) for f in read_column(run, "eval", "reward")[0]]
+    snapshots = sorted((run / "policies").glob("*.pt"))
+    assert [int(p.stem) for p in snapshots] == frames and len(frames) >= 2
+    last, first = load_checkpoint(snapshots[-1]), load_checkpoint(snapshots[0])
+    final = load_checkpoint(export_policy(run / "checkpoint.pt", tmp_path / "policy.pt"))
+    assert last["policy_only"] and last["frames"] == frames[-1] == final["frames"]
+    assert not any(k.startswith("target_") for k in last["loss"])
+    assert set(last["loss"]) == set(final["loss"])
+    assert all(torch.equal(last["loss"][k], final["loss"][k]) for k in final["loss"])
+    assert not all(torch.equal(first["loss"][k], final["loss"][k]) for k in final["loss"])

@@ -59,12 +59,14 @@ from verdict import RULE, Mean, compare  # noqa: E402
 
 # `make train`'s recipe (experiment=make_train: 2M frames, compiled update) on one core: the env
 # in the learner's process (two runs side by side use a 2-core machine), and no replay dump in the
-# checkpoints (24 runs x ~450 MB; a resumed run refills its buffer).
+# checkpoints (24 runs x ~450 MB; a resumed run refills its buffer). The weights of every
+# evaluation are kept, so benchmarks/time_to_skill.py can score the control's learning curve.
 BUDGET = [
     "experiment=make_train",
     "train.collector=inline",
     "train.threads=1",
     "train.checkpoint_buffer=false",
+    "train.policy_snapshots=true",
 ]
 SEEDS = (0, 1)
 WEIGHTS = {"1e-4": 1e-4, "1e-3": 1e-3, "1e-2": 1e-2, "1e-1": 1e-1, "1": 1.0}

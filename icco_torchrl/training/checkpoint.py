@@ -401,11 +401,17 @@ def export_policy(src: str | Path, dst: str | Path) -> Path:
     their target copies, the optimiser, the RNG state or the replay bookkeeping (about half the
     size). :func:`~icco_torchrl.training.restore.restore` loads it like any checkpoint;
     ``resume=`` cannot continue from it."""
-    ckpt = load_checkpoint(src)
+    return save_checkpoint(dst, policy_of(load_checkpoint(src)))
+
+
+def policy_of(state: dict | RunState) -> dict:
+    """The weights-only payload of a run's state (a checkpoint's dict or a :class:`RunState`):
+    :data:`POLICY_FIELDS`, the networks without their target copies."""
+    ckpt = state.checkpoint() if isinstance(state, RunState) else state
     slim = {k: ckpt[k] for k in POLICY_FIELDS if k in ckpt}
     slim["loss"] = {k: v for k, v in ckpt["loss"].items() if not k.startswith("target_")}
     slim["policy_only"] = True
-    return save_checkpoint(dst, slim)
+    return slim
 
 
 def check_compatible(saved_cfg: dict, saved_layout: dict, cfg, layout, path: str | Path) -> None:

@@ -29,6 +29,7 @@ CHECKPOINT = "checkpoint.pt"  # a run's checkpoint, in its run folder
 REPLAY_DIR = "replay"  # the replay buffer dump beside it (train.checkpoint_buffer)
 LOCK_FILE = ".train.lock"  # held by the icco train writing the folder
 REFERENCES_FILE = "references.json"  # the reference policies' evaluation, beside eval.csv
+SNAPSHOTS = "policies"  # train.policy_snapshots: the weights of every evaluation, <frames>.pt
 
 
 class CheckpointError(RuntimeError):
