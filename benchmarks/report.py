@@ -151,25 +151,29 @@ def profile_section() -> str:
 
 def skill_section() -> str:
     data = load("time_to_skill.json")
-    if data is None:
+    if data is None or "target" not in data:
         return "(not measured: no `results/time_to_skill.json`)"
     rows = [
         {
-            "method": r["method"],
             "recipe": r["recipe"],
             "seed": r["seed"],
-            "follower": r["follower"],
-            "frames to pass it": "never" if r["frames"] is None else r["frames"],
-            "wall-clock (min)": None if r["wall_s"] is None else r["wall_s"] / 60,
-            "within (frames)": r["budget_frames"]
-            if r.get("finished", True)
-            else f"{r['budget_frames']:,} (run cut short)",
-            "best greedy team reward": max(v for _, v in r["curve"]),
+            "minutes to 90 %": "not reached"
+            if r["minutes_to_90_percent"] is None
+            else r["minutes_to_90_percent"],
+            "frames to 90 %": r["frames_to_90_percent"],
+            "final share": f"{100 * r['final_share']:.0f} %",
+            "best share": f"{100 * max(m['share'] for m in r['marks']):.0f} %",
+            "minutes, all": r["marks"][-1]["minutes"],
+            "best scripted": r["best_scripted"],
         }
         for r in data.get("runs", [])
     ]
+    where = (
+        f"{data['cpu']}, {data['threads']} thread per run, {data['side_by_side']} runs side by "
+        f"side; four quadrants, {data['trials']} trials per mark"
+    )
     src = "[`results/time_to_skill.json`](results/time_to_skill.json)"
-    return f"{table(rows)}\n\nSource: {src}; figure: `results/time_to_skill.png`."
+    return f"{where}.\n\n{table(rows)}\n\nSource: {src}; figure: `results/time_to_skill.png`."
 
 
 def train_gpu_section() -> str:

@@ -1,22 +1,29 @@
-"""Time to skill: frames and wall-clock until the greedy team reward first passes the follower's.
+"""Time to skill: wall-clock minutes until a recipe's greedy team reaches 90 % of the best scripted
+team in four quadrants, learning and speed judged together.
 
-    python benchmarks/time_to_skill.py                    # train the runs it needs, then report
-    python benchmarks/time_to_skill.py --report-only      # report from the runs already there
+    python benchmarks/time_to_skill.py                  # train what is missing, score, report
+    python benchmarks/time_to_skill.py --recipes "make train" "replay ratio 4"
+    python benchmarks/time_to_skill.py --report-only    # the figure from the JSON
+    python benchmarks/time_to_skill.py --smoke --out /tmp/tts --seeds 0   # a pipeline check
 
-For ICCO and QMIX (FULL), each at the old defaults (4-step items, one-step targets) and at
-today's defaults, two seeds each: ``icco train`` at the reproduction's budget
-(``experiment=repro_cpu``, one torch thread, two runs side by side) with a greedy evaluation
-every ``--eval-interval`` frames. At the method's scale (``5M``): the 5M-frame reproduction's
-own runs (``experiment=repro_5m``, the compiled update, an evaluation every 100k frames), seeds
-0 and 1 of ``--scale-sweep``, trained here when missing. A run's skill time is the first
-evaluation whose team reward passes the follower's on the same evaluation episodes
-(``references.json``, written by the run itself), read from its ``eval.csv``; the wall-clock is
-the run's own time (collection, learning, evaluations) up to that evaluation, from
-``timing.csv``. "never" means not within the budget. A 5M run still under way is reported
-once it has passed (``"finished": false``, its curve up to where it is).
+Each recipe is ``make train``'s (``experiment=make_train``: ICCO, 2M frames) with its own
+overrides (:data:`RECIPES`), trained at :data:`BUDGET`: the env in the learner's process, one torch
+thread, two runs side by side on a 2-core machine (``--jobs``), and ``train.policy_snapshots`` so
+that the weights of every evaluation mark (``train.eval_interval``, 100k frames) are kept. A
+stopped sitting resumes: finished runs are kept, interrupted ones continue from their checkpoint.
 
-Writes ``benchmarks/results/time_to_skill.json`` and ``time_to_skill.png`` (greedy team reward
-against frames, mean of the seeds, the follower's level dashed).
+Then, timed apart from training, every snapshot plays the four-quadrant protocol (``icco eval
+eval.protocol=quadrants``, its 20 trials, the scripted references on the same episodes,
+coordination measures off). A mark's share is the snapshot's mean episode reward over the best
+scripted team's; its minutes are the run's own collection and update clock up to that mark
+(``timing.csv``: evaluations, process start and compile-cache loading excluded, the first compile
+included). ``minutes_to_90_percent`` is the first mark at or above 90 % (null: not within the
+budget).
+
+Writes ``benchmarks/results/time_to_skill.json`` (per recipe and seed: the curve, the marks'
+shares and minutes, the CPU model and thread count) and ``time_to_skill.png`` (share against
+minutes, one line per recipe, the mean of its seeds); ``python benchmarks/report.py`` renders the
+table into ``benchmarks/README.md``.
 """
 
 from __future__ import annotations
@@ -24,163 +31,222 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import math
+import platform
+import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
 from matplotlib.figure import Figure
 
-from icco_torchrl.training.logger import clock_seconds, read_column
+from icco_torchrl.envs.reference_policies import BEST_SCRIPTED_LABEL
+from icco_torchrl.training.build import compose_config
+from icco_torchrl.training.logger import clock_seconds
+from icco_torchrl.training.run_folder import SNAPSHOTS
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "experiments"))
-from jobs import PRE_SEQUENCE_REPLAY, run_status, train_runs  # noqa: E402  (experiments/jobs.py)
+import jobs  # noqa: E402  (experiments/jobs.py, the one job runner)
 
 RESULTS = ROOT / "benchmarks" / "results"
-BUDGET = ["experiment=repro_cpu", "train.checkpoint_buffer=false", "logger.progress=false"]
-# Old defaults: the recipe before sequence replay (what the reproduction of 2026-11-30 trained).
-RECIPES = {"old defaults": PRE_SEQUENCE_REPLAY, "new defaults": [], "5M": ["experiment=repro_5m"]}
-SCALE = "5M"  # its runs are the 5M reproduction's (experiments/four_quadrants, --scale-sweep)
-SCALE_FRAMES = 5_000_000
-METHODS = {"icco": "ICCO", "qmix_full": "QMIX (FULL)"}
+BUDGET = [
+    "experiment=make_train",
+    "train.collector=inline",
+    "train.threads=1",
+    "train.checkpoint_buffer=false",
+]
+# Always: the method, the snapshots the scores are read from, no progress bar in the job logs.
+FIXED = ["method=icco", "train.policy_snapshots=true", "logger.progress=false"]
+# make train's batch: 32 envs x 16 steps = 512 frames, 8 updates of 32 sequences x 16 steps = 8
+# replayed transitions per collected one. Each recipe changes what its name says.
+RECIPES = {
+    "make train": [],
+    "fewer, larger updates": ["train.updates_per_batch=2", "train.batch_segments=128"],
+    "replay ratio 4": ["train.updates_per_batch=4"],
+    "replay ratio 2": ["train.updates_per_batch=2"],
+    "64 envs per batch": ["env.num_envs=64", "train.batch_segments=64"],
+    "lr 3e-3, target every 100": ["train.lr=3e-3", "train.target_update_interval=100"],
+    "epsilon over 150k frames": ["train.eps_decay_frames=150000"],
+}
 SEEDS = (0, 1)
+TARGET = 0.9  # share of the best scripted team
+TRIALS = 20  # the four-quadrant protocol's trials per snapshot
 
 
-def runs(
-    out: Path, methods=tuple(METHODS), scale_sweep: Path | None = None, recipes=tuple(RECIPES)
-) -> dict[tuple[str, str, int], Path]:
-    def folder(method, recipe, seed):
-        if recipe == SCALE:
-            return (scale_sweep or out) / f"{method}_seed{seed}"
-        return out / f"{method}_{recipe.split()[0]}_seed{seed}"
+def folder(out: Path, recipe: str, seed: int) -> Path:
+    slug = "".join(c if c.isalnum() else "_" for c in recipe).strip("_")
+    return out / f"{slug}_seed{seed}"
 
+
+# ---------------------------------------------------------------------------- scoring
+def _episode_means(trials: Path) -> tuple[dict[str, float], float | None]:
+    """From an ``icco eval`` trials file: each checkpoint's mean episode reward, and the best
+    scripted team's on the same episodes."""
+    by_checkpoint: dict[str, list[float]] = {}
+    best: list[float] = []
+    with trials.open() as handle:
+        for row in csv.DictReader(handle):
+            if row["segment"] != "episode":
+                continue
+            if row["method"].startswith(BEST_SCRIPTED_LABEL):
+                best.append(float(row["reward"]))
+            elif row["checkpoint"]:
+                by_checkpoint.setdefault(row["checkpoint"], []).append(float(row["reward"]))
+    means = {k: float(np.mean(v)) for k, v in by_checkpoint.items()}
+    return means, (float(np.mean(best)) if best else None)
+
+
+def score(run: Path, trials: int = TRIALS) -> Path:
+    """Four quadrants for every snapshot of ``run`` (one ``icco eval`` call, so the references
+    play once), into ``run/time_to_skill/``; kept while no snapshot is newer."""
+    snapshots = sorted((run / SNAPSHOTS).glob("*.pt"))
+    if not snapshots:
+        raise SystemExit(f"{run}: no policy snapshots (train it with train.policy_snapshots=true)")
+    out = run / "time_to_skill"
+    scored = out / "quadrants_trials.csv"
+    if scored.is_file() and scored.stat().st_mtime > max(p.stat().st_mtime for p in snapshots):
+        means, _ = _episode_means(scored)
+        if set(means) == {str(p) for p in snapshots}:
+            return scored
+    command = [
+        sys.executable,
+        "-m",
+        "icco_torchrl",
+        "eval",
+        f"eval.checkpoints=[{','.join(map(str, snapshots))}]",
+        "eval.protocol=quadrants",
+        f"eval.trials={trials}",
+        "eval.coordination.enabled=false",
+        f"eval.out_dir={out}",
+        f"hydra.run.dir={out}",
+    ]
+    print(f"scoring {len(snapshots)} snapshots of {run}", flush=True)
+    subprocess.run(command, check=True, stdout=subprocess.DEVNULL)
+    return scored
+
+
+def minutes_at(run: Path) -> dict[int, float]:
+    """The run's collection and update clock (minutes) at each ``timing.csv`` row's frames."""
+    with (run / "timing.csv").open() as handle:
+        rows = list(csv.DictReader(handle))
     return {
-        (method, recipe, seed): folder(method, recipe, seed)
-        for method in methods
-        for recipe in recipes
-        for seed in SEEDS
+        int(r["frames"]): (clock_seconds(r) - float(r.get("time_eval") or 0)) / 60 for r in rows
     }
 
 
-def skill_time(run: Path) -> dict | None:
-    """First evaluation past the follower: frames and the run's clock up to it."""
-    evals, refs = read_column(run, "eval", "reward"), run / "references.json"
-    if evals is None or not refs.is_file():
-        return None
-    follower = json.loads(refs.read_text())["follower"]["reward"]
-    curve = [(int(f), float(r)) for f, r in zip(*evals)]
-    out = {"follower": follower, "curve": curve, "frames": None, "wall_s": None}
-    passed = next((frames for frames, reward in curve if reward > follower), None)
-    if passed is not None:
-        out["frames"] = passed
-        timing = csv.DictReader((run / "timing.csv").open())
-        row = next((r for r in timing if int(r["frames"]) >= passed), None)
-        out["wall_s"] = None if row is None else clock_seconds(row)
-    out["budget_frames"] = curve[-1][0]
-    return out
+def curve(run: Path, scored: Path) -> dict:
+    """The run's marks: frames, minutes of training, reward and share of the best scripted
+    team's; and the first mark at :data:`TARGET`."""
+    means, best = _episode_means(scored)
+    clock = minutes_at(run)
+    marks = []
+    for path, reward in sorted(means.items(), key=lambda kv: int(Path(kv[0]).stem)):
+        frames = int(Path(path).stem)
+        at = min((f for f in clock if f >= frames), default=None)
+        share = reward / best if best and best > 0 else math.nan
+        marks.append({"frames": frames, "minutes": clock.get(at), "reward": reward, "share": share})
+    first = next((m for m in marks if m["share"] >= TARGET), None)
+    return {
+        "best_scripted": best,
+        "marks": marks,
+        "final_share": marks[-1]["share"] if marks else None,
+        "minutes_to_90_percent": None if first is None else first["minutes"],
+        "frames_to_90_percent": None if first is None else first["frames"],
+    }
 
 
-def report(out: Path, scale_sweep: Path | None = None) -> dict:
-    rows = []
-    for (method, recipe, seed), run in runs(out, scale_sweep=scale_sweep).items():
-        result = skill_time(run)
-        if recipe == SCALE and result is not None and run_status(run, SCALE_FRAMES) != "done":
-            if result["frames"] is None:
-                continue  # a 5M run still under way that has not passed yet says nothing yet
-            result["finished"] = False  # its skill time is known; its curve stops early
-        if result is not None:
-            rows.append({"method": method, "recipe": recipe, "seed": seed, **result})
-    return {"budget": BUDGET, "old_defaults": PRE_SEQUENCE_REPLAY, "runs": rows}
+def cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
 
 
+# ---------------------------------------------------------------------------- report
 def plot(results: dict, path: Path) -> None:
     fig = Figure(figsize=(7, 4))
     ax = fig.subplots()
-    for (method, label), color in zip(METHODS.items(), ("#1f77b4", "#2ca02c")):
-        for recipe, style in zip(RECIPES, (":", "-", "-.")):
-            curves = [
-                r["curve"]
-                for r in results["runs"]
-                if (r["method"], r["recipe"]) == (method, recipe)
-            ]
-            if not curves:
-                continue
-            n = min(len(c) for c in curves)
-            frames = np.array([c[i][0] for i in range(n) for c in curves[:1]])
-            mean = np.array([[c[i][1] for i in range(n)] for c in curves]).mean(0)
-            ax.plot(
-                frames, mean, style, color=color, label=f"{label}, {recipe} ({len(curves)} seeds)"
-            )
-    followers = [r["follower"] for r in results["runs"]]
-    if followers:
-        ax.axhline(float(np.mean(followers)), color="k", ls="--", lw=1, label="follower (scripted)")
-    ax.set_xlabel("frames")
-    ax.set_ylabel("greedy team reward")
+    for recipe in RECIPES:
+        runs = [r for r in results["runs"] if r["recipe"] == recipe and r["marks"]]
+        if not runs:
+            continue
+        n = min(len(r["marks"]) for r in runs)
+        minutes = np.mean([[m["minutes"] for m in r["marks"][:n]] for r in runs], axis=0)
+        share = np.mean([[m["share"] for m in r["marks"][:n]] for r in runs], axis=0)
+        ax.plot(minutes, 100 * share, marker=".", label=f"{recipe} ({len(runs)} seeds)")
+    ax.axhline(100 * TARGET, color="k", ls="--", lw=1, label="90 % of the best scripted team")
+    ax.set_xlabel("minutes of training (one core; evaluations excluded)")
+    ax.set_ylabel("four quadrants: % of the best scripted team")
     ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
 
 
 def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", type=Path, default=Path("multirun/time_to_skill"))
-    parser.add_argument("--frames", type=int, default=800_000)
-    parser.add_argument("--eval-interval", type=int, default=50_000)
-    parser.add_argument("--jobs", type=int, default=2)
-    parser.add_argument("--methods", nargs="+", choices=list(METHODS), default=list(METHODS))
-    parser.add_argument("--recipes", nargs="+", choices=list(RECIPES), default=list(RECIPES))
-    parser.add_argument(
-        "--scale-sweep",
-        type=Path,
-        default=Path("multirun/four_quadrants_5m"),
-        help="the 5M reproduction's sweep folder (its seed 0 and 1 runs)",
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument("--report-only", action="store_true")
+    parser.add_argument("--out", type=Path, default=Path("multirun/time_to_skill"))
+    parser.add_argument("--recipes", nargs="+", choices=list(RECIPES), default=list(RECIPES))
+    parser.add_argument("--seeds", nargs="+", type=int, default=list(SEEDS))
+    parser.add_argument("--jobs", type=int, default=2, help="runs side by side (one core each)")
+    parser.add_argument("--trials", type=int, default=TRIALS)
+    parser.add_argument("--budget", nargs="*", help="training overrides instead of BUDGET")
+    parser.add_argument(
+        "--smoke", action="store_true", help="seconds-long runs and 2 trials: a pipeline check"
+    )
+    parser.add_argument(
+        "--results",
+        type=Path,
+        help="default benchmarks/results/time_to_skill.json (--smoke: --out)",
+    )
+    parser.add_argument("--report-only", action="store_true", help="the figure from --results")
     args = parser.parse_args(argv)
-    out, scale_sweep = args.out.resolve(), args.scale_sweep.resolve()
-
-    def overrides(method, recipe, seed):
-        if recipe == SCALE:  # the 5M reproduction's own command line (its budget and evaluations)
-            return [f"method={method}", f"seed={seed}", *RECIPES[recipe]]
-        return [
-            f"method={method}",
-            f"seed={seed}",
-            *BUDGET,
-            *RECIPES[recipe],
-            f"train.total_frames={args.frames}",
-            f"train.eval_interval={args.eval_interval}",
-        ]
-
+    out = args.out.resolve()
+    budget = [*FIXED, *jobs.budget(args.smoke, args.budget, BUDGET)]
+    trials = 2 if args.smoke else args.trials
+    default = out / "time_to_skill.json" if args.smoke else RESULTS / "time_to_skill.json"
+    args.results = args.results or default
+    wanted = {
+        (recipe, seed): folder(out, recipe, seed) for recipe in args.recipes for seed in args.seeds
+    }
     if not args.report_only:
-        train_runs(
-            {
-                run: (
-                    overrides(method, recipe, seed),
-                    5_000_000 if recipe == SCALE else args.frames,
-                )
-                for (method, recipe, seed), run in runs(
-                    out, args.methods, scale_sweep, args.recipes
-                ).items()
-            },
-            args.jobs,
-        )
-    results = report(out, scale_sweep)
-    previous = RESULTS / "time_to_skill.json"
-    if previous.is_file():  # rows whose runs are not on this machine keep their recorded result
-        found = {(r["method"], r["recipe"], r["seed"]) for r in results["runs"]}
+        runs = {}
+        for (recipe, seed), run in wanted.items():
+            overrides = [*budget, *RECIPES[recipe], f"seed={seed}"]
+            runs[run] = (overrides, compose_config(overrides).train.total_frames)
+        jobs.train_runs(runs, args.jobs)
+        previous = json.loads(args.results.read_text()) if args.results.is_file() else {}
         kept = [
             r
-            for r in json.loads(previous.read_text()).get("runs", [])
-            if (r["method"], r["recipe"], r["seed"]) not in found
+            for r in previous.get("runs", [])
+            if (r["recipe"], r["seed"]) not in wanted  # rows of runs not on this machine stay
         ]
-        results["runs"] = kept + results["runs"]
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "time_to_skill.json").write_text(json.dumps(results, indent=1) + "\n")
-    plot(results, RESULTS / "time_to_skill.png")
+        rows = []
+        for (recipe, seed), run in wanted.items():
+            row = {"recipe": recipe, "seed": seed, "overrides": RECIPES[recipe]}
+            rows.append({**row, **curve(run, score(run, trials))})
+        results = {
+            "budget": budget,
+            "target": TARGET,
+            "trials": trials,
+            "cpu": cpu_model(),
+            "threads": 1,
+            "side_by_side": args.jobs,
+            "runs": kept + rows,
+        }
+        args.results.parent.mkdir(parents=True, exist_ok=True)
+        args.results.write_text(json.dumps(results, indent=1) + "\n")
+    results = json.loads(args.results.read_text())
+    plot(results, args.results.with_suffix(".png"))
     for r in results["runs"]:
-        frames = "never" if r["frames"] is None else f"{r['frames']:,}"
-        wall = "" if r["wall_s"] is None else f" ({r['wall_s'] / 60:.1f} min)"
-        print(f"{METHODS[r['method']]:<12} {r['recipe']:<13} seed {r['seed']}: {frames}{wall}")
+        m = r["minutes_to_90_percent"]
+        reached = "not reached" if m is None else f"{m:.1f} min ({r['frames_to_90_percent']:,})"
+        print(f"{r['recipe']:<28} seed {r['seed']}: 90 % {reached}; final {r['final_share']:.0%}")
 
 
 if __name__ == "__main__":

@@ -45,8 +45,43 @@ def test_every_sequence_replay_screen_and_benchmark_recipe_composes():
         replayed = t.updates_per_batch * t.batch_segments * t.sequence_length
         assert replayed == 8 * frames, name  # 8 replayed transitions per collected one
     skill = _load(ROOT / "benchmarks" / "time_to_skill.py")
-    for overrides in skill.RECIPES.values():
-        compose_config(["method=icco", *skill.BUDGET, *overrides])
+    ratios = {}
+    for name, overrides in skill.RECIPES.items():
+        cfg = compose_config([*skill.FIXED, *skill.BUDGET, *overrides])
+        t = cfg.train
+        assert cfg.method.name == "icco" and t.policy_snapshots and t.total_frames == 2_000_000
+        replayed = t.updates_per_batch * t.batch_segments * t.sequence_length
+        ratios[name] = replayed / (cfg.env.num_envs * t.steps_per_batch)
+    assert ratios["replay ratio 4"] == 4 and ratios["replay ratio 2"] == 2  # what the names say
+    assert {ratios[n] for n in ratios if "replay ratio" not in n} == {8}
+
+
+def test_time_to_skill_reads_the_first_mark_at_90_percent_on_the_training_clock(tmp_path):
+    """Hand-made scores: the best scripted team's episodes average 400; snapshots at 100k and
+    200k frames average 300 (75 %) and 380 (95 %); the clock at 200k is 120 s of collection and
+    updates, the evaluations' 50 s excluded."""
+    skill = _load(ROOT / "benchmarks" / "time_to_skill.py")
+    run = tmp_path / "run"
+    (run / "policies").mkdir(parents=True)
+    paths = [str(run / "policies" / f"{f:09d}.pt") for f in (100_000, 200_000)]
+    header = "method,seed,checkpoint,episode,trial,segment,reward\n"
+    rows = [f"ICCO,0,{paths[0]},{k},{k},episode,{r}" for k, r in enumerate((290, 310))]
+    rows += [f"ICCO,0,{paths[1]},{k},{k},episode,{r}" for k, r in enumerate((370, 390))]
+    rows += [f"ICCO,0,{paths[1]},0,0,quadrant 1,{10**6}"]  # a segment row: not an episode
+    best = skill.BEST_SCRIPTED_LABEL
+    rows += [f'"{best} (x)",0,,{k},{k},episode,{r}' for k, r in enumerate((390, 410))]
+    rows += [f"follower,0,,{k},{k},episode,{10**6}" for k in range(2)]
+    (run / "trials.csv").write_text(header + "\n".join(rows) + "\n")
+    (run / "timing.csv").write_text(
+        "frames,sps,time_collect,time_train,time_eval\n"
+        "100000,1,20.0,40.0,25.0\n200000,1,40.0,80.0,50.0\n"
+    )
+    got = skill.curve(run, run / "trials.csv")
+    assert got["best_scripted"] == 400
+    assert [m["share"] for m in got["marks"]] == [0.75, 0.95]
+    assert got["frames_to_90_percent"] == 200_000 and got["minutes_to_90_percent"] == 2.0
+    skill.TARGET = 0.99  # never reached: null, not the last mark
+    assert skill.curve(run, run / "trials.csv")["minutes_to_90_percent"] is None
 
 
 def test_every_best_team_screen_composes_at_the_screen_budget_and_replay_ratio():
