@@ -742,3 +742,35 @@ def test_every_consistency_screen_composes_with_its_weights_and_the_control_is_t
         default.method.entropy_coef,
         default.train.ce_clamp,
     )
+
+
+def test_where_consistency_matters_pools_each_teams_seeds_against_the_same_references(tmp_path):
+    """experiments/consistency/where.py on a hand-made evaluation: each team's episode rewards
+    pooled over its two seeds, its coordination measures averaged over them, shares of the best
+    scripted team's, and a verdict against ICCO w/o CE."""
+    where = _load(ROOT / "experiments" / "consistency" / "where.py")
+    teams = {"ce1": [tmp_path / "a0.pt", tmp_path / "a1.pt"], "wo_ce": [tmp_path / "b0.pt"]}
+    rewards = {"a0.pt": (300, 320), "a1.pt": (340, 360), "b0.pt": (100, 100)}
+    rows = ["method,checkpoint,segment,reward"]
+    for name, values in rewards.items():
+        rows += [f"ICCO,{tmp_path / name},episode,{v}" for v in values]
+        rows += [f"ICCO,{tmp_path / name},quadrant 1,{10**6}"]  # not an episode row
+    rows += [f'"{where.BEST_SCRIPTED_LABEL} (x)",,episode,{v}' for v in (400, 400)]
+    (tmp_path / "quadrants_trials.csv").write_text("\n".join(rows) + "\n")
+    mi = {"a0.pt": 2.0, "a1.pt": 4.0, "b0.pt": -1.0}
+    entries = [
+        {
+            "path": str(tmp_path / n),
+            "coordination": {"mi_bound": v, "mi_null": 0.0, "consistency": 0.5},
+        }
+        for n, v in mi.items()
+    ]
+    (tmp_path / "quadrants.json").write_text(json.dumps({"checkpoints": entries}))
+    res = where.setting_results(tmp_path, "eval", teams)
+    assert res["best_scripted"]["mean"] == 400
+    assert res["ce1"]["reward"]["mean"] == 330 and res["ce1"]["reward"]["n"] == 4
+    assert res["ce1"]["reward"]["share_of_best_scripted"] == 330 / 400
+    assert res["ce1"]["mi_bound"]["mean"] == 3.0 and res["ce1"]["mi_bound"]["std"] == 1.0
+    assert res["wo_ce"]["reward"]["mean"] == 100 and res["wo_ce"]["mi_bound"]["mean"] == -1.0
+    verdict = where.verdicts({"team 5": res}, "ce1")["team 5"]
+    assert verdict["reward"].startswith("ahead")

@@ -314,6 +314,39 @@ def _against_control(entry: dict, control: dict | None) -> str:
     ).text()
 
 
+def where_section(path: Path) -> str:
+    """The chosen screen against ICCO w/o CE where the paper says consistency matters, from
+    ``where.py``'s results (nothing before they exist)."""
+    if not path.is_file():
+        return ""
+    res = json.loads(path.read_text())
+    chosen, base = res["chosen"], res["baseline"]
+    lines = [
+        f"| setting | measure | `{chosen}` | `{base}` | `{chosen}` against `{base}` |",
+        "|---|---|---|---|---|",
+    ]
+    for setting, teams in res["settings"].items():
+        for key, entry in (teams.get(chosen) or {}).items():
+            other = (teams.get(base) or {}).get(key)
+            digits = 3 if key == "consistency" or key.startswith("in_place") else 1
+            share = key == "reward"
+            verdict = res["verdicts"].get(setting, {}).get(key, "–")
+            cells = [_cell(entry, digits, share), _cell(other, digits, share)]
+            lines.append(f"| {setting} | {key} | " + " | ".join(cells) + f" | {verdict} |")
+    return f"""
+## Where the paper says consistency matters
+
+`{chosen}` against ICCO w/o CE (`{base}`), the screens' own policies, {res["trials"]} trials per
+seed: ambiguous instructions (`icco instruct`, plans served), zero-shot teams of 5 and 6, and
+adaptive broadcast (beta 0.5). Rewards: mean ± std over trials, seeds pooled (share of the best
+scripted team's at that setting); measures: mean ± std over seeds.
+
+{chr(10).join(lines)}
+
+Written by `python experiments/consistency/where.py --chosen {chosen}` into `where.json`.
+"""
+
+
 def render(res: dict, command: str) -> str:
     """The README of ``res`` (:func:`results`)."""
     screens, control = res["screens"], res["screens"].get(res["control"])
@@ -382,6 +415,7 @@ policy weights `policy.pt`):
 
     {command}
 
+{where_section(HERE / "where.json")}
 This page is written from `results.json` by `python experiments/consistency/run.py --report-only`.
 """
 

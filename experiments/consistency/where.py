@@ -1,0 +1,177 @@
+"""Where the paper says consistency matters: a screen's ICCO against ICCO w/o CE (issue 48, 3).
+
+    python experiments/consistency/where.py --chosen ce1          # evaluate, then where.json
+    python experiments/consistency/where.py --report-only         # where.json from the evaluations
+
+Both teams are the screen's own records (``records/<screen>/*/policy.pt``, 2 seeds each, trained
+by ``run.py``), so nothing is retrained. Each setting is one evaluation of the four policies
+with the scripted references on the same episodes:
+
+- ``ambiguous``: ``icco instruct "Spread out; Gather center"`` (offline planner, plans served),
+  20 trials per seed: team reward, and ``in_place`` (a person's reading of the instruction,
+  ``evaluation/placement.py``) per instruction;
+- ``team 5``, ``team 6``: four quadrants with ``eval.team_size`` 5 and 6 (trained on 3: zero
+  shot), with the coordination measures (``docs/consistency.md``);
+- ``broadcast 0.5``: four quadrants with ``eval.broadcast_threshold=0.5`` (a robot gets a new z
+  only when it moved by more than 0.5; experiments/team_size: about a quarter of the every-T
+  broadcasts), with the coordination measures.
+
+``where.json`` holds, per setting and team: reward (mean ± std over trials, seeds pooled; share of
+the best scripted team's), the setting's measures (mean ± std over seeds) and the verdict of the
+chosen screen against ICCO w/o CE (``experiments/verdict.py``). ``run.py --report-only`` renders
+it into this folder's README.
+"""
+
+import argparse
+import csv
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from icco_torchrl.envs.reference_policies import BEST_SCRIPTED_LABEL
+from icco_torchrl.evaluation.metrics import write_json
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE.parent))
+from verdict import Mean, compare  # noqa: E402
+
+BASELINE = "wo_ce"
+AMBIGUOUS = ("Spread out", "Gather center")
+SETTINGS = {
+    "ambiguous": ("instruct", []),
+    "team 5": ("eval", ["eval.team_size=5"]),
+    "team 6": ("eval", ["eval.team_size=6"]),
+    "broadcast 0.5": ("eval", ["eval.broadcast_threshold=0.5"]),
+}
+COORDINATION = ("mi_bound", "mi_null", "consistency")  # of docs/consistency.md
+
+
+def policies(records: Path, screen: str) -> list[Path]:
+    found = sorted((records / screen).glob("*/policy.pt"))
+    if not found:
+        raise SystemExit(f"{records / screen}: no policy.pt (train and keep it with run.py)")
+    return found
+
+
+def evaluate(out: Path, setting: str, checkpoints: list[Path], trials: int) -> None:
+    command, overrides = SETTINGS[setting]
+    folder = out / setting.replace(" ", "_")
+    args = [
+        f"eval.checkpoints=[{','.join(map(str, checkpoints))}]",
+        f"eval.trials={trials}",
+        *overrides,
+        f"eval.out_dir={folder}",
+        f"hydra.run.dir={folder}",
+    ]
+    if command == "instruct":
+        args = ["; ".join(AMBIGUOUS), *args, "llm=offline"]
+    else:
+        args = [*args, "eval.protocol=quadrants"]
+    print(f"$ icco {command} " + " ".join(args), flush=True)
+    subprocess.run([sys.executable, "-m", "icco_torchrl", command, *args], check=True)
+
+
+def _rows(path: Path) -> list[dict]:
+    with path.open() as handle:
+        return list(csv.DictReader(handle))
+
+
+def _mean(values: list[float]) -> Mean | None:
+    values = [v for v in values if math.isfinite(v)]
+    return Mean(float(np.mean(values)), float(np.std(values)), len(values)) if values else None
+
+
+def _entry(mean: Mean | None, best: Mean | None) -> dict | None:
+    if mean is None:
+        return None
+    share = mean.mean / best.mean if best is not None and best.mean > 0 else None
+    return {"mean": mean.mean, "std": mean.std, "n": mean.n, "share_of_best_scripted": share}
+
+
+def setting_results(folder: Path, command: str, teams: dict[str, list[Path]]) -> dict:
+    """Each team's reward and measures in one setting's evaluation ``folder``."""
+    name = "instruct" if command == "instruct" else "quadrants"
+    rows = _rows(folder / f"{name}_trials.csv")
+
+    def episodes(keep, metric="reward", segment="episode"):
+        return _mean([float(r[metric]) for r in rows if r["segment"] == segment and keep(r)])
+
+    best = episodes(lambda r: r["method"].startswith(BEST_SCRIPTED_LABEL))
+    out = {"best_scripted": _entry(best, best)}
+    entries = {
+        c["path"]: c for c in json.loads((folder / f"{name}.json").read_text())["checkpoints"]
+    }
+    for team, paths in teams.items():
+
+        def ours(r, mine=frozenset(str(p) for p in paths)):
+            return r["checkpoint"] in mine
+
+        result = {"reward": _entry(episodes(ours), best)}
+        if command == "instruct":
+            for text in AMBIGUOUS:
+                got = episodes(ours, "in_place", text)
+                result[f"in_place: {text}"] = _entry(got, None)
+        else:
+            for measure in COORDINATION:
+                coordination = [entries[str(p)].get("coordination") or {} for p in paths]
+                values = [c.get(measure) for c in coordination]
+                result[measure] = _entry(_mean([v for v in values if v is not None]), None)
+        out[team] = result
+    return out
+
+
+def verdicts(res: dict, chosen: str) -> dict:
+    """The chosen screen against ICCO w/o CE on each setting's reward and measures."""
+    out = {}
+    for setting, teams in res.items():
+        a, b = teams.get(chosen) or {}, teams.get(BASELINE) or {}
+        out[setting] = {
+            key: compare(
+                Mean(a[key]["mean"], a[key]["std"], a[key]["n"]),
+                Mean(b[key]["mean"], b[key]["std"], b[key]["n"]),
+            ).text()
+            for key in a
+            if a.get(key) and b.get(key)
+        }
+    return out
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--chosen", help="the screen to hold against wo_ce (e.g. ce1)")
+    parser.add_argument("--records", type=Path, default=HERE / "records")
+    parser.add_argument("--out", type=Path, default=Path("multirun/consistency_where"))
+    parser.add_argument("--trials", type=int, default=20)
+    parser.add_argument("--settings", nargs="+", choices=list(SETTINGS), default=list(SETTINGS))
+    parser.add_argument("--results", type=Path, default=HERE / "where.json")
+    parser.add_argument("--report-only", action="store_true")
+    args = parser.parse_args(argv)
+    previous = json.loads(args.results.read_text()) if args.results.is_file() else {}
+    chosen = args.chosen or previous.get("chosen")
+    if chosen is None:
+        raise SystemExit("--chosen: which screen to hold against wo_ce (e.g. --chosen ce1)")
+    out = args.out.resolve()
+    teams = {chosen: policies(args.records, chosen), BASELINE: policies(args.records, BASELINE)}
+    if not args.report_only:
+        for setting in args.settings:
+            evaluate(out, setting, [p for paths in teams.values() for p in paths], args.trials)
+    settings = {
+        s: setting_results(out / s.replace(" ", "_"), SETTINGS[s][0], teams)
+        for s in SETTINGS
+        if (out / s.replace(" ", "_")).is_dir()
+    }
+    trials = previous.get("trials", args.trials) if args.report_only else args.trials
+    res = {"chosen": chosen, "baseline": BASELINE, "trials": trials, "settings": settings}
+    res["verdicts"] = verdicts(settings, chosen)
+    write_json(res, args.results)
+    print(f"results: {args.results}", flush=True)
+
+
+if __name__ == "__main__":
+    main()
