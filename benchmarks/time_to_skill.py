@@ -4,7 +4,7 @@ team in four quadrants, learning and speed judged together.
     python benchmarks/time_to_skill.py                  # train what is missing, score, report
     python benchmarks/time_to_skill.py --recipes "make train" "replay ratio 4"
     python benchmarks/time_to_skill.py --report-only    # the figure from the JSON
-    python benchmarks/time_to_skill.py --smoke --out /tmp/tts --seeds 0   # a pipeline check
+    python benchmarks/time_to_skill.py --smoke --seeds 0   # a pipeline check
 
 Each recipe is ``make train``'s (``experiment=make_train``: ICCO, 2M frames) with its own
 overrides (:data:`RECIPES`), trained at :data:`BUDGET`: the env in the learner's process, one torch
@@ -190,7 +190,9 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument("--out", type=Path, default=Path("multirun/time_to_skill"))
+    parser.add_argument(
+        "--out", type=Path, help="runs folder (default multirun/time_to_skill[_smoke])"
+    )
     parser.add_argument("--recipes", nargs="+", choices=list(RECIPES), default=list(RECIPES))
     parser.add_argument("--seeds", nargs="+", type=int, default=list(SEEDS))
     parser.add_argument("--jobs", type=int, default=2, help="runs side by side (one core each)")
@@ -206,7 +208,7 @@ def main(argv=None) -> None:
     )
     parser.add_argument("--report-only", action="store_true", help="the figure from --results")
     args = parser.parse_args(argv)
-    out = args.out.resolve()
+    out = (args.out or Path("multirun/time_to_skill" + "_smoke" * args.smoke)).resolve()
     budget = [*FIXED, *jobs.budget(args.smoke, args.budget, BUDGET)]
     trials = 2 if args.smoke else args.trials
     default = out / "time_to_skill.json" if args.smoke else RESULTS / "time_to_skill.json"
