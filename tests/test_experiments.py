@@ -774,3 +774,29 @@ def test_where_consistency_matters_pools_each_teams_seeds_against_the_same_refer
     assert res["wo_ce"]["reward"]["mean"] == 100 and res["wo_ce"]["mi_bound"]["mean"] == -1.0
     verdict = where.verdicts({"team 5": res}, "ce1")["team 5"]
     assert verdict["reward"].startswith("ahead")
+
+
+def test_the_consistency_page_reads_a_bound_gain_only_beyond_the_seeds_spread():
+    run = _load(ROOT / "experiments" / "consistency" / "run.py")
+
+    def screen(method, reward, bound, null, std):
+        return {
+            "method": method,
+            "quadrants": {"reward": {"mean": reward}},
+            "coordination": {
+                "mi_bound": {"mean": bound, "std": std},
+                "mi_null": {"mean": null, "std": std},
+            },
+        }
+
+    text = run.reading(
+        {
+            "wo_ce": screen("icco_wo_ce", 300.0, -1.5, -2.0, 0.1),  # gain 0.5, spread 0.2
+            "ce1": screen("icco", 250.0, 0.0, -2.0, 0.2),  # gain 2.0 - 0.4 > 0.7: above
+            "ce1e-4": screen("icco", 280.0, -1.2, -2.0, 0.1),  # gain 0.8 - 0.2 < 0.7: not above
+        }
+    )
+    assert "Highest four-quadrant reward: `wo_ce` (300.0)" in text
+    assert "Of ICCO's weights, the highest: `ce1e-4` (280.0)" in text
+    assert "`ce1`: bound above its floor by +2.00 nats (ICCO w/o CE: +0.50); above" in text
+    assert "`ce1e-4`: bound above its floor by +0.80 nats (ICCO w/o CE: +0.50); not above" in text

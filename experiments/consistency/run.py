@@ -347,6 +347,48 @@ Written by `python experiments/consistency/where.py --chosen {chosen}` into `whe
 """
 
 
+def reading(screens: dict) -> str:
+    """What the table says, in words, from the numbers alone: the best screen on reward, the best
+    weight of ICCO's term, and each weight's mutual-information bound above its floor against
+    ICCO w/o CE's (a gain counts only beyond the spread of the seeds)."""
+    rewarded = {n: e for n, e in screens.items() if e["quadrants"]["reward"]}
+    if not rewarded:
+        return ""
+
+    def reward(name):
+        return rewarded[name]["quadrants"]["reward"]["mean"]
+
+    def gain(entry):  # the bound above its floor, seed by seed spread added
+        c = entry["coordination"]
+        if not c.get("mi_bound") or not c.get("mi_null"):
+            return None
+        return c["mi_bound"]["mean"] - c["mi_null"]["mean"], c["mi_bound"]["std"] + c["mi_null"][
+            "std"
+        ]
+
+    best = max(rewarded, key=reward)
+    icco = [n for n in rewarded if rewarded[n]["method"] == "icco"]
+    lines = [f"- Highest four-quadrant reward: `{best}` ({reward(best):.1f})."]
+    if icco:
+        top = max(icco, key=reward)
+        lines.append(f"- Of ICCO's weights, the highest: `{top}` ({reward(top):.1f}).")
+    base = gain(screens["wo_ce"]) if "wo_ce" in screens else None
+    for name in icco:
+        g = gain(screens[name])
+        if g is None or base is None:
+            continue
+        above = g[0] - g[1] > base[0] + base[1]
+        lines.append(
+            f"- `{name}`: bound above its floor by {g[0]:+.2f} nats (ICCO w/o CE: {base[0]:+.2f}); "
+            + (
+                "above ICCO w/o CE's beyond the seeds' spread."
+                if above
+                else "not above ICCO w/o CE's beyond the seeds' spread."
+            )
+        )
+    return "\n".join(["**Reading** (written from the numbers above):", "", *lines])
+
+
 def render(res: dict, command: str) -> str:
     """The README of ``res`` (:func:`results`)."""
     screens, control = res["screens"], res["screens"].get(res["control"])
@@ -409,6 +451,8 @@ Budget: `{" ".join(res["budget"])}`.
 Rewards: mean ± std over trials (seeds pooled). Coordination and training columns: mean ± std
 over seeds. "vs {res["control"]}": the four-quadrant reward against the control's. {RULE}
 {("Not measured yet: " + ", ".join(f"`{n}`" for n in missing) + ".") if missing else ""}
+
+{reading(screens)}
 
 Reproduce (resumable; records in `experiments/consistency/records/<screen>/<run>/`, each with its
 policy weights `policy.pt`):
