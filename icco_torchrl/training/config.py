@@ -242,7 +242,7 @@ class TrainConfig:
     # Evaluation episodes (parallel envs), the same ones every time.
     eval_envs: int = _field(16, gt=0)
     # Also keep the policy weights of every evaluation, policies/<frames>.pt in the run folder
-    # (~0.3 MB each): a learning curve any protocol can score later (benchmarks/time_to_skill.py).
+    # (~0.6 MB each): a learning curve any protocol can score later (benchmarks/time_to_skill.py).
     policy_snapshots: bool = False
     # Frames between checkpoints (0: only at the end).
     checkpoint_interval: int = _field(100_000, ge=0)
