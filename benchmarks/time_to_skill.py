@@ -40,7 +40,6 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure
 
-from icco_torchrl.envs.reference_policies import BEST_SCRIPTED_LABEL
 from icco_torchrl.training.build import compose_config
 from icco_torchrl.training.logger import clock_seconds
 from icco_torchrl.training.run_folder import SNAPSHOTS
@@ -48,6 +47,7 @@ from icco_torchrl.training.run_folder import SNAPSHOTS
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "experiments"))
 import jobs  # noqa: E402  (experiments/jobs.py, the one job runner)
+import verdict  # noqa: E402  (experiments/verdict.py: means over trials)
 
 RESULTS = ROOT / "benchmarks" / "results"
 BUDGET = [
@@ -83,18 +83,15 @@ def folder(out: Path, recipe: str, seed: int) -> Path:
 def _episode_means(trials: Path) -> tuple[dict[str, float], float | None]:
     """From an ``icco eval`` trials file: each checkpoint's mean episode reward, and the best
     scripted team's on the same episodes."""
-    by_checkpoint: dict[str, list[float]] = {}
-    best: list[float] = []
-    with trials.open() as handle:
-        for row in csv.DictReader(handle):
-            if row["segment"] != "episode":
-                continue
-            if row["method"].startswith(BEST_SCRIPTED_LABEL):
-                best.append(float(row["reward"]))
-            elif row["checkpoint"]:
-                by_checkpoint.setdefault(row["checkpoint"], []).append(float(row["reward"]))
-    means = {k: float(np.mean(v)) for k, v in by_checkpoint.items()}
-    return means, (float(np.mean(best)) if best else None)
+    rows = verdict.read_rows(trials)
+    by_checkpoint: dict[str, list[dict]] = {}
+    for row in rows:
+        if row["checkpoint"]:
+            by_checkpoint.setdefault(row["checkpoint"], []).append(row)
+    means = {k: verdict.episode_mean(v) for k, v in by_checkpoint.items()}
+    best = verdict.best_scripted(rows)
+    kept = {k: m.mean for k, m in means.items() if m is not None}
+    return kept, None if best is None else best.mean
 
 
 def score(run: Path, trials: int = TRIALS) -> Path:

@@ -35,9 +35,13 @@ Pages state the claim, then the verdict after a colon: ``- **Paper: ...**: does 
 
 # No ``from __future__ import annotations``: the dataclasses below then need no module lookup,
 # so a script may load this file by path (as the tests do) as well as import it.
+import csv
 import math
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
 
 Z = 2.0  # standard errors a gap must exceed to be resolved
 
@@ -86,6 +90,41 @@ class Mean:
         ``trials`` per checkpoint pool across its seeds (a reference, 0 seeds, has one)."""
         value = entry.get(metric) or {"mean": math.nan, "std": math.nan}
         return cls(value["mean"], value["std"], trials * max(int(entry.get("seeds") or 0), 1))
+
+
+def episode_mean(rows: Iterable[Mapping], metric: str = "reward", segment: str = "episode"):
+    """The :class:`Mean` of ``metric`` over the ``segment`` rows of an evaluation's trials file
+    (``*_trials.csv``; the whole episode by default), empty and non-finite values left out; None
+    without one."""
+    values = [float(r[metric]) for r in rows if r["segment"] == segment and r.get(metric)]
+    values = [v for v in values if math.isfinite(v)]
+    if not values:
+        return None
+    return Mean(float(np.mean(values)), float(np.std(values)), len(values))
+
+
+def best_scripted(rows: Iterable[Mapping], metric: str = "reward"):
+    """:func:`episode_mean` of the best scripted team's rows (``BEST_SCRIPTED_LABEL``)."""
+    from icco_torchrl.envs.reference_policies import BEST_SCRIPTED_LABEL
+
+    return episode_mean([r for r in rows if r["method"].startswith(BEST_SCRIPTED_LABEL)], metric)
+
+
+def read_rows(path: Path) -> list[dict]:
+    """The rows of a CSV file (an evaluation's trials), none when it is missing."""
+    if not path.is_file():
+        return []
+    with path.open() as handle:
+        return list(csv.DictReader(handle))
+
+
+def share_entry(mean: "Mean | None", best: "Mean | None") -> dict | None:
+    """A results entry: mean, std, trials and the share of ``best`` (the best scripted team's on
+    the same episodes; None when it is missing or not positive)."""
+    if mean is None:
+        return None
+    share = mean.mean / best.mean if best is not None and best.mean > 0 else None
+    return {"mean": mean.mean, "std": mean.std, "n": mean.n, "share_of_best_scripted": share}
 
 
 @dataclass(frozen=True)

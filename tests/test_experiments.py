@@ -9,6 +9,7 @@ from pathlib import Path
 
 import pytest
 
+from icco_torchrl.envs.reference_policies import BEST_SCRIPTED_LABEL
 from icco_torchrl.training.build import compose_config
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -68,7 +69,7 @@ def test_time_to_skill_reads_the_first_mark_at_90_percent_on_the_training_clock(
     rows = [f"ICCO,0,{paths[0]},{k},{k},episode,{r}" for k, r in enumerate((290, 310))]
     rows += [f"ICCO,0,{paths[1]},{k},{k},episode,{r}" for k, r in enumerate((370, 390))]
     rows += [f"ICCO,0,{paths[1]},0,0,quadrant 1,{10**6}"]  # a segment row: not an episode
-    best = skill.BEST_SCRIPTED_LABEL
+    best = BEST_SCRIPTED_LABEL
     rows += [f'"{best} (x)",0,,{k},{k},episode,{r}' for k, r in enumerate((390, 410))]
     rows += [f"follower,0,,{k},{k},episode,{10**6}" for k in range(2)]
     (run / "trials.csv").write_text(header + "\n".join(rows) + "\n")
@@ -755,7 +756,7 @@ def test_where_consistency_matters_pools_each_teams_seeds_against_the_same_refer
     for name, values in rewards.items():
         rows += [f"ICCO,{tmp_path / name},episode,{v}" for v in values]
         rows += [f"ICCO,{tmp_path / name},quadrant 1,{10**6}"]  # not an episode row
-    rows += [f'"{where.BEST_SCRIPTED_LABEL} (x)",,episode,{v}' for v in (400, 400)]
+    rows += [f'"{BEST_SCRIPTED_LABEL} (x)",,episode,{v}' for v in (400, 400)]
     (tmp_path / "quadrants_trials.csv").write_text("\n".join(rows) + "\n")
     mi = {"a0.pt": 2.0, "a1.pt": 4.0, "b0.pt": -1.0}
     entries = [

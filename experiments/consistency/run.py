@@ -45,7 +45,6 @@ from pathlib import Path
 
 import numpy as np
 
-from icco_torchrl.envs.reference_policies import BEST_SCRIPTED_LABEL
 from icco_torchrl.evaluation.consistency import COLUMNS
 from icco_torchrl.evaluation.metrics import write_csv, write_json
 from icco_torchrl.training.build import compose_config
@@ -55,7 +54,15 @@ HERE = Path(__file__).resolve().parent
 EXPERIMENTS = HERE.parent
 sys.path.insert(0, str(EXPERIMENTS))
 import jobs  # noqa: E402  (experiments/jobs.py, the one job runner)
-from verdict import RULE, Mean, compare  # noqa: E402
+from verdict import (  # noqa: E402
+    RULE,
+    Mean,
+    best_scripted,
+    compare,
+    episode_mean,
+    read_rows,
+    share_entry,
+)
 
 # `make train`'s recipe (experiment=make_train: 2M frames, compiled update) on one core: the env
 # in the learner's process (two runs side by side use a 2-core machine), and no replay dump in the
@@ -211,31 +218,6 @@ def keep(folder: Path, records: Path) -> None:
 
 
 # ---------------------------------------------------------------------------- results, README
-def _read_csv(path: Path) -> list[dict]:
-    if not path.is_file():
-        return []
-    with path.open() as handle:
-        return list(csv.DictReader(handle))
-
-
-def pooled(rows: list[dict], metric: str = "reward") -> Mean | None:
-    """Mean and population std over the whole-episode rows of ``rows`` (seeds pooled)."""
-    values = [float(r[metric]) for r in rows if r["segment"] == "episode" and r.get(metric)]
-    values = [v for v in values if math.isfinite(v)]
-    return Mean(float(np.mean(values)), float(np.std(values)), len(values)) if values else None
-
-
-def _best_scripted(rows: list[dict]) -> Mean | None:
-    return pooled([r for r in rows if r["method"].startswith(BEST_SCRIPTED_LABEL)])
-
-
-def _entry(mean: Mean | None, best: Mean | None) -> dict | None:
-    if mean is None:
-        return None
-    share = mean.mean / best.mean if best is not None and best.mean > 0 else None
-    return {"mean": mean.mean, "std": mean.std, "n": mean.n, "share_of_best_scripted": share}
-
-
 def _spread(values: list[float]) -> dict | None:
     values = [v for v in values if v is not None and math.isfinite(v)]
     if not values:
@@ -250,30 +232,30 @@ def screen_results(folder: Path) -> dict | None:
     runs = sorted(p for p in folder.iterdir() if (p / "checkpoint.json").is_file())
     if not runs:
         return None
-    quadrant_rows = [r for run in runs for r in _read_csv(run / "trials.csv")]
-    language_rows = [r for run in runs for r in _read_csv(run / "language_trials.csv")]
+    quadrant_rows = [r for run in runs for r in read_rows(run / "trials.csv")]
+    language_rows = [r for run in runs for r in read_rows(run / "language_trials.csv")]
     entries = [json.loads((run / "checkpoint.json").read_text()) for run in runs]
     tails = [
         json.loads((run / "training.json").read_text())
         for run in runs
         if (run / "training.json").is_file()
     ]
-    best_q = _best_scripted(_read_csv(folder / jobs.REFERENCES_TRIALS))
-    best_l = _best_scripted(_read_csv(folder / "language_references_trials.csv"))
+    best_q = best_scripted(read_rows(folder / jobs.REFERENCES_TRIALS))
+    best_l = best_scripted(read_rows(folder / "language_references_trials.csv"))
     coordination = [e.get("coordination") or {} for e in entries]
     return {
         "runs": [run.name for run in runs],
         "seeds": sorted(e["seed"] for e in entries),
         "frames": min(int(e.get("frames") or 0) for e in entries),
         "quadrants": {
-            "reward": _entry(pooled(quadrant_rows), best_q),
-            "task_reward": _entry(pooled(quadrant_rows, "task_reward"), None),
-            "inst_reward": _entry(pooled(quadrant_rows, "inst_reward"), None),
-            "best_scripted": _entry(best_q, best_q),
+            "reward": share_entry(episode_mean(quadrant_rows), best_q),
+            "task_reward": share_entry(episode_mean(quadrant_rows, "task_reward"), None),
+            "inst_reward": share_entry(episode_mean(quadrant_rows, "inst_reward"), None),
+            "best_scripted": share_entry(best_q, best_q),
         },
         "language": {
-            "reward": _entry(pooled(language_rows), best_l),
-            "best_scripted": _entry(best_l, best_l),
+            "reward": share_entry(episode_mean(language_rows), best_l),
+            "best_scripted": share_entry(best_l, best_l),
         },
         "coordination": {c: _spread([m.get(c) for m in coordination]) for c in COLUMNS},
         "training": {c: _spread([t.get(c) for t in tails]) for c in TRAINING_COLUMNS},

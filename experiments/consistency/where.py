@@ -23,21 +23,25 @@ it into this folder's README.
 """
 
 import argparse
-import csv
 import json
-import math
 import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
 
-from icco_torchrl.envs.reference_policies import BEST_SCRIPTED_LABEL
 from icco_torchrl.evaluation.metrics import write_json
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
-from verdict import Mean, compare  # noqa: E402
+from verdict import (  # noqa: E402
+    Mean,
+    best_scripted,
+    compare,
+    episode_mean,
+    read_rows,
+    share_entry,
+)
 
 BASELINE = "wo_ce"
 AMBIGUOUS = ("Spread out", "Gather center")
@@ -75,51 +79,31 @@ def evaluate(out: Path, setting: str, checkpoints: list[Path], trials: int) -> N
     subprocess.run([sys.executable, "-m", "icco_torchrl", command, *args], check=True)
 
 
-def _rows(path: Path) -> list[dict]:
-    with path.open() as handle:
-        return list(csv.DictReader(handle))
-
-
-def _mean(values: list[float]) -> Mean | None:
-    values = [v for v in values if math.isfinite(v)]
-    return Mean(float(np.mean(values)), float(np.std(values)), len(values)) if values else None
-
-
-def _entry(mean: Mean | None, best: Mean | None) -> dict | None:
-    if mean is None:
-        return None
-    share = mean.mean / best.mean if best is not None and best.mean > 0 else None
-    return {"mean": mean.mean, "std": mean.std, "n": mean.n, "share_of_best_scripted": share}
-
-
 def setting_results(folder: Path, command: str, teams: dict[str, list[Path]]) -> dict:
     """Each team's reward and measures in one setting's evaluation ``folder``."""
     name = "instruct" if command == "instruct" else "quadrants"
-    rows = _rows(folder / f"{name}_trials.csv")
-
-    def episodes(keep, metric="reward", segment="episode"):
-        return _mean([float(r[metric]) for r in rows if r["segment"] == segment and keep(r)])
-
-    best = episodes(lambda r: r["method"].startswith(BEST_SCRIPTED_LABEL))
-    out = {"best_scripted": _entry(best, best)}
+    rows = read_rows(folder / f"{name}_trials.csv")
+    best = best_scripted(rows)
+    out = {"best_scripted": share_entry(best, best)}
     entries = {
         c["path"]: c for c in json.loads((folder / f"{name}.json").read_text())["checkpoints"]
     }
     for team, paths in teams.items():
-
-        def ours(r, mine=frozenset(str(p) for p in paths)):
-            return r["checkpoint"] in mine
-
-        result = {"reward": _entry(episodes(ours), best)}
+        mine = {str(p) for p in paths}
+        own = [r for r in rows if r["checkpoint"] in mine]
+        result = {"reward": share_entry(episode_mean(own), best)}
         if command == "instruct":
             for text in AMBIGUOUS:
-                got = episodes(ours, "in_place", text)
-                result[f"in_place: {text}"] = _entry(got, None)
+                result[f"in_place: {text}"] = share_entry(episode_mean(own, "in_place", text), None)
         else:
+            coordination = [entries[str(p)].get("coordination") or {} for p in paths]
             for measure in COORDINATION:
-                coordination = [entries[str(p)].get("coordination") or {} for p in paths]
-                values = [c.get(measure) for c in coordination]
-                result[measure] = _entry(_mean([v for v in values if v is not None]), None)
+                values = [c[measure] for c in coordination if c.get(measure) is not None]
+                if not values:
+                    result[measure] = None
+                    continue
+                spread = Mean(float(np.mean(values)), float(np.std(values)), len(values))
+                result[measure] = share_entry(spread, None)
         out[team] = result
     return out
 
