@@ -790,6 +790,9 @@ class LiveServer:
                 if error:
                     self.stats["errors"] += 1
                 client.reply(json.dumps({"type": "error", "message": error} if error else OK))
+                # Yield once a message: a tab's buffered burst is read without waiting, so
+                # without this a crowd's would hold the event loop, and the ticks, for a second.
+                await asyncio.sleep(0)
         except (ConnectionError, RuntimeError, asyncio.CancelledError):
             pass  # a tab that went away: the loop goes on
         finally:
