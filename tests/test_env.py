@@ -518,6 +518,65 @@ def test_paths_are_drawn_after_the_scene_so_first_scenes_are_paired():
         ResourceCollectionEnv(waypoint_path_prob=1.5)
 
 
+def test_progress_reward_sees_speed_where_the_cosine_does_not():
+    from icco_torchrl.envs._kernels import instruction_reward
+
+    # One robot at the origin, its path along +x (nearest waypoint on it, the next 0.25 m on);
+    # four moves: full speed along, half speed along, full speed back, full speed across.
+    full = ResourceCollectionEnv().params  # max_speed 1.9 m/s, dt 0.1 s: 0.19 m a step
+    step = full.max_speed * full.dt
+    wp = torch.tensor([[0.0, 0.0], [0.25, 0.0]]).view(1, 2, 2, 1).expand(1, 2, 2, 4)
+    moves = torch.tensor([[step, 0.0], [step / 2, 0.0], [-step, 0.0], [0.0, step]]).t()
+    old, new = torch.zeros(1, 2, 4), moves.unsqueeze(0)
+    cosine = instruction_reward(wp, old, new, 1.0, 0.0)
+    progress = instruction_reward(wp, old, new, 1.0, 0.0, 1.0 / step)
+    torch.testing.assert_close(cosine, torch.tensor([[1.0, 1.0, -1.0, 0.0]]))
+    torch.testing.assert_close(progress, torch.tensor([[1.0, 0.5, -1.0, 0.0]]))
+    # the env passes the progress scale from its parameters; the paper's cosine is the default
+    assert ResourceCollectionEnv(inst_reward="progress")._params().inst_progress == 1.0 / step
+    assert ResourceCollectionEnv()._params().inst_progress == 0.0
+
+
+def test_route_robots_are_served_their_route_to_a_slot_at_every_refresh():
+    from icco_torchrl.envs.routes import serve_routes
+
+    env = ResourceCollectionEnv(num_envs=64, seed=5, waypoint_route_prob=0.5)
+    td = env.reset()
+    on_route = env._on_route[:, 0].t()  # [B, N]
+    assert 0.3 < on_route.float().mean().item() < 0.7  # about half of the robots
+    slots = env._slot.permute(2, 0, 1).clone()  # [B, N, 2]
+    assert slots.abs().max() <= env.half - env.agent_radius
+    policy = random_policy(env, 2)
+    for t in range(0, 13):
+        if t % env.waypoint_interval == 0:  # the reference rule on a straight route [pos, slot]
+            route = torch.stack([env.pos, slots], dim=-2)
+            served = serve_routes(env.pos, route, env.n_waypoints, env.waypoint_route_step)
+            torch.testing.assert_close(env.waypoints[on_route], served[on_route])
+            walk = env.waypoints[~on_route]  # the others keep their random walks
+            assert not torch.allclose(walk, served[~on_route])
+        td = step_mdp(env.step(policy(td)))
+    assert torch.equal(env._slot.permute(2, 0, 1), slots)  # a slot holds for the episode
+    # a robot within one step of its slot is given K copies of it
+    near = ResourceCollectionEnv(num_envs=4, seed=1, waypoint_route_prob=1.0)
+    near.reset()
+    near._put(_slot=near._pos + 0.1)
+    near._refresh_waypoints(torch.arange(4))
+    torch.testing.assert_close(
+        near.waypoints, near._slot.permute(2, 0, 1).unsqueeze(2).expand(-1, -1, 4, -1)
+    )
+
+
+def test_routes_are_drawn_after_the_scene_so_first_scenes_are_paired():
+    a, b = (
+        ResourceCollectionEnv(num_envs=8, seed=3),
+        ResourceCollectionEnv(num_envs=8, seed=3, waypoint_route_prob=0.5),
+    )
+    a.reset(), b.reset()
+    for name in ("pos", "res_pos", "inv_pos", "inv_timer"):
+        assert torch.equal(getattr(a, name), getattr(b, name)), name
+    assert not a._on_route.any()  # 0: nobody is on a route
+
+
 def test_waypoints_supplied_through_the_tensordict_drive_that_step():
     env, td = quiet_scene(inst_reward_scale=1.3)
     p = env.pos[0]
@@ -581,6 +640,9 @@ def test_bad_parameters_raise_naming_the_parameter(name, value):
         ("resource_min_radius", 4.0, "must be in (0, field_size/2)"),
         ("invader_min_radius", -1.0, "must be in [0, field_size/2)"),
         ("waypoint_path_prob", 1.5, "must be in [0, 1]"),
+        ("waypoint_route_prob", -0.1, "must be in [0, 1]"),
+        ("waypoint_route_step", 0, "must be a positive finite number"),
+        ("inst_reward", "speed", "must be one of"),
         ("waypoint_mode", "scripted", "must be one of"),
         ("spawn", "edge", "must be one of"),
         ("pick_reward", "five", "must be a number"),

@@ -10,8 +10,8 @@ from torchrl.envs.utils import step_mdp
 
 from icco_torchrl.commands.instruct import out_dir_name
 from icco_torchrl.envs import ResourceCollectionEnv
+from icco_torchrl.envs.routes import DEFAULT_STEP
 from icco_torchrl.instructions import LLMPlanner, LLMSource
-from icco_torchrl.instructions.serving import DEFAULT_STEP
 from icco_torchrl.instructions.sources import split_instructions
 
 

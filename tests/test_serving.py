@@ -10,12 +10,13 @@ import torch
 
 from icco_torchrl.envs import ResourceCollectionEnv
 from icco_torchrl.envs.reference_policies import make_reference_policy
+from icco_torchrl.envs.routes import routes_from_plan, serve_routes
 from icco_torchrl.evaluation import placement
 from icco_torchrl.evaluation.metrics import time_to_slot, trial_rows
 from icco_torchrl.evaluation.protocols import run_schedule
 from icco_torchrl.instructions import LLMPlanner
 from icco_torchrl.instructions.planner import how_read, parse, rule_plan, unread_words
-from icco_torchrl.instructions.serving import PlanServer, routes_from_plan, serve_routes
+from icco_torchrl.instructions.serving import PlanServer
 from icco_torchrl.instructions.sources import language_schedule
 
 

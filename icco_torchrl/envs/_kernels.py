@@ -93,6 +93,7 @@ class Params(NamedTuple):
     robot_home2: float  # (home_radius + agent_radius) ** 2
     inst_scale: float
     inst_dist_coef: float
+    inst_progress: float  # 0: r_inst's cosine (the paper); else 1 / (max_speed * dt): progress
     pick: float
     collect: float
     defense: float
@@ -195,7 +196,7 @@ def motion(pos, vel, inv, inv_on, wp, action, action_force, p: Params):
     raw = pos + p.dt * new_vel
     new_pos = raw.clamp(-p.wall, p.wall)
     new_vel = new_vel.masked_fill_(new_pos != raw, 0.0)  # a wall stops that axis
-    r_inst = instruction_reward(wp, pos, new_pos, p.inst_scale, p.inst_dist_coef)
+    r_inst = instruction_reward(wp, pos, new_pos, p.inst_scale, p.inst_dist_coef, p.inst_progress)
     # Invaders walk straight home.
     dist_home = sq_norm(inv).sqrt_().unsqueeze(1)
     move = -inv * (p.invader_speed / dist_home.clamp_min_(p.invader_speed))
@@ -203,12 +204,17 @@ def motion(pos, vel, inv, inv_on, wp, action, action_force, p: Params):
     return new_pos, new_vel, r_inst, inv + move, move / p.dt  # velocity in m/s, like the robots'
 
 
-def instruction_reward(wp, old_pos, new_pos, scale: float, dist_coef: float) -> torch.Tensor:
-    """``r_inst = scale * (e_cossim + dist_coef * e_dist)`` per robot, [N, B].
+def instruction_reward(
+    wp, old_pos, new_pos, scale: float, dist_coef: float, progress: float = 0.0
+) -> torch.Tensor:
+    """``r_inst = scale * (e_dir + dist_coef * e_dist)`` per robot, [N, B].
 
-    e_cossim: cosine between this step's displacement and the vector from the waypoint
-    nearest to the robot (before the move) to the second-nearest one; 0 when either is
-    zero. e_dist: minus the distance from the new position to its nearest waypoint.
+    The path direction is the vector from the waypoint nearest to the robot (before the move) to
+    the second-nearest one. e_dir is the cosine between this step's displacement and it
+    (``progress == 0``, the paper's e_cossim), or the displacement's length along it times
+    ``progress`` (``1 / (max_speed * dt)``: 1 for a step at full speed along the path, so coasting
+    to a halt no longer scores as much as driving); 0 when either vector is zero. e_dist: minus
+    the distance from the new position to its nearest waypoint.
     """
     d_old = sq_dist(wp, old_pos.unsqueeze(1))  # [N, K, B]
     nearest = first(d_old == d_old.amin(1, keepdim=True), 1)  # one-hot over K
@@ -218,7 +224,11 @@ def instruction_reward(wp, old_pos, new_pos, scale: float, dist_coef: float) -> 
     # than min(dim).indices + gather over a middle dimension.
     path = (wp * (second.to(wp.dtype) - nearest.to(wp.dtype)).unsqueeze(2)).sum(1)  # [N, 2, B]
     disp = new_pos - old_pos
-    norms = sq_norm(disp).sqrt_().mul_(sq_norm(path).sqrt_())
-    cos = (disp * path).sum(1).div_(norms.clamp_min_(1e-8))
+    along = (disp * path).sum(1)
+    if progress:
+        e_dir = along.mul_(progress).div_(sq_norm(path).sqrt_().clamp_min_(1e-8))
+    else:
+        norms = sq_norm(disp).sqrt_().mul_(sq_norm(path).sqrt_())
+        e_dir = along.div_(norms.clamp_min_(1e-8))
     e_dist = sq_dist(wp, new_pos.unsqueeze(1)).amin(1).sqrt_().neg_()
-    return scale * (cos + dist_coef * e_dist)
+    return scale * (e_dir + dist_coef * e_dist)

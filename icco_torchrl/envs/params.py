@@ -34,9 +34,11 @@ from dataclasses import dataclass
 from typing import Any
 
 from icco_torchrl.envs._kernels import Params
+from icco_torchrl.envs.routes import DEFAULT_STEP
 
 SPAWN_MODES = ("uniform", "copa")
 WAYPOINT_MODES = ("random_walk", "external")
+INST_REWARDS = ("cosine", "progress")
 
 # A constraint: (field name, value, the table being checked) -> None, or a ValueError whose message
 # starts with the field name. The table is passed for the rules between fields.
@@ -144,6 +146,15 @@ class ResourceCollectionParams:
         "would reward being far away; we read it as a penalty.",
         number,
     )
+    inst_reward: str = param(
+        "cosine",
+        "what r_inst scores of a step's displacement along the path direction (nearest waypoint "
+        'to the second-nearest). ``"cosine"`` (the paper\'s e_cossim): its cosine, which does not '
+        "see speed, so coasting to a halt along a route scores as much as driving along it. "
+        '``"progress"``: its length along the path over the longest step (``max_speed * dt``), '
+        "1 at full speed (experiments/language/README.md measures both).",
+        one_of(INST_REWARDS),
+    )
     n_waypoints: int = param(
         4, "waypoints K per robot.", positive_int, at_least(2, " (e_cossim needs two)")
     )
@@ -172,6 +183,19 @@ class ResourceCollectionParams:
         'which every evaluation instruction does (a quadrant, "go right").',
         number,
         within(0, 1),
+    )
+    waypoint_route_prob: float = param(
+        0.0,
+        'with ``waypoint_mode="random_walk"``, the probability that a robot\'s instruction for an '
+        "episode is a *route*: a slot drawn uniform in the field, served at every refresh as "
+        "evaluation serves a plan (``icco_torchrl.envs.routes``): K waypoints from the robot "
+        "straight toward the slot, ``waypoint_route_step`` apart, collapsing onto it on arrival. "
+        "A route takes precedence over a path. 0 (the paper) draws nothing.",
+        number,
+        within(0, 1),
+    )
+    waypoint_route_step: float = param(
+        DEFAULT_STEP, "metres between the served waypoints of a route.", positive
     )
     pick_reward: float = param(5.0, "reward of a pick.", number)
     collect_reward: float = param(1.0, "reward of a delivery home.", number)
@@ -267,6 +291,9 @@ class ResourceCollectionParams:
             robot_home2=r2(self.home_radius, self.agent_radius),
             inst_scale=self.inst_reward_scale,
             inst_dist_coef=self.inst_dist_coef,
+            inst_progress=1.0 / (self.max_speed * self.dt)
+            if self.inst_reward == "progress"
+            else 0.0,
             pick=self.pick_reward,
             collect=self.collect_reward,
             defense=self.defense_reward,

@@ -62,7 +62,15 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from icco_torchrl.envs._kernels import Params, any_, batch_first, batch_last, dynamics, pair_sq_dist
+from icco_torchrl.envs._kernels import (
+    Params,
+    any_,
+    batch_first,
+    batch_last,
+    dynamics,
+    pair_sq_dist,
+    sq_norm,
+)
 from icco_torchrl.envs.layout import ObsLayout
 from icco_torchrl.envs.params import (
     ResourceCollectionParams,
@@ -300,6 +308,8 @@ class ResourceCollectionEnv(EnvBase):
             _on_path=torch.zeros(
                 N, 1, B, dtype=torch.bool, device=dev
             ),  # robots whose walk is a path
+            _on_route=torch.zeros(N, 1, B, dtype=torch.bool, device=dev),  # ... a route to a slot
+            _slot=torch.zeros(N, 2, B, device=dev),  # the slot of a robot on a route
             t=torch.zeros(B, dtype=torch.int64, device=dev),
         )
         self._set_present(torch.ones(N, B, dtype=torch.bool, device=dev), all_present=True)
@@ -452,6 +462,10 @@ class ResourceCollectionEnv(EnvBase):
                     fresh["_on_path"], batch_last((self._rand(M, N, 2) * 2 - 1) * self.half), pos_bl
                 )
             wp = self._random_walk(start)
+            if self.waypoint_route_prob > 0:  # drawn after the paths', and only then
+                fresh["_on_route"] = batch_last(self._rand(M, N, 1) < self.waypoint_route_prob)
+                fresh["_slot"] = batch_last((self._rand(M, N, 2) * 2 - 1) * lim)
+                wp = self._serve_routes(wp, pos_bl, fresh["_slot"], fresh["_on_route"])
         else:
             wp = pos.unsqueeze(-2).expand(M, N, self.n_waypoints, 2).clone()
         present = None  # the team: drawn last and only with team_sizes (a full team draws nothing)
@@ -595,9 +609,29 @@ class ResourceCollectionEnv(EnvBase):
         if self.waypoint_path_prob > 0:
             start = torch.where(self._on_path, batch_last(self._wp[:, :, -1]), start)
         if ids.numel() == self.num_envs:
-            self._put(_wp=self._random_walk(start))
+            wp = self._random_walk(start)
+            if self.waypoint_route_prob > 0:
+                wp = self._serve_routes(wp, self._pos, self._slot, self._on_route)
+            self._put(_wp=wp)
         elif ids.numel():
-            self._put(_wp=self._wp.index_copy(0, ids, self._random_walk(start[..., ids])))
+            wp = self._random_walk(start[..., ids])
+            if self.waypoint_route_prob > 0:
+                pick = lambda x: x[..., ids]  # noqa: E731
+                wp = self._serve_routes(wp, pick(self._pos), pick(self._slot), pick(self._on_route))
+            self._put(_wp=self._wp.index_copy(0, ids, wp))
+
+    def _serve_routes(self, walk, pos, slot, on_route) -> torch.Tensor:
+        """``walk`` ``[M, N, K, 2]`` with the robots ``on_route`` ``[N, 1, M]`` given their route
+        served instead (``waypoint_route_prob``): K waypoints from ``pos`` ``[N, 2, M]`` straight
+        to ``slot``, ``waypoint_route_step`` metres apart, stopping on the slot. This is
+        :func:`~icco_torchrl.envs.routes.serve_routes` for a straight route, batch-last."""
+        gap = slot - pos
+        dist = sq_norm(gap).sqrt_()  # [N, M]
+        k = torch.arange(1, self.n_waypoints + 1, device=pos.device, dtype=pos.dtype)
+        along = torch.minimum((k * self.waypoint_route_step).view(1, -1, 1), dist.unsqueeze(1))
+        unit = gap / dist.clamp_min(1e-12).unsqueeze(1)  # [N, 2, M]
+        route = batch_first(pos.unsqueeze(1) + along.unsqueeze(2) * unit.unsqueeze(1))
+        return torch.where(batch_first(on_route).unsqueeze(-1), route, walk)
 
     def _respawn_picked(self, picked: torch.Tensor) -> torch.Tensor:
         """Resource positions after respawning the ``picked`` [R, B] ones (envs with a pick)."""
@@ -851,9 +885,10 @@ class ResourceCollectionEnv(EnvBase):
         state["_vel"][r, :, e] = 0.0
         state["_carry"][r, e] = False
         state["_defended"][r, e] = False
-        on_path = self._on_path.clone()
+        on_path, on_route = self._on_path.clone(), self._on_route.clone()
         on_path[r, :, e] = False
-        return dict(state, _on_path=on_path)
+        on_route[r, :, e] = False
+        return dict(state, _on_path=on_path, _on_route=on_route)
 
     def _free_point(self, e: int, team: torch.Tensor, tries: int = 64) -> torch.Tensor:
         """A uniform point [2] of env ``e``'s field touching no robot of ``team`` [N], resource,

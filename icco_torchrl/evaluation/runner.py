@@ -111,6 +111,8 @@ UNUSED_IN_EVAL = (
     "waypoint_interval",
     "waypoint_mode",
     "waypoint_path_prob",
+    "waypoint_route_prob",
+    "waypoint_route_step",
     "waypoint_sigma",
 )
 # The policy never sees its reward: these reweigh the reward columns, nothing else.

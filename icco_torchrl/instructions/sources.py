@@ -13,9 +13,10 @@ import re
 import numpy as np
 import torch
 
+from icco_torchrl.envs.routes import DEFAULT_STEP, check_step
 from icco_torchrl.envs.waypoints import PLAN_INTERFACES, InstructionSource, base_env, refresh_mask
 from icco_torchrl.instructions.llm import PROMPTS, LLMPlanner, last_json_object
-from icco_torchrl.instructions.serving import DEFAULT_STEP, PlanServer, check_step
+from icco_torchrl.instructions.serving import PlanServer
 
 
 class LLMSource(InstructionSource):
