@@ -801,3 +801,39 @@ def test_the_consistency_page_reads_a_bound_gain_only_beyond_the_seeds_spread():
     assert "Of ICCO's weights, the highest: `ce1e-4` (280.0)" in text
     assert "`ce1`: bound above its floor by +2.00 nats (ICCO w/o CE: +0.50); above" in text
     assert "`ce1e-4`: bound above its floor by +0.80 nats (ICCO w/o CE: +0.50); not above" in text
+
+
+def test_route_screens_compose_and_the_page_judges_each_instruction_against_80_percent():
+    routes = _load(ROOT / "experiments" / "language" / "routes" / "run.py")
+    for name, overrides in routes.SCREENS.items():
+        p = compose_config([*routes.BUDGET, *overrides]).env.params
+        assert (p.inst_reward == "progress") == ("progress" in name), name
+        assert (p.waypoint_route_prob == 0.5) == ("routes" in name), name
+    cells = lambda places, **ep: {  # noqa: E731  (one team's language row)
+        **{i: {"in_place": v} for i, v in zip(routes.serving.INSTRUCTIONS, places)},
+        "episode": {"reward": 300.0, "time_to_slot": 30.0, **ep},
+    }
+    results = {
+        "trials": 20,
+        "machine": "x",
+        "seeds": [0, 1],
+        "screens": {
+            "control": {
+                "language": cells([0.5, 0.9, 1.0, 0.85]),
+                "quadrants": {"mean": 330.0, "std": 20.0, "share_of_best_scripted": 0.83},
+            },
+            "progress": {
+                "language": cells([0.8, 0.95, 1.0, 0.9]),
+                "quadrants": {"mean": 360.0, "std": 10.0, "share_of_best_scripted": 0.9},
+            },
+        },
+        "references": {
+            label: cells([1.0, 1.0, 1.0, 1.0], reward=400.0) for label in routes.REFERENCES
+        },
+        "quadrants_best_scripted": {"mean": 400.0},
+    }
+    page = routes.render(results)
+    assert "- ICCO (make train): below 80% on Go right;" in page
+    assert "- ICCO, progress r_inst: in place at least 80% on every instruction;" in page
+    assert "language reward 75% of the best scripted team's, four quadrants 90%" in page
+    assert "| ICCO, progress r_inst | 80 % | 95 % | 100 % | 90 % |" in page

@@ -59,12 +59,14 @@ import verdict  # noqa: E402  (experiments/verdict.py: means over trials)
 def _load(path: Path, name: str):
     spec = importlib.util.spec_from_file_location(name, path)
     module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module  # dataclasses look their module up while it runs
     spec.loader.exec_module(module)
     return module
 
 
 consistency = _load(EXPERIMENTS / "consistency" / "run.py", "consistency_run")
 serving = _load(EXPERIMENTS / "language" / "serving" / "run.py", "serving_run")
+go_right = _load(EXPERIMENTS.parent / "assets" / "go_right.py", "go_right")
 
 BUDGET = [*consistency.BUDGET, "method=icco", "logger.progress=false"]
 CONTROL_RECORDS = EXPERIMENTS / "consistency" / "records" / consistency.CONTROL
@@ -87,6 +89,8 @@ REFERENCES = {  # label: (team, the r_inst it is greedy on)
     "best scripted": ("best_scripted", "cosine"),
 }
 TARGET_IN_PLACE = 0.8  # issue 47's bar for a learned team, on each instruction
+WITHIN, STAY = 60, 0.8  # the arrival check's defaults (assets/go_right.py)
+SCENES = len(go_right.INSTRUCTIONS) * len(go_right.SCENES)
 
 
 def records_of(records: Path, screen: str) -> list[Path]:
@@ -159,6 +163,7 @@ def evaluate(screens: dict[str, list[Path]], out: Path, trials: int, seeds) -> d
             "runs": [_shown(p) for p in runs],
             "quadrants": verdict.share_entry(verdict.episode_mean(own), best_q),
             "language": serving.pooled(parts),
+            "arrival": [arrival(p / "policy.pt") for p in runs],
         }
         print(name, _in_place(results["screens"][name]["language"]), flush=True)
     results["quadrants_best_scripted"] = verdict.share_entry(best_q, best_q)
@@ -168,6 +173,17 @@ def evaluate(screens: dict[str, list[Path]], out: Path, trials: int, seeds) -> d
             team, first, INTERFACE, trials, inst_reward=inst
         )
     return results
+
+
+def arrival(policy: Path) -> int:
+    """Scenes of the arrival check (``assets/go_right.py``: 5 instructions x 8 scenes, driven as
+    ``icco live`` drives a team) that the policy passes."""
+    scenes = [
+        go_right.run_scene(policy, instruction, seed)
+        for instruction in go_right.INSTRUCTIONS
+        for seed in go_right.SCENES
+    ]
+    return sum(s.passed(WITHIN, STAY) for s in scenes)
 
 
 def _shown(path: Path) -> str:
@@ -204,12 +220,16 @@ def render(results: dict) -> str:
         "robots where the instruction says (x > half/2, y > half/2, within 1 m of the centre, "
         "every pair 1.5 m apart). Language reward: the episode's team reward (4 instructions x "
         "145 steps), share of the best scripted team's under the same interface. Four quadrants: "
-        "share of the best scripted team's on the same episodes. The last rows are scripted.",
+        "share of the best scripted team's on the same episodes. Arrival: scenes passed per seed "
+        f"of the arrival check (`assets/go_right.py`: {len(go_right.INSTRUCTIONS)} instructions x "
+        f"{len(go_right.SCENES)} scenes; every robot not intercepting at its slot by tick "
+        f"{WITHIN}, and held on {STAY:.0%} of the ticks after). The last rows are scripted; "
+        "the follower of the progress r_inst plays in that env, so its reward is in other units.",
         "",
         "| team | "
         + " | ".join(serving.INSTRUCTIONS)
-        + " | time to slot | language reward (share) | four quadrants (share) |",
-        "|" + "---|" * (len(serving.INSTRUCTIONS) + 4),
+        + " | time to slot | language reward (share) | four quadrants (share) | arrival |",
+        "|" + "---|" * (len(serving.INSTRUCTIONS) + 5),
     ]
     for name, s in results["screens"].items():
         lang, q = s["language"], s["quadrants"]
@@ -219,6 +239,7 @@ def render(results: dict) -> str:
             _pm(ep, "time_to_slot", 1),
             f"{_pm(ep, 'reward', 1, 1)} ({ep['reward'] / best_l:.0%})",
             f"{q['mean']:.1f} ± {q['std']:.1f} ({q['share_of_best_scripted']:.0%})",
+            " / ".join(str(a) for a in s.get("arrival", [])) + f" of {SCENES}",
         ]
         lines.append(f"| {LABELS[name]} | " + " | ".join(cells) + " |")
     best_q = results["quadrants_best_scripted"]
@@ -226,11 +247,9 @@ def render(results: dict) -> str:
         ep = row[EPISODE]
         cells = [f"{100 * row[i]['in_place']:.0f} %" for i in serving.INSTRUCTIONS]
         quad = f"{best_q['mean']:.1f} (100%)" if label == "best scripted" else ""
-        cells += [
-            f"{ep['time_to_slot']:.0f}",
-            f"{ep['reward']:.1f} ({ep['reward'] / best_l:.0%})",
-            quad,
-        ]
+        own_units = REFERENCES[label][1] != "cosine"  # scored in its own r_inst's env
+        reward = "other units" if own_units else f"{ep['reward']:.1f} ({ep['reward'] / best_l:.0%})"
+        cells += [f"{ep['time_to_slot']:.0f}", reward, quad, ""]
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
     lines += ["", *reading(results), ""]
     return "\n".join(lines)
@@ -251,7 +270,13 @@ def reading(results: dict) -> list[str]:
         out.append(
             f"- {LABELS[name]}: {verdict_text}; language reward "
             f"{lang[EPISODE]['reward'] / best_l:.0%} of the best scripted team's, four quadrants "
-            f"{s['quadrants']['share_of_best_scripted']:.0%}."
+            f"{s['quadrants']['share_of_best_scripted']:.0%}"
+            + (
+                f"; arrival check passed in {' and '.join(map(str, s['arrival']))} of {SCENES} "
+                "scenes (per seed)."
+                if s.get("arrival")
+                else "."
+            )
         )
     follower = results["references"]
     for label in ("follower (cosine r_inst)", "follower (progress r_inst)"):
