@@ -532,9 +532,19 @@ def test_progress_reward_sees_speed_where_the_cosine_does_not():
     progress = instruction_reward(wp, old, new, 1.0, 0.0, 1.0 / step)
     torch.testing.assert_close(cosine, torch.tensor([[1.0, 1.0, -1.0, 0.0]]))
     torch.testing.assert_close(progress, torch.tensor([[1.0, 0.5, -1.0, 0.0]]))
+    # at a route's end (the two nearest waypoints coincide) holding still earns what following
+    # earned: 1 standing, 0.5 at half speed, nothing at full speed or faster; without it, nothing
+    slot = torch.zeros(1, 2, 2, 4)
+    moves = torch.tensor([[0.0, 0.0], [step / 2, 0.0], [0.0, -step], [2 * step, 0.0]]).t()
+    held = instruction_reward(slot, old, moves.unsqueeze(0), 1.0, 0.0, 0.0, 1.0 / step)
+    torch.testing.assert_close(held, torch.tensor([[1.0, 0.5, 0.0, 0.0]]))
+    not_held = instruction_reward(slot, old, moves.unsqueeze(0), 1.0, 0.0)
+    torch.testing.assert_close(not_held, torch.zeros(1, 4))
     # the env passes the progress scale from its parameters; the paper's cosine is the default
     assert ResourceCollectionEnv(inst_reward="progress")._params().inst_progress == 1.0 / step
     assert ResourceCollectionEnv()._params().inst_progress == 0.0
+    assert ResourceCollectionEnv(inst_hold=True)._params().inst_hold == 1.0 / step
+    assert ResourceCollectionEnv()._params().inst_hold == 0.0
 
 
 def test_route_robots_are_served_their_route_to_a_slot_at_every_refresh():

@@ -809,6 +809,7 @@ def test_route_screens_compose_and_the_page_judges_each_instruction_against_80_p
         p = compose_config([*routes.BUDGET, *overrides]).env.params
         assert (p.inst_reward == "progress") == ("progress" in name), name
         assert (p.waypoint_route_prob == 0.5) == ("routes" in name), name
+        assert p.inst_hold == ("hold" in name), name
     cells = lambda places, **ep: {  # noqa: E731  (one team's language row)
         **{i: {"in_place": v} for i, v in zip(routes.serving.INSTRUCTIONS, places)},
         "episode": {"reward": 300.0, "time_to_slot": 30.0, **ep},

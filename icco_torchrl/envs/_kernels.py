@@ -94,6 +94,7 @@ class Params(NamedTuple):
     inst_scale: float
     inst_dist_coef: float
     inst_progress: float  # 0: r_inst's cosine (the paper); else 1 / (max_speed * dt): progress
+    inst_hold: float  # 0: off; else 1 / (max_speed * dt): a route's end rewards holding still
     pick: float
     collect: float
     defense: float
@@ -196,7 +197,9 @@ def motion(pos, vel, inv, inv_on, wp, action, action_force, p: Params):
     raw = pos + p.dt * new_vel
     new_pos = raw.clamp(-p.wall, p.wall)
     new_vel = new_vel.masked_fill_(new_pos != raw, 0.0)  # a wall stops that axis
-    r_inst = instruction_reward(wp, pos, new_pos, p.inst_scale, p.inst_dist_coef, p.inst_progress)
+    r_inst = instruction_reward(
+        wp, pos, new_pos, p.inst_scale, p.inst_dist_coef, p.inst_progress, p.inst_hold
+    )
     # Invaders walk straight home.
     dist_home = sq_norm(inv).sqrt_().unsqueeze(1)
     move = -inv * (p.invader_speed / dist_home.clamp_min_(p.invader_speed))
@@ -205,7 +208,7 @@ def motion(pos, vel, inv, inv_on, wp, action, action_force, p: Params):
 
 
 def instruction_reward(
-    wp, old_pos, new_pos, scale: float, dist_coef: float, progress: float = 0.0
+    wp, old_pos, new_pos, scale: float, dist_coef: float, progress: float = 0.0, hold: float = 0.0
 ) -> torch.Tensor:
     """``r_inst = scale * (e_dir + dist_coef * e_dist)`` per robot, [N, B].
 
@@ -213,8 +216,11 @@ def instruction_reward(
     the second-nearest one. e_dir is the cosine between this step's displacement and it
     (``progress == 0``, the paper's e_cossim), or the displacement's length along it times
     ``progress`` (``1 / (max_speed * dt)``: 1 for a step at full speed along the path, so coasting
-    to a halt no longer scores as much as driving); 0 when either vector is zero. e_dist: minus
-    the distance from the new position to its nearest waypoint.
+    to a halt no longer scores as much as driving); 0 when either vector is zero. With ``hold``
+    (``1 / (max_speed * dt)``), a zero path direction (the two nearest waypoints coincide: a served
+    route's end, its slot) scores ``1 - hold * |displacement|`` (at least 0) instead: holding the
+    slot earns what following earned, where otherwise arriving would end the reward. e_dist:
+    minus the distance from the new position to its nearest waypoint.
     """
     d_old = sq_dist(wp, old_pos.unsqueeze(1))  # [N, K, B]
     nearest = first(d_old == d_old.amin(1, keepdim=True), 1)  # one-hot over K
@@ -225,10 +231,13 @@ def instruction_reward(
     path = (wp * (second.to(wp.dtype) - nearest.to(wp.dtype)).unsqueeze(2)).sum(1)  # [N, 2, B]
     disp = new_pos - old_pos
     along = (disp * path).sum(1)
+    length = sq_norm(path).sqrt_()
     if progress:
-        e_dir = along.mul_(progress).div_(sq_norm(path).sqrt_().clamp_min_(1e-8))
+        e_dir = along.mul_(progress).div_(length.clamp_min(1e-8))
     else:
-        norms = sq_norm(disp).sqrt_().mul_(sq_norm(path).sqrt_())
-        e_dir = along.div_(norms.clamp_min_(1e-8))
+        e_dir = along.div_(sq_norm(disp).sqrt_().mul_(length).clamp_min_(1e-8))
+    if hold:
+        still = sq_norm(disp).sqrt_().mul_(-hold).add_(1.0).clamp_min_(0.0)
+        e_dir = torch.where(length == 0, still, e_dir)
     e_dist = sq_dist(wp, new_pos.unsqueeze(1)).amin(1).sqrt_().neg_()
     return scale * (e_dir + dist_coef * e_dist)

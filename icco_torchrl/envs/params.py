@@ -152,8 +152,15 @@ class ResourceCollectionParams:
         'to the second-nearest). ``"cosine"`` (the paper\'s e_cossim): its cosine, which does not '
         "see speed, so coasting to a halt along a route scores as much as driving along it. "
         '``"progress"``: its length along the path over the longest step (``max_speed * dt``), '
-        "1 at full speed (experiments/language/README.md measures both).",
+        "1 at full speed (experiments/language/routes measures both).",
         one_of(INST_REWARDS),
+    )
+    inst_hold: bool = param(
+        False,
+        "at a route's end (the two nearest waypoints coincide, as on a served slot) r_inst's "
+        "direction term scores holding still, ``1 - |displacement| / (max_speed * dt)`` (at least "
+        "0), instead of 0: without it arriving ends the instruction reward, so a team is paid to "
+        "dawdle along a route rather than hold its slot (experiments/language/routes).",
     )
     n_waypoints: int = param(
         4, "waypoints K per robot.", positive_int, at_least(2, " (e_cossim needs two)")
@@ -294,6 +301,7 @@ class ResourceCollectionParams:
             inst_progress=1.0 / (self.max_speed * self.dt)
             if self.inst_reward == "progress"
             else 0.0,
+            inst_hold=1.0 / (self.max_speed * self.dt) if self.inst_hold else 0.0,
             pick=self.pick_reward,
             collect=self.collect_reward,
             defense=self.defense_reward,

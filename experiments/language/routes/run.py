@@ -16,7 +16,10 @@ screen's ``BUDGET``, 2M frames), 2 seeds, with:
 - ``progress``: ``env.params.inst_reward=progress`` (a step's length along the path direction
   over the longest step, 1 at full speed);
 - ``progress_routes``: that, and ``env.params.waypoint_route_prob=0.5`` (half the robots get a
-  route to a uniform slot per episode, served as evaluation serves a plan).
+  route to a uniform slot per episode, served as evaluation serves a plan);
+- ``hold_routes``: the paper's cosine, routes 0.5, and ``env.params.inst_hold=true``: at a
+  route's end (its slot, where the served waypoints coincide) r_inst pays for holding still what
+  it paid for following, where otherwise arriving ends the instruction reward.
 
 Every team is evaluated in the paper's env (``inst_reward=cosine``), so rewards are in one unit
 and the scripted teams face the same episodes:
@@ -74,11 +77,13 @@ SCREENS = {
     "control": [],
     "progress": ["env.params.inst_reward=progress"],
     "progress_routes": ["env.params.inst_reward=progress", "env.params.waypoint_route_prob=0.5"],
+    "hold_routes": ["env.params.inst_hold=true", "env.params.waypoint_route_prob=0.5"],
 }
 LABELS = {
     "control": "ICCO (make train)",
     "progress": "ICCO, progress r_inst",
     "progress_routes": "ICCO, progress r_inst, routes 0.5",
+    "hold_routes": "ICCO, hold at the slot, routes 0.5",
 }
 SEEDS = (0, 1)
 INTERFACE = f"served@{serving.DEFAULT_STEP:g}"
@@ -310,7 +315,13 @@ def main(argv=None) -> None:
         screens = {name: records_of(args.records, name) for name in args.only}
         screens = {name: runs for name, runs in screens.items() if runs}
         trials = 2 if args.smoke else args.trials
-        write_json(evaluate(screens, args.out.resolve(), trials, args.seeds), results_path)
+        new = evaluate(screens, args.out.resolve(), trials, args.seeds)
+        if results_path.is_file():  # screens evaluated before stay (the same episodes, trials)
+            old = json.loads(results_path.read_text())
+            if old.get("trials") == trials:
+                new["screens"] = {**old["screens"], **new["screens"]}
+        new["screens"] = {name: new["screens"][name] for name in SCREENS if name in new["screens"]}
+        write_json(new, results_path)
     results = json.loads(results_path.read_text())
     (results_path.parent / "README.md").write_text(render(results))
     print(f"wrote {results_path.parent / 'README.md'}")

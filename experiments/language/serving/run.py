@@ -237,7 +237,8 @@ def main(argv=None) -> None:
                 row = play(team, args.checkpoints[0], interface, args.trials, **env)
             results["rows"][f"{team}{tag} | {interface}"] = row
             shown = " ".join(f"{100 * row[i]['in_place']:.0f}%" for i in INSTRUCTIONS)
-            print(f"{team}{tag} | {interface}: in place {shown}, reward {row[EPISODE]['reward']:.1f} "
+            reward = row[EPISODE]["reward"]
+            print(f"{team}{tag} | {interface}: in place {shown}, reward {reward:.1f} "
                   f"({time.time() - start:.0f} s)", flush=True)  # fmt: skip
             write_json(results, path)
     (args.out / "README.md").write_text(render(results))
