@@ -93,6 +93,8 @@ REFERENCES = {  # label: (team, the r_inst it is greedy on)
     "pursuit": ("pursuit", "cosine"),
     "best scripted": ("best_scripted", "cosine"),
 }
+# The paper's r_inst, whatever a policy trained with: rewards in one unit, the same references.
+PAPER_ENV = {"inst_reward": "cosine", "inst_hold": False}
 TARGET_IN_PLACE = 0.8  # issue 47's bar for a learned team, on each instruction
 WITHIN, STAY = 60, 0.8  # the arrival check's defaults (assets/go_right.py)
 SCENES = len(go_right.INSTRUCTIONS) * len(go_right.SCENES)
@@ -137,7 +139,7 @@ def quadrants(policies: list[Path], out: Path, trials: int) -> list[dict]:
         "eval.protocol=quadrants",
         f"eval.trials={trials}",
         "eval.coordination.enabled=false",
-        "env.params.inst_reward=cosine",
+        *(f"env.params.{k}={str(v).lower()}" for k, v in PAPER_ENV.items()),
         f"eval.out_dir={out}",
         f"hydra.run.dir={out}",
     ]
@@ -161,8 +163,7 @@ def evaluate(screens: dict[str, list[Path]], out: Path, trials: int, seeds) -> d
     for name, runs in screens.items():
         own = [r for r in rows if r["checkpoint"] in {str(p / "policy.pt") for p in runs}]
         parts = [
-            serving.play("policy", p / "policy.pt", INTERFACE, trials, inst_reward="cosine")
-            for p in runs
+            serving.play("policy", p / "policy.pt", INTERFACE, trials, **PAPER_ENV) for p in runs
         ]
         results["screens"][name] = {
             "runs": [_shown(p) for p in runs],
@@ -174,9 +175,8 @@ def evaluate(screens: dict[str, list[Path]], out: Path, trials: int, seeds) -> d
     results["quadrants_best_scripted"] = verdict.share_entry(best_q, best_q)
     first = policies[0]
     for label, (team, inst) in REFERENCES.items():
-        results["references"][label] = serving.play(
-            team, first, INTERFACE, trials, inst_reward=inst
-        )
+        env = {**PAPER_ENV, "inst_reward": inst}
+        results["references"][label] = serving.play(team, first, INTERFACE, trials, **env)
     return results
 
 
