@@ -33,7 +33,6 @@ import csv
 import json
 import math
 import platform
-import subprocess
 import sys
 from pathlib import Path
 
@@ -106,21 +105,7 @@ def score(run: Path, trials: int = TRIALS) -> Path:
         means, _ = _episode_means(scored)
         if set(means) == {str(p) for p in snapshots}:
             return scored
-    command = [
-        sys.executable,
-        "-m",
-        "icco_torchrl",
-        "eval",
-        f"eval.checkpoints=[{','.join(map(str, snapshots))}]",
-        "eval.protocol=quadrants",
-        f"eval.trials={trials}",
-        "eval.coordination.enabled=false",
-        f"eval.out_dir={out}",
-        f"hydra.run.dir={out}",
-    ]
-    print(f"scoring {len(snapshots)} snapshots of {run}", flush=True)
-    subprocess.run(command, check=True, stdout=subprocess.DEVNULL)
-    return scored
+    return jobs.score_quadrants(snapshots, out, trials)
 
 
 def minutes_at(run: Path) -> dict[int, float]:

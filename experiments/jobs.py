@@ -205,6 +205,27 @@ def check_one_recipe(runs: dict[Path, str]) -> None:
         first_of.setdefault(method, folder)
 
 
+def score_quadrants(checkpoints: list[Path], out: Path, trials: int, *overrides: str) -> Path:
+    """Four quadrants for every checkpoint in one ``icco eval`` (the scripted references play
+    once, on the same episodes), coordination measures off, into ``out``; its trials file."""
+    command = [
+        sys.executable,
+        "-m",
+        "icco_torchrl",
+        "eval",
+        f"eval.checkpoints=[{','.join(map(str, checkpoints))}]",
+        "eval.protocol=quadrants",
+        f"eval.trials={trials}",
+        "eval.coordination.enabled=false",
+        *overrides,
+        f"eval.out_dir={out}",
+        f"hydra.run.dir={out}",
+    ]
+    print(f"four quadrants: {len(checkpoints)} checkpoints into {out}", flush=True)
+    subprocess.run(command, check=True, stdout=subprocess.DEVNULL)
+    return out / "quadrants_trials.csv"
+
+
 def keep_records(results: Path, trials: Path, records: Path) -> list[Path]:
     """File each checkpoint of an ``icco eval`` (``results``: its JSON, ``trials``: its trials
     CSV) as a record ``records/<run>/``: the run's :data:`RECORD_FILES` (``timing.csv`` cut to

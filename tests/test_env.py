@@ -504,18 +504,20 @@ def test_path_walks_stay_where_they_were_laid_while_robot_walks_follow_the_robot
     assert gap.max() < 6 * env.waypoint_sigma
 
 
-def test_paths_are_drawn_after_the_scene_so_first_scenes_are_paired():
-    # the path draws come last in a reset: the same seed gives the same first scene with or without
-    # paths (paired comparisons of training instructions)
+@pytest.mark.parametrize("option", ["waypoint_path_prob", "waypoint_route_prob"])
+def test_paths_and_routes_are_drawn_after_the_scene_so_first_scenes_are_paired(option):
+    # their draws come last in a reset: the same seed gives the same first scene with or without
+    # them (paired comparisons of training instructions)
     a, b = (
         ResourceCollectionEnv(num_envs=8, seed=3),
-        ResourceCollectionEnv(num_envs=8, seed=3, waypoint_path_prob=0.5),
+        ResourceCollectionEnv(num_envs=8, seed=3, **{option: 0.5}),
     )
     a.reset(), b.reset()
     for name in ("pos", "res_pos", "inv_pos", "inv_timer"):
         assert torch.equal(getattr(a, name), getattr(b, name)), name
-    with pytest.raises(ValueError, match="waypoint_path_prob"):
-        ResourceCollectionEnv(waypoint_path_prob=1.5)
+    assert not a._on_path.any() and not a._on_route.any()  # 0: nobody on a path or a route
+    with pytest.raises(ValueError, match=option):
+        ResourceCollectionEnv(**{option: 1.5})
 
 
 def test_progress_reward_sees_speed_where_the_cosine_does_not():
@@ -574,17 +576,6 @@ def test_route_robots_are_served_their_route_to_a_slot_at_every_refresh():
     torch.testing.assert_close(
         near.waypoints, near._slot.permute(2, 0, 1).unsqueeze(2).expand(-1, -1, 4, -1)
     )
-
-
-def test_routes_are_drawn_after_the_scene_so_first_scenes_are_paired():
-    a, b = (
-        ResourceCollectionEnv(num_envs=8, seed=3),
-        ResourceCollectionEnv(num_envs=8, seed=3, waypoint_route_prob=0.5),
-    )
-    a.reset(), b.reset()
-    for name in ("pos", "res_pos", "inv_pos", "inv_timer"):
-        assert torch.equal(getattr(a, name), getattr(b, name)), name
-    assert not a._on_route.any()  # 0: nobody is on a route
 
 
 def test_waypoints_supplied_through_the_tensordict_drive_that_step():

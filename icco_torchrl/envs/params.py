@@ -286,6 +286,7 @@ class ResourceCollectionParams:
         (squared radii: contacts compare squared distances)."""
         r2 = lambda a, b: (a + b) ** 2  # noqa: E731
         invasion = -self.invasion_penalty
+        per_step = 1.0 / (self.max_speed * self.dt)  # r_inst's scale of a step's length
         return Params(
             damping=self.damping,
             max_speed=self.max_speed,
@@ -298,10 +299,8 @@ class ResourceCollectionParams:
             robot_home2=r2(self.home_radius, self.agent_radius),
             inst_scale=self.inst_reward_scale,
             inst_dist_coef=self.inst_dist_coef,
-            inst_progress=1.0 / (self.max_speed * self.dt)
-            if self.inst_reward == "progress"
-            else 0.0,
-            inst_hold=1.0 / (self.max_speed * self.dt) if self.inst_hold else 0.0,
+            inst_progress=per_step if self.inst_reward == "progress" else 0.0,
+            inst_hold=per_step if self.inst_hold else 0.0,
             pick=self.pick_reward,
             collect=self.collect_reward,
             defense=self.defense_reward,

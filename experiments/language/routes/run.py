@@ -44,7 +44,6 @@ import importlib.util
 import json
 import platform
 import shutil
-import subprocess
 import sys
 from pathlib import Path
 
@@ -127,30 +126,10 @@ def train(out: Path, records: Path, names, seeds, budget, n_jobs: int) -> None:
         export_policy(run / "checkpoint.pt", kept / "policy.pt")
 
 
-def quadrants(policies: list[Path], out: Path, trials: int) -> list[dict]:
-    """Four quadrants for every policy (one ``icco eval``: the references play once), in the
-    paper's env; the trials' rows."""
-    command = [
-        sys.executable,
-        "-m",
-        "icco_torchrl",
-        "eval",
-        f"eval.checkpoints=[{','.join(map(str, policies))}]",
-        "eval.protocol=quadrants",
-        f"eval.trials={trials}",
-        "eval.coordination.enabled=false",
-        *(f"env.params.{k}={str(v).lower()}" for k, v in PAPER_ENV.items()),
-        f"eval.out_dir={out}",
-        f"hydra.run.dir={out}",
-    ]
-    print(f"four quadrants: {len(policies)} policies", flush=True)
-    subprocess.run(command, check=True, stdout=subprocess.DEVNULL)
-    return verdict.read_rows(out / "quadrants_trials.csv")
-
-
 def evaluate(screens: dict[str, list[Path]], out: Path, trials: int, seeds) -> dict:
     policies = [p / "policy.pt" for runs in screens.values() for p in runs]
-    rows = quadrants(policies, out / "quadrants", trials)
+    paper = (f"env.params.{k}={str(v).lower()}" for k, v in PAPER_ENV.items())
+    rows = verdict.read_rows(jobs.score_quadrants(policies, out / "quadrants", trials, *paper))
     best_q = verdict.best_scripted(rows)
     results = {
         "trials": trials,

@@ -35,7 +35,6 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from icco_torchrl.envs.params import INST_REWARDS
 from icco_torchrl.envs.reference_policies import make_reference_policy
 from icco_torchrl.envs.routes import DEFAULT_STEP
 from icco_torchrl.evaluation.metrics import EPISODE, summarize, write_json
@@ -53,11 +52,12 @@ INTERFACES = ("fixed", "served@0.19", "served@0.25", "served@0.35", "served@0.5"
 COLUMNS = ("in_place", "at_slot", "formation", "time_to_slot", "reward")
 
 
-def play(team: str, checkpoint: Path, interface: str, trials: int, **env) -> dict:
-    """One team under one interface: its summary per instruction and for the episode. ``env``:
-    env parameters other than the checkpoint's (``inst_reward``)."""
+def play(team: str, checkpoint: Path, interface: str, trials: int, **env_params) -> dict:
+    """One team under one interface: its summary per instruction and for the episode.
+    ``env_params``: env parameters other than the checkpoint's (``inst_reward``)."""
     plan, _, step = interface.partition("@")
-    restored = schedule_env(checkpoint, STEPS * len(INSTRUCTIONS), trials, seed=ENV_SEED, **env)
+    total = STEPS * len(INSTRUCTIONS)
+    restored = schedule_env(checkpoint, total, trials, seed=ENV_SEED, **env_params)
     env = restored["env"]
     policy = restored["policy"] if team == "policy" else make_reference_policy(team, env)
     schedule = language_schedule(
@@ -212,15 +212,7 @@ def main(argv=None) -> None:
     parser.add_argument("--references", nargs="*", default=list(REFERENCES))
     parser.add_argument("--trials", type=int, default=TRIALS)
     parser.add_argument("--out", type=Path, default=HERE)
-    parser.add_argument(
-        "--inst-reward",
-        choices=INST_REWARDS,
-        help="the env's r_inst instead of the checkpoint's (rows labelled with it; the greedy "
-        "follower follows it)",
-    )
     args = parser.parse_args(argv)
-    env = {"inst_reward": args.inst_reward} if args.inst_reward else {}
-    tag = f" ({args.inst_reward} r_inst)" if args.inst_reward else ""
     torch.set_num_threads(1)
     path = args.out / "results.json"
     results = json.loads(path.read_text()) if path.is_file() else {"rows": {}}
@@ -231,14 +223,13 @@ def main(argv=None) -> None:
         for team in [*args.references, args.label]:
             start = time.time()
             if team == args.label:
-                parts = [play("policy", c, interface, args.trials, **env) for c in args.checkpoints]
-                row = pooled(parts)
+                row = pooled([play("policy", c, interface, args.trials) for c in args.checkpoints])
             else:
-                row = play(team, args.checkpoints[0], interface, args.trials, **env)
-            results["rows"][f"{team}{tag} | {interface}"] = row
+                row = play(team, args.checkpoints[0], interface, args.trials)
+            results["rows"][f"{team} | {interface}"] = row
             shown = " ".join(f"{100 * row[i]['in_place']:.0f}%" for i in INSTRUCTIONS)
             reward = row[EPISODE]["reward"]
-            print(f"{team}{tag} | {interface}: in place {shown}, reward {reward:.1f} "
+            print(f"{team} | {interface}: in place {shown}, reward {reward:.1f} "
                   f"({time.time() - start:.0f} s)", flush=True)  # fmt: skip
             write_json(results, path)
     (args.out / "README.md").write_text(render(results))
