@@ -157,6 +157,7 @@ def skill_section() -> str:
         {
             "recipe": r["recipe"],
             "seed": r["seed"],
+            "CPU": r.get("cpu") or data.get("cpu"),
             "minutes to 90 %": "not reached"
             if r["minutes_to_90_percent"] is None
             else r["minutes_to_90_percent"],
@@ -169,8 +170,8 @@ def skill_section() -> str:
         for r in data.get("runs", [])
     ]
     where = (
-        f"{data['cpu']}, {data['threads']} thread per run, {data['side_by_side']} runs side by "
-        f"side; four quadrants, {data['trials']} trials per mark"
+        f"{data['threads']} thread per run, {data['side_by_side']} runs side by side (minutes "
+        f"compare only between rows of one CPU); four quadrants, {data['trials']} trials per mark"
     )
     src = "[`results/time_to_skill.json`](results/time_to_skill.json)"
     return f"{where}.\n\n{table(rows)}\n\nSource: {src}; figure: `results/time_to_skill.png`."

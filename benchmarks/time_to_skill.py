@@ -206,19 +206,19 @@ def main(argv=None) -> None:
         jobs.train_runs(runs, args.jobs)
         previous = json.loads(args.results.read_text()) if args.results.is_file() else {}
         kept = [
-            r
+            {"cpu": previous.get("cpu"), **r}  # rows of runs not on this machine stay
             for r in previous.get("runs", [])
-            if (r["recipe"], r["seed"]) not in wanted  # rows of runs not on this machine stay
+            if (r["recipe"], r["seed"]) not in wanted
         ]
         rows = []
         for (recipe, seed), run in wanted.items():
-            row = {"recipe": recipe, "seed": seed, "overrides": RECIPES[recipe]}
+            row = {"recipe": recipe, "seed": seed, "overrides": RECIPES[recipe], "cpu": cpu_model()}
             rows.append({**row, **curve(run, score(run, trials))})
+        # Minutes are comparable only between rows of one CPU model: each row names its own.
         results = {
             "budget": budget,
             "target": TARGET,
             "trials": trials,
-            "cpu": cpu_model(),
             "threads": 1,
             "side_by_side": args.jobs,
             "runs": kept + rows,
