@@ -520,31 +520,28 @@ def test_paths_and_routes_are_drawn_after_the_scene_so_first_scenes_are_paired(o
         ResourceCollectionEnv(**{option: 1.5})
 
 
-def test_progress_reward_sees_speed_where_the_cosine_does_not():
+def test_the_cosine_ignores_speed_and_hold_pays_for_staying_at_the_slot():
     from icco_torchrl.envs._kernels import instruction_reward
 
     # One robot at the origin, its path along +x (nearest waypoint on it, the next 0.25 m on);
-    # four moves: full speed along, half speed along, full speed back, full speed across.
+    # four moves: full speed along, half speed along, full speed back, full speed across. The
+    # cosine pays coasting at half speed what it pays driving (why the greedy follower stalls).
     full = ResourceCollectionEnv().params  # max_speed 1.9 m/s, dt 0.1 s: 0.19 m a step
     step = full.max_speed * full.dt
     wp = torch.tensor([[0.0, 0.0], [0.25, 0.0]]).view(1, 2, 2, 1).expand(1, 2, 2, 4)
     moves = torch.tensor([[step, 0.0], [step / 2, 0.0], [-step, 0.0], [0.0, step]]).t()
     old, new = torch.zeros(1, 2, 4), moves.unsqueeze(0)
     cosine = instruction_reward(wp, old, new, 1.0, 0.0)
-    progress = instruction_reward(wp, old, new, 1.0, 0.0, 1.0 / step)
     torch.testing.assert_close(cosine, torch.tensor([[1.0, 1.0, -1.0, 0.0]]))
-    torch.testing.assert_close(progress, torch.tensor([[1.0, 0.5, -1.0, 0.0]]))
     # at a route's end (the two nearest waypoints coincide) holding still earns what following
     # earned: 1 standing, 0.5 at half speed, nothing at full speed or faster; without it, nothing
     slot = torch.zeros(1, 2, 2, 4)
     moves = torch.tensor([[0.0, 0.0], [step / 2, 0.0], [0.0, -step], [2 * step, 0.0]]).t()
-    held = instruction_reward(slot, old, moves.unsqueeze(0), 1.0, 0.0, 0.0, 1.0 / step)
+    held = instruction_reward(slot, old, moves.unsqueeze(0), 1.0, 0.0, 1.0 / step)
     torch.testing.assert_close(held, torch.tensor([[1.0, 0.5, 0.0, 0.0]]))
     not_held = instruction_reward(slot, old, moves.unsqueeze(0), 1.0, 0.0)
     torch.testing.assert_close(not_held, torch.zeros(1, 4))
-    # the env passes the progress scale from its parameters; the paper's cosine is the default
-    assert ResourceCollectionEnv(inst_reward="progress")._params().inst_progress == 1.0 / step
-    assert ResourceCollectionEnv()._params().inst_progress == 0.0
+    # the env passes the hold scale from its parameters; off by default (the paper's r_inst)
     assert ResourceCollectionEnv(inst_hold=True)._params().inst_hold == 1.0 / step
     assert ResourceCollectionEnv()._params().inst_hold == 0.0
 
@@ -643,7 +640,6 @@ def test_bad_parameters_raise_naming_the_parameter(name, value):
         ("waypoint_path_prob", 1.5, "must be in [0, 1]"),
         ("waypoint_route_prob", -0.1, "must be in [0, 1]"),
         ("waypoint_route_step", 0, "must be a positive finite number"),
-        ("inst_reward", "speed", "must be one of"),
         ("waypoint_mode", "scripted", "must be one of"),
         ("spawn", "edge", "must be one of"),
         ("pick_reward", "five", "must be a number"),

@@ -807,8 +807,7 @@ def test_route_screens_compose_and_the_page_judges_each_instruction_against_80_p
     routes = _load(ROOT / "experiments" / "language" / "routes" / "run.py")
     for name, overrides in routes.SCREENS.items():
         p = compose_config([*routes.BUDGET, *overrides]).env.params
-        assert (p.inst_reward == "progress") == ("progress" in name), name
-        assert (p.waypoint_route_prob == 0.5) == ("routes" in name), name
+        assert p.waypoint_route_prob == {"control": 0.0, "hold_routes_0.2": 0.2}.get(name, 0.5), name
         assert p.inst_hold == ("hold" in name), name
     cells = lambda places, **ep: {  # noqa: E731  (one team's language row)
         **{i: {"in_place": v} for i, v in zip(routes.serving.INSTRUCTIONS, places)},
@@ -833,8 +832,12 @@ def test_route_screens_compose_and_the_page_judges_each_instruction_against_80_p
         },
         "quadrants_best_scripted": {"mean": 400.0},
     }
+    results["references"]["follower (progress r_inst)"] = cells([1.0] * 4, reward=900.0)
     page = routes.render(results)
     assert "- ICCO (make train): below 80% on Go right;" in page
     assert "- ICCO, progress r_inst: in place at least 80% on every instruction;" in page
     assert "language reward 75% of the best scripted team's, four quadrants 90%" in page
-    assert "| ICCO, progress r_inst | 80 % | 95 % | 100 % | 90 % |" in page
+    assert "| ICCO, progress r_inst (*not kept*) | 80 % | 95 % | 100 % | 90 % |" in page
+    assert "| follower (progress r_inst) | 100 % | 100 % | 100 % | 100 % | 30 | other units |" in page
+    assert "| follower (cosine r_inst) | 100 % | 100 % | 100 % | 100 % | 30 | 400.0 (100%) |" in page
+    assert not set(routes.RETIRED) & set(routes.SCREENS)

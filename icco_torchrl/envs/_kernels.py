@@ -93,7 +93,6 @@ class Params(NamedTuple):
     robot_home2: float  # (home_radius + agent_radius) ** 2
     inst_scale: float
     inst_dist_coef: float
-    inst_progress: float  # 0: r_inst's cosine (the paper); else 1 / (max_speed * dt): progress
     inst_hold: float  # 0: off; else 1 / (max_speed * dt): a route's end rewards holding still
     pick: float
     collect: float
@@ -198,7 +197,7 @@ def motion(pos, vel, inv, inv_on, wp, action, action_force, p: Params):
     new_pos = raw.clamp(-p.wall, p.wall)
     new_vel = new_vel.masked_fill_(new_pos != raw, 0.0)  # a wall stops that axis
     r_inst = instruction_reward(
-        wp, pos, new_pos, p.inst_scale, p.inst_dist_coef, p.inst_progress, p.inst_hold
+        wp, pos, new_pos, p.inst_scale, p.inst_dist_coef, p.inst_hold
     )
     # Invaders walk straight home.
     dist_home = sq_norm(inv).sqrt_().unsqueeze(1)
@@ -208,15 +207,13 @@ def motion(pos, vel, inv, inv_on, wp, action, action_force, p: Params):
 
 
 def instruction_reward(
-    wp, old_pos, new_pos, scale: float, dist_coef: float, progress: float = 0.0, hold: float = 0.0
+    wp, old_pos, new_pos, scale: float, dist_coef: float, hold: float = 0.0
 ) -> torch.Tensor:
     """``r_inst = scale * (e_dir + dist_coef * e_dist)`` per robot, [N, B].
 
     The path direction is the vector from the waypoint nearest to the robot (before the move) to
     the second-nearest one. e_dir is the cosine between this step's displacement and it
-    (``progress == 0``, the paper's e_cossim), or the displacement's length along it times
-    ``progress`` (``1 / (max_speed * dt)``: 1 for a step at full speed along the path, so coasting
-    to a halt no longer scores as much as driving); 0 when either vector is zero. With ``hold``
+    (the paper's e_cossim); 0 when either vector is zero. With ``hold``
     (``1 / (max_speed * dt)``), a zero path direction (the two nearest waypoints coincide: a served
     route's end, its slot) scores ``1 - hold * |displacement|`` (at least 0) instead: holding the
     slot earns what following earned, where otherwise arriving would end the reward. e_dist:
@@ -232,10 +229,7 @@ def instruction_reward(
     disp = new_pos - old_pos
     along = (disp * path).sum(1)
     length = sq_norm(path).sqrt_()
-    if progress:
-        e_dir = along.mul_(progress).div_(length.clamp_min(1e-8))
-    else:
-        e_dir = along.div_(sq_norm(disp).sqrt_().mul_(length).clamp_min_(1e-8))
+    e_dir = along.div_(sq_norm(disp).sqrt_().mul_(length).clamp_min_(1e-8))
     if hold:
         still = sq_norm(disp).sqrt_().mul_(-hold).add_(1.0).clamp_min_(0.0)
         e_dir = torch.where(length == 0, still, e_dir)

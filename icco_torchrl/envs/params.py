@@ -38,7 +38,6 @@ from icco_torchrl.envs.routes import DEFAULT_STEP
 
 SPAWN_MODES = ("uniform", "copa")
 WAYPOINT_MODES = ("random_walk", "external")
-INST_REWARDS = ("cosine", "progress")
 
 # A constraint: (field name, value, the table being checked) -> None, or a ValueError whose message
 # starts with the field name. The table is passed for the rules between fields.
@@ -145,15 +144,6 @@ class ResourceCollectionParams:
         "weight of ``e_dist = -distance to nearest waypoint`` inside r_inst. The paper's text "
         "would reward being far away; we read it as a penalty.",
         number,
-    )
-    inst_reward: str = param(
-        "cosine",
-        "what r_inst scores of a step's displacement along the path direction (nearest waypoint "
-        'to the second-nearest). ``"cosine"`` (the paper\'s e_cossim): its cosine, which does not '
-        "see speed, so coasting to a halt along a route scores as much as driving along it. "
-        '``"progress"``: its length along the path over the longest step (``max_speed * dt``), '
-        "1 at full speed (experiments/language/routes measures both).",
-        one_of(INST_REWARDS),
     )
     inst_hold: bool = param(
         False,
@@ -299,7 +289,6 @@ class ResourceCollectionParams:
             robot_home2=r2(self.home_radius, self.agent_radius),
             inst_scale=self.inst_reward_scale,
             inst_dist_coef=self.inst_dist_coef,
-            inst_progress=per_step if self.inst_reward == "progress" else 0.0,
             inst_hold=per_step if self.inst_hold else 0.0,
             pick=self.pick_reward,
             collect=self.collect_reward,

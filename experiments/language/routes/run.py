@@ -1,7 +1,7 @@
-"""Training for served plans: an instruction reward that sees speed, and routes to a slot.
+"""Training for served plans: routes to a slot, holding it, and an instruction reward that sees speed.
 
     python experiments/language/routes/run.py                 # train what is missing, evaluate
-    python experiments/language/routes/run.py --only progress --seeds 0
+    python experiments/language/routes/run.py --only hold_routes --seeds 0
     python experiments/language/routes/run.py --report-only   # README.md from results.json
     python experiments/language/routes/run.py --smoke --seeds 0 --out DIR   # a pipeline check
 
@@ -13,15 +13,18 @@ screen's ``BUDGET``, 2M frames), 2 seeds, with:
 
 - ``control``: nothing changed. Its runs are the consistency screen's ``ce1e-4`` records (the
   same recipe), so it is not retrained;
-- ``progress``: ``env.params.inst_reward=progress`` (a step's length along the path direction
-  over the longest step, 1 at full speed);
-- ``progress_routes``: that, and ``env.params.waypoint_route_prob=0.5`` (half the robots get a
-  route to a uniform slot per episode, served as evaluation serves a plan);
-- ``hold_routes``: the paper's cosine, routes 0.5, and ``env.params.inst_hold=true``: at a
+- ``hold_routes``: ``env.params.waypoint_route_prob=0.5`` (half the robots get a route to a
+  uniform slot per episode, served as evaluation serves a plan) and ``env.params.inst_hold=true``: at a
   route's end (its slot, where the served waypoints coincide) r_inst pays for holding still what
-  it paid for following, where otherwise arriving ends the instruction reward.
+  it paid for following, where otherwise arriving ends the instruction reward;
+- ``hold_routes_0.2``: that with routes 0.2, to see whether fewer robots on a route keep the task.
 
-Every team is evaluated in the paper's env (``inst_reward=cosine``), so rewards are in one unit
+Measured and not kept (:data:`RETIRED`: their numbers stay in ``results.json``, the option and
+its records left the library): ``progress``, r_inst's direction term as a step's length along the
+path over the longest step (1 at full speed) instead of its cosine, and ``progress_routes``, that
+with routes 0.5. Teams trained on it stopped following.
+
+Every team is evaluated in the paper's env (``inst_hold`` off), so rewards are in one unit
 and the scripted teams face the same episodes:
 
 - four quadrants (``icco eval eval.protocol=quadrants``, 20 trials, seeds pooled): the team
@@ -30,7 +33,7 @@ and the scripted teams face the same episodes:
   right" -> "Move top" -> "Gather center" -> "Spread out", 145 steps each, 20 trials on env seed
   20000): in place per instruction (at least 2 of 3 robots where the instruction says, over each
   instruction's second half), at slot, formation, time to slot and the episode reward, with the
-  scripted follower (of each r_inst), the pursuit follower and the best scripted team.
+  scripted follower (greedy on r_inst), the pursuit follower and the best scripted team.
 
 Records (``records/<screen>/seed<k>/``): ``config.yaml``, ``eval.csv``, ``timing.csv`` and the
 policy weights (``policy.pt``), so any protocol can be rerun without retraining. ``results.json``
@@ -74,26 +77,29 @@ BUDGET = [*consistency.BUDGET, "method=icco", "logger.progress=false"]
 CONTROL_RECORDS = EXPERIMENTS / "consistency" / "records" / consistency.CONTROL
 SCREENS = {
     "control": [],
-    "progress": ["env.params.inst_reward=progress"],
-    "progress_routes": ["env.params.inst_reward=progress", "env.params.waypoint_route_prob=0.5"],
     "hold_routes": ["env.params.inst_hold=true", "env.params.waypoint_route_prob=0.5"],
+    "hold_routes_0.2": ["env.params.inst_hold=true", "env.params.waypoint_route_prob=0.2"],
 }
 LABELS = {
     "control": "ICCO (make train)",
     "progress": "ICCO, progress r_inst",
     "progress_routes": "ICCO, progress r_inst, routes 0.5",
     "hold_routes": "ICCO, hold at the slot, routes 0.5",
+    "hold_routes_0.2": "ICCO, hold at the slot, routes 0.2",
 }
 SEEDS = (0, 1)
 INTERFACE = f"served@{serving.DEFAULT_STEP:g}"
-REFERENCES = {  # label: (team, the r_inst it is greedy on)
-    "follower (cosine r_inst)": ("follower", "cosine"),
-    "follower (progress r_inst)": ("follower", "progress"),
-    "pursuit": ("pursuit", "cosine"),
-    "best scripted": ("best_scripted", "cosine"),
+# Screens measured and not kept: their rows stay in results.json, their lever left the library.
+RETIRED = ("progress", "progress_routes")
+REFERENCES = {  # label: team
+    "follower (cosine r_inst)": "follower",
+    "pursuit": "pursuit",
+    "best scripted": "best_scripted",
 }
+# References of a retired lever: kept from results.json, scored in its own env (other units).
+RETIRED_REFERENCES = ("follower (progress r_inst)",)
 # The paper's r_inst, whatever a policy trained with: rewards in one unit, the same references.
-PAPER_ENV = {"inst_reward": "cosine", "inst_hold": False}
+PAPER_ENV = {"inst_hold": False}
 TARGET_IN_PLACE = 0.8  # issue 47's bar for a learned team, on each instruction
 WITHIN, STAY = 60, 0.8  # the arrival check's defaults (assets/go_right.py)
 SCENES = len(go_right.INSTRUCTIONS) * len(go_right.SCENES)
@@ -153,9 +159,8 @@ def evaluate(screens: dict[str, list[Path]], out: Path, trials: int, seeds) -> d
         print(name, _in_place(results["screens"][name]["language"]), flush=True)
     results["quadrants_best_scripted"] = verdict.share_entry(best_q, best_q)
     first = policies[0]
-    for label, (team, inst) in REFERENCES.items():
-        env = {**PAPER_ENV, "inst_reward": inst}
-        results["references"][label] = serving.play(team, first, INTERFACE, trials, **env)
+    for label, team in REFERENCES.items():
+        results["references"][label] = serving.play(team, first, INTERFACE, trials, **PAPER_ENV)
     return results
 
 
@@ -191,7 +196,7 @@ def _pm(entry: dict, key: str, scale: float = 100, digits: int = 0) -> str:
 def render(results: dict) -> str:
     best_l = results["references"]["best scripted"][EPISODE]["reward"]
     lines = [
-        "# Training for served plans: progress r_inst and routes to a slot",
+        "# Training for served plans: routes to a slot, and holding it",
         "",
         "Generated by `python experiments/language/routes/run.py` from `results.json`; the "
         "screens, the protocols and the columns are in the script's docstring. ICCO at `make "
@@ -208,7 +213,9 @@ def render(results: dict) -> str:
         f"of the arrival check (`assets/go_right.py`: {len(go_right.INSTRUCTIONS)} instructions x "
         f"{len(go_right.SCENES)} scenes; every robot not intercepting at its slot by tick "
         f"{WITHIN}, and held on {STAY:.0%} of the ticks after). The last rows are scripted; "
-        "the follower of the progress r_inst plays in that env, so its reward is in other units.",
+        "the follower of the progress r_inst (measured and not kept) played in that env, so its reward "
+        "is in other units. Screens marked *not kept*: their lever left the library; their "
+        "numbers stay here.",
         "",
         "| team | "
         + " | ".join(serving.INSTRUCTIONS)
@@ -225,13 +232,14 @@ def render(results: dict) -> str:
             f"{q['mean']:.1f} ± {q['std']:.1f} ({q['share_of_best_scripted']:.0%})",
             " / ".join(str(a) for a in s.get("arrival", [])) + f" of {SCENES}",
         ]
-        lines.append(f"| {LABELS[name]} | " + " | ".join(cells) + " |")
+        kept = "" if name in SCREENS else " (*not kept*)"
+        lines.append(f"| {LABELS[name]}{kept} | " + " | ".join(cells) + " |")
     best_q = results["quadrants_best_scripted"]
     for label, row in results["references"].items():
         ep = row[EPISODE]
         cells = [f"{100 * row[i]['in_place']:.0f} %" for i in serving.INSTRUCTIONS]
         quad = f"{best_q['mean']:.1f} (100%)" if label == "best scripted" else ""
-        own_units = REFERENCES[label][1] != "cosine"  # scored in its own r_inst's env
+        own_units = label in RETIRED_REFERENCES  # scored in its own r_inst's env
         reward = "other units" if own_units else f"{ep['reward']:.1f} ({ep['reward'] / best_l:.0%})"
         cells += [f"{ep['time_to_slot']:.0f}", reward, quad, ""]
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
@@ -263,8 +271,9 @@ def reading(results: dict) -> list[str]:
             )
         )
     follower = results["references"]
-    for label in ("follower (cosine r_inst)", "follower (progress r_inst)"):
-        out.append(f"- The greedy {label}: in place {_in_place(follower[label])}.")
+    for label in ("follower (cosine r_inst)", *RETIRED_REFERENCES):
+        if label in follower:
+            out.append(f"- The greedy {label}: in place {_in_place(follower[label])}.")
     return out
 
 
@@ -299,7 +308,10 @@ def main(argv=None) -> None:
             old = json.loads(results_path.read_text())
             if old.get("trials") == trials:
                 new["screens"] = {**old["screens"], **new["screens"]}
-        new["screens"] = {name: new["screens"][name] for name in SCREENS if name in new["screens"]}
+                retired = {k: v for k, v in old["references"].items() if k in RETIRED_REFERENCES}
+                new["references"] = {**new["references"], **retired}
+        order = [*SCREENS, *RETIRED]
+        new["screens"] = {name: new["screens"][name] for name in order if name in new["screens"]}
         write_json(new, results_path)
     results = json.loads(results_path.read_text())
     (results_path.parent / "README.md").write_text(render(results))
