@@ -152,14 +152,18 @@ def cpu_model() -> str:
 def plot(results: dict, path: Path) -> None:
     fig = Figure(figsize=(7, 4))
     ax = fig.subplots()
+    cpus = sorted({r["cpu"] for r in results["runs"]})
     for recipe in RECIPES:
-        runs = [r for r in results["runs"] if r["recipe"] == recipe and r["marks"]]
-        if not runs:
-            continue
-        n = min(len(r["marks"]) for r in runs)
-        minutes = np.mean([[m["minutes"] for m in r["marks"][:n]] for r in runs], axis=0)
-        share = np.mean([[m["share"] for m in r["marks"][:n]] for r in runs], axis=0)
-        ax.plot(minutes, 100 * share, marker=".", label=f"{recipe} ({len(runs)} seeds)")
+        for cpu, style in zip(cpus, ("-", "--", ":")):  # minutes compare within one CPU only
+            runs = [r for r in results["runs"] if (r["recipe"], r["cpu"]) == (recipe, cpu)]
+            runs = [r for r in runs if r["marks"]]
+            if not runs:
+                continue
+            n = min(len(r["marks"]) for r in runs)
+            minutes = np.mean([[m["minutes"] for m in r["marks"][:n]] for r in runs], axis=0)
+            share = np.mean([[m["share"] for m in r["marks"][:n]] for r in runs], axis=0)
+            label = f"{recipe}, {cpu.split(' Processor')[0]} ({len(runs)} seeds)"
+            ax.plot(minutes, 100 * share, style, marker=".", label=label)
     ax.axhline(100 * TARGET, color="k", ls="--", lw=1, label="90 % of the best scripted team")
     ax.set_xlabel("minutes of training (one core; evaluations excluded)")
     ax.set_ylabel("four quadrants: % of the best scripted team")
@@ -205,14 +209,15 @@ def main(argv=None) -> None:
             runs[run] = (overrides, compose_config(overrides).train.total_frames)
         jobs.train_runs(runs, args.jobs)
         previous = json.loads(args.results.read_text()) if args.results.is_file() else {}
-        kept = [
-            {"cpu": previous.get("cpu"), **r}  # rows of runs not on this machine stay
-            for r in previous.get("runs", [])
-            if (r["recipe"], r["seed"]) not in wanted
+        cpu = cpu_model()
+        kept = [  # rows of other runs, or of these runs on another CPU, stay
+            row
+            for row in ({"cpu": previous.get("cpu"), **r} for r in previous.get("runs", []))
+            if (row["recipe"], row["seed"]) not in wanted or row["cpu"] != cpu
         ]
         rows = []
         for (recipe, seed), run in wanted.items():
-            row = {"recipe": recipe, "seed": seed, "overrides": RECIPES[recipe], "cpu": cpu_model()}
+            row = {"recipe": recipe, "seed": seed, "overrides": RECIPES[recipe], "cpu": cpu}
             rows.append({**row, **curve(run, score(run, trials))})
         # Minutes are comparable only between rows of one CPU model: each row names its own.
         results = {
