@@ -138,6 +138,16 @@ def curve(run: Path, scored: Path) -> dict:
     }
 
 
+def merged(previous: dict, rows: list[dict]) -> list[dict]:
+    """``previous``'s runs, less those ``rows`` measure again (the same recipe, seed and CPU),
+    then ``rows``: a run on another CPU is another measurement and stays. A file from before
+    rows named their CPU names it once, at the top."""
+    key = lambda r: (r["recipe"], r["seed"], r["cpu"])  # noqa: E731
+    fresh = {key(r) for r in rows}
+    old = [{"cpu": previous.get("cpu"), **r} for r in previous.get("runs", [])]
+    return [r for r in old if key(r) not in fresh] + rows
+
+
 def cpu_model() -> str:
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
@@ -210,11 +220,6 @@ def main(argv=None) -> None:
         jobs.train_runs(runs, args.jobs)
         previous = json.loads(args.results.read_text()) if args.results.is_file() else {}
         cpu = cpu_model()
-        kept = [  # rows of other runs, or of these runs on another CPU, stay
-            row
-            for row in ({"cpu": previous.get("cpu"), **r} for r in previous.get("runs", []))
-            if (row["recipe"], row["seed"]) not in wanted or row["cpu"] != cpu
-        ]
         rows = []
         for (recipe, seed), run in wanted.items():
             row = {"recipe": recipe, "seed": seed, "overrides": RECIPES[recipe], "cpu": cpu}
@@ -226,7 +231,7 @@ def main(argv=None) -> None:
             "trials": trials,
             "threads": 1,
             "side_by_side": args.jobs,
-            "runs": kept + rows,
+            "runs": merged(previous, rows),
         }
         args.results.parent.mkdir(parents=True, exist_ok=True)
         args.results.write_text(json.dumps(results, indent=1) + "\n")

@@ -85,6 +85,23 @@ def test_time_to_skill_reads_the_first_mark_at_90_percent_on_the_training_clock(
     assert skill.curve(run, run / "trials.csv")["minutes_to_90_percent"] is None
 
 
+def test_time_to_skill_keeps_a_run_measured_on_another_cpu():
+    skill = _load(ROOT / "benchmarks" / "time_to_skill.py")
+    row = lambda recipe, seed, **kw: {"recipe": recipe, "seed": seed, **kw}  # noqa: E731
+    previous = {  # the older layout: one CPU for the file
+        "cpu": "Intel",
+        "runs": [row("make train", 0, share=0.8), row("make train", 1, share=0.9)],
+    }
+    fresh = [row("make train", 0, cpu="AMD", share=0.7), row("make train", 1, cpu="Intel")]
+    got = skill.merged(previous, fresh)
+    assert [(r["recipe"], r["seed"], r["cpu"]) for r in got] == [
+        ("make train", 0, "Intel"),  # kept: another CPU's measurement
+        ("make train", 0, "AMD"),
+        ("make train", 1, "Intel"),  # replaced: the same run measured again
+    ]
+    assert got[0]["share"] == 0.8 and "share" not in got[2]
+
+
 def test_every_best_team_screen_composes_at_the_screen_budget_and_replay_ratio():
     best_team = _load(ROOT / "experiments" / "best_team" / "run.py")
     for name, (_, method, overrides) in best_team.SCREENS.items():
