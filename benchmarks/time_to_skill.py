@@ -67,6 +67,9 @@ RECIPES = {
     "64 envs per batch": ["env.num_envs=64", "train.batch_segments=64"],
     "lr 3e-3, target every 100": ["train.lr=3e-3", "train.target_update_interval=100"],
     "epsilon over 150k frames": ["train.eps_decay_frames=150000"],
+    # make train's policy swings by up to 15 points between marks 100k frames apart: a target
+    # that follows slowly (Polyak 0.005, a 200-update horizon) in place of a copy every 50.
+    "soft target updates": ["train.target_update=soft", "train.tau=0.005"],
 }
 SEEDS = (0, 1)
 TARGET = 0.9  # share of the best scripted team
