@@ -68,8 +68,11 @@ from verdict import (  # noqa: E402
 # in the learner's process (two runs side by side use a 2-core machine), and no replay dump in the
 # checkpoints (24 runs x ~450 MB; a resumed run refills its buffer). The weights of every
 # evaluation are kept, so benchmarks/time_to_skill.py can score the control's learning curve.
+# Hard target copies: make train's recipe when the screen began (it has soft updates since), so
+# every screen stays comparable with its control.
 BUDGET = [
     "experiment=make_train",
+    "train.target_update=hard",
     "train.collector=inline",
     "train.threads=1",
     "train.checkpoint_buffer=false",
