@@ -725,6 +725,40 @@ def test_a_checkpoint_with_a_removed_train_option_is_refused_then_converted_when
     assert f"evaluate it at commit {commit}" in err and not (tmp_path / "taught.pt").exists()
 
 
+def test_a_removed_env_parameter_is_refused_then_dropped_at_the_value_left(tmp_path, capsys):
+    """``env.params.inst_reward`` (measured and not kept): a policy written with it is refused in
+    one line naming the converter; converted, ``"cosine"`` (the one value left) is dropped from
+    the env's and the training env's parameters; ``"progress"`` is refused naming the commit."""
+    from icco_torchrl.training.build import compose_config
+    from icco_torchrl.training.restore import restore
+
+    tables = converter()
+    cfg = compose_config(["method=icco"])
+    written = OmegaConf.to_container(cfg, resolve=True)
+    written["env"]["params"]["inst_reward"] = "cosine"
+    written["train"]["env_params"]["inst_reward"] = None  # unset: the env's own
+    old, state, messages = _policy_written_with(tmp_path, cfg, written)
+    for message in messages:
+        assert "env.params.inst_reward, train.env_params.inst_reward" in message
+    new = tmp_path / "new.pt"
+    assert tables.main([str(old), str(new)]) == 0
+    said = capsys.readouterr().out
+    assert "env.params.inst_reward dropped (it was 'cosine', as today)" in said
+    ckpt = load_checkpoint(new)["cfg"]
+    assert "inst_reward" not in ckpt["env"]["params"]
+    assert "inst_reward" not in ckpt["train"]["env_params"]
+    restored = restore(new, num_envs=2).loss.state_dict()
+    assert set(restored) == set(state) and all(torch.equal(restored[k], state[k]) for k in state)
+
+    written["train"]["env_params"]["inst_reward"] = "progress"
+    old, _, _ = _policy_written_with(tmp_path, cfg, written)
+    assert tables.main([str(old), str(tmp_path / "progress.pt")]) == 2
+    err = capsys.readouterr().err.strip()
+    commit = tables.ENV_FIELDS_REMOVED["inst_reward"][1]
+    assert len(err.splitlines()) == 1 and "train.env_params.inst_reward='progress'" in err
+    assert f"evaluate it at commit {commit}" in err and not (tmp_path / "progress.pt").exists()
+
+
 @pytest.mark.parametrize(
     "option, value, commit",
     [("z_input", "mlp", "396580d"), ("reward_channels", "per_robot", "6ecb567")],
@@ -802,6 +836,7 @@ def test_nothing_in_the_package_mentions_the_upgrade_tables():
         "METHOD_FIELDS_REMOVED",
         "TRAIN_FIELDS_ADDED",
         "TRAIN_FIELDS_REMOVED",
+        "ENV_FIELDS_REMOVED",
     )
     names = (*tables, "_upgrade", "legacy_numpy_globals", "safe_globals")
     found = [

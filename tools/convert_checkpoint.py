@@ -60,6 +60,7 @@ from omegaconf import OmegaConf
 from icco_torchrl.training.checkpoint import (
     FORMAT_VERSION,
     check_structure,
+    config_section,
     load_checkpoint,
     save_checkpoint,
 )
@@ -107,6 +108,11 @@ TRAIN_FIELDS_REMOVED = {
     "teacher": (None, "6da9543"),  # experiments/best_team: teacher data not kept
     "teacher_envs": (ANY, "6da9543"),
     "teacher_share": (ANY, "6da9543"),
+}
+# Env parameters of options measured and dropped, as METHOD_FIELDS_REMOVED; in train.env_params
+# (the training env's own overrides) they are dropped unset (None) or at the value left.
+ENV_FIELDS_REMOVED = {
+    "inst_reward": ("cosine", "1169af0"),  # "progress": experiments/language/routes, not kept
 }
 # Train fields added after checkpoints had been written, with the value those runs trained with:
 # a resumed older run keeps its recipe (4-step items, no shaping) instead of today's defaults.
@@ -176,14 +182,20 @@ def upgrade(payload: dict, path: Path) -> list[str]:
             if key not in fields and key in schema.__dataclass_fields__:
                 fields[key] = copy.deepcopy(value)
                 changes.append(f"{section}.{key}={value!r}")
-    for section, removed in (("method", METHOD_FIELDS_REMOVED), ("train", TRAIN_FIELDS_REMOVED)):
-        fields = cfg.get(section) if isinstance(cfg, dict) else None
-        if not isinstance(fields, dict):
+    for where, removed, unset in (
+        (("method",), METHOD_FIELDS_REMOVED, ()),
+        (("train",), TRAIN_FIELDS_REMOVED, ()),
+        (("env", "params"), ENV_FIELDS_REMOVED, ()),
+        (("train", "env_params"), ENV_FIELDS_REMOVED, (None,)),
+    ):
+        fields = config_section(cfg, where)
+        section = ".".join(where)
+        if fields is None:
             continue
         for key, (value, commit) in removed.items():  # only one value loads
             if key not in fields:
                 continue
-            if value is not ANY and fields[key] != value:
+            if value is not ANY and fields[key] != value and fields[key] not in unset:
                 raise CheckpointError(
                     f"{path} was trained with {section}.{key}={fields[key]!r}, an option removed "
                     f"from icco-torchrl; evaluate it at commit {commit}"

@@ -44,7 +44,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from icco_torchrl.training.config import MethodConfig, TrainConfig
+from icco_torchrl.training.config import EnvParams, MethodConfig, TrainConfig, TrainEnvParams
 from icco_torchrl.training.replay_dump import (
     dump_id_of,
     load_replay,
@@ -322,15 +322,31 @@ def missing_method_fields(method: dict) -> list[str]:
     return [f.name for f in fields(MethodConfig) if f.name not in method]
 
 
+REMOVABLE_SECTIONS = (  # the config's sections whose removed fields the converter drops
+    (("method",), MethodConfig),
+    (("train",), TrainConfig),
+    (("env", "params"), EnvParams),
+    (("train", "env_params"), TrainEnvParams),
+)
+
+
+def config_section(cfg: dict, path: tuple[str, ...]) -> dict | None:
+    """``cfg[path[0]][path[1]]...``, or None where a level is missing or no dict."""
+    for key in path:
+        cfg = cfg.get(key) if isinstance(cfg, dict) else None
+    return cfg if isinstance(cfg, dict) else None
+
+
 def removed_fields(cfg: dict) -> list[str]:
-    """The ``method`` and ``train`` fields of a checkpoint's config that today's
-    :class:`MethodConfig` and :class:`TrainConfig` lack: options removed since it was written,
-    which the converter drops where the run never used them."""
+    """The fields of a checkpoint's config (``method``, ``train``, ``env.params``,
+    ``train.env_params``) that today's schema lacks: options removed since it was written, which
+    the converter drops where the run never used them."""
     removed = []
-    for section, schema in (("method", MethodConfig), ("train", TrainConfig)):
-        if isinstance(cfg.get(section), dict):
+    for path, schema in REMOVABLE_SECTIONS:
+        section = config_section(cfg, path)
+        if section is not None:
             known = {f.name for f in fields(schema)}
-            removed += [f"{section}.{key}" for key in cfg[section] if key not in known]
+            removed += [".".join((*path, key)) for key in section if key not in known]
     return removed
 
 

@@ -54,7 +54,7 @@ COLUMNS = ("in_place", "at_slot", "formation", "time_to_slot", "reward")
 
 def play(team: str, checkpoint: Path, interface: str, trials: int, **env_params) -> dict:
     """One team under one interface: its summary per instruction and for the episode.
-    ``env_params``: env parameters other than the checkpoint's (``inst_reward``)."""
+    ``env_params``: env parameters other than the checkpoint's (``inst_hold``)."""
     plan, _, step = interface.partition("@")
     total = STEPS * len(INSTRUCTIONS)
     restored = schedule_env(checkpoint, total, trials, seed=ENV_SEED, **env_params)
