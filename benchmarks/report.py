@@ -166,9 +166,26 @@ def skill_section() -> str:
             "best share": f"{100 * max(m['share'] for m in r['marks']):.0f} %",
             "minutes, all": r["marks"][-1]["minutes"],
             "best scripted": r["best_scripted"],
+            "language reward": r["language"]["reward"] if "language" in r else "–",
+            "in place (4 instructions)": " / ".join(
+                f"{100 * v:.0f}" for v in r["language"]["in_place"].values()
+            )
+            + " %"
+            if "language" in r
+            else "–",
         }
         for r in data.get("runs", [])
     ]
+    follower = data.get("language_follower")
+    if follower:
+        places = " / ".join(f"{100 * v:.0f}" for v in follower["in_place"].values())
+        rows.append(
+            {
+                "recipe": "scripted follower (language only)",
+                "language reward": follower["reward"],
+                "in place (4 instructions)": places + " %",
+            }
+        )
     where = (
         f"{data['threads']} thread per run, {data['side_by_side']} runs side by side (minutes "
         f"compare only between rows of one CPU); four quadrants, {data['trials']} trials per mark"

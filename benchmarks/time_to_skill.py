@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import importlib.util
 import json
 import math
 import platform
@@ -41,6 +42,7 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure
 
+from icco_torchrl.evaluation.metrics import EPISODE
 from icco_torchrl.training.build import compose_config
 from icco_torchrl.training.logger import clock_seconds
 from icco_torchrl.training.run_folder import SNAPSHOTS
@@ -49,6 +51,13 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "experiments"))
 import jobs  # noqa: E402  (experiments/jobs.py, the one job runner)
 import verdict  # noqa: E402  (experiments/verdict.py: means over trials)
+
+_spec = importlib.util.spec_from_file_location(
+    "serving_run", ROOT / "experiments" / "language" / "serving" / "run.py"
+)
+serving = importlib.util.module_from_spec(_spec)
+sys.modules["serving_run"] = serving  # dataclasses look their module up while it runs
+_spec.loader.exec_module(serving)  # the language protocol under served plans
 
 RESULTS = ROOT / "benchmarks" / "results"
 BUDGET = [
@@ -75,6 +84,7 @@ RECIPES = {
     "soft target updates": ["train.target_update=soft", "train.tau=0.005"],  # make train's now
 }
 SEEDS = (0, 1)
+INTERFACE = f"served@{serving.DEFAULT_STEP:g}"  # plans as icco live serves them
 TARGET = 0.9  # share of the best scripted team
 TRIALS = 20  # the four-quadrant protocol's trials per snapshot
 
@@ -112,6 +122,21 @@ def score(run: Path, trials: int = TRIALS) -> Path:
         if set(means) == {str(p) for p in snapshots}:
             return scored
     return jobs.score_quadrants(snapshots, out, trials)
+
+
+def language(run: Path) -> dict:
+    """The run's last snapshot under the language protocol with plans served (the serving page's
+    ``play``: its instructions, trials and env seed): in place per instruction and the episode's
+    team reward."""
+    last = sorted((run / SNAPSHOTS).glob("*.pt"))[-1]
+    return _language_row(serving.play("policy", last, INTERFACE, serving.TRIALS))
+
+
+def _language_row(played: dict) -> dict:
+    return {
+        "in_place": {i: played[i]["in_place"] for i in serving.INSTRUCTIONS},
+        "reward": played[EPISODE]["reward"],
+    }
 
 
 def minutes_at(run: Path) -> dict[int, float]:
@@ -209,6 +234,11 @@ def main(argv=None) -> None:
         help="default benchmarks/results/time_to_skill.json (--smoke: --out)",
     )
     parser.add_argument("--report-only", action="store_true", help="the figure from --results")
+    parser.add_argument(
+        "--no-language",
+        action="store_true",
+        help="skip the language protocol of each run's last snapshot (and the follower's)",
+    )
     args = parser.parse_args(argv)
     out = (args.out or Path("multirun/time_to_skill" + "_smoke" * args.smoke)).resolve()
     budget = [*FIXED, *jobs.budget(args.smoke, args.budget, BUDGET)]
@@ -229,7 +259,10 @@ def main(argv=None) -> None:
         rows = []
         for (recipe, seed), run in wanted.items():
             row = {"recipe": recipe, "seed": seed, "overrides": RECIPES[recipe], "cpu": cpu}
-            rows.append({**row, **curve(run, score(run, trials))})
+            row.update(curve(run, score(run, trials)))
+            if not args.no_language:
+                row["language"] = language(run)
+            rows.append(row)
         # Minutes are comparable only between rows of one CPU model: each row names its own.
         results = {
             "budget": budget,
@@ -239,6 +272,12 @@ def main(argv=None) -> None:
             "side_by_side": args.jobs,
             "runs": merged(previous, rows),
         }
+        if not args.no_language:  # the yardstick: the scripted follower on the same episodes
+            first = sorted((next(iter(wanted.values())) / SNAPSHOTS).glob("*.pt"))[-1]
+            follower = serving.play("follower", first, INTERFACE, serving.TRIALS)
+            results["language_follower"] = _language_row(follower)
+        elif "language_follower" in previous:
+            results["language_follower"] = previous["language_follower"]
         args.results.parent.mkdir(parents=True, exist_ok=True)
         args.results.write_text(json.dumps(results, indent=1) + "\n")
     results = json.loads(args.results.read_text())

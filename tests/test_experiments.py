@@ -824,7 +824,8 @@ def test_route_screens_compose_and_the_page_judges_each_instruction_against_80_p
     routes = _load(ROOT / "experiments" / "language" / "routes" / "run.py")
     for name, overrides in routes.SCREENS.items():
         p = compose_config([*routes.BUDGET, *overrides]).env.params
-        assert p.waypoint_route_prob == {"control": 0.0, "hold_routes_0.2": 0.2}.get(name, 0.5), name
+        routes_prob = {"control": 0.0, "hold_routes_0.2": 0.2}.get(name, 0.5)
+        assert p.waypoint_route_prob == routes_prob, name
         assert p.inst_hold == ("hold" in name), name
     cells = lambda places, **ep: {  # noqa: E731  (one team's language row)
         **{i: {"in_place": v} for i, v in zip(routes.serving.INSTRUCTIONS, places)},
@@ -855,6 +856,7 @@ def test_route_screens_compose_and_the_page_judges_each_instruction_against_80_p
     assert "- ICCO, progress r_inst: in place at least 80% on every instruction;" in page
     assert "language reward 75% of the best scripted team's, four quadrants 90%" in page
     assert "| ICCO, progress r_inst (*not kept*) | 80 % | 95 % | 100 % | 90 % |" in page
-    assert "| follower (progress r_inst) | 100 % | 100 % | 100 % | 100 % | 30 | other units |" in page
-    assert "| follower (cosine r_inst) | 100 % | 100 % | 100 % | 100 % | 30 | 400.0 (100%) |" in page
+    places = "| 100 % | 100 % | 100 % | 100 % | 30 |"
+    assert f"| follower (progress r_inst) {places} other units |" in page
+    assert f"| follower (cosine r_inst) {places} 400.0 (100%) |" in page
     assert not set(routes.RETIRED) & set(routes.SCREENS)

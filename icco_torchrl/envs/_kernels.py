@@ -196,9 +196,7 @@ def motion(pos, vel, inv, inv_on, wp, action, action_force, p: Params):
     raw = pos + p.dt * new_vel
     new_pos = raw.clamp(-p.wall, p.wall)
     new_vel = new_vel.masked_fill_(new_pos != raw, 0.0)  # a wall stops that axis
-    r_inst = instruction_reward(
-        wp, pos, new_pos, p.inst_scale, p.inst_dist_coef, p.inst_hold
-    )
+    r_inst = instruction_reward(wp, pos, new_pos, p.inst_scale, p.inst_dist_coef, p.inst_hold)
     # Invaders walk straight home.
     dist_home = sq_norm(inv).sqrt_().unsqueeze(1)
     move = -inv * (p.invader_speed / dist_home.clamp_min_(p.invader_speed))

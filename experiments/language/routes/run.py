@@ -1,4 +1,4 @@
-"""Training for served plans: routes to a slot, holding it, and an instruction reward that sees speed.
+"""Training for served plans: routes to a slot, holding it, and a reward that sees speed.
 
     python experiments/language/routes/run.py                 # train what is missing, evaluate
     python experiments/language/routes/run.py --only hold_routes --seeds 0
@@ -14,9 +14,9 @@ screen's ``BUDGET``, 2M frames), 2 seeds, with:
 - ``control``: nothing changed. Its runs are the consistency screen's ``ce1e-4`` records (the
   same recipe), so it is not retrained;
 - ``hold_routes``: ``env.params.waypoint_route_prob=0.5`` (half the robots get a route to a
-  uniform slot per episode, served as evaluation serves a plan) and ``env.params.inst_hold=true``: at a
-  route's end (its slot, where the served waypoints coincide) r_inst pays for holding still what
-  it paid for following, where otherwise arriving ends the instruction reward;
+  uniform slot per episode, served as evaluation serves a plan) and ``env.params.inst_hold=true``:
+  at a route's end (its slot, where the served waypoints coincide) r_inst pays for holding still
+  what it paid for following, where otherwise arriving ends the instruction reward;
 - ``hold_routes_0.2``: that with routes 0.2, to see whether fewer robots on a route keep the task.
 
 Measured and not kept (:data:`RETIRED`: their numbers stay in ``results.json``, the option and
@@ -213,8 +213,8 @@ def render(results: dict) -> str:
         f"of the arrival check (`assets/go_right.py`: {len(go_right.INSTRUCTIONS)} instructions x "
         f"{len(go_right.SCENES)} scenes; every robot not intercepting at its slot by tick "
         f"{WITHIN}, and held on {STAY:.0%} of the ticks after). The last rows are scripted; "
-        "the follower of the progress r_inst (measured and not kept) played in that env, so its reward "
-        "is in other units. Screens marked *not kept*: their lever left the library; their "
+        "the follower of the progress r_inst (measured and not kept) played in that env, so its "
+        "reward is in other units. Screens marked *not kept*: their lever left the library; their "
         "numbers stay here.",
         "",
         "| team | "
