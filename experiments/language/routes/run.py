@@ -17,7 +17,9 @@ screen's ``BUDGET``, 2M frames), 2 seeds, with:
   uniform slot per episode, served as evaluation serves a plan) and ``env.params.inst_hold=true``:
   at a route's end (its slot, where the served waypoints coincide) r_inst pays for holding still
   what it paid for following, where otherwise arriving ends the instruction reward;
-- ``hold_routes_0.2``: that with routes 0.2, to see whether fewer robots on a route keep the task.
+- ``hold_routes_0.2``: that with routes 0.2, to see whether fewer robots on a route keep the task;
+- ``hold_routes_soft``: ``hold_routes`` with soft target updates (``make train``'s recipe since
+  the time-to-skill screen), to see whether the recipe that learns the task faster keeps it.
 
 Measured and not kept (:data:`RETIRED`: their numbers stay in ``results.json``, the option and
 its records left the library): ``progress``, r_inst's direction term as a step's length along the
@@ -79,6 +81,11 @@ SCREENS = {
     "control": [],
     "hold_routes": ["env.params.inst_hold=true", "env.params.waypoint_route_prob=0.5"],
     "hold_routes_0.2": ["env.params.inst_hold=true", "env.params.waypoint_route_prob=0.2"],
+    "hold_routes_soft": [
+        "env.params.inst_hold=true",
+        "env.params.waypoint_route_prob=0.5",
+        "train.target_update=soft",
+    ],
 }
 LABELS = {
     "control": "ICCO (make train)",
@@ -86,6 +93,7 @@ LABELS = {
     "progress_routes": "ICCO, progress r_inst, routes 0.5",
     "hold_routes": "ICCO, hold at the slot, routes 0.5",
     "hold_routes_0.2": "ICCO, hold at the slot, routes 0.2",
+    "hold_routes_soft": "ICCO, hold at the slot, routes 0.5, soft target updates",
 }
 SEEDS = (0, 1)
 INTERFACE = f"served@{serving.DEFAULT_STEP:g}"
