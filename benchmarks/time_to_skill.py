@@ -81,7 +81,14 @@ RECIPES = {
     "epsilon over 150k frames": ["train.eps_decay_frames=150000"],
     # make train's policy swings by up to 15 points between marks 100k frames apart: a target
     # that follows slowly (Polyak 0.005, a 200-update horizon) in place of a copy every 50.
-    "soft target updates": ["train.target_update=soft", "train.tau=0.005"],  # make train's now
+    "soft target updates": ["train.target_update=soft"],  # make train's now (tau 0.005)
+}
+# The levers again on the winner's base: whether one of them makes make train faster still.
+SOFT = RECIPES["soft target updates"]
+RECIPES |= {
+    "soft, replay ratio 4": [*SOFT, *RECIPES["replay ratio 4"]],
+    "soft, 64 envs per batch": [*SOFT, *RECIPES["64 envs per batch"]],
+    "soft, epsilon over 150k frames": [*SOFT, *RECIPES["epsilon over 150k frames"]],
 }
 SEEDS = (0, 1)
 INTERFACE = f"served@{serving.DEFAULT_STEP:g}"  # plans as icco live serves them
