@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import argparse
 import csv
-import importlib.util
 import json
 import math
 import platform
@@ -52,12 +51,8 @@ sys.path.insert(0, str(ROOT / "experiments"))
 import jobs  # noqa: E402  (experiments/jobs.py, the one job runner)
 import verdict  # noqa: E402  (experiments/verdict.py: means over trials)
 
-_spec = importlib.util.spec_from_file_location(
-    "serving_run", ROOT / "experiments" / "language" / "serving" / "run.py"
-)
-serving = importlib.util.module_from_spec(_spec)
-sys.modules["serving_run"] = serving  # dataclasses look their module up while it runs
-_spec.loader.exec_module(serving)  # the language protocol under served plans
+# the language protocol under served plans
+serving = jobs.script(ROOT / "experiments" / "language" / "serving" / "run.py", "serving_run")
 
 RESULTS = ROOT / "benchmarks" / "results"
 BUDGET = [

@@ -9,6 +9,7 @@ side by side use a 2-core machine fully). Each run logs to ``<folder>.log``.
 from __future__ import annotations
 
 import csv
+import importlib.util
 import json
 import os
 import shutil
@@ -18,7 +19,7 @@ import time
 from pathlib import Path
 
 from icco_torchrl.evaluation.metrics import write_csv
-from icco_torchrl.training.checkpoint import load_checkpoint
+from icco_torchrl.training.checkpoint import export_policy, load_checkpoint
 
 # The training recipe before sequence replay became the default (commit 396580d): 4-step items,
 # one-step targets, no shaping. Scripts that compare against it, or whose measurements were taken
@@ -133,9 +134,23 @@ def train_runs(runs: dict[Path, tuple[list[str], int]], jobs: int = 2) -> None:
         raise SystemExit(f"training failed for {failed}: see their .log files")
 
 
+def script(path: Path, name: str):
+    """The script ``path`` as a module called ``name`` (script names are not unique: every
+    experiment has a ``run.py``), registered in ``sys.modules`` so that its dataclasses can look
+    their module up while it runs."""
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
 # What a finished run leaves behind once its checkpoint is gone: enough for learning curves,
-# budgets and time to skill (``find_runs``, ``timing.csv``, ``references.json``).
+# budgets and time to skill (``find_runs``, ``timing.csv``, ``references.json``), and its policy
+# weights (``POLICY``, about 0.6 MB: no optimizer, no replay), so that any protocol can be played
+# again without retraining.
 RECORD_FILES = ("config.yaml", "eval.csv", "timing.csv", "references.json")
+POLICY = "policy.pt"
 REFERENCES_TRIALS = "references_trials.csv"
 
 
@@ -226,27 +241,35 @@ def score_quadrants(checkpoints: list[Path], out: Path, trials: int, *overrides:
     return out / "quadrants_trials.csv"
 
 
+def keep_run(run: Path, dest: Path) -> Path:
+    """File the run folder ``run`` as the record ``dest``: its :data:`RECORD_FILES`
+    (``timing.csv`` cut to the rows at its evaluations and its last) and, when it has a
+    ``checkpoint.pt``, its policy weights (:data:`POLICY`). Returns ``dest``."""
+    dest.mkdir(parents=True, exist_ok=True)
+    thin = (run / "timing.csv").is_file() and (run / "eval.csv").is_file()
+    for name in RECORD_FILES:
+        if name == "timing.csv" and thin:
+            write_csv(_thin_timing(run / name, run / "eval.csv"), dest / name)
+        elif (run / name).is_file():
+            shutil.copyfile(run / name, dest / name)
+    if (run / "checkpoint.pt").is_file():
+        export_policy(run / "checkpoint.pt", dest / POLICY)
+    return dest
+
+
 def keep_records(results: Path, trials: Path, records: Path) -> list[Path]:
     """File each checkpoint of an ``icco eval`` (``results``: its JSON, ``trials``: its trials
-    CSV) as a record ``records/<run>/``: the run's :data:`RECORD_FILES` (``timing.csv`` cut to
-    the rows at its evaluations and its last), ``checkpoint.json``
-    (its entry in the evaluation) and ``trials.csv`` (its own rows). The scripted references'
-    rows go to ``records/references_trials.csv``; every evaluation plays the same initial
-    configurations, so they are the same rows whichever evaluation wrote them. Returns the
-    record folders."""
+    CSV) as a record ``records/<run>/`` (:func:`keep_run`: its files and policy weights),
+    ``checkpoint.json`` (its entry in the evaluation) and ``trials.csv`` (its own rows). The
+    scripted references' rows go to ``records/references_trials.csv``; every evaluation plays the
+    same initial configurations, so they are the same rows whichever evaluation wrote them.
+    Returns the record folders."""
     with trials.open() as handle:
         rows = list(csv.DictReader(handle))
     kept = []
     for entry in json.loads(results.read_text())["checkpoints"]:
         run = Path(entry["path"]).parent
-        dest = records / run.name
-        dest.mkdir(parents=True, exist_ok=True)
-        thin = (run / "timing.csv").is_file() and (run / "eval.csv").is_file()
-        for name in RECORD_FILES:
-            if name == "timing.csv" and thin:
-                write_csv(_thin_timing(run / name, run / "eval.csv"), dest / name)
-            elif (run / name).is_file():
-                shutil.copyfile(run / name, dest / name)
+        dest = keep_run(run, records / run.name)
         (dest / "checkpoint.json").write_text(
             json.dumps({k: v for k, v in entry.items() if k != "path"}, indent=1) + "\n"
         )

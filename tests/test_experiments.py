@@ -860,3 +860,29 @@ def test_route_screens_compose_and_the_page_judges_each_instruction_against_80_p
     assert f"| follower (progress r_inst) {places} other units |" in page
     assert f"| follower (cosine r_inst) {places} 400.0 (100%) |" in page
     assert not set(routes.RETIRED) & set(routes.SCREENS)
+
+
+def test_a_kept_run_carries_its_policy_weights_and_no_training_state(tmp_path):
+    """``jobs.keep_run`` files a run with its policy (any protocol can be played again without
+    retraining): the networks' weights as they were, no optimizer, no target copies."""
+    import shutil
+
+    import torch
+
+    from icco_torchrl.training.checkpoint import load_checkpoint
+
+    jobs = _load(ROOT / "experiments" / "jobs.py")
+    run = tmp_path / "icco_seed0"
+    run.mkdir()
+    shutil.copyfile(ROOT / "assets" / "demo_icco.pt", run / "checkpoint.pt")
+    (run / "config.yaml").write_text("seed: 0\n")
+    dest = jobs.keep_run(run, tmp_path / "records" / run.name)
+    assert sorted(p.name for p in dest.iterdir()) == ["config.yaml", jobs.POLICY]
+    kept, source = load_checkpoint(dest / jobs.POLICY), load_checkpoint(run / "checkpoint.pt")
+    assert kept["policy_only"] and "optimizer" not in kept
+    assert not any(k.startswith("target_") for k in kept["loss"])
+    for name, tensor in source["loss"].items():
+        if not name.startswith("target_"):
+            assert torch.equal(kept["loss"][name], tensor), name
+    empty = jobs.keep_run(tmp_path / "no_checkpoint", tmp_path / "records" / "none")
+    assert list(empty.iterdir()) == []  # nothing to keep, nothing invented

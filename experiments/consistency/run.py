@@ -48,7 +48,6 @@ import numpy as np
 from icco_torchrl.evaluation.consistency import COLUMNS
 from icco_torchrl.evaluation.metrics import write_csv, write_json
 from icco_torchrl.training.build import compose_config
-from icco_torchrl.training.checkpoint import export_policy
 
 HERE = Path(__file__).resolve().parent
 EXPERIMENTS = HERE.parent
@@ -199,8 +198,8 @@ def training_tail(run: Path) -> dict:
 
 
 def keep(folder: Path, records: Path) -> None:
-    """File the screen's runs as records (:func:`jobs.keep_records`), with their language trials,
-    training tail and exported policy."""
+    """File the screen's runs as records (:func:`jobs.keep_records`: their files and policy
+    weights), with their language trials and training tail."""
     quadrants, language = folder / "eval_quadrants", folder / "language"
     kept = jobs.keep_records(
         quadrants / "quadrants.json", quadrants / "quadrants_trials.csv", records
@@ -215,9 +214,7 @@ def keep(folder: Path, records: Path) -> None:
     if references:
         write_csv(references, records / "language_references_trials.csv")
     for record in kept:
-        run = folder / record.name
-        write_json(training_tail(run), record / "training.json")
-        export_policy(run / "checkpoint.pt", record / "policy.pt")
+        write_json(training_tail(folder / record.name), record / "training.json")
 
 
 # ---------------------------------------------------------------------------- results, README

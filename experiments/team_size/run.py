@@ -33,7 +33,6 @@ so the agents learn with the z they would hold) at ``--seeds`` into
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
 import math
 import os
@@ -53,16 +52,7 @@ sys.path.insert(0, str(HERE.parent))
 import jobs  # noqa: E402  (experiments/jobs.py, a sibling script)
 from jobs import train_runs  # noqa: E402
 
-
-def _script(path: Path, name: str):
-    """A sibling script as a module (its file name is not unique: every experiment has a run.py)."""
-    spec = importlib.util.spec_from_file_location(name, path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-FOUR_QUADRANTS = _script(HERE.parent / "four_quadrants" / "run.py", "four_quadrants_run")
+FOUR_QUADRANTS = jobs.script(HERE.parent / "four_quadrants" / "run.py", "four_quadrants_run")
 icco, machine = FOUR_QUADRANTS.icco, FOUR_QUADRANTS.machine
 
 METHODS = ("icco", "qmix_full")
@@ -334,7 +324,7 @@ def main(argv=None) -> None:
         sweep=repo_relative(str(sweep)),
     )
     write_json(results, out / "results.json")
-    report = _script(HERE / "report.py", "team_size_report")
+    report = jobs.script(HERE / "report.py", "team_size_report")
     report.main([str(out / "results.json"), "--readme", str(out / "README.md")])
 
 
@@ -361,7 +351,7 @@ def screen(args, sweep: Path, path: Path, checkpoints, label: str, quick, **extr
         ),
         path,
     )
-    report = _script(HERE / "report.py", "team_size_report")
+    report = jobs.script(HERE / "report.py", "team_size_report")
     out = path.parent
     report.main([str(out / "results.json"), "--readme", str(out / "README.md")])
 

@@ -45,16 +45,13 @@ and ``README.md`` here are written from the evaluations.
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
 import platform
-import shutil
 import sys
 from pathlib import Path
 
 from icco_torchrl.evaluation.metrics import EPISODE, write_json
 from icco_torchrl.training.build import compose_config
-from icco_torchrl.training.checkpoint import export_policy
 
 HERE = Path(__file__).resolve().parent
 EXPERIMENTS = HERE.parents[1]
@@ -62,18 +59,9 @@ sys.path.insert(0, str(EXPERIMENTS))
 import jobs  # noqa: E402  (experiments/jobs.py, the one job runner)
 import verdict  # noqa: E402  (experiments/verdict.py: means over trials)
 
-
-def _load(path: Path, name: str):
-    spec = importlib.util.spec_from_file_location(name, path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[name] = module  # dataclasses look their module up while it runs
-    spec.loader.exec_module(module)
-    return module
-
-
-consistency = _load(EXPERIMENTS / "consistency" / "run.py", "consistency_run")
-serving = _load(EXPERIMENTS / "language" / "serving" / "run.py", "serving_run")
-go_right = _load(EXPERIMENTS.parent / "assets" / "go_right.py", "go_right")
+consistency = jobs.script(EXPERIMENTS / "consistency" / "run.py", "consistency_run")
+serving = jobs.script(EXPERIMENTS / "language" / "serving" / "run.py", "serving_run")
+go_right = jobs.script(EXPERIMENTS.parent / "assets" / "go_right.py", "go_right")
 
 BUDGET = [*consistency.BUDGET, "method=icco", "logger.progress=false"]
 CONTROL_RECORDS = EXPERIMENTS / "consistency" / "records" / consistency.CONTROL
@@ -132,12 +120,7 @@ def train(out: Path, records: Path, names, seeds, budget, n_jobs: int) -> None:
             )
     jobs.train_runs(runs, n_jobs)
     for run in runs:  # keep the records: what any protocol needs, no optimizer or replay
-        kept = records / run.parent.name / run.name
-        kept.mkdir(parents=True, exist_ok=True)
-        for name in ("config.yaml", "eval.csv", "timing.csv"):
-            if (run / name).is_file():
-                shutil.copy2(run / name, kept / name)
-        export_policy(run / "checkpoint.pt", kept / "policy.pt")
+        jobs.keep_run(run, records / run.parent.name / run.name)
 
 
 def evaluate(screens: dict[str, list[Path]], out: Path, trials: int, seeds) -> dict:
