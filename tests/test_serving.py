@@ -151,6 +151,7 @@ def test_the_planner_reads_what_it_can_and_names_what_it_cannot():
     ]  # fmt: skip
     assert unread_words("Gather center", 3.25) == [] and unread_words("Defend home", 3.25) == []
     assert parse("Defend home", 3.25).kind == "task"
+    assert unread_words("Stay put", 3.25) == [] and parse("Stay put", 3.25).kind == "hold"
     assert how_read("Spread out", 3.25) == '"Spread out": spread radially away from the centre'
     assert how_read("Dance please", 3.25).startswith('"Dance please": not understood')
     corner = rule_plan("Go to the top left corner", np.zeros((3, 2)), n_waypoints=4, half=3.25)[0]

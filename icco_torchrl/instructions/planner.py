@@ -20,7 +20,7 @@ It understands a closed set of instruction families (see :func:`parse`):
 - named points: "go to (1, -2)", "x=1, y=-2": a cluster at that point;
 - formations: "line" (horizontal / vertical), "circle" / "ring", at the
   named place or at home;
-- holding: "stop", "stay", "hold position": the current positions;
+- holding: "stop", "stay (put)", "hold position": the current positions;
 - task orders (only meaningful with the task-aligned prompt, which carries the
   positions): "collect the resources", "intercept the invader", "do the task".
 
@@ -90,7 +90,7 @@ _LINE = _words(r"line|row|column|file|queue|rank")
 _CIRCLE = _words(r"circle|ring|encircle|surround")
 _HORIZONTAL = _words(r"horizontal(?:ly)?")
 _VERTICAL = _words(r"vertical(?:ly)?")
-_HOLD = _words(r"stop|stay|halt|hold|freeze|wait|remain|stand still")
+_HOLD = _words(r"stop|stay(?: put)?|halt|hold|freeze|wait|remain|stand still")
 # Words that only name a formation or a place's shape: read when a formation or a place is.
 _FORMATION_VERB = _words(r"form|make|create|arrange|take|get|position|place|line up")
 _PLACE_NOUN = _words(r"side|edge|corner|border|end|part|half|area|region|zone|wall")
