@@ -235,6 +235,11 @@ def main(argv=None) -> None:
         type=Path,
         help="default benchmarks/results/time_to_skill.json (--smoke: --out)",
     )
+    parser.add_argument(
+        "--host",
+        help="a label added to the CPU model: one model name can run at different speeds on two "
+        "hosts, and minutes compare only within one host",
+    )
     parser.add_argument("--report-only", action="store_true", help="the figure from --results")
     parser.add_argument(
         "--no-language",
@@ -257,7 +262,7 @@ def main(argv=None) -> None:
             runs[run] = (overrides, compose_config(overrides).train.total_frames)
         jobs.train_runs(runs, args.jobs)
         previous = json.loads(args.results.read_text()) if args.results.is_file() else {}
-        cpu = cpu_model()
+        cpu = cpu_model() + (f" ({args.host})" if args.host else "")
         rows = []
         for (recipe, seed), run in wanted.items():
             row = {"recipe": recipe, "seed": seed, "overrides": RECIPES[recipe], "cpu": cpu}
