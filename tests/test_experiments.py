@@ -886,3 +886,26 @@ def test_a_kept_run_carries_its_policy_weights_and_no_training_state(tmp_path):
             assert torch.equal(kept["loss"][name], tensor), name
     empty = jobs.keep_run(tmp_path / "no_checkpoint", tmp_path / "records" / "none")
     assert list(empty.iterdir()) == []  # nothing to keep, nothing invented
+
+
+def test_the_consistency_rule_takes_the_reward_winner_or_at_equal_reward_the_larger_bound():
+    run = _load(ROOT / "experiments" / "consistency" / "run.py")
+
+    def screen(reward, bound):
+        return {
+            "method": "icco",
+            "quadrants": {"reward": {"mean": reward, "std": 20.0, "n": 40}},  # 2 SE = 8.9
+            "coordination": {
+                "mi_bound": {"mean": bound, "std": 0.1},
+                "mi_null": {"mean": -2.0, "std": 0.1},
+            },
+        }
+
+    def gain(entry):
+        c = entry["coordination"]
+        return c["mi_bound"]["mean"] - c["mi_null"]["mean"], 0.2
+
+    level = {"a": screen(360.0, -1.5), "b": screen(355.0, 0.0), "c": screen(300.0, 1.0)}
+    assert "`b`, of the weights at equal reward (`a`, `b`)" in run.decision(level, "a", gain)
+    clear = {"a": screen(360.0, -1.5), "b": screen(340.0, 0.0)}  # b is behind: a wins outright
+    assert run.decision(clear, "a", gain).endswith("`a`, the highest reward.")

@@ -55,6 +55,7 @@ sys.path.insert(0, str(EXPERIMENTS))
 import jobs  # noqa: E402  (experiments/jobs.py, the one job runner)
 from verdict import (  # noqa: E402
     RULE,
+    WITHIN,
     Mean,
     best_scripted,
     compare,
@@ -329,6 +330,34 @@ Written by `python experiments/consistency/where.py --chosen {chosen}` into `whe
 """
 
 
+def decision(screens: dict, top: str, gain) -> str:
+    """Issue 48's rule for ICCO's default, in words: the weight that wins on reward (``top``),
+    or, among the weights within the spread of its reward, the one with the largest bound above
+    its floor (``gain``: ``(gain, spread)`` or None)."""
+    r = screens[top]["quadrants"]["reward"]
+    level = [top]
+    for name, entry in screens.items():
+        q = entry["quadrants"]["reward"]
+        if name == top or entry["method"] != "icco" or "n" not in q or "n" not in r:
+            continue
+        if (
+            compare(Mean(q["mean"], q["std"], q["n"]), Mean(r["mean"], r["std"], r["n"])).word
+            == WITHIN
+        ):
+            level.append(name)
+    gains = {n: gain(screens[n]) for n in level if gain(screens[n]) is not None}
+    pick = max(gains, key=lambda n: gains[n][0]) if len(gains) == len(level) > 1 else top
+    why = (
+        "the highest reward"
+        if len(level) == 1
+        else (
+            f"of the weights at equal reward ({', '.join(f'`{n}`' for n in level)}), the largest "
+            "bound above its floor"
+        )
+    )
+    return f"Rule for the default (highest reward; at equal reward, the MI bound): `{pick}`, {why}."
+
+
 def reading(screens: dict) -> str:
     """What the table says, in words, from the numbers alone: the best screen on reward, the best
     weight of ICCO's term, and each weight's mutual-information bound above its floor against
@@ -354,6 +383,7 @@ def reading(screens: dict) -> str:
     if icco:
         top = max(icco, key=reward)
         lines.append(f"- Of ICCO's weights, the highest: `{top}` ({reward(top):.1f}).")
+        lines.append(f"- {decision(rewarded, top, gain)}")
     base = gain(screens["wo_ce"]) if "wo_ce" in screens else None
     for name in icco:
         g = gain(screens[name])
