@@ -19,7 +19,10 @@ screen's ``BUDGET``, 2M frames), 2 seeds, with:
   what it paid for following, where otherwise arriving ends the instruction reward;
 - ``hold_routes_0.2``: that with routes 0.2, to see whether fewer robots on a route keep the task;
 - ``hold_routes_soft``: ``hold_routes`` with soft target updates (``make train``'s recipe since
-  the time-to-skill screen), to see whether the recipe that learns the task faster keeps it.
+  the time-to-skill screen), to see whether the recipe that learns the task faster keeps it;
+- ``hold_routes_all_soft``: that with every robot on a route (``waypoint_route_prob=1.0``), as
+  evaluation serves a slot to every robot: ``hold_routes_soft`` keeps one robot home as a
+  goalkeeper under served plans (the one robot a route-free half of training never told to leave).
 
 Measured and not kept (:data:`RETIRED`: their numbers stay in ``results.json``, the option and
 its records left the library): ``progress``, r_inst's direction term as a step's length along the
@@ -74,6 +77,11 @@ SCREENS = {
         "env.params.waypoint_route_prob=0.5",
         "train.target_update=soft",
     ],
+    "hold_routes_all_soft": [
+        "env.params.inst_hold=true",
+        "env.params.waypoint_route_prob=1.0",
+        "train.target_update=soft",
+    ],
 }
 LABELS = {
     "control": "ICCO (make train)",
@@ -82,6 +90,7 @@ LABELS = {
     "hold_routes": "ICCO, hold at the slot, routes 0.5",
     "hold_routes_0.2": "ICCO, hold at the slot, routes 0.2",
     "hold_routes_soft": "ICCO, hold at the slot, routes 0.5, soft target updates",
+    "hold_routes_all_soft": "ICCO, hold at the slot, routes 1.0, soft target updates",
 }
 SEEDS = (0, 1)
 INTERFACE = f"served@{serving.DEFAULT_STEP:g}"
