@@ -824,7 +824,8 @@ def test_route_screens_compose_and_the_page_judges_each_instruction_against_80_p
     routes = _load(ROOT / "experiments" / "language" / "routes" / "run.py")
     for name, overrides in routes.SCREENS.items():
         p = compose_config([*routes.BUDGET, *overrides]).env.params
-        routes_prob = {"control": 0.0, "hold_routes_0.2": 0.2}.get(name, 0.5)
+        routes_prob = {"control": 0.0, "hold_routes_0.2": 0.2, "hold_routes_all_soft": 1.0}
+        routes_prob = routes_prob.get(name, 0.5)
         assert p.waypoint_route_prob == routes_prob, name
         assert p.inst_hold == ("hold" in name), name
     cells = lambda places, **ep: {  # noqa: E731  (one team's language row)
