@@ -8,6 +8,7 @@ side by side use a 2-core machine fully). Each run logs to ``<folder>.log``.
 
 from __future__ import annotations
 
+import copy
 import csv
 import importlib.util
 import json
@@ -18,8 +19,11 @@ import sys
 import time
 from pathlib import Path
 
+from omegaconf import OmegaConf
+
 from icco_torchrl.evaluation.metrics import write_csv
 from icco_torchrl.training.checkpoint import export_policy, load_checkpoint
+from icco_torchrl.training.config import EnvConfig, TrainConfig
 
 # The training recipe before sequence replay became the default (commit 396580d): 4-step items,
 # one-step targets, no shaping. Scripts that compare against it, or whose measurements were taken
@@ -176,6 +180,32 @@ def _thin_timing(timing: Path, evals: Path) -> list[dict]:
 # (its method block is its own).
 RECIPE_BLOCKS = ("method", "env", "train")
 SHARED_BLOCKS = ("env", "train")
+# Train settings that only ICCO's consistency term reads: compared between runs of one method
+# that has the term, never across methods (a QMIX run's train.ce_clamp changes nothing it does).
+TERM_SETTINGS = ("train.ce_clamp",)
+CONVERTER = Path(__file__).resolve().parents[1] / "tools" / "convert_checkpoint.py"
+
+
+def in_todays_fields(tree: dict, path: Path) -> dict:
+    """A record's config in today's fields, as the library would load it: the converter's upgrade
+    (a field added since it was written at the value it trained with, an option removed since
+    dropped), then the schema's default for any other field added since (an option added
+    without an entry in the converter's tables leaves the run as it was at its default)."""
+    convert = script(CONVERTER, "convert_checkpoint")
+    payload = {"cfg": copy.deepcopy(tree)}
+    convert.upgrade(payload, path)
+    cfg = payload["cfg"]
+    for block, schema in (("train", TrainConfig), ("env", EnvConfig)):
+        defaults = OmegaConf.to_container(OmegaConf.structured(schema))
+        if isinstance(cfg.get(block), dict):
+            cfg[block] = {
+                **{k: v for k, v in defaults.items() if k not in cfg[block]},
+                **cfg[block],
+            }
+            for key, value in defaults.items():  # one level down (env.params, train.shaping)
+                if isinstance(value, dict) and isinstance(cfg[block].get(key), dict):
+                    cfg[block][key] = {**value, **cfg[block][key]}
+    return cfg
 
 
 def _flat(tree, prefix: str = "") -> dict:
@@ -198,8 +228,13 @@ def check_one_recipe(runs: dict[Path, str]) -> None:
     for folder in runs:
         path = folder / "config.yaml"
         tree = yaml.safe_load(path.read_text()) if path.is_file() else {}
+        tree = in_todays_fields(tree or {}, path)
+        method = tree.get("method") or {}
+        term = method.get("coordinator") and (method.get("ce_coef") or method.get("entropy_coef"))
         configs[folder] = {
-            k: v for k, v in _flat(tree or {}).items() if k.split(".")[0] in RECIPE_BLOCKS
+            k: v
+            for k, v in _flat(tree).items()
+            if k.split(".")[0] in RECIPE_BLOCKS and (term or k not in TERM_SETTINGS)
         }
     first_of: dict[str, Path] = {}
     for folder, method in runs.items():
@@ -208,7 +243,9 @@ def check_one_recipe(runs: dict[Path, str]) -> None:
                 continue
             a, b = configs[other], configs[folder]
             keys = sorted(
-                k for k in a.keys() | b.keys() if blocks is None or k.split(".")[0] in blocks
+                k
+                for k in a.keys() | b.keys()
+                if blocks is None or (k.split(".")[0] in blocks and k not in TERM_SETTINGS)
             )
             for key in keys:
                 if a.get(key, "(absent)") != b.get(key, "(absent)"):

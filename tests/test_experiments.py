@@ -729,7 +729,7 @@ def test_records_of_two_recipes_are_not_pooled_into_one_table(tmp_path):
     with pytest.raises(
         SystemExit,
         match=r"^icco_seed0 and icco_seed1 were trained with "
-        r"different recipes \(method.layer_norm: True vs \(absent\)\)",
+        r"different recipes \(method.layer_norm: True vs False\)",  # absent: trained without
     ):
         jobs.check_one_recipe(runs)
     (tmp_path / "icco_seed1" / "config.yaml").write_text(json.dumps(configs["icco_seed1"]))
@@ -738,6 +738,30 @@ def test_records_of_two_recipes_are_not_pooled_into_one_table(tmp_path):
     )
     with pytest.raises(SystemExit, match=r"\(train.lr: 0.001 vs 0.0003\)"):
         jobs.check_one_recipe(runs)
+
+
+def test_a_record_older_than_an_option_pools_at_the_value_it_trained_with(tmp_path):
+    """A record written before an option existed is read in today's fields: at the converter's
+    value for it (train.ce_clamp: false, the clamps' default since) or the schema's default. The
+    consistency term's settings are compared only between runs that have the term."""
+    jobs = _load(ROOT / "experiments" / "jobs.py")
+    icco = {"name": "icco", "coordinator": True, "ce_coef": 1e-3, "entropy_coef": 1e-3}
+    qmix = {"name": "qmix", "coordinator": False, "ce_coef": 0.0, "entropy_coef": 0.0}
+    train = {"lr": 1e-3, "ce_clamp": True, "policy_snapshots": False}
+    configs = {  # the seed-0 records predate ce_clamp and policy_snapshots
+        "icco_seed0": {"method": icco, "env": {}, "train": {"lr": 1e-3}},
+        "icco_seed1": {"method": icco, "env": {}, "train": train},
+        "qmix_seed0": {"method": qmix, "env": {}, "train": {"lr": 1e-3}},
+        "qmix_seed1": {"method": qmix, "env": {}, "train": train},
+    }
+    for name, config in configs.items():
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "config.yaml").write_text(json.dumps(config))
+    qmix_runs = {tmp_path / f"qmix_seed{s}": "QMIX" for s in (0, 1)}
+    jobs.check_one_recipe(qmix_runs)  # no term: its clamp changes nothing
+    with pytest.raises(SystemExit, match=r"\(train.ce_clamp: False vs True\)"):
+        jobs.check_one_recipe({tmp_path / f"icco_seed{s}": "ICCO" for s in (0, 1)})
+    jobs.check_one_recipe({tmp_path / "icco_seed1": "ICCO", **qmix_runs})  # across methods
 
 
 def test_every_consistency_screen_composes_with_its_weights_and_the_control_is_the_default():

@@ -120,6 +120,7 @@ TRAIN_FIELDS_ADDED = {
     "sequence_length": 4,
     "burn_in": 0,
     "shaping": {"potentials": [], "weight": 0.3},
+    "ce_clamp": False,  # unclamped until the consistency screen made the clamps the default
 }
 
 
