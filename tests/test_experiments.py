@@ -934,3 +934,38 @@ def test_the_consistency_rule_takes_the_reward_winner_or_at_equal_reward_the_lar
     assert "`b`, of the weights at equal reward (`a`, `b`)" in run.decision(level, "a", gain)
     clear = {"a": screen(360.0, -1.5), "b": screen(340.0, 0.0)}  # b is behind: a wins outright
     assert run.decision(clear, "a", gain).endswith("`a`, the highest reward.")
+
+
+def test_the_language_protocol_replays_kept_policies_or_names_what_trains_them(tmp_path):
+    """``--records``: the agents are the policies kept there; a missing one stops the run in one
+    line with the command that trains and files it (nothing is trained behind the user's back)."""
+    run = _load(ROOT / "experiments" / "language" / "run.py")
+    for seed in (0, 1):
+        (tmp_path / f"icco_seed{seed}").mkdir()
+        (tmp_path / f"icco_seed{seed}" / "policy.pt").write_bytes(b"weights")
+    (tmp_path / "qmix_full_seed0").mkdir()  # a record without its policy (trained before)
+    budget = ["experiment=repro_5m"]
+    assert run.from_records(tmp_path, ["icco"], [0, 1], budget) == {
+        "icco": [str(tmp_path / f"icco_seed{s}" / "policy.pt") for s in (0, 1)]
+    }
+    with pytest.raises(SystemExit, match=r"^no kept policy for qmix_full at seeds \[0, 1\]") as e:
+        run.from_records(tmp_path, ["icco", "qmix_full"], [0, 1], budget)
+    assert "four_quadrants/run.py --methods qmix_full --seeds 0 1 --records" in str(e.value)
+    assert str(e.value).endswith("--budget experiment=repro_5m") and "\n" not in str(e.value)
+    assert run.kept(tmp_path, "icco", [0, 2]) is None
+
+
+def test_the_language_page_shows_where_the_robots_are_per_instruction():
+    report = _load(ROOT / "experiments" / "language" / "report.py")
+    rows = [
+        {"method": "ICCO", "segment": "Go right", "in_place": 0.75},
+        {"method": "ICCO", "segment": "Move top", "in_place": float("nan")},
+        {"method": "ICCO", "segment": report.EPISODE, "at_slot": 0.5, "formation": 0.25,
+         "time_to_slot": 82.4},
+    ]  # fmt: skip
+    table = report.placement(rows).splitlines()
+    assert (
+        table[0] == "| method | Go right | Move top | at slot | formation | time to slot (steps) |"
+    )
+    assert table[2] == "| ICCO | 75 % | – | 50 % | 25 % | 82 |"
+    assert "given once" not in report.PLAN_TEXT["served"] and "fixed" in report.PLAN_TEXT["fixed"]

@@ -277,6 +277,46 @@ def per_instruction(rows: list[dict]) -> list[dict]:
     return out
 
 
+PLAN_TEXT = {
+    "served": (
+        "the planner is prompted once, per trial, with the robots' positions at that moment, for\n"
+        "each robot's route to a slot, and the plan is served as the instruction the team trained\n"
+        "on: at every waypoint refresh each robot's K = 4 waypoints start at its position and\n"
+        "advance along its route (`icco_torchrl/instructions/serving.py`). The planner is asked\n"
+        "again only when an episode starts"
+    ),
+    "fixed": (
+        "the planner is prompted once, per trial, with the robots' positions at that moment, and\n"
+        "its K = 4 waypoints per robot are kept for the whole instruction (the old interface, a\n"
+        "comparison: `eval.plan=fixed`)"
+    ),
+}
+
+
+def placement(summary: list[dict]) -> str:
+    """Where the robots are, judged as a person would (``icco_torchrl/evaluation/placement.py``):
+    in place per instruction, and over the episode at slot, formation and time to slot."""
+    episode = {r["method"]: r for r in summary if r["segment"] == EPISODE}
+    segments = list(dict.fromkeys(r["segment"] for r in summary if r["segment"] != EPISODE))
+    cell = {(r["method"], r["segment"]): r.get("in_place") for r in summary}
+
+    def pct(value):
+        return "–" if value is None or value != value else f"{100 * value:.0f} %"
+
+    def num(value, digits):
+        return "–" if value is None or value != value else f"{value:.{digits}f}"
+
+    head = ["method", *segments, "at slot", "formation", "time to slot (steps)"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for method, row in episode.items():
+        cells = [pct(cell.get((method, s))) for s in segments]
+        cells += [pct(row.get("at_slot")), pct(row.get("formation"))]
+        lines.append(
+            f"| {method} | " + " | ".join([*cells, num(row.get("time_to_slot"), 0)]) + " |"
+        )
+    return "\n".join(lines)
+
+
 def whole_episode(summary: list[dict], missing=(), calibration: str = "../calibration/README.md"):
     """Fig. 5b's whole-episode table with the sentence that introduces it."""
     return (
@@ -324,7 +364,7 @@ def run_arguments(out: Path, llm: str | None, readme: Path | None) -> str:
     words = ["--budget", *saved["budget"]] if saved.get("budget") else []
     words += ["--seeds", *map(str, saved["seeds"])] if saved.get("seeds") else []
     words += ["--methods", *saved["methods"]] if saved.get("methods") else []
-    for folder in ("sweep", "wo_tr_sweep", "out"):
+    for folder in ("sweep", "wo_tr_sweep", "records", "wo_tr_records", "out"):
         words += [f"--{folder.replace('_', '-')}", saved[folder]] if saved.get(folder) else []
     words += ["--readme", os.path.relpath(readme)] if readme else []
     if llm:
@@ -574,6 +614,8 @@ def main(argv=None) -> int:
             else ""
         ),
         steps=steps,
+        plan_text=PLAN_TEXT[fig5b.get("plan", "fixed")],
+        placement_table=placement(fig5b["summary"]),
         model=model,
         trials=fig5b["trials"],
         planner_note=(

@@ -28,7 +28,20 @@ those two, as the 5M reproduction does:
         --readme experiments/language/5m/README.md
 
 and ``--methods qmix`` runs Table II alone, its rows added to a page that has Fig. 5b and ICCO's
-row (``report.py --table2``):
+row (``report.py --table2``).
+
+Kept policies replay any protocol without retraining. With ``--records DIR`` the four-quadrant
+agents are the policies kept there (``DIR/<method>_seed<s>/policy.pt``, as the four-quadrant
+script files them); a missing one is named with the command that trains and files it. With
+``--wo-tr-records DIR`` the QMIX-TAP w/o TR agents are read there too, and those missing are
+trained in ``--wo-tr-sweep`` and filed there (``jobs.keep_run``: no optimizer, no replay):
+
+    python experiments/language/run.py --budget experiment=repro_5m \
+        --records experiments/four_quadrants/5m/records \
+        --wo-tr-records experiments/language/5m/records_wo_tr --out multirun/language_5m \
+        --readme experiments/language/5m/README.md
+
+The commands below train in sweeps (the checkpoints stay on the machine):
 
     python experiments/language/run.py --budget experiment=repro_5m --methods qmix \
         --sweep multirun/four_quadrants_5m --wo-tr-sweep multirun/inst_only_5m \
@@ -45,6 +58,9 @@ import sys
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE.parent))
+import jobs  # noqa: E402  (experiments/jobs.py, the one job runner)
+
 INSTRUCTIONS = ("Go right", "Move top", "Gather center", "Spread out")
 # The four-quadrant agents this experiment reads: Fig. 5b compares ICCO with QMIX (FULL) (and the
 # paper's flat QMIX (FULL)), Table II drives QMIX.
@@ -91,6 +107,25 @@ def checkpoints(sweep: Path, method: str, seeds) -> list[str]:
     return [str(p) for p in found]
 
 
+def kept(records: Path, method: str, seeds) -> list[Path] | None:
+    """``method``'s policies at ``seeds`` kept in ``records``; None when one is missing."""
+    found = [records / f"{method}_seed{s}" / jobs.POLICY for s in seeds]
+    return found if all(p.is_file() for p in found) else None
+
+
+def from_records(records: Path, methods, seeds, budget) -> dict[str, list[str]]:
+    """The four-quadrant agents from their kept policies, or one line naming what trains them."""
+    agents = {m: kept(records, m, seeds) for m in methods}
+    missing = [m for m, paths in agents.items() if paths is None]
+    if missing:
+        raise SystemExit(
+            f"no kept policy for {', '.join(missing)} at seeds {list(seeds)} in {records}: "
+            f"python experiments/four_quadrants/run.py --methods {' '.join(missing)} --seeds "
+            f"{' '.join(map(str, seeds))} --records {records} --budget {' '.join(budget or [])}"
+        )
+    return {m: [str(p) for p in paths] for m, paths in agents.items()}
+
+
 def instruct(out: Path, paths, trials: int, steps: int, llm: str, extra=()) -> None:
     run(
         sys.executable,
@@ -122,6 +157,12 @@ def main(argv=None) -> None:
     )
     parser.add_argument(
         "--out", type=Path, help="results folder (default multirun/language[_smoke])"
+    )
+    parser.add_argument(
+        "--records", type=Path, help="the four-quadrant agents' kept policies (see above)"
+    )
+    parser.add_argument(
+        "--wo-tr-records", type=Path, help="QMIX-TAP w/o TR's kept policies (see above)"
     )
     parser.add_argument(
         "--budget", nargs="*", help="training overrides (see four_quadrants/run.py)"
@@ -159,8 +200,15 @@ def main(argv=None) -> None:
 
     agents = args.methods or list(AGENTS)
     table2 = "qmix" in agents
-    train(sweep, agents, args.seeds, args.budget, args.smoke)
-    if table2:
+    if args.records:
+        policies = from_records(args.records, agents, args.seeds, args.budget)
+    else:
+        train(sweep, agents, args.seeds, args.budget, args.smoke)
+        policies = {m: checkpoints(sweep, m, args.seeds) for m in agents}
+    wo_tr_policies = None
+    if table2 and args.wo_tr_records:
+        wo_tr_policies = kept(args.wo_tr_records, "qmix", args.seeds)
+    if table2 and wo_tr_policies is None:
         train(
             wo_tr,
             ["qmix"],
@@ -168,12 +216,17 @@ def main(argv=None) -> None:
             [*(args.budget or ([] if args.smoke else ["experiment=default"])), *NO_TASK_REWARD],
             args.smoke,
         )
+        wo_tr_policies = checkpoints(wo_tr, "qmix", args.seeds)
+        if args.wo_tr_records:
+            for path in wo_tr_policies:
+                jobs.keep_run(Path(path).parent, args.wo_tr_records / Path(path).parent.name)
+            wo_tr_policies = [str(p) for p in kept(args.wo_tr_records, "qmix", args.seeds)]
     plan = [f"eval.plan={args.plan}"]
     fig5b = [m for m in FIG5B if m in agents]
     if fig5b:
         instruct(
             out / "fig5b",
-            [path for m in fig5b for path in checkpoints(sweep, m, args.seeds)],
+            [path for m in fig5b for path in policies[m]],
             trials,
             steps,
             args.llm,
@@ -182,7 +235,7 @@ def main(argv=None) -> None:
     if table2:
         instruct(
             out / "table2_tap",
-            checkpoints(sweep, "qmix", args.seeds) + checkpoints(wo_tr, "qmix", args.seeds),
+            policies["qmix"] + [str(p) for p in wo_tr_policies],
             trials,
             steps,
             args.llm,
@@ -194,6 +247,8 @@ def main(argv=None) -> None:
         "methods": args.methods,
         "sweep": args.sweep,
         "wo_tr_sweep": args.wo_tr_sweep,
+        "records": args.records,
+        "wo_tr_records": args.wo_tr_records,
         "out": args.out,
     }
     # The folder's own remark on its agents ("note", written by hand), kept across runs.
