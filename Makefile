@@ -13,7 +13,7 @@ DOCTESTS   := icco_torchrl/objectives/icco_loss.py icco_torchrl/objectives/retur
               icco_torchrl/modules/gru.py icco_torchrl/training/update.py \
               icco_torchrl/modules/activations.py icco_torchrl/methods.py \
               icco_torchrl/envs/layout.py icco_torchrl/envs/params.py \
-              icco_torchrl/modules/__init__.py
+              icco_torchrl/modules/__init__.py icco_torchrl/objectives/defaults.py
 
 .PHONY: install test bench train eval sweep clean
 
