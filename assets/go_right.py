@@ -11,7 +11,10 @@ team plays one episode. What a person watching checks:
 - **stays**: from then to the episode's end, that holds on at least ``--stay`` of the ticks.
 
 A scene passes when both hold; the plan starts beside each robot, so a robot that stays home
-passes nothing. Defenses and invasions are printed beside it (the task still counts).
+passes nothing. Defenses and invasions are printed beside it (the task still counts), and so is
+who breaks the formation: the share of ticks after arrival out of formation with exactly one
+robot off its slot, standing at home (within 0.5 m of it) with no invader within reach, a
+*keeper* (a team that guards home instead of going where told).
 
     .venv/bin/python assets/go_right.py                                   # the shipped demo
     .venv/bin/python assets/go_right.py runs/icco/.../checkpoint.pt       # other checkpoints
@@ -29,9 +32,11 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from icco_torchrl.envs.reference_policies import make_reference_policy
+from icco_torchrl.evaluation.placement import SLOT_RADIUS
 from icco_torchrl.instructions import LLMPlanner
 from icco_torchrl.live.loop import LiveLoop
 from icco_torchrl.training.config import LLMConfig
@@ -47,6 +52,7 @@ class Scene:
     held: float  # the share of ticks in formation from then on
     defenses: int
     invasions: int
+    keeper: float = 0.0  # the share of ticks from arrival on broken by one robot kept at home
 
     def passed(self, within: int, stay: float) -> bool:
         return self.arrived is not None and self.arrived <= within and self.held >= stay
@@ -66,17 +72,32 @@ def run_scene(source: str | Path, instruction: str, seed: int) -> Scene:
     loop.instruct(instruction)
     if loop.wait_for_plan(timeout=60).state != "used":
         raise SystemExit(f"the planner did not plan {instruction!r}: {loop.status.error}")
-    formation = []
+    formation, kept = [], []
     while True:
         state = loop.tick()
         formation.append(bool(state.formation))
+        kept.append(kept_home(state))
         if state.step >= state.episode_steps:  # the episode's last step
             break
     arrived = next((t + 1 for t, held in enumerate(formation) if held), None)
     after = formation[arrived - 1 :] if arrived else []
     held = sum(after) / len(after) if after else 0.0
+    keeper = sum(kept[arrived - 1 :]) / len(after) if after else 0.0
     totals = state.totals
-    return Scene(arrived, held, int(totals.get("defense", 0)), int(totals.get("invasion", 0)))
+    return Scene(
+        arrived, held, int(totals.get("defense", 0)), int(totals.get("invasion", 0)), keeper
+    )
+
+
+def kept_home(state) -> bool:
+    """Out of formation only because one robot, not intercepting, stands at home (0, 0)."""
+    if state.formation or state.slot_distance is None:
+        return False
+    off = (state.slot_distance > SLOT_RADIUS) & ~state.intercepting
+    if state.present is not None:
+        off &= state.present
+    home = np.linalg.norm(state.positions, axis=-1) <= SLOT_RADIUS
+    return bool(off.sum() == 1 and (off & home).any())
 
 
 def main(argv=None) -> int:
@@ -100,9 +121,10 @@ def main(argv=None) -> int:
                 "never" if s.arrived is None else f"{s.arrived}:{100 * s.held:.0f}%" for s in scenes
             )
             fights = " / ".join(f"{s.defenses}:{s.invasions}" for s in scenes)
+            keeper = " / ".join(f"{100 * s.keeper:.0f}%" for s in scenes)
             print(
                 f"{name} | {instruction}: passes {passed} of {len(scenes)} "
-                f"(arrival tick:held {shown}; defenses:invasions {fights})",
+                f"(arrival tick:held {shown}; defenses:invasions {fights}; keeper {keeper})",
                 flush=True,
             )
         scenes_run = len(args.instructions) * len(SCENES)

@@ -969,3 +969,29 @@ def test_the_language_page_shows_where_the_robots_are_per_instruction():
     )
     assert table[2] == "| ICCO | 75 % | – | 50 % | 25 % | 82 |"
     assert "given once" not in report.PLAN_TEXT["served"] and "fixed" in report.PLAN_TEXT["fixed"]
+
+
+def test_the_arrival_check_names_a_robot_kept_at_home_as_what_breaks_the_formation():
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    go_right = _load(ROOT / "experiments" / "jobs.py").script(ROOT / "assets" / "go_right.py", "gr")
+    slots = np.array([[2.3, 1.6], [2.3, 0.0], [2.3, -1.6]])
+
+    def state(positions, intercepting=(False, False, False), formation=False):
+        positions = np.asarray(positions, dtype=float)
+        return SimpleNamespace(
+            formation=formation,
+            positions=positions,
+            slot_distance=np.linalg.norm(positions - slots, axis=-1),
+            intercepting=np.array(intercepting),
+            present=np.ones(3, dtype=bool),
+        )
+
+    keeper = [[2.3, 1.6], [2.3, 0.0], [0.1, -0.2]]  # two at their slots, one at home
+    assert go_right.kept_home(state(keeper))
+    assert not go_right.kept_home(state(keeper, intercepting=(False, False, True)))  # excused
+    assert not go_right.kept_home(state([[2.3, 1.6], [0.0, 0.0], [0.1, -0.2]]))  # two off
+    assert not go_right.kept_home(state([[2.3, 1.6], [2.3, 0.0], [1.0, -1.0]]))  # off, not home
+    assert not go_right.kept_home(state(slots, formation=True))
