@@ -995,3 +995,28 @@ def test_the_arrival_check_names_a_robot_kept_at_home_as_what_breaks_the_formati
     assert not go_right.kept_home(state([[2.3, 1.6], [0.0, 0.0], [0.1, -0.2]]))  # two off
     assert not go_right.kept_home(state([[2.3, 1.6], [2.3, 0.0], [1.0, -1.0]]))  # off, not home
     assert not go_right.kept_home(state(slots, formation=True))
+
+
+def test_the_consistency_page_holds_icco_against_wo_ce_at_5m_from_where_5m(tmp_path):
+    run = _load(ROOT / "experiments" / "consistency" / "run.py")
+    assert run.five_m_section(tmp_path / "where_5m.json") == ""  # nothing before it is measured
+    mean = lambda m, s, n: {"mean": m, "std": s, "n": n}  # noqa: E731
+    res = {
+        "chosen": "icco_5m",
+        "baseline": "wo_ce",
+        "trials": 20,
+        "settings": {
+            "as trained": {
+                "icco_5m": {"reward": mean(380.0, 20.0, 60), "mi_bound": mean(-1.0, 0.2, 3)},
+                "wo_ce": {"reward": mean(385.0, 20.0, 60), "mi_bound": mean(-2.0, 0.2, 3)},
+            }
+        },
+        "verdicts": {"as trained": {"reward": "within", "mi_bound": "ahead (+1.0)"}},
+    }
+    (tmp_path / "where_5m.json").write_text(json.dumps(res))
+    text = run.five_m_section(tmp_path / "where_5m.json")
+    assert "## At 5M: the reproduction's ICCO against ICCO w/o CE" in text
+    assert "| as trained | mi_bound | -1.0 ± 0.2 | -2.0 ± 0.2 | ahead (+1.0) |" in text
+    where = _load(ROOT / "experiments" / "consistency" / "where.py")
+    assert where.SETTINGS["as trained"] == ("eval", [])
+    assert all(p.parent.name.startswith("icco_seed") for p in where.five_m_policies("icco"))

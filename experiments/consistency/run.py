@@ -303,6 +303,46 @@ def where_section(path: Path) -> str:
     if not path.is_file():
         return ""
     res = json.loads(path.read_text())
+    chosen = res["chosen"]
+    return f"""
+## Where the paper says consistency matters
+
+`{chosen}` against ICCO w/o CE (`{res["baseline"]}`), the screens' own policies, {res["trials"]}
+trials per seed: ambiguous instructions (`icco instruct`, plans served), zero-shot teams of 5 and
+6, and adaptive broadcast (beta 0.5). {MEANS}
+
+{where_table(res)}
+
+Written by `python experiments/consistency/where.py --chosen {chosen}` into `where.json`.
+"""
+
+
+def five_m_section(path: Path) -> str:
+    """ICCO at 5M (the default weight) against ICCO w/o CE at 5M, from ``where.py --five-m``."""
+    if not path.is_file():
+        return ""
+    res = json.loads(path.read_text())
+    return f"""
+## At 5M: the reproduction's ICCO against ICCO w/o CE
+
+ICCO at the default weight and ICCO w/o CE, 5M frames, 3 seeds each (the
+[four-quadrant reproduction](../four_quadrants/5m/README.md)'s policies), four quadrants as
+trained, {res["trials"]} trials per seed, with the coordination measures. {MEANS}
+
+{where_table(res)}
+
+Written by `python experiments/consistency/where.py --five-m` into `where_5m.json`.
+"""
+
+
+MEANS = (
+    "Rewards: mean ± std over trials, seeds pooled (share of the best scripted team's at that "
+    "setting); measures: mean ± std over seeds."
+)
+
+
+def where_table(res: dict) -> str:
+    """One row per setting and measure: the two teams and the verdict."""
     chosen, base = res["chosen"], res["baseline"]
     lines = [
         f"| setting | measure | `{chosen}` | `{base}` | `{chosen}` against `{base}` |",
@@ -316,18 +356,7 @@ def where_section(path: Path) -> str:
             verdict = res["verdicts"].get(setting, {}).get(key, "–")
             cells = [_cell(entry, digits, share), _cell(other, digits, share)]
             lines.append(f"| {setting} | {key} | " + " | ".join(cells) + f" | {verdict} |")
-    return f"""
-## Where the paper says consistency matters
-
-`{chosen}` against ICCO w/o CE (`{base}`), the screens' own policies, {res["trials"]} trials per
-seed: ambiguous instructions (`icco instruct`, plans served), zero-shot teams of 5 and 6, and
-adaptive broadcast (beta 0.5). Rewards: mean ± std over trials, seeds pooled (share of the best
-scripted team's at that setting); measures: mean ± std over seeds.
-
-{chr(10).join(lines)}
-
-Written by `python experiments/consistency/where.py --chosen {chosen}` into `where.json`.
-"""
+    return "\n".join(lines)
 
 
 def decision(screens: dict, top: str, gain) -> str:
@@ -472,6 +501,7 @@ policy weights `policy.pt`):
     {command}
 
 {where_section(HERE / "where.json")}
+{five_m_section(HERE / "where_5m.json")}
 This page is written from `results.json` by `python experiments/consistency/run.py --report-only`.
 """
 

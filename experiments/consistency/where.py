@@ -2,6 +2,7 @@
 
     python experiments/consistency/where.py --chosen ce1          # evaluate, then where.json
     python experiments/consistency/where.py --report-only         # where.json from the evaluations
+    python experiments/consistency/where.py --five-m              # the 5M runs, into where_5m.json
 
 Both teams are the screen's own records (``records/<screen>/*/policy.pt``, 2 seeds each, trained
 by ``run.py``), so nothing is retrained. Each setting is one evaluation of the four policies
@@ -15,6 +16,11 @@ with the scripted references on the same episodes:
 - ``broadcast 0.5``: four quadrants with ``eval.broadcast_threshold=0.5`` (a robot gets a new z
   only when it moved by more than 0.5; experiments/team_size: about a quarter of the every-T
   broadcasts), with the coordination measures.
+
+``--five-m`` holds the 5M reproduction's ICCO (at the default weight) against its ICCO w/o CE
+instead, 3 seeds each, their policies kept in ``experiments/four_quadrants/5m/records``, in the
+one setting ``as trained`` (four quadrants with the coordination measures), into
+``where_5m.json``.
 
 ``where.json`` holds, per setting and team: reward (mean ± std over trials, seeds pooled; share of
 the best scripted team's), the setting's measures (mean ± std over seeds) and the verdict of the
@@ -50,7 +56,10 @@ SETTINGS = {
     "team 5": ("eval", ["eval.team_size=5"]),
     "team 6": ("eval", ["eval.team_size=6"]),
     "broadcast 0.5": ("eval", ["eval.broadcast_threshold=0.5"]),
+    "as trained": ("eval", []),  # --five-m's one setting
 }
+FIVE_M = HERE.parent / "four_quadrants" / "5m" / "records"
+FIVE_M_TEAM = "icco_5m"
 COORDINATION = ("mi_bound", "mi_null", "consistency")  # of docs/consistency.md
 
 
@@ -58,6 +67,13 @@ def policies(records: Path, screen: str) -> list[Path]:
     found = sorted((records / screen).glob("*/policy.pt"))
     if not found:
         raise SystemExit(f"{records / screen}: no policy.pt (train and keep it with run.py)")
+    return found
+
+
+def five_m_policies(method: str) -> list[Path]:
+    found = sorted(FIVE_M.glob(f"{method}_seed*/policy.pt"))
+    if not found:
+        raise SystemExit(f"{FIVE_M}: no {method}_seed*/policy.pt (the 5M reproduction keeps them)")
     return found
 
 
@@ -132,16 +148,27 @@ def main(argv=None) -> None:
     parser.add_argument("--records", type=Path, default=HERE / "records")
     parser.add_argument("--out", type=Path, default=Path("multirun/consistency_where"))
     parser.add_argument("--trials", type=int, default=20)
-    parser.add_argument("--settings", nargs="+", choices=list(SETTINGS), default=list(SETTINGS))
+    screened = [s for s in SETTINGS if s != "as trained"]
+    parser.add_argument("--settings", nargs="+", choices=screened, default=screened)
     parser.add_argument("--results", type=Path, default=HERE / "where.json")
     parser.add_argument("--report-only", action="store_true")
+    parser.add_argument("--five-m", action="store_true", help="the 5M runs (see above)")
     args = parser.parse_args(argv)
+    if args.five_m:
+        args.settings = ["as trained"]
+        args.results = (
+            HERE / "where_5m.json" if args.results == HERE / "where.json" else args.results
+        )
+        args.out = args.out.with_name(args.out.name + "_5m")
     previous = json.loads(args.results.read_text()) if args.results.is_file() else {}
-    chosen = args.chosen or previous.get("chosen")
+    chosen = FIVE_M_TEAM if args.five_m else args.chosen or previous.get("chosen")
     if chosen is None:
         raise SystemExit("--chosen: which screen to hold against wo_ce (e.g. --chosen ce1)")
     out = args.out.resolve()
-    teams = {chosen: policies(args.records, chosen), BASELINE: policies(args.records, BASELINE)}
+    if args.five_m:
+        teams = {chosen: five_m_policies("icco"), BASELINE: five_m_policies("icco_wo_ce")}
+    else:
+        teams = {chosen: policies(args.records, chosen), BASELINE: policies(args.records, BASELINE)}
     if not args.report_only:
         for setting in args.settings:
             evaluate(out, setting, [p for paths in teams.values() for p in paths], args.trials)
