@@ -308,7 +308,8 @@ def test_coordinator_gets_gradient_from_ce_alone(icco):
 
 @pytest.mark.parametrize("combine", ["product", "sum"])
 def test_ce_term_scores_the_z_the_agents_acted_on(combine):
-    cfg = compose_config(["method=icco", f"method.posterior={combine}", "env.params.max_steps=10"])
+    overrides = [f"method.posterior={combine}", "env.params.max_steps=10", "train.ce_clamp=false"]
+    cfg = compose_config(["method=icco", *overrides])  # unclamped: the terms as written
     parts = build_components(cfg, num_envs=4)
     _, seg = _rollout_segments(parts, steps=16)
     loss = parts["loss"]
@@ -833,5 +834,6 @@ def test_ce_clamp_changes_nothing_inside_its_range():
 
 
 def test_ce_clamp_is_the_train_option():
-    on = build_components(compose_config(["method=icco", "train.ce_clamp=true"]), num_envs=2)
-    assert on["loss"].ce_clamp and not build_components(method="icco", num_envs=2)["loss"].ce_clamp
+    off = build_components(compose_config(["method=icco", "train.ce_clamp=false"]), num_envs=2)
+    assert build_components(method="icco", num_envs=2)["loss"].ce_clamp  # the default: clamped
+    assert not off["loss"].ce_clamp

@@ -40,6 +40,9 @@ def test_one_broadcast_items_with_one_step_targets_reproduce_the_previous_loss(m
         "train.td_lambda=0",
         "train.burn_in=0",
         "method.layer_norm=false",
+        # and predates the consistency term's default (1e-3, clamped): it was 1e-4, unclamped
+        *(["method.ce_coef=1e-4", "method.entropy_coef=1e-4"] if method == "icco" else []),
+        "train.ce_clamp=false",
     ]
     cfg = compose_config([f"method={method}", *one_step])
     torch.manual_seed(0)

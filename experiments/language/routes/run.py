@@ -67,7 +67,8 @@ serving = jobs.script(EXPERIMENTS / "language" / "serving" / "run.py", "serving_
 go_right = jobs.script(EXPERIMENTS.parent / "assets" / "go_right.py", "go_right")
 
 BUDGET = [*consistency.BUDGET, "method=icco", "logger.progress=false"]
-CONTROL_RECORDS = EXPERIMENTS / "consistency" / "records" / consistency.CONTROL
+# make train's ICCO when the routes screens ran (the default weight then: 1e-4, unclamped)
+CONTROL_RECORDS = EXPERIMENTS / "consistency" / "records" / "ce1e-4"
 SCREENS = {
     "control": [],
     "hold_routes": ["env.params.inst_hold=true", "env.params.waypoint_route_prob=0.5"],
