@@ -491,6 +491,10 @@ Budget: `{" ".join(res["budget"])}`.
 
 {chr(10).join(lines) if screens else "No screen measured yet: run the command below."}
 
+The default trained at the method's scale (5M frames, 3 seeds) against ICCO w/o CE: the
+[four-quadrant reproduction](../four_quadrants/5m/README.md) and, plans served,
+[the language protocol](../language/5m/README.md).
+
 Rewards: mean ± std over trials (seeds pooled). Coordination and training columns: mean ± std
 over seeds. "vs {res["control"]}": the four-quadrant reward against the control's. {RULE}
 {("Not measured yet: " + ", ".join(f"`{n}`" for n in missing) + ".") if missing else ""}
