@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import copy
 import csv
+import functools
 import importlib.util
 import json
 import os
@@ -191,21 +192,30 @@ def in_todays_fields(tree: dict, path: Path) -> dict:
     (a field added since it was written at the value it trained with, an option removed since
     dropped), then the schema's default for any other field added since (an option added
     without an entry in the converter's tables leaves the run as it was at its default)."""
-    convert = script(CONVERTER, "convert_checkpoint")
     payload = {"cfg": copy.deepcopy(tree)}
-    convert.upgrade(payload, path)
+    _converter().upgrade(payload, path)
     cfg = payload["cfg"]
-    for block, schema in (("train", TrainConfig), ("env", EnvConfig)):
-        defaults = OmegaConf.to_container(OmegaConf.structured(schema))
+    for block, defaults in _schema_defaults().items():
         if isinstance(cfg.get(block), dict):
-            cfg[block] = {
-                **{k: v for k, v in defaults.items() if k not in cfg[block]},
-                **cfg[block],
-            }
+            cfg[block] = {**defaults, **cfg[block]}
             for key, value in defaults.items():  # one level down (env.params, train.shaping)
-                if isinstance(value, dict) and isinstance(cfg[block].get(key), dict):
+                if isinstance(value, dict) and isinstance(cfg[block][key], dict):
                     cfg[block][key] = {**value, **cfg[block][key]}
     return cfg
+
+
+@functools.cache
+def _converter():
+    return script(CONVERTER, "convert_checkpoint")
+
+
+@functools.cache
+def _schema_defaults() -> dict[str, dict]:
+    """The train and env blocks of today's schema at their defaults (read-only: callers copy)."""
+    return {
+        block: OmegaConf.to_container(OmegaConf.structured(schema))
+        for block, schema in (("train", TrainConfig), ("env", EnvConfig))
+    }
 
 
 def _flat(tree, prefix: str = "") -> dict:

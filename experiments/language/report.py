@@ -300,20 +300,16 @@ def placement(summary: list[dict]) -> str:
     segments = list(dict.fromkeys(r["segment"] for r in summary if r["segment"] != EPISODE))
     cell = {(r["method"], r["segment"]): r.get("in_place") for r in summary}
 
-    def pct(value):
-        return "–" if value is None or value != value else f"{100 * value:.0f} %"
-
-    def num(value, digits):
-        return "–" if value is None or value != value else f"{value:.{digits}f}"
+    def shown(value, scale=100.0, unit=" %"):
+        return "–" if value is None or value != value else f"{scale * value:.0f}{unit}"
 
     head = ["method", *segments, "at slot", "formation", "time to slot (steps)"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for method, row in episode.items():
-        cells = [pct(cell.get((method, s))) for s in segments]
-        cells += [pct(row.get("at_slot")), pct(row.get("formation"))]
-        lines.append(
-            f"| {method} | " + " | ".join([*cells, num(row.get("time_to_slot"), 0)]) + " |"
-        )
+        cells = [shown(cell.get((method, s))) for s in segments]
+        cells += [shown(row.get("at_slot")), shown(row.get("formation"))]
+        cells.append(shown(row.get("time_to_slot"), 1.0, ""))
+        lines.append(f"| {method} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 

@@ -107,10 +107,10 @@ def checkpoints(sweep: Path, method: str, seeds) -> list[str]:
     return [str(p) for p in found]
 
 
-def kept(records: Path, method: str, seeds) -> list[Path] | None:
+def kept(records: Path, method: str, seeds) -> list[str] | None:
     """``method``'s policies at ``seeds`` kept in ``records``; None when one is missing."""
     found = [records / f"{method}_seed{s}" / jobs.POLICY for s in seeds]
-    return found if all(p.is_file() for p in found) else None
+    return [str(p) for p in found] if all(p.is_file() for p in found) else None
 
 
 def from_records(records: Path, methods, seeds, budget) -> dict[str, list[str]]:
@@ -123,7 +123,7 @@ def from_records(records: Path, methods, seeds, budget) -> dict[str, list[str]]:
             f"python experiments/four_quadrants/run.py --methods {' '.join(missing)} --seeds "
             f"{' '.join(map(str, seeds))} --records {records} --budget {' '.join(budget or [])}"
         )
-    return {m: [str(p) for p in paths] for m, paths in agents.items()}
+    return agents
 
 
 def instruct(out: Path, paths, trials: int, steps: int, llm: str, extra=()) -> None:
@@ -220,7 +220,7 @@ def main(argv=None) -> None:
         if args.wo_tr_records:
             for path in wo_tr_policies:
                 jobs.keep_run(Path(path).parent, args.wo_tr_records / Path(path).parent.name)
-            wo_tr_policies = [str(p) for p in kept(args.wo_tr_records, "qmix", args.seeds)]
+            wo_tr_policies = kept(args.wo_tr_records, "qmix", args.seeds)
     plan = [f"eval.plan={args.plan}"]
     fig5b = [m for m in FIG5B if m in agents]
     if fig5b:
@@ -235,7 +235,7 @@ def main(argv=None) -> None:
     if table2:
         instruct(
             out / "table2_tap",
-            policies["qmix"] + [str(p) for p in wo_tr_policies],
+            policies["qmix"] + wo_tr_policies,
             trials,
             steps,
             args.llm,
