@@ -819,6 +819,32 @@ def test_where_consistency_matters_pools_each_teams_seeds_against_the_same_refer
     assert verdict["reward"].startswith("ahead")
 
 
+def test_where_reads_an_evaluation_made_in_another_clone_and_never_writes_nothing(tmp_path):
+    """The evaluation names policies by the clone it ran in; the report matches them by screen,
+    run and file. A report with no evaluation to read stops in one line and keeps the results."""
+    where = _load(ROOT / "experiments" / "consistency" / "where.py")
+    ran, here = tmp_path / "ran" / "records", tmp_path / "here" / "records"
+    rows = ["method,checkpoint,segment,reward"]
+    rows += [f"ICCO,{ran / s / 'seed0' / 'policy.pt'},episode,{v}" for s, v in (("a", 7), ("b", 5))]
+    rows += [f'"{BEST_SCRIPTED_LABEL} (x)",,episode,10']
+    (tmp_path / "quadrants_trials.csv").write_text("\n".join(rows) + "\n")
+    entries = [{"path": str(ran / s / "seed0" / "policy.pt")} for s in "ab"]
+    (tmp_path / "quadrants.json").write_text(json.dumps({"checkpoints": entries}))
+    teams = {s: [here / s / "seed0" / "policy.pt"] for s in "ab"}
+    res = where.setting_results(tmp_path, "eval", teams)
+    assert (res["a"]["reward"]["mean"], res["b"]["reward"]["mean"]) == (7, 5)
+
+    results = tmp_path / "where.json"
+    results.write_text('{"chosen": "a"}')
+    for s in ("a", "wo_ce"):
+        (here / s / "seed0").mkdir(parents=True)
+        (here / s / "seed0" / "policy.pt").write_bytes(b"")
+    argv = ["--report-only", "--records", str(here), "--out", str(tmp_path / "none")]
+    with pytest.raises(SystemExit, match="no evaluations here"):
+        where.main([*argv, "--results", str(results)])
+    assert results.read_text() == '{"chosen": "a"}'
+
+
 def test_the_consistency_page_reads_a_bound_gain_only_beyond_the_seeds_spread():
     run = _load(ROOT / "experiments" / "consistency" / "run.py")
 

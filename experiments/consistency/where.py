@@ -95,6 +95,11 @@ def evaluate(out: Path, setting: str, checkpoints: list[Path], trials: int) -> N
     subprocess.run([sys.executable, "-m", "icco_torchrl", command, *args], check=True)
 
 
+def key(path) -> tuple[str, ...]:
+    """A policy's name in an evaluation, wherever the clone lies: ``(screen, run, file)``."""
+    return Path(path).parts[-3:]
+
+
 def setting_results(folder: Path, command: str, teams: dict[str, list[Path]]) -> dict:
     """Each team's reward and measures in one setting's evaluation ``folder``."""
     name = "instruct" if command == "instruct" else "quadrants"
@@ -102,17 +107,17 @@ def setting_results(folder: Path, command: str, teams: dict[str, list[Path]]) ->
     best = best_scripted(rows)
     out = {"best_scripted": share_entry(best, best)}
     entries = {
-        c["path"]: c for c in json.loads((folder / f"{name}.json").read_text())["checkpoints"]
+        key(c["path"]): c for c in json.loads((folder / f"{name}.json").read_text())["checkpoints"]
     }
     for team, paths in teams.items():
-        mine = {str(p) for p in paths}
-        own = [r for r in rows if r["checkpoint"] in mine]
+        mine = {key(p) for p in paths}
+        own = [r for r in rows if key(r["checkpoint"]) in mine]
         result = {"reward": share_entry(episode_mean(own), best)}
         if command == "instruct":
             for text in AMBIGUOUS:
                 result[f"in_place: {text}"] = share_entry(episode_mean(own, "in_place", text), None)
         else:
-            coordination = [entries[str(p)].get("coordination") or {} for p in paths]
+            coordination = [entries[key(p)].get("coordination") or {} for p in paths]
             for measure in COORDINATION:
                 values = [c[measure] for c in coordination if c.get(measure) is not None]
                 if not values:
@@ -125,7 +130,8 @@ def setting_results(folder: Path, command: str, teams: dict[str, list[Path]]) ->
 
 
 def verdicts(res: dict, chosen: str) -> dict:
-    """The chosen screen against ICCO w/o CE on each setting's reward and measures."""
+    """The chosen screen against ICCO w/o CE on each setting's reward and measures (shares and
+    consistency, which live in [0, 1], to 3 decimals)."""
     out = {}
     for setting, teams in res.items():
         a, b = teams.get(chosen) or {}, teams.get(BASELINE) or {}
@@ -133,7 +139,7 @@ def verdicts(res: dict, chosen: str) -> dict:
             key: compare(
                 Mean(a[key]["mean"], a[key]["std"], a[key]["n"]),
                 Mean(b[key]["mean"], b[key]["std"], b[key]["n"]),
-            ).text()
+            ).text(digits=1 if key == "reward" or key.startswith("mi_") else 3)
             for key in a
             if a.get(key) and b.get(key)
         }
@@ -177,6 +183,8 @@ def main(argv=None) -> None:
         for s in SETTINGS
         if (out / s.replace(" ", "_")).is_dir()
     }
+    if not settings:  # never overwrite the results with nothing
+        raise SystemExit(f"{out}: no evaluations here (run without --report-only, or name --out)")
     trials = previous.get("trials", args.trials) if args.report_only else args.trials
     res = {"chosen": chosen, "baseline": BASELINE, "trials": trials, "settings": settings}
     res["verdicts"] = verdicts(settings, chosen)
