@@ -998,6 +998,24 @@ def test_the_language_page_shows_where_the_robots_are_per_instruction():
     assert "given once" not in report.PLAN_TEXT["served"] and "fixed" in report.PLAN_TEXT["fixed"]
 
 
+def test_the_language_page_says_what_being_in_place_earns_from_the_path_follower():
+    report = _load(ROOT / "experiments" / "language" / "report.py")
+    best = report.BEST_SCRIPTED_LABEL + " (defend=inf)"
+    rows = [
+        {"method": "pursuit", "segment": "Go right", "in_place": 1.0},
+        {"method": "pursuit", "segment": "Move top", "in_place": 0.96},
+        {"method": "pursuit", "segment": report.EPISODE, "reward": -2.0},
+        {"method": best, "segment": "Go right", "in_place": 0.47},
+        {"method": best, "segment": "Move top", "in_place": 0.375},
+        {"method": best, "segment": report.EPISODE, "reward": 400.0},
+    ]
+    (line,) = report.following_costs(rows)
+    assert "in place 100/96 % (Go right, Move top) and earns -2.0, 0 % of" in line
+    assert "the best scripted team's 400.0; the best scripted team is in place 47/38 %" in line
+    assert report.following_costs(rows[3:]) == []  # no path follower: no bullet
+    assert report.following_costs(rows[:3]) == []  # no best scripted team: no bullet
+
+
 def test_the_arrival_check_names_a_robot_kept_at_home_as_what_breaks_the_formation():
     from types import SimpleNamespace
 

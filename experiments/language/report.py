@@ -43,7 +43,7 @@ from string import Template
 import numpy as np
 
 from icco_torchrl import methods
-from icco_torchrl.envs.reference_policies import REFERENCE_POLICIES
+from icco_torchrl.envs.reference_policies import BEST_SCRIPTED_LABEL, REFERENCE_POLICIES
 from icco_torchrl.evaluation.metrics import (
     EPISODE,
     METRICS,
@@ -232,6 +232,7 @@ def comparison(fig5b: list[dict], means: dict) -> str:
             )
     else:
         lines.append("- Fig. 5b: ICCO or QMIX (FULL) is missing; no comparison.")
+    lines += following_costs(fig5b)
     lines.append(table2_claim(means))
     lines.append(
         "- Our environment is a re-implementation and the default planner is a rule program, so "
@@ -257,6 +258,31 @@ def _frames(*payloads: dict) -> dict[str, int]:
         for c in payload["checkpoints"]:
             frames[c["method"]] = max(frames.get(c["method"], 0), c.get("frames") or 0)
     return frames
+
+
+def following_costs(summary: list[dict]) -> list[str]:
+    """What being in place costs in this reward, from the perfect path follower (``pursuit``,
+    which ignores the task) beside the best scripted team (which ignores the instruction where
+    the task pays more): one bullet, none when either is missing."""
+    cell = {(r["method"], r["segment"]): r for r in summary}
+    best = next((m for m, s in cell if s == EPISODE and m.startswith(BEST_SCRIPTED_LABEL)), None)
+    if best is None or ("pursuit", EPISODE) not in cell:
+        return []
+    segments = [s for m, s in cell if m == best and s != EPISODE]
+
+    def places(method: str) -> str:
+        return "/".join(f"{100 * cell[method, s].get('in_place', math.nan):.0f}" for s in segments)
+
+    ceiling, top = cell["pursuit", EPISODE]["reward"], cell[best, EPISODE]["reward"]
+    share = f"{round(100 * ceiling / top)} %" if top > 0 else "–"
+    return [
+        "- **Being in place against the reward.** The perfect path follower (`pursuit`, which "
+        f"ignores the task) is in place {places('pursuit')} % ({', '.join(segments)}) and earns "
+        f"{ceiling:.1f}, {share} of the best scripted team's {top:.1f}; the best scripted team "
+        f"is in place {places(best)} %. In this reward a team is paid for the task, not for "
+        "standing where it was told, so a team in place at least 80 % of the time earns the best "
+        "scripted team's reward only if it still does the task from its slots."
+    ]
 
 
 def per_instruction(rows: list[dict]) -> list[dict]:

@@ -12,7 +12,8 @@
    ``--wo-tr-sweep``.
 2. Fig. 5b/6: "Go right" -> "Move top" -> "Gather center" -> "Spread out", 145 steps each, the
    planner prompted once per instruction with the paper's prompt, ICCO vs QMIX (FULL) (and the
-   paper's flat QMIX (FULL)), 20 trials per checkpoint: ``icco instruct`` into ``<out>/fig5b``.
+   paper's flat QMIX (FULL)), 20 trials per checkpoint, the scripted teams (the perfect path
+   follower ``pursuit`` among them) on the same episodes: ``icco instruct`` into ``<out>/fig5b``.
 3. Table II: the same instructions with the task-aligned prompt driving QMIX (QMIX-TAP) and the
    instruction-reward-only QMIX (QMIX-TAP w/o TR) into ``<out>/table2_tap``; ICCO's row is its
    Fig. 5b run (ICCO gets the paper's plain prompt: its coordinator does the task alignment).
@@ -57,6 +58,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+from icco_torchrl.envs.reference_policies import EVAL_REFERENCES
+
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 import jobs  # noqa: E402  (experiments/jobs.py, the one job runner)
@@ -66,6 +69,9 @@ INSTRUCTIONS = ("Go right", "Move top", "Gather center", "Spread out")
 # paper's flat QMIX (FULL)), Table II drives QMIX.
 AGENTS = ("icco", "qmix", "qmix_full", "qmix_full_flat")
 FIG5B = ("icco", "qmix_full", "qmix_full_flat")
+# Fig. 5b's scripted rows: the evaluation's own, and the perfect path follower, which shows what
+# being in place earns in this reward (report.following_costs).
+REFERENCES = (*EVAL_REFERENCES, "pursuit")
 NO_TASK_REWARD = (
     "env.params.pick_reward=0",
     "env.params.collect_reward=0",
@@ -230,7 +236,7 @@ def main(argv=None) -> None:
             trials,
             steps,
             args.llm,
-            plan,
+            [*plan, f"eval.references=[{','.join(REFERENCES)}]"],
         )
     if table2:
         instruct(
