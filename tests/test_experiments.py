@@ -252,7 +252,7 @@ def test_pages_best_scripted_rows_and_shares_are_their_results():
                 continue
             entry = results["methods"][result_name(row[0])]
             want = entry.get(SHARE_KEY)
-            assert row[share] == ("–" if want is None else f"{100 * want:.0f} %"), (page, row[0])
+            assert row[share] == ("–" if want is None else f"{round(100 * want)} %"), (page, row[0])
             if result_name(row[0]) == "best_scripted":
                 seen = True
                 value = entry["reward"]

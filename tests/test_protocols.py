@@ -9,6 +9,7 @@ import torch
 
 from icco_torchrl.envs import FixedSource, QuadrantSource, RandomWalkSource, ResourceCollectionEnv
 from icco_torchrl.envs.reference_policies import reference_label
+from icco_torchrl.evaluation import metrics
 from icco_torchrl.evaluation.metrics import (
     ADDITIVE,
     EPISODE,
@@ -198,6 +199,8 @@ def test_reports_state_each_team_reward_as_a_share_of_the_best_scripted_team():
     plain = [r for r in summary if r["method"] != best]
     assert SHARE not in markdown_table(plain, ("reward",))
     assert SHARE_KEY not in results_json(plain, protocol="q", steps=4, trials=2)["methods"]["icco"]
+    # a team just below zero (a path follower that ignores the task) reads 0 %, never -0 %
+    assert [metrics._share(v) for v in (-0.004, -0.006, 0.995)] == ["0 %", "-1 %", "100 %"]
 
 
 def test_trajectory_figure_titles_clear_the_row_above(runs, tmp_path, monkeypatch):

@@ -482,7 +482,7 @@ def add_references(readme: Path, folder: Path) -> Path:
     share = new[0].index(SHARE)
     for row in learned:  # cells as rendered, the share from results.json
         entry = results["methods"][result_name(row[0])]
-        row[share:] = ["–" if entry[SHARE_KEY] is None else f"{100 * entry[SHARE_KEY]:.0f} %"]
+        row[share:] = ["–" if entry[SHARE_KEY] is None else f"{round(100 * entry[SHARE_KEY])} %"]
     text = text[:start] + intro + "\n\n" + markdown_rows([new[0], *learned, *new[2:]]) + text[end:]
 
     # Table II: its references (task-aligned plans) where the page has any.

@@ -190,7 +190,8 @@ def best_scripted_shares(summary: Sequence[Mapping], segment: str = EPISODE) -> 
 
 
 def _share(value: float | None) -> str:
-    return "–" if value is None or not math.isfinite(value) else f"{100 * value:.0f} %"
+    # round() to an int: a share just below zero reads "0 %", not "-0 %"
+    return "–" if value is None or not math.isfinite(value) else f"{round(100 * value)} %"
 
 
 def _cell(summary: Mapping, metric: str, digits: int) -> str:
