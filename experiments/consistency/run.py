@@ -327,8 +327,9 @@ def five_m_section(path: Path) -> str:
 ## At 5M: the reproduction's ICCO against ICCO w/o CE
 
 ICCO at the default weight and ICCO w/o CE, 5M frames, 3 seeds each (the
-[four-quadrant reproduction](../four_quadrants/5m/README.md)'s policies), four quadrants as
-trained, {res["trials"]} trials per seed, with the coordination measures. {MEANS}
+[four-quadrant reproduction](../four_quadrants/5m/README.md)'s policies), {res["trials"]} trials
+per seed: four quadrants as trained, with the coordination measures, and the settings where the
+paper says consistency matters, as above. {MEANS}
 
 {where_table(res)}
 

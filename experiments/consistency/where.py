@@ -19,8 +19,8 @@ with the scripted references on the same episodes:
 
 ``--five-m`` holds the 5M reproduction's ICCO (at the default weight) against its ICCO w/o CE
 instead, 3 seeds each, their policies kept in ``experiments/four_quadrants/5m/records``, in the
-one setting ``as trained`` (four quadrants with the coordination measures), into
-``where_5m.json``.
+setting ``as trained`` (four quadrants with the coordination measures) and in each of the above
+(``--settings`` narrows them), into ``where_5m.json``.
 
 ``where.json`` holds, per setting and team: reward (mean ± std over trials, seeds pooled; share of
 the best scripted team's), the setting's measures (mean ± std over seeds) and the verdict of the
@@ -56,7 +56,7 @@ SETTINGS = {
     "team 5": ("eval", ["eval.team_size=5"]),
     "team 6": ("eval", ["eval.team_size=6"]),
     "broadcast 0.5": ("eval", ["eval.broadcast_threshold=0.5"]),
-    "as trained": ("eval", []),  # --five-m's one setting
+    "as trained": ("eval", []),  # --five-m's own setting
 }
 FIVE_M = HERE.parent / "four_quadrants" / "5m" / "records"
 FIVE_M_TEAM = "icco_5m"
@@ -161,7 +161,7 @@ def main(argv=None) -> None:
     parser.add_argument("--five-m", action="store_true", help="the 5M runs (see above)")
     args = parser.parse_args(argv)
     if args.five_m:
-        args.settings = ["as trained"]
+        args.settings = ["as trained", *args.settings]
         args.results = (
             HERE / "where_5m.json" if args.results == HERE / "where.json" else args.results
         )
