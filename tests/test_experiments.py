@@ -1062,6 +1062,29 @@ def test_the_consistency_page_holds_icco_against_wo_ce_at_5m_from_where_5m(tmp_p
     text = run.five_m_section(tmp_path / "where_5m.json")
     assert "## At 5M: the reproduction's ICCO against ICCO w/o CE" in text
     assert "| as trained | mi_bound | -1.0 ± 0.2 | -2.0 ± 0.2 | ahead (+1.0) |" in text
+    reading = run.where_reading(
+        {
+            **res,
+            "settings": {
+                "team 5": {
+                    "icco_5m": {"mi_bound": mean(-1.0, 0, 3), "mi_null": mean(-1.5, 0, 3)},
+                    "wo_ce": {"mi_bound": mean(-2.0, 0, 3), "mi_null": mean(-1.0, 0, 3)},
+                },
+            },
+            "verdicts": {
+                "team 5": {"reward": "behind (-9)", "consistency": "within the spread (0)"},
+                "team 6": {"reward": "within the spread (1)", "mi_bound": "ahead (+1)"},
+                "ambiguous": {"reward": "behind (-2)", "in_place: Spread out": "ahead (+0.1)"},
+            },
+        }
+    ).splitlines()
+    assert reading == [
+        "- `icco_5m` against `wo_ce`, reward: behind in team 5, ambiguous; within the spread in "
+        "team 6.",
+        "- `icco_5m` against `wo_ce`, swap consistency: within the spread in team 5.",
+        "- `icco_5m` against `wo_ce`, in place: ahead in ambiguous (Spread out).",
+        "- The bound above its floor (nats, `icco_5m` against `wo_ce`): team 5 +0.5 against -1.0.",
+    ]
     where = _load(ROOT / "experiments" / "consistency" / "where.py")
     assert where.SETTINGS["as trained"] == ("eval", [])
     assert all(p.parent.name.startswith("icco_seed") for p in where.five_m_policies("icco"))

@@ -55,6 +55,8 @@ EXPERIMENTS = HERE.parent
 sys.path.insert(0, str(EXPERIMENTS))
 import jobs  # noqa: E402  (experiments/jobs.py, the one job runner)
 from verdict import (  # noqa: E402
+    AHEAD,
+    BEHIND,
     RULE,
     WITHIN,
     Mean,
@@ -314,6 +316,8 @@ trials per seed: ambiguous instructions (`icco instruct`, plans served), zero-sh
 
 {where_table(res)}
 
+{where_reading(res)}
+
 Written by `python experiments/consistency/where.py --chosen {chosen}` into `where.json`.
 """
 
@@ -333,6 +337,8 @@ paper says consistency matters, as above. {MEANS}
 
 {where_table(res)}
 
+{where_reading(res)}
+
 Written by `python experiments/consistency/where.py --five-m` into `where_5m.json`.
 """
 
@@ -341,6 +347,46 @@ MEANS = (
     "Rewards: mean ± std over trials, seeds pooled (share of the best scripted team's at that "
     "setting); measures: mean ± std over seeds."
 )
+
+
+def where_reading(res: dict) -> str:
+    """The section's table in words: for reward, swap consistency and being in place, the
+    settings grouped by the verdict of the chosen team against the baseline; for the
+    mutual-information bound, its margin over its floor per team (the floor moves too)."""
+    chosen, base = res["chosen"], res["baseline"]
+    words = (AHEAD, BEHIND, WITHIN)
+    lines = []
+    for label, match in (
+        ("reward", lambda k: k == "reward"),
+        ("swap consistency", lambda k: k == "consistency"),
+        ("in place", lambda k: k.startswith("in_place")),
+    ):
+        found = {w: [] for w in words}
+        for setting, verdicts in res["verdicts"].items():
+            for key, text in verdicts.items():
+                word = next((w for w in words if text.startswith(w)), None)
+                if match(key) and word:
+                    what = key.removeprefix("in_place: ")
+                    found[word].append(setting if what == key else f"{setting} ({what})")
+        parts = [f"{w} in {', '.join(s)}" for w, s in found.items() if s]
+        if parts:
+            lines.append(f"- `{chosen}` against `{base}`, {label}: " + "; ".join(parts) + ".")
+    margins = []
+    for setting, teams in res["settings"].items():
+        gain = {}
+        for team in (chosen, base):
+            entry = teams.get(team) or {}
+            if entry.get("mi_bound") and entry.get("mi_null"):
+                gain[team] = entry["mi_bound"]["mean"] - entry["mi_null"]["mean"]
+        if len(gain) == 2:
+            margins.append(f"{setting} {gain[chosen]:+.1f} against {gain[base]:+.1f}")
+    if margins:
+        lines.append(
+            f"- The bound above its floor (nats, `{chosen}` against `{base}`): "
+            + "; ".join(margins)
+            + "."
+        )
+    return "\n".join(lines)
 
 
 def where_table(res: dict) -> str:
