@@ -147,6 +147,12 @@ class Gap:
         return f"{self.word} ({self.gap:+.{digits}f}, 2 SE {Z * self.se:.{digits}f})"
 
 
+def digits(measure: str) -> int:
+    """Decimals a measure is shown and judged with: 3 for the measures that live in [0, 1] (swap
+    consistency, in-place shares), 1 for rewards and nats."""
+    return 3 if measure == "consistency" or measure.startswith("in_place") else 1
+
+
 def gap_word(gap: float, se: float) -> str:
     """The rule on a gap and its standard error."""
     if not (_finite(gap) and _finite(se)):

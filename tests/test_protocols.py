@@ -200,7 +200,7 @@ def test_reports_state_each_team_reward_as_a_share_of_the_best_scripted_team():
     assert SHARE not in markdown_table(plain, ("reward",))
     assert SHARE_KEY not in results_json(plain, protocol="q", steps=4, trials=2)["methods"]["icco"]
     # a team just below zero (a path follower that ignores the task) reads 0 %, never -0 %
-    assert [metrics._share(v) for v in (-0.004, -0.006, 0.995)] == ["0 %", "-1 %", "100 %"]
+    assert [metrics.share_text(v) for v in (-0.004, -0.006, 0.995)] == ["0 %", "-1 %", "100 %"]
 
 
 def test_trajectory_figure_titles_clear_the_row_above(runs, tmp_path, monkeypatch):

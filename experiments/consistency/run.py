@@ -47,7 +47,7 @@ from pathlib import Path
 import numpy as np
 
 from icco_torchrl.evaluation.consistency import COLUMNS
-from icco_torchrl.evaluation.metrics import write_csv, write_json
+from icco_torchrl.evaluation.metrics import share_text, write_csv, write_json
 from icco_torchrl.training.build import compose_config
 
 HERE = Path(__file__).resolve().parent
@@ -62,6 +62,7 @@ from verdict import (  # noqa: E402
     Mean,
     best_scripted,
     compare,
+    digits,
     episode_mean,
     read_rows,
     share_entry,
@@ -282,12 +283,12 @@ def results(records: Path, budget: list[str]) -> dict:
     return {"budget": budget, "control": CONTROL, "screens": screens}
 
 
-def _cell(value: dict | None, digits: int = 1, share: bool = False) -> str:
+def _cell(value: dict | None, decimals: int = 1, share: bool = False) -> str:
     if not value:
         return "–"
-    text = f"{value['mean']:.{digits}f} ± {value['std']:.{digits}f}"
+    text = f"{value['mean']:.{decimals}f} ± {value['std']:.{decimals}f}"
     if share and value.get("share_of_best_scripted") is not None:
-        text += f" ({100 * value['share_of_best_scripted']:.0f} %)"
+        text += f" ({share_text(value['share_of_best_scripted'])})"
     return text
 
 
@@ -399,10 +400,9 @@ def where_table(res: dict) -> str:
     for setting, teams in res["settings"].items():
         for key, entry in (teams.get(chosen) or {}).items():
             other = (teams.get(base) or {}).get(key)
-            digits = 3 if key == "consistency" or key.startswith("in_place") else 1
             share = key == "reward"
             verdict = res["verdicts"].get(setting, {}).get(key, "–")
-            cells = [_cell(entry, digits, share), _cell(other, digits, share)]
+            cells = [_cell(entry, digits(key), share), _cell(other, digits(key), share)]
             lines.append(f"| {setting} | {key} | " + " | ".join(cells) + f" | {verdict} |")
     return "\n".join(lines)
 

@@ -44,6 +44,7 @@ from verdict import (  # noqa: E402
     Mean,
     best_scripted,
     compare,
+    digits,
     episode_mean,
     read_rows,
     share_entry,
@@ -130,8 +131,7 @@ def setting_results(folder: Path, command: str, teams: dict[str, list[Path]]) ->
 
 
 def verdicts(res: dict, chosen: str) -> dict:
-    """The chosen screen against ICCO w/o CE on each setting's reward and measures (shares and
-    consistency, which live in [0, 1], to 3 decimals)."""
+    """The chosen screen against ICCO w/o CE on each setting's reward and measures."""
     out = {}
     for setting, teams in res.items():
         a, b = teams.get(chosen) or {}, teams.get(BASELINE) or {}
@@ -139,7 +139,7 @@ def verdicts(res: dict, chosen: str) -> dict:
             key: compare(
                 Mean(a[key]["mean"], a[key]["std"], a[key]["n"]),
                 Mean(b[key]["mean"], b[key]["std"], b[key]["n"]),
-            ).text(digits=1 if key == "reward" or key.startswith("mi_") else 3)
+            ).text(digits(key))
             for key in a
             if a.get(key) and b.get(key)
         }

@@ -48,6 +48,7 @@ from icco_torchrl.evaluation.metrics import (
     result_name,
     results_json,
     segment_table,
+    share_text,
     summarize,
     write_json,
 )
@@ -303,8 +304,7 @@ TOLERANCE = 1e-5  # a reference reproduced on another machine: float32 sums in a
 
 
 def _share_cell(entry: dict) -> str:
-    share = entry.get(SHARE_KEY)
-    return "–" if share is None else f"{100 * share:.0f} %"
+    return share_text(entry.get(SHARE_KEY))
 
 
 def _is_reference(label: str) -> bool:

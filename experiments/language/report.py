@@ -53,6 +53,7 @@ from icco_torchrl.evaluation.metrics import (
     result_name,
     results_json,
     segment_table,
+    share_text,
     summarize,
     write_json,
 )
@@ -274,7 +275,7 @@ def following_costs(summary: list[dict]) -> list[str]:
         return "/".join(f"{100 * cell[method, s].get('in_place', math.nan):.0f}" for s in segments)
 
     ceiling, top = cell["pursuit", EPISODE]["reward"], cell[best, EPISODE]["reward"]
-    share = f"{round(100 * ceiling / top)} %" if top > 0 else "–"
+    share = share_text(ceiling / top if top > 0 else None)
     return [
         "- **Being in place against the reward.** The perfect path follower (`pursuit`, which "
         f"ignores the task) is in place {places('pursuit')} % ({', '.join(segments)}) and earns "
@@ -482,7 +483,7 @@ def add_references(readme: Path, folder: Path) -> Path:
     share = new[0].index(SHARE)
     for row in learned:  # cells as rendered, the share from results.json
         entry = results["methods"][result_name(row[0])]
-        row[share:] = ["–" if entry[SHARE_KEY] is None else f"{round(100 * entry[SHARE_KEY])} %"]
+        row[share:] = [share_text(entry[SHARE_KEY])]
     text = text[:start] + intro + "\n\n" + markdown_rows([new[0], *learned, *new[2:]]) + text[end:]
 
     # Table II: its references (task-aligned plans) where the page has any.

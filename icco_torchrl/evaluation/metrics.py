@@ -189,8 +189,9 @@ def best_scripted_shares(summary: Sequence[Mapping], segment: str = EPISODE) -> 
     return {row["method"]: row["reward"] / scale for row in rows}
 
 
-def _share(value: float | None) -> str:
-    # round() to an int: a share just below zero reads "0 %", not "-0 %"
+def share_text(value: float | None) -> str:
+    """A share of the best scripted team's reward as a table cell: ``"96 %"``, ``"–"`` when
+    unknown; rounded to an int, so a share just below zero reads "0 %", not "-0 %"."""
     return "–" if value is None or not math.isfinite(value) else f"{round(100 * value)} %"
 
 
@@ -224,7 +225,7 @@ def markdown_table(
     for row in rows:
         cells = [str(row["method"]), f"{row['n']} ({row['seeds']} seed{'s' * (row['seeds'] != 1)})"]
         cells += [_cell(row, m, digits.get(m, 1)) for m in metrics]
-        cells += [_share(shares[row["method"]])] if shares else []
+        cells += [share_text(shares[row["method"]])] if shares else []
         lines.append("| " + " | ".join(cells) + " |")
     for method in missing:
         lines.append("| " + " | ".join([method, "missing"] + ["–"] * (len(head) - 2)) + " |")
