@@ -957,10 +957,16 @@ def test_the_consistency_rule_takes_the_reward_winner_or_at_equal_reward_the_lar
         c = entry["coordination"]
         return c["mi_bound"]["mean"] - c["mi_null"]["mean"], 0.2
 
+    # b: 2.0 +- 0.2 above its floor against a's 0.5 +- 0.2, beyond the spread: b wins on MI.
     level = {"a": screen(360.0, -1.5), "b": screen(355.0, 0.0), "c": screen(300.0, 1.0)}
     assert "`b`, of the weights at equal reward (`a`, `b`)" in run.decision(level, "a", gain)
     clear = {"a": screen(360.0, -1.5), "b": screen(340.0, 0.0)}  # b is behind: a wins outright
     assert run.decision(clear, "a", gain).endswith("`a`, the highest reward.")
+    # b's bound is higher on the mean (0.8 against 0.5) but within the spread: a stays.
+    close = {"a": screen(360.0, -1.5), "b": screen(355.0, -1.2)}
+    assert "`a`, the highest reward; no weight at equal reward (`b`)" in run.decision(
+        close, "a", gain
+    )
 
 
 def test_the_language_protocol_replays_kept_policies_or_names_what_trains_them(tmp_path):

@@ -407,10 +407,17 @@ def where_table(res: dict) -> str:
     return "\n".join(lines)
 
 
+DEFAULT_RULE = (
+    "Rule for the default (highest reward; at equal reward, the MI bound beyond the spread)"
+)
+
+
 def decision(screens: dict, top: str, gain) -> str:
     """Issue 48's rule for ICCO's default, in words: the weight that wins on reward (``top``),
-    or, among the weights within the spread of its reward, the one with the largest bound above
-    its floor (``gain``: ``(gain, spread)`` or None)."""
+    or, among the weights within the spread of its reward, the one whose bound above its floor
+    wins: above ``top``'s beyond the seeds' spread (``gain``: ``(gain, spread)`` or None; the
+    intervals ``gain ± spread`` do not overlap, the test the reading applies against ICCO w/o
+    CE). A weight whose bound is only higher on the mean does not win."""
     r = screens[top]["quadrants"]["reward"]
     level = [top]
     for name, entry in screens.items():
@@ -422,17 +429,31 @@ def decision(screens: dict, top: str, gain) -> str:
             == WITHIN
         ):
             level.append(name)
-    gains = {n: gain(screens[n]) for n in level if gain(screens[n]) is not None}
-    pick = max(gains, key=lambda n: gains[n][0]) if len(gains) == len(level) > 1 else top
-    why = (
-        "the highest reward"
-        if len(level) == 1
-        else (
-            f"of the weights at equal reward ({', '.join(f'`{n}`' for n in level)}), the largest "
-            "bound above its floor"
+    names = lambda group: ", ".join(f"`{n}`" for n in group)  # noqa: E731
+    if len(level) == 1:
+        return f"{DEFAULT_RULE}: `{top}`, the highest reward."
+    mine = gain(screens[top])
+    gains = {n: gain(screens[n]) for n in level[1:]}
+    winners = {
+        n: g
+        for n, g in gains.items()
+        if g is not None and mine is not None and g[0] - g[1] > mine[0] + mine[1]
+    }
+    if winners:
+        pick = max(winners, key=lambda n: winners[n][0])
+        return (
+            f"{DEFAULT_RULE}: `{pick}`, of the weights at equal reward ({names(level)}), the bound "
+            f"above its floor beyond the seeds' spread of `{top}`'s."
         )
+    shown = lambda n, g: f"`{n}` {g[0]:+.2f} ± {g[1]:.2f}"  # noqa: E731
+    margins = ", ".join(shown(n, g) for n, g in gains.items() if g is not None)
+    return (
+        f"{DEFAULT_RULE}: `{top}`, the highest reward; no weight at equal reward "
+        f"({names(level[1:])}) has its bound above its floor beyond the seeds' spread of "
+        f"`{top}`'s (nats above the floor, ± the seeds' spread: "
+        + (f"{shown(top, mine)}, " if mine is not None else "")
+        + f"{margins})."
     )
-    return f"Rule for the default (highest reward; at equal reward, the MI bound): `{pick}`, {why}."
 
 
 def reading(screens: dict) -> str:
