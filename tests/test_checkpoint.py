@@ -26,6 +26,7 @@ from icco_torchrl.training.checkpoint import (
     FORMAT_VERSION,
     RunState,
     load_checkpoint,
+    policy_of,
     restore_replay,
     save_checkpoint,
 )
@@ -126,6 +127,31 @@ def test_a_checkpoint_round_trips_and_loads_weights_only(tmp_path):
     assert torch.equal(torch.rand(4), expected[1]) and torch.equal(
         torch.rand(4, generator=gen), expected[2]
     )
+
+
+def test_an_exported_policy_names_no_folder_of_the_machine_that_trained_it(tmp_path):
+    """A resumed run's config holds the path it resumed from: the exported policy (shared, and
+    committed beside the records) keeps the weights and every other field, and drops that path."""
+    cfg = {
+        "seed": 1,
+        "resume": str(tmp_path / "run" / "checkpoint.pt"),
+        "checkpoint": str(tmp_path / "other.pt"),
+        "method": {"name": "icco", "hidden": 64},
+    }
+    state = {
+        "cfg": cfg,
+        "layout": {"n_agents": 3},
+        "frames": 2048,
+        "updates": 7,
+        "optimizer": _optimizer_state(),
+        "loss": {"w": torch.ones(2), "target_w": torch.zeros(2)},
+    }
+    path = save_checkpoint(tmp_path / "policy.pt", policy_of(state))  # what export_policy saves
+    policy = load_checkpoint(path, require=())
+    assert policy["cfg"] == {**cfg, "resume": None, "checkpoint": None}
+    assert str(tmp_path) not in path.read_bytes().decode("latin-1")
+    assert list(policy["loss"]) == ["w"] and "optimizer" not in policy and policy["policy_only"]
+    assert state["cfg"]["resume"] == cfg["resume"]  # the run's own state keeps them
 
 
 def test_stale_checkpoint_temp_files_are_removed(tmp_path):

@@ -95,6 +95,8 @@ class RunState:
 
 # What an exported policy keeps of a run's state (:func:`export_policy`): enough to act.
 POLICY_FIELDS = ("cfg", "layout", "frames", "updates", "loss")
+#: Config fields that hold a path of the training machine: cleared in an exported policy.
+MACHINE_PATHS = ("resume", "checkpoint")
 
 # numpy arrays (the RNG state of ``np.random.get_state()``) are stored as tensors under this tag.
 _NDARRAY = "__ndarray__"
@@ -422,9 +424,12 @@ def export_policy(src: str | Path, dst: str | Path) -> Path:
 
 def policy_of(state: dict | RunState) -> dict:
     """The weights-only payload of a run's state (a checkpoint's dict or a :class:`RunState`):
-    :data:`POLICY_FIELDS`, the networks without their target copies."""
+    :data:`POLICY_FIELDS`, the networks without their target copies, and the config without
+    :data:`MACHINE_PATHS` (a shared policy names no folder of the machine that trained it)."""
     ckpt = state.checkpoint() if isinstance(state, RunState) else state
     slim = {k: ckpt[k] for k in POLICY_FIELDS if k in ckpt}
+    if isinstance(slim.get("cfg"), dict):  # the training machine's paths stay on that machine
+        slim["cfg"] = {**slim["cfg"], **{k: None for k in MACHINE_PATHS if k in slim["cfg"]}}
     slim["loss"] = {k: v for k, v in ckpt["loss"].items() if not k.startswith("target_")}
     slim["policy_only"] = True
     return slim
