@@ -988,6 +988,19 @@ def test_the_language_protocol_replays_kept_policies_or_names_what_trains_them(t
     assert run.kept(tmp_path, "icco", [0, 2]) is None
 
 
+def test_the_language_protocol_trains_its_agents_through_the_four_quadrant_script(monkeypatch):
+    """One code path for training: the four-quadrant script, ``--jobs`` runs side by side."""
+    run = _load(ROOT / "experiments" / "language" / "run.py")
+    calls = []
+    monkeypatch.setattr(run, "run", lambda *command: calls.append(command))
+    run.train(Path("sweep"), ["qmix"], [0, 1, 2], ["experiment=repro_5m"], False, 3)
+    (command,) = calls
+    assert command[1].endswith("four_quadrants/run.py") and command[2] == "--train-only"
+    words = " ".join(command[3:])
+    assert "--jobs 3" in words and "--methods qmix --seeds 0 1 2" in words
+    assert words.endswith("--budget experiment=repro_5m")
+
+
 def test_the_language_page_shows_where_the_robots_are_per_instruction():
     report = _load(ROOT / "experiments" / "language" / "report.py")
     rows = [

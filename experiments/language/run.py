@@ -86,12 +86,15 @@ def run(*command: str) -> None:
     subprocess.run(list(command), check=True)
 
 
-def train(sweep: Path, methods, seeds, budget, smoke: bool) -> None:
-    """Resumable training through the four-quadrant script (one code path for every sweep)."""
+def train(sweep: Path, methods, seeds, budget, smoke: bool, jobs: int = 2) -> None:
+    """Resumable training through the four-quadrant script (one code path for every sweep),
+    ``jobs`` runs side by side."""
     run(
         sys.executable,
         str(HERE.parent / "four_quadrants" / "run.py"),
         "--train-only",
+        "--jobs",
+        str(jobs),
         "--sweep",
         str(sweep),
         "--methods",
@@ -195,6 +198,9 @@ def main(argv=None) -> None:
         "--smoke", action="store_true", help="tiny budget, 4 trials, 20 steps: a pipeline check"
     )
     parser.add_argument(
+        "--jobs", type=int, default=2, help="training runs side by side (one core each)"
+    )
+    parser.add_argument(
         "--readme", type=Path, default=HERE / "README.md", help="where report.py writes"
     )
     args = parser.parse_args(argv)
@@ -209,7 +215,7 @@ def main(argv=None) -> None:
     if args.records:
         policies = from_records(args.records, agents, args.seeds, args.budget)
     else:
-        train(sweep, agents, args.seeds, args.budget, args.smoke)
+        train(sweep, agents, args.seeds, args.budget, args.smoke, args.jobs)
         policies = {m: checkpoints(sweep, m, args.seeds) for m in agents}
     wo_tr_policies = None
     if table2 and args.wo_tr_records:
@@ -221,6 +227,7 @@ def main(argv=None) -> None:
             args.seeds,
             [*(args.budget or ([] if args.smoke else ["experiment=default"])), *NO_TASK_REWARD],
             args.smoke,
+            args.jobs,
         )
         wo_tr_policies = checkpoints(wo_tr, "qmix", args.seeds)
         if args.wo_tr_records:
