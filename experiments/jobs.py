@@ -8,6 +8,7 @@ side by side use a 2-core machine fully). Each run logs to ``<folder>.log``.
 
 from __future__ import annotations
 
+import argparse
 import copy
 import csv
 import functools
@@ -81,8 +82,22 @@ def child_environment() -> dict[str, str]:
     return env
 
 
+def job_count(text: str) -> int:
+    """``--jobs``: training runs side by side, a whole number of at least 1 (argparse prints the
+    error in one line; 0 would wait forever with nothing running)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number of runs") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{value}: at least 1 run at a time")
+    return value
+
+
 def train_runs(runs: dict[Path, tuple[list[str], int]], jobs: int = 2) -> None:
     """Bring every run ``{folder: (overrides, total_frames)}`` to its budget, ``jobs`` at a time."""
+    if jobs < 1:
+        raise ValueError(f"jobs={jobs}: at least 1 run at a time")
     status = {run: run_status(run, total) for run, (_, total) in runs.items()}
     print("runs: " + ", ".join(f"{run.name}={state}" for run, state in status.items()), flush=True)
     queue = []

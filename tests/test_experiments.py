@@ -1107,3 +1107,26 @@ def test_the_consistency_page_holds_icco_against_wo_ce_at_5m_from_where_5m(tmp_p
     where = _load(ROOT / "experiments" / "consistency" / "where.py")
     assert where.SETTINGS["as trained"] == ("eval", [])
     assert all(p.parent.name.startswith("icco_seed") for p in where.five_m_policies("icco"))
+
+
+def test_no_experiment_waits_forever_on_zero_jobs():
+    """``--jobs 0`` ran nothing and waited for it forever: every script's ``--jobs`` now takes
+    a whole number of at least 1, refused in one line otherwise, and the runner refuses it too."""
+    import argparse
+    import re
+
+    jobs = _load(ROOT / "experiments" / "jobs.py")
+    assert jobs.job_count("3") == 3
+    for bad, said in (("0", "0: at least 1 run at a time"), ("-2", "-2: at least 1"), ("x", "'x'")):
+        with pytest.raises(argparse.ArgumentTypeError, match=re.escape(said)):
+            jobs.job_count(bad)
+    with pytest.raises(ValueError, match="at least 1 run"):
+        jobs.train_runs({ROOT / "never": (["method=icco"], 10)}, jobs=0)
+    scripts = sorted((ROOT / "experiments").rglob("*.py"))
+    options = [
+        (p.relative_to(ROOT), m.group(1))
+        for p in scripts
+        for m in re.finditer(r'"--jobs",\s*type=([\w.]+)', p.read_text())
+    ]
+    assert len(options) >= 8, options
+    assert all(kind.endswith("job_count") for _, kind in options), options

@@ -610,7 +610,7 @@ def main(argv=None) -> None:
         help="training overrides instead of BUDGET (with --smoke: added to the smoke budget)",
     )
     parser.add_argument(
-        "--jobs", type=int, default=2, help="training runs side by side (one core each)"
+        "--jobs", type=jobs.job_count, default=2, help="training runs side by side (one core each)"
     )
     parser.add_argument("--trials", type=int, default=20, help="evaluation trials per checkpoint")
     parser.add_argument(

@@ -121,7 +121,7 @@ def main(argv=None) -> None:
     )
     parser.add_argument("--train-only", action="store_true", help="stop after training")
     parser.add_argument(
-        "--jobs", type=int, default=2, help="training runs side by side (one core each)"
+        "--jobs", type=jobs.job_count, default=2, help="training runs side by side (one core each)"
     )
     parser.add_argument(
         "--readme", type=Path, default=HERE / "README.md", help="where report.py writes"

@@ -198,7 +198,7 @@ def main(argv=None) -> None:
         "--smoke", action="store_true", help="tiny budget, 4 trials, 20 steps: a pipeline check"
     )
     parser.add_argument(
-        "--jobs", type=int, default=2, help="training runs side by side (one core each)"
+        "--jobs", type=jobs.job_count, default=2, help="training runs side by side (one core each)"
     )
     parser.add_argument(
         "--readme", type=Path, default=HERE / "README.md", help="where report.py writes"

@@ -211,7 +211,7 @@ def main(argv=None) -> None:
     parser.add_argument(
         "--smoke", action="store_true", help="tiny budget, 2 trials, 10 steps: a pipeline check"
     )
-    parser.add_argument("--jobs", type=int, default=2, help="training runs side by side")
+    parser.add_argument("--jobs", type=jobs.job_count, default=2, help="training runs side by side")
     parser.add_argument("--out", type=Path, help="results.json, README.md and figures/")
     parser.add_argument(
         "--beta-screen", nargs="+", type=Path, help="ICCO checkpoints: run only the beta sweep"
