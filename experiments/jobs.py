@@ -82,15 +82,16 @@ def child_environment() -> dict[str, str]:
     return env
 
 
-def job_count(text: str) -> int:
-    """``--jobs``: training runs side by side, a whole number of at least 1 (argparse prints the
-    error in one line; 0 would wait forever with nothing running)."""
+def positive(text: str) -> int:
+    """A count that must be at least 1 (``--jobs``, ``--trials``, ``--steps``), as an argparse
+    type: a bad value is one line before anything trains (``--jobs 0`` would wait forever with
+    nothing running; ``--trials 0`` would fail only after the training)."""
     try:
         value = int(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number of runs") from None
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
     if value < 1:
-        raise argparse.ArgumentTypeError(f"{value}: at least 1 run at a time")
+        raise argparse.ArgumentTypeError(f"{value}: must be at least 1")
     return value
 
 

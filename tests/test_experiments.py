@@ -1109,24 +1109,26 @@ def test_the_consistency_page_holds_icco_against_wo_ce_at_5m_from_where_5m(tmp_p
     assert all(p.parent.name.startswith("icco_seed") for p in where.five_m_policies("icco"))
 
 
-def test_no_experiment_waits_forever_on_zero_jobs():
-    """``--jobs 0`` ran nothing and waited for it forever: every script's ``--jobs`` now takes
-    a whole number of at least 1, refused in one line otherwise, and the runner refuses it too."""
+def test_no_experiment_waits_forever_on_zero_jobs_or_trains_for_zero_trials():
+    """``--jobs 0`` ran nothing and waited for it forever, ``--trials 0`` failed only after the
+    training: every script that trains takes counts of at least 1, refused in one line
+    otherwise, and the runner refuses 0 jobs too."""
     import argparse
     import re
 
     jobs = _load(ROOT / "experiments" / "jobs.py")
-    assert jobs.job_count("3") == 3
-    for bad, said in (("0", "0: at least 1 run at a time"), ("-2", "-2: at least 1"), ("x", "'x'")):
+    assert jobs.positive("3") == 3
+    for bad, said in (("0", "0: must be at least 1"), ("-2", "-2: must be"), ("x", "'x' is not")):
         with pytest.raises(argparse.ArgumentTypeError, match=re.escape(said)):
-            jobs.job_count(bad)
+            jobs.positive(bad)
     with pytest.raises(ValueError, match="at least 1 run"):
         jobs.train_runs({ROOT / "never": (["method=icco"], 10)}, jobs=0)
-    scripts = sorted((ROOT / "experiments").rglob("*.py"))
-    options = [
-        (p.relative_to(ROOT), m.group(1))
-        for p in scripts
-        for m in re.finditer(r'"--jobs",\s*type=([\w.]+)', p.read_text())
-    ]
-    assert len(options) >= 8, options
-    assert all(kind.endswith("job_count") for _, kind in options), options
+    options = []
+    for path in sorted((ROOT / "experiments").rglob("*.py")):
+        text = path.read_text()
+        if "train_runs" not in text and "--train-only" not in text:
+            continue  # evaluates only: `icco eval` refuses a bad count at once
+        pattern = r'"--(jobs|trials|steps)",\s*type=([\w.]+)'
+        options += [(path.name, m.group(1), m.group(2)) for m in re.finditer(pattern, text)]
+    assert len(options) >= 16, options
+    assert all(kind.endswith("positive") for *_, kind in options), options

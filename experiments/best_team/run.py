@@ -27,7 +27,7 @@ from icco_torchrl.training.build import compose_config
 HERE = Path(__file__).resolve().parent
 EXPERIMENTS = HERE.parent
 sys.path.insert(0, str(EXPERIMENTS))
-from jobs import job_count, train_runs  # noqa: E402  (experiments/jobs.py, the one job runner)
+from jobs import positive, train_runs  # noqa: E402  (experiments/jobs.py, the one job runner)
 
 # At least 2M frames (the screen budget), the 5M reproduction's recipe otherwise.
 BUDGET = ["experiment=repro_5m", "train.total_frames=2000000"]
@@ -101,7 +101,7 @@ def main(argv=None) -> None:
     parser.add_argument("--out", type=Path, default=Path("multirun/best_team"))
     parser.add_argument("--only", nargs="+", choices=list(SCREENS))
     parser.add_argument("--seeds", nargs="+", type=int, default=list(SEEDS))
-    parser.add_argument("--jobs", type=job_count, default=2, help="training runs side by side")
+    parser.add_argument("--jobs", type=positive, default=2, help="training runs side by side")
     parser.add_argument("--train-only", action="store_true")
     args = parser.parse_args(argv)
     out, names = args.out.resolve(), args.only or list(SCREENS)

@@ -610,11 +610,13 @@ def main(argv=None) -> None:
         help="training overrides instead of BUDGET (with --smoke: added to the smoke budget)",
     )
     parser.add_argument(
-        "--jobs", type=jobs.job_count, default=2, help="training runs side by side (one core each)"
+        "--jobs", type=jobs.positive, default=2, help="training runs side by side (one core each)"
     )
-    parser.add_argument("--trials", type=int, default=20, help="evaluation trials per checkpoint")
     parser.add_argument(
-        "--steps", type=int, default=145, help="steps per quadrant and per instruction"
+        "--trials", type=jobs.positive, default=20, help="evaluation trials per checkpoint"
+    )
+    parser.add_argument(
+        "--steps", type=jobs.positive, default=145, help="steps per quadrant and per instruction"
     )
     parser.add_argument(
         "--records", type=Path, help="records folder (default here, or the sweep's with --smoke)"

@@ -112,16 +112,21 @@ def main(argv=None) -> None:
     )
     parser.add_argument("--seeds", nargs="+", type=int, default=list(SEEDS))
     parser.add_argument(
-        "--trials", type=int, default=20, help="evaluation trials per checkpoint (paper: 20)"
+        "--trials",
+        type=jobs.positive,
+        default=20,
+        help="evaluation trials per checkpoint (paper: 20)",
     )
-    parser.add_argument("--steps", type=int, default=145, help="steps per quadrant (paper: 145)")
+    parser.add_argument(
+        "--steps", type=jobs.positive, default=145, help="steps per quadrant (paper: 145)"
+    )
     parser.add_argument("--gif", action="store_true", help="also write a GIF per method")
     parser.add_argument(
         "--smoke", action="store_true", help="tiny budget, 4 trials, 20 steps: a pipeline check"
     )
     parser.add_argument("--train-only", action="store_true", help="stop after training")
     parser.add_argument(
-        "--jobs", type=jobs.job_count, default=2, help="training runs side by side (one core each)"
+        "--jobs", type=jobs.positive, default=2, help="training runs side by side (one core each)"
     )
     parser.add_argument(
         "--readme", type=Path, default=HERE / "README.md", help="where report.py writes"

@@ -186,8 +186,12 @@ def main(argv=None) -> None:
     parser.add_argument(
         "--llm", default="offline", help="conf/llm group: offline | openai | ollama"
     )
-    parser.add_argument("--trials", type=int, default=20, help="trials per checkpoint (paper: 20)")
-    parser.add_argument("--steps", type=int, default=145, help="steps per instruction (paper: 145)")
+    parser.add_argument(
+        "--trials", type=jobs.positive, default=20, help="trials per checkpoint (paper: 20)"
+    )
+    parser.add_argument(
+        "--steps", type=jobs.positive, default=145, help="steps per instruction (paper: 145)"
+    )
     parser.add_argument(
         "--plan",
         choices=("served", "fixed"),
@@ -198,7 +202,7 @@ def main(argv=None) -> None:
         "--smoke", action="store_true", help="tiny budget, 4 trials, 20 steps: a pipeline check"
     )
     parser.add_argument(
-        "--jobs", type=jobs.job_count, default=2, help="training runs side by side (one core each)"
+        "--jobs", type=jobs.positive, default=2, help="training runs side by side (one core each)"
     )
     parser.add_argument(
         "--readme", type=Path, default=HERE / "README.md", help="where report.py writes"

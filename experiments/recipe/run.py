@@ -23,7 +23,7 @@ from icco_torchrl.training.logger import clock_seconds
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
-from jobs import PRE_SEQUENCE_REPLAY, job_count, train_runs  # noqa: E402  (experiments/jobs.py)
+from jobs import PRE_SEQUENCE_REPLAY, positive, train_runs  # noqa: E402  (experiments/jobs.py)
 
 # The first budget (2026-11-22) with the first three levers of issue 7's probe (replay ratio 8
 # updates per batch, a hard target copy every 50 updates, epsilon at its floor after 300k frames).
@@ -336,7 +336,7 @@ def main(argv=None) -> None:
     parser.add_argument("--out", type=Path, default=Path("multirun/recipe"))
     parser.add_argument("--frames", type=int, default=800_000)
     parser.add_argument("--only", nargs="+", choices=list(LEVERS))
-    parser.add_argument("--jobs", type=job_count, default=2)
+    parser.add_argument("--jobs", type=positive, default=2)
     parser.add_argument("--report-only", action="store_true")
     args = parser.parse_args(argv)
     if not args.report_only:

@@ -32,7 +32,7 @@ from icco_torchrl.training.logger import clock_seconds
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 import verdict  # noqa: E402  (experiments/verdict.py: the rule every page judges gaps by)
-from jobs import job_count  # noqa: E402  (experiments/jobs.py: the one job runner)
+from jobs import positive  # noqa: E402  (experiments/jobs.py: the one job runner)
 
 FOUR_QUADRANTS = HERE.parent / "four_quadrants"
 BUDGET = ["experiment=repro_cpu", "train.checkpoint_buffer=false"]
@@ -242,7 +242,7 @@ def main(argv=None) -> None:
     )
     parser.add_argument("--out", type=Path, default=Path("multirun/sequence_replay"))
     parser.add_argument("--only", nargs="+", choices=list(SCREENS))
-    parser.add_argument("--jobs", type=job_count, default=2, help="training runs side by side")
+    parser.add_argument("--jobs", type=positive, default=2, help="training runs side by side")
     parser.add_argument("--report-only", action="store_true")
     args = parser.parse_args(argv)
     out = args.out.resolve()

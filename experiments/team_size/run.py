@@ -206,12 +206,12 @@ def main(argv=None) -> None:
     parser.add_argument("--team-sizes", nargs="+", type=int, default=list(TEAM_SIZES))
     parser.add_argument("--betas", nargs="+", type=float, default=list(BETAS))
     parser.add_argument("--beta-team-size", type=int, default=3)
-    parser.add_argument("--trials", type=int, default=20, help="trials per checkpoint")
-    parser.add_argument("--steps", type=int, default=145, help="steps per quadrant")
+    parser.add_argument("--trials", type=jobs.positive, default=20, help="trials per checkpoint")
+    parser.add_argument("--steps", type=jobs.positive, default=145, help="steps per quadrant")
     parser.add_argument(
         "--smoke", action="store_true", help="tiny budget, 2 trials, 10 steps: a pipeline check"
     )
-    parser.add_argument("--jobs", type=jobs.job_count, default=2, help="training runs side by side")
+    parser.add_argument("--jobs", type=jobs.positive, default=2, help="training runs side by side")
     parser.add_argument("--out", type=Path, help="results.json, README.md and figures/")
     parser.add_argument(
         "--beta-screen", nargs="+", type=Path, help="ICCO checkpoints: run only the beta sweep"

@@ -285,9 +285,9 @@ def main(argv=None) -> None:
     parser.add_argument("--only", nargs="+", choices=list(SCREENS), default=list(SCREENS))
     parser.add_argument("--seeds", nargs="+", type=int, default=list(SEEDS))
     parser.add_argument(
-        "--jobs", type=jobs.job_count, default=2, help="runs side by side (one core each)"
+        "--jobs", type=jobs.positive, default=2, help="runs side by side (one core each)"
     )
-    parser.add_argument("--trials", type=int, default=serving.TRIALS)
+    parser.add_argument("--trials", type=jobs.positive, default=serving.TRIALS)
     parser.add_argument("--out", type=Path, default=Path("multirun/language_routes"))
     parser.add_argument("--records", type=Path, help="default: records/ here (--smoke: --out)")
     parser.add_argument("--smoke", action="store_true", help="seconds-long runs, 2 trials")
