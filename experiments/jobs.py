@@ -3,7 +3,8 @@
 A run is ``icco train <overrides> hydra.run.dir=<folder>``. :func:`run_status` says whether its
 checkpoint reached the budget; :func:`train_runs` starts missing runs, resumes partial ones from
 their checkpoint (``resume=``) and keeps ``jobs`` processes busy (one torch thread each: two
-side by side use a 2-core machine fully). Each run logs to ``<folder>.log``.
+side by side use a 2-core machine fully). Each run logs to ``<folder>.log``; every 10 minutes
+the runner prints each running run's frames and, at its pace so far, the minutes it has left.
 """
 
 from __future__ import annotations
@@ -95,8 +96,45 @@ def positive(text: str) -> int:
     return value
 
 
-def train_runs(runs: dict[Path, tuple[list[str], int]], jobs: int = 2) -> None:
-    """Bring every run ``{folder: (overrides, total_frames)}`` to its budget, ``jobs`` at a time."""
+def frames_logged(run: Path) -> int | None:
+    """The frame count of the last complete row of ``run/train.csv`` (read from its tail), or
+    None before its first row."""
+    try:
+        with (run / "train.csv").open("rb") as handle:
+            handle.seek(0, os.SEEK_END)
+            handle.seek(max(0, handle.tell() - 4096))
+            tail = handle.read().decode(errors="replace")
+    except OSError:
+        return None
+    rows = tail.split("\n")[:-1]  # a row still being written has no newline yet
+    for row in reversed(rows):
+        head = row.split(",", 1)[0]
+        if head.isdigit():
+            return int(head)
+    return None
+
+
+def progress_line(seen: dict[Path, tuple[int, int, float, float]], waiting: int) -> str:
+    """One line on the runs in progress: ``seen[run] = (total, frames then, frames now, seconds
+    between)``, each with its frames, its share of the budget and, once it moved, the minutes
+    it has left at its pace so far; ``waiting`` runs still queued."""
+    parts = []
+    for run, (total, first, now, seconds) in seen.items():
+        part = f"{run.name} {now:,} of {total:,} frames ({100 * now / total:.0f} %)"
+        if now > first and seconds > 0:
+            left = (total - now) / ((now - first) / seconds) / 60
+            part += f", about {left:.0f} min left"
+        parts.append(part)
+    queued = f"; {waiting} queued" if waiting else ""
+    return "progress: " + "; ".join(parts) + queued
+
+
+def train_runs(
+    runs: dict[Path, tuple[list[str], int]], jobs: int = 2, report_every: float = 600.0
+) -> None:
+    """Bring every run ``{folder: (overrides, total_frames)}`` to its budget, ``jobs`` at a time,
+    with a :func:`progress_line` every ``report_every`` seconds (the runs' own logs hold the
+    rest)."""
     if jobs < 1:
         raise ValueError(f"jobs={jobs}: at least 1 run at a time")
     status = {run: run_status(run, total) for run, (_, total) in runs.items()}
@@ -126,6 +164,8 @@ def train_runs(runs: dict[Path, tuple[list[str], int]], jobs: int = 2) -> None:
         )
     running: list[tuple[Path, subprocess.Popen]] = []
     failed = []
+    first: dict[Path, tuple[int, float]] = {}  # each run's first logged frames, and when
+    reported = time.monotonic()
     while queue or running:
         while queue and len(running) < jobs:
             run, command = queue.pop(0)
@@ -141,6 +181,18 @@ def train_runs(runs: dict[Path, tuple[list[str], int]], jobs: int = 2) -> None:
                     )
                 )
         time.sleep(2)
+        now = time.monotonic()
+        for run, _ in running:
+            if run not in first and (frames := frames_logged(run)) is not None:
+                first[run] = (frames, now)
+        if now - reported >= report_every:
+            reported = now
+            seen = {}
+            for run, _ in running:
+                if run in first and (frames := frames_logged(run)) is not None:
+                    seen[run] = (runs[run][1], first[run][0], frames, now - first[run][1])
+            if seen:
+                print(progress_line(seen, len(queue)), flush=True)
         for item in [r for r in running if r[1].poll() is not None]:
             running.remove(item)
             run, proc = item

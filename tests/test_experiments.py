@@ -1132,3 +1132,52 @@ def test_no_experiment_waits_forever_on_zero_jobs_or_trains_for_zero_trials():
         options += [(path.name, m.group(1), m.group(2)) for m in re.finditer(pattern, text)]
     assert len(options) >= 16, options
     assert all(kind.endswith("positive") for *_, kind in options), options
+
+
+def test_long_training_reports_each_runs_frames_and_minutes_left(tmp_path):
+    """A sweep of 100-minute runs prints where each run is: its last complete train.csv row (not
+    a row still being written), its share of the budget and, at its pace so far, what is left."""
+    jobs = _load(ROOT / "experiments" / "jobs.py")
+    run = tmp_path / "qmix_seed0"
+    run.mkdir()
+    assert jobs.frames_logged(run) is None  # no train.csv yet
+    (run / "train.csv").write_text("frames,updates\n")
+    assert jobs.frames_logged(run) is None  # a header, no row
+    (run / "train.csv").write_text("frames,updates\n512,0\n1024,3\n15")  # "15..." being written
+    assert jobs.frames_logged(run) == 1024
+    other = tmp_path / "icco_seed1"
+    # qmix: 1,000 frames in 100 s since first seen (10/s), 3,000 to go: 300 s, 5 min.
+    line = jobs.progress_line(
+        {run: (5000, 1000, 2000, 100.0), other: (5000, 4096, 4096, 30.0)}, waiting=2
+    )
+    assert line == (
+        "progress: qmix_seed0 2,000 of 5,000 frames (40 %), about 5 min left; "
+        "icco_seed1 4,096 of 5,000 frames (82 %); 2 queued"
+    )
+
+
+def test_the_job_runner_prints_progress_while_its_runs_train(tmp_path, monkeypatch, capsys):
+    """The runner's loop itself: a run that logs a row per poll shows up in a progress line."""
+    jobs = _load(ROOT / "experiments" / "jobs.py")
+    run = tmp_path / "icco_seed0"
+
+    class Child:  # stands in for `icco train`: one more train.csv row at each poll, done at 4
+        def __init__(self, command, **_):
+            assert f"hydra.run.dir={run}" in command
+            run.mkdir(parents=True, exist_ok=True)
+            self.rows, self.returncode = 0, None
+
+        def poll(self):
+            self.rows += 1
+            rows = "".join(f"{512 * k},0\n" for k in range(1, self.rows + 1))
+            (run / "train.csv").write_text("frames,updates\n" + rows)
+            if self.rows >= 4:
+                self.returncode = 0
+            return self.returncode
+
+    monkeypatch.setattr(jobs.subprocess, "Popen", Child)
+    monkeypatch.setattr(jobs.time, "sleep", lambda seconds: None)
+    jobs.train_runs({run: (["method=icco"], 4096)}, jobs=1, report_every=0.0)
+    out = capsys.readouterr().out
+    assert "progress: icco_seed0 " in out and " of 4,096 frames (" in out
+    assert out.rstrip().endswith("icco_seed0: done")
