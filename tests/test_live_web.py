@@ -778,6 +778,10 @@ def test_the_page_in_a_real_browser_go_right_moves_waypoints_and_robots(served, 
             await tools.until("icco.planner && icco.planner.state === 'used'")
             assert await tools.js(_text("reading")) == "read as: defend home"
             assert await tools.js(_text("unused")) == "not understood (ignored): flank"
+            # Where the waypoints lead under "defend home" (slots at home, the field's centre).
+            await tools.until("icco.state.plan === 'flank the intruder'")
+            mean_x = "icco.state.waypoints.flat().reduce((s, w) => s + w[0], 0) / 12"
+            before = await tools.js(mean_x)
             # A sentence it reads in part is read as what it understood, never as another intent,
             # with a warning (amber, not green) naming the words it did not understand.
             await _type_and_send(tools, "Go right avoiding the invader")
@@ -785,6 +789,8 @@ def test_the_page_in_a_real_browser_go_right_moves_waypoints_and_robots(served, 
             await tools.until("icco.planner.state === 'used'")
             assert await tools.js(_text("reading")) == "read as: line at the right side"
             assert await tools.js(_text("unused")) == "not understood (ignored): avoiding, invader"
+            # The waypoints, served from each robot at the next refresh, now lead right.
+            await tools.until(f"{mean_x} > {before}")
             assert await tools.js("document.getElementById('planner').className") == "warned"
             assert "warning" in await tools.js(_text("planner"))
             assert await tools.js("icco.ws === icco.wsBefore && icco.connected")
@@ -793,9 +799,6 @@ def test_the_page_in_a_real_browser_go_right_moves_waypoints_and_robots(served, 
             await tools.js("icco.send({type: 'speed', value: 3})")
             await tools.until("document.getElementById('message').className === 'error'")
             assert "speed must be one of" in await tools.js(_text("message"))
-            before = await tools.js(
-                "icco.state.waypoints.flat().reduce((s, w) => s + w[0], 0) / 12"
-            )
             await _type_and_send(tools, "Go right")
             await tools.until("icco.planner.instruction === 'Go right'")
             await tools.until("icco.planner.state === 'used'")
@@ -804,8 +807,6 @@ def test_the_page_in_a_real_browser_go_right_moves_waypoints_and_robots(served, 
             assert (await tools.js(_text("reading"))).startswith("read as: line at the right")
             assert await tools.js(_text("unused")) == ""
             await tools.until("icco.state.slots && icco.state.slots.every(s => s[0] > 1)")
-            after = await tools.js("icco.state.waypoints.flat().reduce((s, w) => s + w[0], 0) / 12")
-            assert after > before  # the waypoints, served from each robot, lead right
             # The plan in use, and each robot's distance to its slot, in the page.
             await tools.until("icco.state.plan === 'Go right'")
             assert "\u201cGo right\u201d" in await tools.js(_text("plan"))
