@@ -96,22 +96,34 @@ def positive(text: str) -> int:
     return value
 
 
-def frames_logged(run: Path) -> int | None:
-    """The frame count of the last complete row of ``run/train.csv`` (read from its tail), or
-    None before its first row."""
+def last_row(path: Path) -> dict | None:
+    """The last complete row of the CSV file ``path`` as a dict (its header read from the first
+    line, the row from the tail, so a long log costs no more than a short one), or None when the
+    file is missing or has no complete row. A row still being written (no newline yet) is skipped.
+    """
     try:
-        with (run / "train.csv").open("rb") as handle:
+        with path.open("rb") as handle:
+            header = handle.readline().decode(errors="replace")
+            start = handle.tell()
             handle.seek(0, os.SEEK_END)
-            handle.seek(max(0, handle.tell() - 4096))
+            handle.seek(max(start, handle.tell() - 4096))
             tail = handle.read().decode(errors="replace")
     except OSError:
         return None
-    rows = tail.split("\n")[:-1]  # a row still being written has no newline yet
-    for row in reversed(rows):
-        head = row.split(",", 1)[0]
-        if head.isdigit():
-            return int(head)
+    if not header.endswith("\n"):
+        return None
+    names = next(csv.reader([header]))
+    for line in reversed(tail.split("\n")[:-1]):  # the text after the last newline is unfinished
+        values = next(csv.reader([line]), [])
+        if len(values) == len(names):
+            return dict(zip(names, values))
     return None
+
+
+def frames_logged(run: Path) -> int | None:
+    """The frame count of the last complete row of ``run/train.csv``, or None before its first."""
+    row = last_row(run / "train.csv")
+    return None if row is None else int(row["frames"])
 
 
 def progress_line(seen: dict[Path, tuple[int, int, float, float]], waiting: int) -> str:

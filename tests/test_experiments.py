@@ -1145,6 +1145,13 @@ def test_long_training_reports_each_runs_frames_and_minutes_left(tmp_path):
     assert jobs.frames_logged(run) is None  # a header, no row
     (run / "train.csv").write_text("frames,updates\n512,0\n1024,3\n15")  # "15..." being written
     assert jobs.frames_logged(run) == 1024
+    # The one reader of a log's last row: header from the top, row from the tail, however long.
+    rows = "".join(f"{f},{f % 7},x{f}\n" for f in range(0, 2_000_000, 1000))
+    (run / "eval.csv").write_text("frames,seed,name\n" + rows + "2000000,1")
+    assert jobs.last_row(run / "eval.csv") == {"frames": "1999000", "seed": "3", "name": "x1999000"}
+    (run / "eval.csv").write_text("frames,seed")  # a header still being written
+    assert jobs.last_row(run / "eval.csv") is None
+    assert jobs.last_row(run / "missing.csv") is None
     other = tmp_path / "icco_seed1"
     # qmix: 1,000 frames in 100 s since first seen (10/s), 3,000 to go: 300 s, 5 min.
     line = jobs.progress_line(

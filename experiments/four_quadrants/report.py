@@ -85,13 +85,6 @@ def _mean(xs: list[float]) -> float:
     return sum(xs) / len(xs) if xs else math.nan
 
 
-def _last_row(path: Path) -> dict | None:
-    if not path.is_file():
-        return None
-    rows = list(csv.DictReader(path.open()))
-    return rows[-1] if rows else None
-
-
 def _duration(seconds: float | None) -> str:
     if seconds is None:
         return "?"
@@ -115,7 +108,7 @@ def budget_section(runs: dict[str, list[Path]], info: dict) -> tuple[str, bool]:
     ]
     smoke = False
     for label, dirs in runs.items():
-        timing = [row for d in dirs if (row := _last_row(d / "timing.csv"))]
+        timing = [row for d in dirs if (row := jobs.last_row(d / "timing.csv"))]
         frames = [float(r["frames"]) for r in timing]
         wall = [clock_seconds(r) for r in timing]
         sps = [float(r["sps"]) for r in timing]

@@ -14,7 +14,6 @@ not a result; the kept recipe is then measured over 3 seeds by the reproduction.
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import sys
 from pathlib import Path
@@ -23,7 +22,7 @@ from icco_torchrl.training.logger import clock_seconds
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
-from jobs import PRE_SEQUENCE_REPLAY, positive, train_runs  # noqa: E402  (experiments/jobs.py)
+from jobs import PRE_SEQUENCE_REPLAY, last_row, positive, train_runs  # noqa: E402  (experiments/jobs.py)
 
 # The first budget (2026-11-22) with the first three levers of issue 7's probe (replay ratio 8
 # updates per batch, a hard target copy every 50 updates, epsilon at its floor after 300k frames).
@@ -256,13 +255,6 @@ LEVERS = {
     for name, (lever, setting, method, overrides) in LEVERS.items()
 }
 METRICS = ("reward", "task_reward", "inst_reward", "pick", "defense", "invasion")
-
-
-def last_row(path: Path) -> dict | None:
-    if not path.is_file():
-        return None
-    rows = list(csv.DictReader(path.open()))
-    return rows[-1] if rows else None
 
 
 def summarize(out: Path, frames: int) -> list[dict]:
