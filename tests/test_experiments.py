@@ -874,7 +874,12 @@ def test_the_consistency_page_reads_a_bound_gain_only_beyond_the_seeds_spread():
 def test_route_screens_compose_and_the_page_judges_each_instruction_against_80_percent():
     routes = _load(ROOT / "experiments" / "language" / "routes" / "run.py")
     for name, overrides in routes.SCREENS.items():
-        p = compose_config([*routes.BUDGET, *overrides]).env.params
+        cfg = compose_config([*routes.BUDGET, *overrides])
+        # every screen at the control's consistency weight (1e-4, unclamped), whatever the default
+        assert (cfg.method.ce_coef, cfg.method.entropy_coef, cfg.train.ce_clamp) == (
+            1e-4, 1e-4, False,
+        ), name  # fmt: skip
+        p = cfg.env.params
         routes_prob = {"control": 0.0, "hold_routes_0.2": 0.2, "hold_routes_all_soft": 1.0}
         routes_prob = routes_prob.get(name, 0.5)
         assert p.waypoint_route_prob == routes_prob, name

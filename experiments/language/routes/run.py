@@ -66,9 +66,16 @@ consistency = jobs.script(EXPERIMENTS / "consistency" / "run.py", "consistency_r
 serving = jobs.script(EXPERIMENTS / "language" / "serving" / "run.py", "serving_run")
 go_right = jobs.script(EXPERIMENTS.parent / "assets" / "go_right.py", "go_right")
 
-BUDGET = [*consistency.BUDGET, "method=icco", "logger.progress=false"]
-# make train's ICCO when the routes screens ran (the default weight then: 1e-4, unclamped)
-CONTROL_RECORDS = EXPERIMENTS / "consistency" / "records" / "ce1e-4"
+# make train's ICCO when the routes screens ran: the consistency term's weight then (1e-4,
+# unclamped) is pinned, so a screen trained after the default moved changes only its own lever.
+CONTROL_WEIGHT = "ce1e-4"
+BUDGET = [
+    *consistency.BUDGET,
+    "method=icco",
+    *consistency.SCREENS[CONTROL_WEIGHT].overrides,
+    "logger.progress=false",
+]
+CONTROL_RECORDS = EXPERIMENTS / "consistency" / "records" / CONTROL_WEIGHT
 SCREENS = {
     "control": [],
     "hold_routes": ["env.params.inst_hold=true", "env.params.waypoint_route_prob=0.5"],
