@@ -1038,6 +1038,16 @@ def test_the_language_page_says_what_being_in_place_earns_from_the_path_follower
     assert "the best scripted team's 400.0; the best scripted team is in place 47/38 %" in line
     assert report.following_costs(rows[3:]) == []  # no path follower: no bullet
     assert report.following_costs(rows[:3]) == []  # no best scripted team: no bullet
+    assert "highest reward in place" not in line  # no searched team on this page
+    placed = "blend (defend=inf, collect=1, deliver=2 m; follow=pursuit)"
+    rows += [
+        {"method": placed, "segment": "Go right", "in_place": 0.92},
+        {"method": placed, "segment": "Move top", "in_place": 0.97},
+        {"method": placed, "segment": report.EPISODE, "reward": 220.0},
+    ]
+    (line,) = report.following_costs(rows)
+    assert f"on every instruction (searched in experiments/language/frontier), `{placed}`" in line
+    assert "is in place 92/97 % and earns 220.0, 55 %." in line
 
 
 def test_the_arrival_check_names_a_robot_kept_at_home_as_what_breaks_the_formation():
@@ -1193,3 +1203,31 @@ def test_the_job_runner_prints_progress_while_its_runs_train(tmp_path, monkeypat
     out = capsys.readouterr().out
     assert "progress: icco_seed0 " in out and " of 4,096 frames (" in out
     assert out.rstrip().endswith("icco_seed0: done")
+
+
+def test_the_in_place_frontier_picks_the_best_team_in_place_and_says_what_it_earns(tmp_path):
+    frontier = _load(ROOT / "experiments" / "language" / "frontier" / "run.py")
+    assert len(frontier.grid()) == 24 and all("follow=pursuit" in t for t in frontier.grid())
+    row = lambda places, reward: {  # noqa: E731  (one team's row)
+        "in_place": dict(zip(frontier.serving.INSTRUCTIONS, places)),
+        "reward": reward,
+        "formation": 0.5,
+    }
+    teams = {
+        "a": row([0.9, 0.9, 0.9, 0.9], 200.0),
+        "b": row([0.9, 0.79, 1.0, 1.0], 300.0),  # more reward, below 80 % on one instruction
+        "c": row([0.8, 0.8, 0.8, 0.8], 210.0),  # exactly at the bar: in place
+    }
+    assert frontier.best_in_place(teams) == "c"
+    assert frontier.best_in_place({"b": teams["b"]}) is None
+    # A real run of one pursuing blend on one trial: it plays, files, and the page reads it back.
+    team = "blend(defend=inf, follow=pursuit)"
+    frontier.main(["--teams", team, "--trials", "1", "--out", str(tmp_path)])
+    results = json.loads((tmp_path / "results.json").read_text())
+    assert list(results["teams"]) == [*frontier.REFERENCES, team]
+    assert results["teams"]["pursuit"]["in_place"]["Go right"] == 1.0  # the path follower
+    page = (tmp_path / "README.md").read_text()
+    assert f"`{team}`" in page and "| team | Go right |" in page
+    (tmp_path / "README.md").unlink()
+    frontier.main(["--report-only", "--out", str(tmp_path)])
+    assert (tmp_path / "README.md").read_text() == page

@@ -177,6 +177,7 @@ def role_scene(num_envs=1):
         ("blend(collect=1.75)", [3, COLLECT, 3]),
         ("blend(deliver=1.75)", [3, 4, DELIVER]),
         ("blend(defend=1.75, collect=1, deliver=1)", [DEFEND, COLLECT, 3]),  # home is 1.2 m away
+        ("blend(defend=1.75, follow=pursuit)", [DEFEND, 4, 3]),  # the others pursue: -y, +y
     ],
 )
 def test_role_blends_act_as_hand_computed(name, actions):
@@ -211,10 +212,29 @@ def test_one_radius_is_every_role_and_best_scripted_is_its_blend():
     assert torch.equal(actions("best_scripted"), actions(f"blend({radii})"))
 
 
+def test_a_blend_that_pursues_is_pursuit_outside_its_radii_and_the_heuristic_inside():
+    """``follow=pursuit``: radius 0 everywhere plays the path follower, inf the heuristic, and in
+    between it differs from the greedy follower's blend (the switch is wired)."""
+
+    def actions(name):
+        env = ResourceCollectionEnv(num_envs=8, seed=3)
+        policy = make_reference_policy(name, env)
+        return env.rollout(40, policy, break_when_any_done=False)["agents", "action"]
+
+    assert torch.equal(actions("blend(0, follow=pursuit)"), actions("pursuit"))
+    assert torch.equal(actions("blend(inf, follow=pursuit)"), actions("heuristic"))
+    assert not torch.equal(
+        actions("blend(defend=1.75, follow=pursuit)"), actions("blend(defend=1.75)")
+    )
+
+
 def test_reference_names_parse_label_and_key_round_trip():
-    assert parse_reference("blend") == ("blend", None)
-    assert parse_reference(" blend( collect = inf ) ") == ("blend", RoleRadii(0, math.inf, 0))
-    assert parse_reference("best_scripted") == ("blend", BEST_SCRIPTED)
+    assert parse_reference("blend") == ("blend", None, "follower")
+    assert parse_reference(" blend( collect = inf ) ")[:2] == ("blend", RoleRadii(0, math.inf, 0))
+    assert parse_reference("best_scripted") == ("blend", BEST_SCRIPTED, "follower")
+    assert parse_reference("blend(1, follow = pursuit)") == ("blend", RoleRadii(1, 1, 1), "pursuit")
+    for name in ("blend(defend=1.75, follow=pursuit)", "blend(2, follow=pursuit)"):
+        assert parse_reference(reference_key(reference_label(name))) == parse_reference(name)
     assert reference_label("blend") == "blend (r=1.75 m)"
     assert reference_label("blend", 1.0) == reference_label("blend(1)") == "blend (r=1 m)"
     label = reference_label("blend(defend=1.75, deliver=2)")
@@ -245,6 +265,8 @@ def base_config():
         ("blend(defend=1, defend=2)", "role 'defend' is given twice"),
         ("blend()", "gives no radius"),
         ("blend(1, 2)", "'1' is not role=radius"),
+        ("blend(1, follow=greedy)", "follow must be one of follower, pursuit, got 'greedy'"),
+        ("blend(follow=pursuit)", "gives no radius"),
     ],
 )
 def test_bad_reference_names_fail_in_one_line_naming_the_field(name, message, base_config):

@@ -283,6 +283,14 @@ def following_costs(summary: list[dict]) -> list[str]:
         f"is in place {places(best)} %. In this reward a team is paid for the task, not for "
         "standing where it was told, so a team in place at least 80 % of the time earns the best "
         "scripted team's reward only if it still does the task from its slots."
+        + "".join(
+            " The scripted team of highest reward in place on every instruction (searched in "
+            f"experiments/language/frontier), `{m}`, is in place {places(m)} % and earns "
+            f"{cell[m, EPISODE]['reward']:.1f}, "
+            f"{share_text(cell[m, EPISODE]['reward'] / top if top > 0 else None)}."
+            for m, s in cell
+            if s == EPISODE and m.endswith("; follow=pursuit)")
+        )
     ]
 
 

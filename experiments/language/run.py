@@ -69,9 +69,12 @@ INSTRUCTIONS = ("Go right", "Move top", "Gather center", "Spread out")
 # paper's flat QMIX (FULL)), Table II drives QMIX.
 AGENTS = ("icco", "qmix", "qmix_full", "qmix_full_flat")
 FIG5B = ("icco", "qmix_full", "qmix_full_flat")
-# Fig. 5b's scripted rows: the evaluation's own, and the perfect path follower, which shows what
-# being in place earns in this reward (report.following_costs).
-REFERENCES = (*EVAL_REFERENCES, "pursuit")
+# Fig. 5b's scripted rows: the evaluation's own, the perfect path follower, and the scripted team
+# of highest reward that is in place on every instruction (experiments/language/frontier, once
+# searched): what being in place earns in this reward (report.following_costs).
+FRONTIER = HERE / "frontier" / "results.json"
+IN_PLACE = json.loads(FRONTIER.read_text())["best_in_place"] if FRONTIER.is_file() else None
+REFERENCES = (*EVAL_REFERENCES, "pursuit", *([IN_PLACE] if IN_PLACE else []))
 NO_TASK_REWARD = (
     "env.params.pick_reward=0",
     "env.params.collect_reward=0",

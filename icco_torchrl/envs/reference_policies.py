@@ -23,16 +23,25 @@ over one) through its public state, batched over envs in pure torch:
   ``defend``, the robot the heuristic sends to intercept the invader; ``collect``, the robots it
   sends to a resource; ``deliver``, the carriers it sends home. A role left out follows (radius 0);
   ``blend(R)`` and the bare ``blend`` (radius ``eval.blend_radius``) give every role one radius.
+  ``follow=pursuit`` (:data:`FOLLOWS`) makes the robots outside their radius pursue their route
+  instead of following greedily: ``blend(defend=1.75, follow=pursuit)`` is the team a person
+  asks for, every robot at its slot but the one that stops an invader near it.
 * ``best_scripted``: the role blend :data:`BEST_SCRIPTED`, the best point of the scripted frontier
   at the calibrated reward (``experiments/calibration/best_scripted.py``). Every report states a
   learned team's reward as a share of it.
 
 Names parse in one place (:func:`parse_reference`) and fail in one line naming the bad field:
 
-    >>> parse_reference("blend(defend=1.75)")
-    ('blend', RoleRadii(defend=1.75, collect=0.0, deliver=0.0))
+    >>> parse_reference("blend(defend=1.75)").radii
+    RoleRadii(defend=1.75, collect=0.0, deliver=0.0)
+    >>> parse_reference("blend(defend=1.75, follow=pursuit)").follow
+    'pursuit'
     >>> reference_label("blend(defend=1.75, collect=1)")
     'blend (defend=1.75, collect=1, deliver=0 m)'
+    >>> reference_label("blend(defend=1.75, follow=pursuit)")
+    'blend (defend=1.75, collect=0, deliver=0 m; follow=pursuit)'
+    >>> reference_key(reference_label("blend(defend=1.75, follow=pursuit)"))
+    'blend(defend=1.75, collect=0, deliver=0, follow=pursuit)'
     >>> parse_reference("blend(defend=-1)")  # doctest: +ELLIPSIS
     Traceback (most recent call last):
     ValueError: reference 'blend(defend=-1)': radius 'defend' must be a number >= 0 ...
@@ -64,6 +73,8 @@ REFERENCE_POLICIES = ("random", "follower", "heuristic", "blend", "best_scripted
 # ignores the task and earns little reward; it is the arrival yardstick (assets/go_right.py).
 EVAL_REFERENCES = REFERENCE_POLICIES[:-1]
 ROLES = ("defend", "collect", "deliver")  # a role blend's radii, in this order
+# What a blend's robots do outside their role's radius: follow greedily on r_inst, or pursue.
+FOLLOWS = ("follower", "pursuit")
 DEFEND, COLLECT, DELIVER = range(len(ROLES))
 ACTION_KEY = ("agents", "action")
 
@@ -83,6 +94,16 @@ BEST_BLEND_RADIUS = 1.75
 # episodes no evaluation plays (experiments/calibration/results/best_scripted.json, README.md).
 BEST_SCRIPTED = RoleRadii(defend=math.inf, collect=1.0, deliver=2.0)
 BEST_SCRIPTED_LABEL = "best scripted"
+
+
+class Reference(NamedTuple):
+    """A parsed reference name (:func:`parse_reference`): ``kind`` (one of
+    :data:`REFERENCE_POLICIES` but ``best_scripted``), a blend's ``radii`` (None for the bare
+    ``blend`` and the other kinds) and what its robots do outside them (:data:`FOLLOWS`)."""
+
+    kind: str
+    radii: RoleRadii | None = None
+    follow: str = "follower"
 
 
 def raw_env(env) -> ResourceCollectionEnv:
@@ -172,16 +193,20 @@ class FollowerPolicy(ReferencePolicy):
         return lookahead(self.env)[1].argmax(-1)
 
 
+def route_target(env: ResourceCollectionEnv) -> torch.Tensor:
+    """Each robot's next route point ``[B, N, 2]``: the waypoint after its nearest one (the last
+    one once it is at the end)."""
+    wp = env.waypoints  # [B, N, K, 2]
+    nearest = (wp - env.pos.unsqueeze(-2)).norm(dim=-1).argmin(-1, keepdim=True)  # [B, N, 1]
+    ahead = (nearest + 1).clamp_max(wp.shape[-2] - 1)
+    return wp.gather(-2, ahead.unsqueeze(-1).expand(*ahead.shape, 2)).squeeze(-2)
+
+
 class PursuitPolicy(ReferencePolicy):
     name = "pursuit"
 
     def act(self) -> torch.Tensor:
-        env = self.env
-        wp = env.waypoints  # [B, N, K, 2]
-        nearest = (wp - env.pos.unsqueeze(-2)).norm(dim=-1).argmin(-1, keepdim=True)  # [B, N, 1]
-        ahead = (nearest + 1).clamp_max(wp.shape[-2] - 1)
-        target = wp.gather(-2, ahead.unsqueeze(-1).expand(*ahead.shape, 2)).squeeze(-2)
-        return steer(lookahead(env)[0], target)
+        return steer(lookahead(self.env)[0], route_target(self.env))
 
 
 class HeuristicPolicy(ReferencePolicy):
@@ -262,12 +287,16 @@ class BlendPolicy(HeuristicPolicy):
     """The heuristic for a robot whose task target is within its role's radius; the follower
     otherwise. ``radius``: one number (every role), a ``{role: radius}`` mapping or
     :class:`RoleRadii` (roles left out follow), or a tensor ``[num_envs, 3]`` of radii per env in
-    :data:`ROLES` order (a grid of blends in one batch)."""
+    :data:`ROLES` order (a grid of blends in one batch). ``follow`` (:data:`FOLLOWS`): what a
+    robot outside its radius does, greedy on r_inst (``follower``) or on its route (``pursuit``)."""
 
     name = "blend"
 
-    def __init__(self, env, radius):
+    def __init__(self, env, radius, follow: str = "follower"):
         super().__init__(env)
+        if follow not in FOLLOWS:
+            raise ValueError(f"blend follow must be one of {', '.join(FOLLOWS)}, got {follow!r}")
+        self.follow = follow
         B = self.env.num_envs
         if isinstance(radius, torch.Tensor):
             radii = radius.to(self.env.device, torch.float32)
@@ -286,11 +315,16 @@ class BlendPolicy(HeuristicPolicy):
         new_pos, r_inst = lookahead(self.env)
         target, dist, role = self.plan()
         task = steer(new_pos, target)
-        follow = r_inst.argmax(-1)
+        if self.follow == "pursuit":
+            follow = steer(new_pos, route_target(self.env))
+        else:
+            follow = r_inst.argmax(-1)
         return torch.where(dist <= self.radii.gather(1, role), task, follow)
 
     def __repr__(self) -> str:
-        return f"BlendPolicy(radius={self.radius if self.radius is not None else 'per env'})"
+        radius = self.radius if self.radius is not None else "per env"
+        follow = "" if self.follow == "follower" else f", follow={self.follow!r}"
+        return f"BlendPolicy(radius={radius}{follow})"
 
 
 def _radius(value, field: str) -> float:
@@ -321,14 +355,14 @@ def role_radii(radius) -> RoleRadii:
 _CALL = re.compile(r"blend\s*\((.*)\)", re.S)
 
 
-def parse_reference(name: str) -> tuple[str, RoleRadii | None]:
-    """``(kind, radii)`` of a reference name: ``kind`` is one of :data:`REFERENCE_POLICIES` but
-    ``best_scripted`` (a blend), ``radii`` the blend's (None for the bare ``blend``, whose radius
-    the caller gives, and for the others). See the module docstring for the syntax."""
+def parse_reference(name: str) -> Reference:
+    """The :class:`Reference` a name stands for: ``kind`` is one of :data:`REFERENCE_POLICIES`
+    but ``best_scripted`` (a blend), ``radii`` the blend's (None for the bare ``blend``, whose
+    radius the caller gives, and for the others). See the module docstring for the syntax."""
     if name == "best_scripted":
-        return "blend", BEST_SCRIPTED
+        return Reference("blend", BEST_SCRIPTED)
     if name in REFERENCE_POLICIES:
-        return name, None
+        return Reference(name)
     call = _CALL.fullmatch(name.strip()) if isinstance(name, str) else None
     if call is None:
         raise ValueError(
@@ -336,10 +370,19 @@ def parse_reference(name: str) -> tuple[str, RoleRadii | None]:
             "blend(defend=R, collect=R, deliver=R)"
         )
     args = [a.strip() for a in call.group(1).split(",")]
-    if args == [""]:
+    follow = "follower"
+    if args and args[-1].replace(" ", "").startswith("follow="):
+        follow = args.pop().partition("=")[2].strip()
+        if follow not in FOLLOWS:
+            raise ValueError(
+                f"reference {name!r}: follow must be one of {', '.join(FOLLOWS)}, got {follow!r}"
+            )
+    if args in ([""], []):
         raise ValueError(f"reference {name!r} gives no radius: blend(R) or blend(role=R, ...)")
     if len(args) == 1 and "=" not in args[0]:  # blend(R): every role
-        return "blend", role_radii(_radius(args[0], f"reference {name!r}: radius"))
+        return Reference(
+            "blend", role_radii(_radius(args[0], f"reference {name!r}: radius")), follow
+        )
     radii = {}
     for arg in args:
         role, eq, value = (part.strip() for part in arg.partition("="))
@@ -352,7 +395,7 @@ def parse_reference(name: str) -> tuple[str, RoleRadii | None]:
         if role in radii:
             raise ValueError(f"reference {name!r}: role {role!r} is given twice")
         radii[role] = _radius(value, f"reference {name!r}: radius {role!r}")
-    return "blend", RoleRadii(**radii)
+    return Reference("blend", RoleRadii(**radii), follow)
 
 
 def _radii_text(radii: RoleRadii) -> str:
@@ -363,11 +406,13 @@ def _radii_text(radii: RoleRadii) -> str:
 
 def reference_label(name: str, radius: float = BEST_BLEND_RADIUS) -> str:
     """The row label of a reference policy in tables and figures (``radius``: the bare blend's)."""
-    kind, radii = parse_reference(name)
+    kind, radii, follow = parse_reference(name)
     if kind != "blend":
         return name
     text = _radii_text(radii if radii is not None else role_radii(radius))
-    return f"{BEST_SCRIPTED_LABEL} ({text})" if name == "best_scripted" else f"blend ({text})"
+    if name == "best_scripted":
+        return f"{BEST_SCRIPTED_LABEL} ({text})"
+    return f"blend ({text}{'' if follow == 'follower' else f'; follow={follow}'})"
 
 
 def reference_key(label: str) -> str | None:
@@ -377,6 +422,10 @@ def reference_key(label: str) -> str | None:
         return label
     if label.startswith(BEST_SCRIPTED_LABEL + " ("):
         return "best_scripted"
+    head, sep, follow = label.rpartition("; follow=")
+    if sep and label.startswith("blend (") and follow[:-1] in FOLLOWS and follow.endswith(")"):
+        radii = head[len("blend (") :].removesuffix(" m").removeprefix("r=")
+        return f"blend({radii}, follow={follow[:-1]})"
     if label.startswith("blend (r="):
         return "blend"
     if label.startswith("blend (") and label.endswith(" m)"):
@@ -388,7 +437,7 @@ def make_reference_policy(
     name: str, env, *, radius: float | None = None, seed: int = 0
 ) -> ReferencePolicy:
     """A reference policy by name (:func:`parse_reference`); ``radius`` is the bare ``blend``'s."""
-    kind, radii = parse_reference(name)
+    kind, radii, follow = parse_reference(name)
     if kind == "random":
         return RandomPolicy(env, seed=seed)
     if kind == "follower":
@@ -399,4 +448,4 @@ def make_reference_policy(
         return HeuristicPolicy(env)
     if radii is None and radius is None:
         raise ValueError("the blend reference policy needs radius=... (metres)")
-    return BlendPolicy(env, radii if radii is not None else radius)
+    return BlendPolicy(env, radii if radii is not None else radius, follow)
