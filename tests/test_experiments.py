@@ -993,6 +993,15 @@ def test_the_language_protocol_replays_kept_policies_or_names_what_trains_them(t
     assert run.kept(tmp_path, "icco", [0, 2]) is None
 
 
+def test_the_language_protocols_scripted_rows_compose_as_one_override():
+    """Fig. 5b's references reach ``icco instruct`` whole, a blend with its commas included."""
+    run = _load(ROOT / "experiments" / "language" / "run.py")
+    references = (*run.REFERENCES, "blend(defend=inf, collect=1, deliver=2, follow=pursuit)")
+    run.REFERENCES = references
+    cfg = compose_config([run.references_override()])
+    assert list(cfg.eval.references) == list(references)
+
+
 def test_the_language_protocol_trains_its_agents_through_the_four_quadrant_script(monkeypatch):
     """One code path for training: the four-quadrant script, ``--jobs`` runs side by side."""
     run = _load(ROOT / "experiments" / "language" / "run.py")

@@ -84,6 +84,11 @@ NO_TASK_REWARD = (
 )
 
 
+def references_override() -> str:
+    """Fig. 5b's scripted rows as a Hydra override (each name quoted: a blend's has commas)."""
+    return "eval.references=[" + ",".join(f'"{r}"' for r in REFERENCES) + "]"
+
+
 def run(*command: str) -> None:
     print("$ " + " ".join(command), flush=True)
     subprocess.run(list(command), check=True)
@@ -250,7 +255,7 @@ def main(argv=None) -> None:
             trials,
             steps,
             args.llm,
-            [*plan, f"eval.references=[{','.join(REFERENCES)}]"],
+            [*plan, references_override()],
         )
     if table2:
         instruct(
