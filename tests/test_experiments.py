@@ -1083,6 +1083,19 @@ def test_the_arrival_check_names_a_robot_kept_at_home_as_what_breaks_the_formati
     assert not go_right.kept_home(state([[2.3, 1.6], [0.0, 0.0], [0.1, -0.2]]))  # two off
     assert not go_right.kept_home(state([[2.3, 1.6], [2.3, 0.0], [1.0, -1.0]]))  # off, not home
     assert not go_right.kept_home(state(slots, formation=True))
+    # With --grace N the robot back from an interception is excused N ticks, then judged again.
+    grace = go_right.RETURN_TICKS
+    since = None
+    for intercepting in [(False, False, True), (False, False, False)]:
+        since = go_right.ticks_since(since, np.array(intercepting))
+    assert since.tolist() == [10**6 + 1, 10**6 + 1, 1]
+    on_way_back = state([[2.3, 1.6], [2.3, 0.0], [1.0, -1.0]])  # robot 2 off its slot
+    assert go_right.in_formation(on_way_back, since <= grace)
+    assert not go_right.in_formation(on_way_back, since <= go_right.GRACE)  # the default: 0
+    for _ in range(grace):
+        since = go_right.ticks_since(since, np.zeros(3, bool))
+    assert not go_right.in_formation(on_way_back, since <= grace)  # 11 ticks later
+    assert not go_right.kept_home(state(keeper), np.array([False, False, True]))  # excused
 
 
 def test_the_consistency_page_holds_icco_against_wo_ce_at_5m_from_where_5m(tmp_path):

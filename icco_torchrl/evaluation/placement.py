@@ -41,6 +41,10 @@ from icco_torchrl.instructions.planner import Intent, UnknownInstruction, parse
 
 SLOT_RADIUS = 0.5  # metres: a robot this close to its slot is at it (robot radius 0.15 m)
 INTERCEPT_RADIUS = 1.75  # metres: the defend-first team's radius (experiments/calibration)
+# A robot's way back after it intercepted: INTERCEPT_RADIUS at full speed (0.19 m per step), in
+# steps. The judgements here (the pages' "formation", the live page) excuse only the robot
+# intercepting now; the arrival check excuses its way back too with --grace (assets/go_right.py).
+RETURN_TICKS = 10
 PLACE_MARGIN = 1.0  # metres beyond a formation's radius that still count as "there"
 SPREAD_GAP = 1.5  # metres: "spread out" means at least this far from every other robot
 SIDE_DEPTH = 0.5  # a side's region starts this fraction of the half width from the centre
