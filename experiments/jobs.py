@@ -16,6 +16,7 @@ import functools
 import importlib.util
 import json
 import os
+import platform
 import shutil
 import subprocess
 import sys
@@ -217,6 +218,16 @@ def train_runs(
                 failed.append(run.name)
     if failed:
         raise SystemExit(f"training failed for {failed}: see their .log files")
+
+
+def cpu_name() -> str:
+    """The CPU's model name (``/proc/cpuinfo``), what every page records its numbers on."""
+    cpuinfo = Path("/proc/cpuinfo")
+    if cpuinfo.is_file():
+        for line in cpuinfo.read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    return platform.processor() or platform.machine()
 
 
 def script(path: Path, name: str):

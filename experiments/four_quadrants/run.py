@@ -67,21 +67,12 @@ def train(sweep: Path, methods, seeds, budget, jobs: int = 2) -> None:
     )
 
 
-def cpu_name() -> str:
-    cpuinfo = Path("/proc/cpuinfo")
-    if cpuinfo.is_file():
-        for line in cpuinfo.read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    return platform.processor() or platform.machine()
-
-
 def machine() -> dict:
     """What the numbers were measured on (for the README)."""
     gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else None
     return dict(
         host=platform.node(),
-        cpu=cpu_name(),
+        cpu=jobs.cpu_name(),
         cores=os.cpu_count(),
         python=platform.python_version(),
         torch=torch.__version__,

@@ -39,7 +39,6 @@ sys.path.insert(0, str(EXPERIMENTS))
 import jobs  # noqa: E402  (experiments/jobs.py)
 
 serving = jobs.script(EXPERIMENTS / "language" / "serving" / "run.py", "serving_run")
-quadrants = jobs.script(EXPERIMENTS / "four_quadrants" / "run.py", "four_quadrants_run")
 
 SEARCH_SEED = 30000  # not the evaluation's 20000
 TARGET = 0.8  # in place on each instruction, the bar
@@ -128,7 +127,7 @@ def main(argv=None) -> None:
         (args.out / "README.md").write_text(render(json.loads(path.read_text())))
         return
     torch.set_num_threads(1)
-    results = {"trials": args.trials, "machine": f"{quadrants.cpu_name()}, 1 thread", "teams": {}}
+    results = {"trials": args.trials, "machine": f"{jobs.cpu_name()}, 1 thread", "teams": {}}
     for team in [*REFERENCES, *(args.teams or grid())]:
         start = time.time()
         results["teams"][team] = row = play(team, args.trials)

@@ -49,7 +49,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import sys
 from pathlib import Path
 
@@ -147,7 +146,7 @@ def evaluate(screens: dict[str, list[Path]], out: Path, trials: int, seeds) -> d
     best_q = verdict.best_scripted(rows)
     results = {
         "trials": trials,
-        "machine": f"{platform.processor() or platform.machine()}, 1 thread",
+        "machine": f"{jobs.cpu_name()}, 1 thread",
         "budget": BUDGET,
         "seeds": list(seeds),
         "screens": {},

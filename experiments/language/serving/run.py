@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import sys
 import time
 from pathlib import Path
@@ -44,6 +43,9 @@ from icco_torchrl.instructions.sources import language_schedule
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parents[2]
+sys.path.insert(0, str(HERE.parents[1]))
+import jobs  # noqa: E402  (experiments/jobs.py)
+
 INSTRUCTIONS = ("Go right", "Move top", "Gather center", "Spread out")
 STEPS, TRIALS, ENV_SEED = 145, 20, 20000
 DEMO = ROOT / "assets" / "demo_icco.pt"
@@ -216,9 +218,7 @@ def main(argv=None) -> None:
     torch.set_num_threads(1)
     path = args.out / "results.json"
     results = json.loads(path.read_text()) if path.is_file() else {"rows": {}}
-    results.update(
-        trials=args.trials, machine=f"{platform.processor() or platform.machine()}, 1 thread"
-    )
+    results.update(trials=args.trials, machine=f"{jobs.cpu_name()}, 1 thread")
     for interface in args.interfaces:
         for team in [*args.references, args.label]:
             start = time.time()
