@@ -991,6 +991,18 @@ def test_the_language_protocol_replays_kept_policies_or_names_what_trains_them(t
     assert "four_quadrants/run.py --methods qmix_full --seeds 0 1 --records" in str(e.value)
     assert str(e.value).endswith("--budget experiment=repro_5m") and "\n" not in str(e.value)
     assert run.kept(tmp_path, "icco", [0, 2]) is None
+    # --kept-only: each method at the seeds kept, a method with none left out, none at all refused
+    (tmp_path / "qmix_full_seed1").mkdir()
+    (tmp_path / "qmix_full_seed1" / "policy.pt").write_bytes(b"weights")
+    some = run.from_records(tmp_path, ["icco", "qmix_full", "qmix"], [0, 1, 2], budget, True)
+    assert some == {
+        "icco": [str(tmp_path / f"icco_seed{s}" / "policy.pt") for s in (0, 1)],
+        "qmix_full": [str(tmp_path / "qmix_full_seed1" / "policy.pt")],
+    }
+    with pytest.raises(SystemExit, match=r"^no kept policy for qmix at seeds \[0\]"):
+        run.from_records(tmp_path, ["qmix"], [0], budget, True)
+    with pytest.raises(SystemExit, match="--kept-only replays kept policies: give --records"):
+        run.main(["--kept-only", "--methods", "icco"])
 
 
 def test_the_language_protocols_scripted_rows_compose_as_one_override():

@@ -395,6 +395,7 @@ def run_arguments(out: Path, llm: str | None, readme: Path | None) -> str:
     words = ["--budget", *saved["budget"]] if saved.get("budget") else []
     words += ["--seeds", *map(str, saved["seeds"])] if saved.get("seeds") else []
     words += ["--methods", *saved["methods"]] if saved.get("methods") else []
+    words += ["--kept-only"] if saved.get("kept_only") else []
     for folder in ("sweep", "wo_tr_sweep", "records", "wo_tr_records", "out"):
         words += [f"--{folder.replace('_', '-')}", saved[folder]] if saved.get(folder) else []
     words += ["--readme", os.path.relpath(readme)] if readme else []

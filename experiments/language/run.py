@@ -42,6 +42,11 @@ trained in ``--wo-tr-sweep`` and filed there (``jobs.keep_run``: no optimizer, n
         --wo-tr-records experiments/language/5m/records_wo_tr --out multirun/language_5m \
         --readme experiments/language/5m/README.md
 
+``--kept-only`` replays what is kept and trains nothing: each method at the seeds kept (each
+row of the page says its trials and seeds), a method with none reported missing, and Table II
+only when QMIX-TAP w/o TR has a kept policy. Seeds retrained sitting by sitting show up as they
+are filed.
+
 The commands below train in sweeps (the checkpoints stay on the machine):
 
     python experiments/language/run.py --budget experiment=repro_5m --methods qmix \
@@ -124,16 +129,21 @@ def checkpoints(sweep: Path, method: str, seeds) -> list[str]:
     return [str(p) for p in found]
 
 
-def kept(records: Path, method: str, seeds) -> list[str] | None:
-    """``method``'s policies at ``seeds`` kept in ``records``; None when one is missing."""
+def kept(records: Path, method: str, seeds, some: bool = False) -> list[str] | None:
+    """``method``'s policies at ``seeds`` kept in ``records``; None when one is missing (with
+    ``some``: those kept, None when there are none)."""
     found = [records / f"{method}_seed{s}" / jobs.POLICY for s in seeds]
-    return [str(p) for p in found] if all(p.is_file() for p in found) else None
+    there = [str(p) for p in found if p.is_file()]
+    return there if there and (some or len(there) == len(found)) else None
 
 
-def from_records(records: Path, methods, seeds, budget) -> dict[str, list[str]]:
-    """The four-quadrant agents from their kept policies, or one line naming what trains them."""
-    agents = {m: kept(records, m, seeds) for m in methods}
+def from_records(records: Path, methods, seeds, budget, some=False) -> dict[str, list[str]]:
+    """The four-quadrant agents from their kept policies, or one line naming what trains them.
+    ``some`` (``--kept-only``): each method at the seeds kept, a method with none left out."""
+    agents = {m: kept(records, m, seeds, some) for m in methods}
     missing = [m for m, paths in agents.items() if paths is None]
+    if some and len(missing) < len(agents):
+        return {m: paths for m, paths in agents.items() if paths is not None}
     if missing:
         raise SystemExit(
             f"no kept policy for {', '.join(missing)} at seeds {list(seeds)} in {records}: "
@@ -184,6 +194,12 @@ def main(argv=None) -> None:
     parser.add_argument(
         "--budget", nargs="*", help="training overrides (see four_quadrants/run.py)"
     )
+    parser.add_argument(
+        "--kept-only",
+        action="store_true",
+        help="with --records: each method at the seeds kept there, nothing trained (a page's "
+        "rows say their seeds; a method or Table II with none is reported missing)",
+    )
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     parser.add_argument(
         "--methods",
@@ -223,15 +239,20 @@ def main(argv=None) -> None:
     trials, steps = (4, 20) if args.smoke else (args.trials, args.steps)
 
     agents = args.methods or list(AGENTS)
-    table2 = "qmix" in agents
+    if args.kept_only and not args.records:
+        raise SystemExit("--kept-only replays kept policies: give --records DIR")
     if args.records:
-        policies = from_records(args.records, agents, args.seeds, args.budget)
+        policies = from_records(args.records, agents, args.seeds, args.budget, args.kept_only)
+        agents = list(policies)
     else:
         train(sweep, agents, args.seeds, args.budget, args.smoke, args.jobs)
         policies = {m: checkpoints(sweep, m, args.seeds) for m in agents}
+    table2 = "qmix" in agents
     wo_tr_policies = None
     if table2 and args.wo_tr_records:
-        wo_tr_policies = kept(args.wo_tr_records, "qmix", args.seeds)
+        wo_tr_policies = kept(args.wo_tr_records, "qmix", args.seeds, args.kept_only)
+    if table2 and wo_tr_policies is None and args.kept_only:
+        table2 = False  # nothing trained behind the user's back: Table II is reported missing
     if table2 and wo_tr_policies is None:
         train(
             wo_tr,
@@ -285,6 +306,7 @@ def main(argv=None) -> None:
                 "budget": args.budget or [],
                 "seeds": args.seeds,
                 "llm": args.llm,
+                **({"kept_only": True} if args.kept_only else {}),
                 **{k: v if k == "methods" else os.path.relpath(v) for k, v in given.items() if v},
             }
         )
