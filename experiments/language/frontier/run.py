@@ -56,8 +56,8 @@ def grid() -> list[str]:
 
 def play(team: str, trials: int) -> dict:
     """One team on the search episodes: in place per instruction and the episode's columns."""
-    serving.ENV_SEED = SEARCH_SEED  # play() reads the module's seed
-    out = serving.play(team, serving.DEMO, f"served@{serving.DEFAULT_STEP:g}", trials)
+    interface = f"served@{serving.DEFAULT_STEP:g}"
+    out = serving.play(team, serving.DEMO, interface, trials, seed=SEARCH_SEED)
     return {
         "in_place": {i: out[i]["in_place"] for i in serving.INSTRUCTIONS},
         **{k: out[EPISODE][k] for k in serving.COLUMNS if k != "in_place"},
@@ -91,9 +91,13 @@ def render(results: dict) -> str:
             f"highest reward in place at least {100 * TARGET:.0f} % of the time on every "
             f"instruction is `{best}`: in place {places} %, reward {row['reward']:.1f}, "
             f"{share_text(row['reward'] / top)} of the best scripted team's {top:.1f} (the path "
-            f"follower: {pursuit:.1f}). Every team that earns more leaves its slot to work: in "
-            "this reward, in place on each instruction and 95 % of the best scripted team's "
-            "reward do not meet in any team searched here.",
+            f"follower: {pursuit:.1f}). Every team that earns more leaves its slot to work"
+            + (
+                ": in this reward, in place on each instruction and 95 % of the best scripted "
+                "team's reward do not meet in any team searched here."
+                if row["reward"] < 0.95 * top
+                else "."
+            ),
             "",
         ]
     lines += [

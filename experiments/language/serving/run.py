@@ -54,12 +54,14 @@ INTERFACES = ("fixed", "served@0.19", "served@0.25", "served@0.35", "served@0.5"
 COLUMNS = ("in_place", "at_slot", "formation", "time_to_slot", "reward")
 
 
-def play(team: str, checkpoint: Path, interface: str, trials: int, **env_params) -> dict:
+def play(
+    team: str, checkpoint: Path, interface: str, trials: int, seed: int = ENV_SEED, **env_params
+) -> dict:
     """One team under one interface: its summary per instruction and for the episode.
     ``env_params``: env parameters other than the checkpoint's (``inst_hold``)."""
     plan, _, step = interface.partition("@")
     total = STEPS * len(INSTRUCTIONS)
-    restored = schedule_env(checkpoint, total, trials, seed=ENV_SEED, **env_params)
+    restored = schedule_env(checkpoint, total, trials, seed=seed, **env_params)
     env = restored["env"]
     policy = restored["policy"] if team == "policy" else make_reference_policy(team, env)
     schedule = language_schedule(
