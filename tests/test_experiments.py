@@ -873,14 +873,20 @@ def test_the_consistency_page_reads_a_bound_gain_only_beyond_the_seeds_spread():
 
 def test_route_screens_compose_and_the_page_judges_each_instruction_against_80_percent():
     routes = _load(ROOT / "experiments" / "language" / "routes" / "run.py")
+    default = compose_config(routes.BUDGET_5M)
     for name, overrides in routes.SCREENS.items():
-        cfg = compose_config([*routes.BUDGET, *overrides])
-        # every screen at the control's consistency weight (1e-4, unclamped), whatever the default
-        assert (cfg.method.ce_coef, cfg.method.entropy_coef, cfg.train.ce_clamp) == (
-            1e-4, 1e-4, False,
-        ), name  # fmt: skip
+        cfg = compose_config([*routes.SCALE.get(name, routes.BUDGET), *overrides])
+        weights = (cfg.method.ce_coef, cfg.method.entropy_coef, cfg.train.ce_clamp)
+        if name.endswith("_5m"):  # the four-quadrant 5M page's ICCO: today's default weight
+            assert cfg.train.total_frames == 5_000_000, name
+            d = default
+            assert weights == (d.method.ce_coef, d.method.entropy_coef, d.train.ce_clamp), name
+        else:  # at the 2M control's consistency weight (1e-4, unclamped), whatever the default
+            assert cfg.train.total_frames == 2_000_000, name
+            assert weights == (1e-4, 1e-4, False), name
         p = cfg.env.params
-        routes_prob = {"control": 0.0, "hold_routes_0.2": 0.2, "hold_routes_all_soft": 1.0}
+        routes_prob = {"control": 0.0, "control_5m": 0.0, "hold_routes_0.2": 0.2}
+        routes_prob["hold_routes_all_soft"] = 1.0
         routes_prob = routes_prob.get(name, 0.5)
         assert p.waypoint_route_prob == routes_prob, name
         assert p.inst_hold == ("hold" in name), name
@@ -917,6 +923,10 @@ def test_route_screens_compose_and_the_page_judges_each_instruction_against_80_p
     assert f"| follower (progress r_inst) {places} other units |" in page
     assert f"| follower (cosine r_inst) {places} 400.0 (100%) |" in page
     assert not set(routes.RETIRED) & set(routes.SCREENS)
+    # the 5M control replays the four-quadrant 5M page's ICCO policies, not its other methods
+    control = routes.records_of(ROOT / "nowhere", "control_5m")
+    assert [p.name for p in control] == ["icco_seed0", "icco_seed1", "icco_seed2"]
+    assert not routes.records_of(ROOT / "nowhere", "hold_routes_5m")
 
 
 def test_a_kept_run_carries_its_policy_weights_and_no_training_state(tmp_path):
