@@ -266,7 +266,6 @@ def test_pages_best_scripted_rows_and_shares_are_their_results():
         "experiments/four_quadrants/5m/README.md",
         "experiments/language/README.md",
         "experiments/language/5m/README.md",
-        "experiments/language/5m_fixed_plan/README.md",
         "experiments/language/5m_no_layernorm/README.md",
     ):
         assert page in pages, f"{page} shows no best scripted row and share"
