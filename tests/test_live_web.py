@@ -235,9 +235,11 @@ def test_a_tab_adds_and_removes_robots_and_a_bad_change_is_answered(served):
     loop = LiveLoop.from_checkpoint(DEMO, seed=1, max_robots=4, episode_steps=10**6)
     server, url = served(loop)
 
-    def moved(ticks, robots):
-        first, last = np.asarray(ticks[0]["positions"]), np.asarray(ticks[-1]["positions"])
-        return np.linalg.norm(last - first, axis=-1)[robots]
+    def moved(ticks, robots):  # each robot's farthest from where it was at the first tick
+        if not ticks:
+            return np.zeros(len(robots))
+        pos = np.asarray([t["positions"] for t in ticks])
+        return np.linalg.norm(pos - pos[0], axis=-1).max(0)[robots]
 
     async def scenario():
         async with aiohttp.ClientSession() as http:
@@ -248,15 +250,13 @@ def test_a_tab_adds_and_removes_robots_and_a_bad_change_is_answered(served):
                 await a.send(type="add_robot")
                 await b.until(lambda: b.ticks[-1]["present"] == [True] * 4)  # every tab sees it
                 assert a.oks == 1 and loop.team == [0, 1, 2, 3]
-                n = len(b.ticks)
-                await b.until(lambda: len(b.ticks) > n + 20)
-                assert (moved(b.ticks[n:], [0, 1, 2, 3]) > 0).all()  # the four are driven
+                n = len(b.ticks)  # the four are driven (a robot holding its slot rests a while)
+                await b.until(lambda: (moved(b.ticks[n:], [0, 1, 2, 3]) > 0).all())
                 await b.send(type="remove_robot", robot=1)
                 await a.until(lambda: a.ticks[-1]["present"] == [True, False, True, True])
                 n = len(a.ticks)
-                await a.until(lambda: len(a.ticks) > n + 20)
-                still = moved(a.ticks[n:], [0, 1, 2, 3])
-                assert still[1] == 0 and (still[[0, 2, 3]] > 0).all(), still
+                await a.until(lambda: (moved(a.ticks[n:], [0, 2, 3]) > 0).all())
+                assert moved(a.ticks[n:], [1])[0] == 0  # the one removed stays where it was
                 # Bad changes: an error to the sender only, and the loop goes on.
                 await a.send(type="remove_robot", robot=1)  # not in the team
                 await a.send(type="add_robot", robot=0)  # already in

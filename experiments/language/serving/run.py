@@ -1,15 +1,19 @@
 """How a plan reaches the robots: given once, or served as the walks they trained on.
 
-    python experiments/language/serving/run.py                       # the table on README.md
+    git show 135403d:assets/demo_icco.pt > former_demo.pt  # the page's learned team
+    python experiments/language/serving/run.py --checkpoints former_demo.pt  # README.md
     python experiments/language/serving/run.py --checkpoints A.pt B.pt --label "ICCO, 5M"
+
+The page's learned team is the demo policy as it was until commit 135403d (ICCO, 5M, seed 1,
+``method.ce_coef`` 1e-4; :data:`LEARNED`): the served interface's step was chosen on it. The demo
+shipped since was trained on served routes (``assets/README.md``).
 
 The language protocol's four instructions ("Go right" -> "Move top" -> "Gather center" ->
 "Spread out", 145 steps each, the offline rule planner asked once per instruction and trial),
-20 trials on the env seed 20000 with the demo policy's env (its calibrated reward), for:
+20 trials on the env seed 20000 with the learned team's env (its calibrated reward), for:
 
 - the scripted teams: ``follower`` (greedy on r_inst), ``pursuit`` (a perfect path follower),
-  ``best_scripted`` (the yardstick), and the demo policy (``assets/demo_icco.pt``) or the given
-  checkpoints (pooled under ``--label``);
+  ``best_scripted`` (the yardstick), and the given checkpoints (pooled under ``--label``);
 - the interfaces: ``fixed`` (the planner's waypoints written once and kept) and ``served`` at
   several step lengths (:mod:`icco_torchrl.instructions.serving`).
 
@@ -48,7 +52,7 @@ import jobs  # noqa: E402  (experiments/jobs.py)
 
 INSTRUCTIONS = ("Go right", "Move top", "Gather center", "Spread out")
 STEPS, TRIALS, ENV_SEED = 145, 20, 20000
-DEMO = ROOT / "assets" / "demo_icco.pt"
+LEARNED = "former demo ICCO (135403d)"  # the page's learned rows: see the docstring
 REFERENCES = ("follower", "pursuit", "best_scripted")
 INTERFACES = ("fixed", "served@0.19", "served@0.25", "served@0.35", "served@0.5")
 COLUMNS = ("in_place", "at_slot", "formation", "time_to_slot", "reward")
@@ -132,7 +136,7 @@ def render(results: dict) -> str:
 def findings(results: dict) -> list[str]:
     """What the table says, every figure read from ``results`` (missing rows are left out)."""
     rows = results["rows"]
-    demo, served = "demo ICCO (assets/demo_icco.pt)", f"served@{DEFAULT_STEP:g}"
+    demo, served = LEARNED, f"served@{DEFAULT_STEP:g}"
 
     def place(team, plan):
         return "/".join(
@@ -210,8 +214,8 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument("--checkpoints", nargs="*", type=Path, default=[DEMO])
-    parser.add_argument("--label", default="demo ICCO (assets/demo_icco.pt)")
+    parser.add_argument("--checkpoints", nargs="+", type=Path, required=True)
+    parser.add_argument("--label", default=LEARNED)
     parser.add_argument("--interfaces", nargs="+", default=list(INTERFACES))
     parser.add_argument("--references", nargs="*", default=list(REFERENCES))
     parser.add_argument("--trials", type=int, default=TRIALS)
