@@ -41,6 +41,9 @@ import jobs  # noqa: E402  (experiments/jobs.py)
 serving = jobs.script(EXPERIMENTS / "language" / "serving" / "run.py", "serving_run")
 
 SEARCH_SEED = 30000  # not the evaluation's 20000
+# Where the scripted teams' env comes from: the 5M reproduction's (the paper's r_inst, the
+# calibrated reward), the env of the demo the page was measured with (commit 135403d's).
+ENV_SOURCE = EXPERIMENTS / "four_quadrants" / "5m" / "records" / "icco_seed0" / "policy.pt"
 TARGET = 0.8  # in place on each instruction, the issue's bar
 RADII = {"defend": ("1.75", "inf"), "collect": ("0", "1", "2", "3"), "deliver": ("0", "2", "inf")}
 REFERENCES = ("best_scripted", "pursuit")
@@ -57,7 +60,7 @@ def grid() -> list[str]:
 def play(team: str, trials: int) -> dict:
     """One team on the search episodes: in place per instruction and the episode's columns."""
     interface = f"served@{serving.DEFAULT_STEP:g}"
-    out = serving.play(team, serving.DEMO, interface, trials, seed=SEARCH_SEED)
+    out = serving.play(team, ENV_SOURCE, interface, trials, seed=SEARCH_SEED)
     return {
         "in_place": {i: out[i]["in_place"] for i in serving.INSTRUCTIONS},
         **{k: out[EPISODE][k] for k in serving.COLUMNS if k != "in_place"},
