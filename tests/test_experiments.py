@@ -876,7 +876,7 @@ def test_route_screens_compose_and_the_page_judges_each_instruction_against_80_p
     for name, overrides in routes.SCREENS.items():
         cfg = compose_config([*routes.SCALE.get(name, routes.BUDGET), *overrides])
         weights = (cfg.method.ce_coef, cfg.method.entropy_coef, cfg.train.ce_clamp)
-        if name.endswith("_5m"):  # the four-quadrant 5M page's ICCO: today's default weight
+        if name in routes.SCALE:  # the four-quadrant 5M page's ICCO: today's default weight
             assert cfg.train.total_frames == 5_000_000, name
             d = default
             assert weights == (d.method.ce_coef, d.method.entropy_coef, d.train.ce_clamp), name
@@ -884,8 +884,12 @@ def test_route_screens_compose_and_the_page_judges_each_instruction_against_80_p
             assert cfg.train.total_frames == 2_000_000, name
             assert weights == (1e-4, 1e-4, False), name
         p = cfg.env.params
-        routes_prob = {"control": 0.0, "control_5m": 0.0, "hold_routes_0.2": 0.2}
-        routes_prob["hold_routes_all_soft"] = 1.0
+        no_route = ("control", "control_5m")
+        routes_prob = {
+            "hold_routes_0.2": 0.2,
+            "hold_routes_all_soft": 1.0,
+            **dict.fromkeys(no_route, 0.0),
+        }
         routes_prob = routes_prob.get(name, 0.5)
         assert p.waypoint_route_prob == routes_prob, name
         assert p.inst_hold == ("hold" in name), name
